@@ -1,0 +1,270 @@
+"""One typed configuration, with the paper's parameter names and defaults.
+
+Amigoni, Gasparini & Gini (2006) name their parameters in capitals (POINTDISTANCETOLERANCE, ...);
+here they are snake_case fields with the same meaning and the paper's defaults, in metres and
+radians. Every run writes the resolved configuration next to its outputs (``to_dict``/``to_toml``).
+
+A config file is TOML with one table per section::
+
+    [extraction]
+    max_range = 8.0
+
+    [integration]
+    point_distance_tolerance = 0.010
+    heuristic = "consecutive"
+
+Command-line overrides use the field names with dashes (``--point-distance-tolerance 0.01``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal, get_args, get_type_hints
+
+from fleetmap.shared.errors import ConfigError
+
+Heuristic = Literal["all", "consecutive", "random", "histogram", "auto"]
+HEURISTICS: tuple[str, ...] = get_args(Heuristic)
+
+
+@dataclass(frozen=True)
+class ExtractionParams:
+    """Segment extraction from a range scan (paper III-D)."""
+
+    tau: float = 0.20
+    """Clustering threshold: consecutive points closer than this are in one cluster (m)."""
+    kappa: float = 0.025
+    """Polyline tolerance: every point of a cluster lies within this of its segment (m)."""
+    max_range: float = 20.0
+    """Ranges beyond this are treated as no return (m). The paper's SICK LMS 200 was set to 8 m;
+    real logs reach further, and far walls are what tells a corridor's length (the simulator's
+    8 m laser is unaffected)."""
+    breakpoint_angle: float = 0.1745
+    """Adaptive clustering (Borges & Aldon 2004; fleetmap, 0 = the paper's fixed tau): walls seen at
+    incidence down to this angle (rad, 10 degrees) stay one cluster however far apart their points are."""
+    min_cluster_points: int = 3
+    """Clusters with fewer points give no segment (a lone return is not a wall)."""
+    line_fit: bool = True
+    """Merge split pieces that fit one line and put segments on fitted lines (fleetmap, not the
+    paper: see fleetmap.shared.extraction); false gives the paper's polylines through the points."""
+
+
+@dataclass(frozen=True)
+class IntegrationParams:
+    """INTEGRATE (paper III, Algorithms 1-5) and what fleetmap adds to it."""
+
+    point_distance_tolerance: float = 0.015
+    """POINTDISTANCETOLERANCE: two points closer than this coincide (m)."""
+    angle_difference_tolerance: float = 0.2
+    """ANGLEDIFFERENCETOLERANCE: two angles closer than this are equal (rad)."""
+    segment_distance_threshold: float = 5.0
+    """SEGMENTDISTANCETHRESHOLD: pairs with d / POINTDISTANCETOLERANCE above this do not match."""
+    segment_length_refuse: float = 0.8
+    """SEGMENTLENGTHREFUSE: a transformation that makes two segments longer than this cross is
+    discarded (m)."""
+    fusion_tolerance: float = 0.015
+    """FUSIONTOLERANCE: the largest distance of a fused segment from its polyline (m)."""
+    segment_length_percentage: float = 20.0
+    """SEGMENTLENGTHPERCENTAGE: consecutive segments shorter than this percentage of the longest
+    segment form no angle (non-touching variant of the consecutive heuristic)."""
+    consecutive_touching_only: bool = False
+    """Consecutive heuristic, plain variant: only segments with a common extreme form an angle."""
+    segment_division_factor: float = 0.5
+    """SEGMENTDIVISIONFACTOR: random heuristic threshold base (Algorithm 3)."""
+    random_iterations: int = 9
+    """K of Algorithm 3; N_k = random_base_samples * 2**k draws in iteration k."""
+    random_base_samples: int = 20
+    """The 20 of N_k = 20 * 2**k (Algorithm 3)."""
+    nslots: int = 18
+    """Buckets of the orientation histogram (histogram heuristic)."""
+    penalization_base: float = 0.95
+    """Matching values of non-intersecting pairs are multiplied by base**(d / POINTDISTANCETOLERANCE)."""
+    heuristic: Heuristic = "auto"
+    """Which transformations to try: all, consecutive, random, histogram, or auto (the best of them)."""
+    seed: int = 0
+    """Seed of the random heuristic, so results are reproducible."""
+    min_vertex_angle: float = 0.35
+    """Two segments closer to parallel than this (rad) form no angle: their vertex is ill defined."""
+    refine: bool = True
+    """Refine the best transformation by least squares on the matched segment pairs."""
+    refine_candidates: int = 12
+    """How many of the best distinct transformations are refined before the best is chosen."""
+    auto_max_all_candidates: int = 4000
+    """auto also tries the all heuristic when it yields at most this many transformations."""
+    free_space_margin: float = 0.10
+    """A wall point closer to a scan's sensor than the wall it saw, by more than this (m), lies in
+    the scan's seen free space (fleetmap's free-space check, see fleetmap.shared.visibility)."""
+    valid_min_value: float = 1.0
+    """An integration is valid only if its value is at least this (m) ..."""
+    valid_min_fraction: float = 0.2
+    """... and at least this fraction of the smaller map's total segment length ..."""
+    valid_max_violation: float = 0.1
+    """... and puts at most this fraction of its value in the other scan's seen free space ..."""
+    valid_max_ambiguity: float = 0.8
+    """... and no clearly different transformation scores more than this fraction of its score."""
+
+
+@dataclass(frozen=True)
+class MergeParams:
+    """Merging many maps (paper IV and the map graph)."""
+
+    cycle_translation_tolerance: float = 0.30
+    """A non-tree edge that disagrees with its tree path by more than this (m) is rejected."""
+    cycle_rotation_tolerance: float = 0.087
+    """... or by more than this (rad, 5 degrees)."""
+    max_candidates: int = 0
+    """Integrate a new map against at most this many existing maps, most similar first (0: all)."""
+
+
+@dataclass(frozen=True)
+class FleetmapConfig:
+    """The whole configuration: one section per stage."""
+
+    extraction: ExtractionParams = field(default_factory=ExtractionParams)
+    integration: IntegrationParams = field(default_factory=IntegrationParams)
+    merge: MergeParams = field(default_factory=MergeParams)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in fields(self)}
+
+    def to_toml(self) -> str:
+        lines: list[str] = []
+        for section, values in self.to_dict().items():
+            lines.append(f"[{section}]")
+            for key, value in values.items():
+                lines.append(f"{key} = {_toml_value(value)}")
+            lines.append("")
+        return "\n".join(lines)
+
+
+SECTIONS: dict[str, type] = {
+    "extraction": ExtractionParams,
+    "integration": IntegrationParams,
+    "merge": MergeParams,
+}
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
+
+
+def _coerce(section: str, name: str, kind: Any, value: Any, source: str) -> Any:
+    """Check one value against its field type; the error names the file and the field."""
+    where = f"{source}: [{section}] {name}"
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
+            return value.lower() in ("true", "1", "yes")
+        raise ConfigError(where, f"expected true or false, got {value!r}")
+    if kind is int:
+        if isinstance(value, bool):
+            raise ConfigError(where, f"expected an integer, got {value!r}")
+        try:
+            number = int(value) if isinstance(value, (int, str)) else None
+        except ValueError:
+            number = None
+        if number is None or (isinstance(value, str) and str(number) != value.strip()):
+            raise ConfigError(where, f"expected an integer, got {value!r}")
+        if number < 0:
+            raise ConfigError(where, f"must not be negative, got {number}")
+        return number
+    if kind is float:
+        if isinstance(value, bool):
+            raise ConfigError(where, f"expected a number, got {value!r}")
+        try:
+            number_f = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(where, f"expected a number, got {value!r}") from None
+        if not math.isfinite(number_f):
+            raise ConfigError(where, f"must be finite, got {value!r}")
+        if number_f < 0:
+            raise ConfigError(where, f"must not be negative, got {number_f}")
+        return number_f
+    choices = get_args(kind)
+    if choices:
+        if value not in choices:
+            raise ConfigError(where, f"expected one of {', '.join(choices)}, got {value!r}")
+        return value
+    raise ConfigError(where, f"unsupported type {kind!r}")  # pragma: no cover - a field we forgot
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
+def apply_overrides(config: FleetmapConfig, overrides: Mapping[str, Mapping[str, Any]], source: str) -> FleetmapConfig:
+    """Return ``config`` with ``{section: {field: value}}`` applied; unknown names are errors."""
+    sections: dict[str, Any] = {}
+    for section, values in overrides.items():
+        if section not in SECTIONS:
+            raise ConfigError(source, f"unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, Mapping):
+            raise ConfigError(source, f"[{section}] must be a table")
+        cls = SECTIONS[section]
+        types = _field_types(cls)
+        current = getattr(config, section)
+        changes = {}
+        for name, value in values.items():
+            if name not in types:
+                raise ConfigError(f"{source}: [{section}] {name}", f"unknown parameter (known: {', '.join(types)})")
+            changes[name] = _coerce(section, name, types[name], value, source)
+        sections[section] = replace(current, **changes)
+    return replace(config, **sections)
+
+
+def load_config(path: str | Path | None = None) -> FleetmapConfig:
+    """The defaults, updated from a TOML file when one is given."""
+    config = FleetmapConfig()
+    if path is None:
+        return config
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(str(p), "no such config file") from None
+    except OSError as exc:
+        raise ConfigError(str(p), f"cannot read: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(p), f"not valid TOML: {exc}") from None
+    return apply_overrides(config, data, str(p))
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str]) -> None:
+    """Add ``--config FILE`` and one ``--field-name VALUE`` option per field of ``sections``."""
+    parser.add_argument("--config", metavar="FILE", help="TOML config file (see fleetmap.shared.config)")
+    for section in sections:
+        cls = SECTIONS[section]
+        group = parser.add_argument_group(f"{section} parameters (override the config file)")
+        for f in fields(cls):
+            default = f.default
+            group.add_argument(
+                "--" + f.name.replace("_", "-"),
+                dest=f"cfg__{section}__{f.name}",
+                metavar=type(default).__name__.upper() if not isinstance(default, str) else "NAME",
+                default=None,
+                help=f"default {default!r}",
+            )
+
+
+def config_from_args(args: argparse.Namespace) -> FleetmapConfig:
+    """The config file named by ``--config`` (or the defaults) with the command-line overrides."""
+    config = load_config(getattr(args, "config", None))
+    overrides: dict[str, dict[str, Any]] = {}
+    for key, value in vars(args).items():
+        if key.startswith("cfg__") and value is not None:
+            _, section, name = key.split("__", 2)
+            overrides.setdefault(section, {})[name] = value
+    return apply_overrides(config, overrides, "command line") if overrides else config

@@ -1,0 +1,24 @@
+"""One exception hierarchy for the whole library; the CLI turns it into exit codes."""
+
+from __future__ import annotations
+
+
+class FleetmapError(Exception):
+    """Base class of every error fleetmap raises on purpose."""
+
+
+class BadInput(FleetmapError):
+    """Input that cannot be used: a file, a message or a value, named in the message.
+
+    ``source`` names the input (a path, a message key, a config field) and ``reason`` says
+    what is wrong with it; ``str()`` gives the one line the CLI prints.
+    """
+
+    def __init__(self, source: str, reason: str) -> None:
+        self.source = source
+        self.reason = reason
+        super().__init__(f"{source}: {reason}")
+
+
+class ConfigError(BadInput):
+    """A configuration file or override that names an unknown field or a bad value."""

@@ -1,0 +1,282 @@
+"""Evaluate transformations (paper III-B, Algorithm 4), vectorised over candidates and pairs.
+
+The transformation value of t is the sum of the matching values of every pair (s1, s2^t)
+(:func:`fleetmap.shared.geometry.matching_value`); t is discarded when it makes two segments
+longer than SEGMENTLENGTHREFUSE cross (steps 6-8).
+
+What makes it fast without changing the result that matters:
+
+- A pair contributes only if its segments overlap once projected and are within
+  SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE (d) of each other. Pairs are looked up
+  by orientation: all pairs (i, k) are sorted by the rotation that would make them parallel, so
+  the pairs near parallel under a candidate's rotation are one binary search away, and a
+  midpoint-distance test (exact: segments whose midpoints are farther apart than their half
+  lengths plus the threshold cannot overlap) prunes the rest before the exact computation.
+  Pairs more than ``PAIR_ANGLE_LIMIT`` from parallel are skipped: for them d <= D forces the
+  shorter segment to be shorter than 2D / sin(angle), so their matching value is at most
+  2D cot(angle), under 0.15 m at the default D = 75 mm, and in practice zero.
+- The early stop of III-B: S1's segments are taken longest first in blocks; after each block a
+  candidate whose value plus the length of S1 not yet evaluated cannot reach the best value
+  known (from the most supported candidates, evaluated first) is dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from fleetmap.shared.candidates import IntArray, ragged_ranges
+from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.geometry import Array, lengths, matching_value, orientations
+
+PAIR_ANGLE_LIMIT = 0.5
+"""Pairs further from parallel than this (rad) are not evaluated (see the module docstring)."""
+
+CHUNK_ENTRIES = 1_500_000
+"""Candidate-pair entries processed at once: bounds memory to a few tens of MB."""
+
+
+@dataclass(frozen=True)
+class PreparedPairs:
+    """Everything about S1 x S2 that does not depend on the candidate transformation."""
+
+    s1: Array
+    s2: Array
+    period: float
+    len1: Array
+    mid1: Array
+    half1: Array
+    mid2: Array
+    half2: Array
+    blocks: list[tuple[IntArray, Array, IntArray, IntArray]]
+    """Per block of S1 (longest segments first): sorted pair rotations (tripled for
+    wrap-around), the pair index behind each, and the pairs' S1 and S2 indices."""
+    remaining_after: list[float]
+    """Total length of S1 not yet evaluated after each block."""
+    long1: IntArray
+    long2: IntArray
+    phi1: Array
+    phi2: Array
+
+
+def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams, blocks: int = 3) -> PreparedPairs:
+    period = 2 * math.pi if oriented else math.pi
+    len1, len2 = lengths(s1), lengths(s2)
+    phi1, phi2 = orientations(s1), orientations(s2)
+    order1 = np.argsort(-len1, kind="stable")
+    cum = np.cumsum(len1[order1])
+    total = float(cum[-1]) if len(cum) else 0.0
+    # Block edges at fixed fractions of S1's length: the first block holds the longest segments.
+    fractions = [0.5, 0.8, 1.0][-blocks:] if blocks <= 3 else list(np.linspace(0, 1, blocks + 1)[1:])
+    edges = [0]
+    for f in fractions:
+        e = int(np.searchsorted(cum, f * total - 1e-12, side="left")) + 1
+        e = min(max(e, edges[-1] + 1), len(s1))
+        if e > edges[-1]:
+            edges.append(e)
+    if edges[-1] < len(s1):
+        edges.append(len(s1))
+    block_list = []
+    remaining = []
+    n2 = len(s2)
+    for b in range(len(edges) - 1):
+        rows = order1[edges[b] : edges[b + 1]]
+        i = np.repeat(rows, n2)
+        k = np.tile(np.arange(n2), len(rows))
+        rot = np.mod(phi1[i] - phi2[k] + period / 2, period) - period / 2
+        order = np.argsort(rot, kind="stable")
+        rs = rot[order]
+        ext = np.concatenate([rs - period, rs, rs + period])
+        block_list.append((np.concatenate([order, order, order]), ext, i, k))
+        remaining.append(total - float(cum[edges[b + 1] - 1]))
+    refuse = params.segment_length_refuse
+    return PreparedPairs(
+        s1=s1,
+        s2=s2,
+        period=period,
+        len1=len1,
+        mid1=0.5 * (s1[:, 0:2] + s1[:, 2:4]),
+        half1=0.5 * len1,
+        mid2=0.5 * (s2[:, 0:2] + s2[:, 2:4]),
+        half2=0.5 * len2,
+        blocks=block_list,
+        remaining_after=remaining,
+        long1=np.flatnonzero(len1 > refuse),
+        long2=np.flatnonzero(len2 > refuse),
+        phi1=phi1,
+        phi2=phi2,
+    )
+
+
+def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
+    """Algorithm 4, steps 6-8: candidates that make two long segments cross.
+
+    Two segments longer than SEGMENTLENGTHREFUSE that cross each other cannot both be walls seen
+    by the two maps. "Cross" is read strictly: each segment reaches more than
+    SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE beyond the other's line on both sides.
+    Two walls meeting at a corner touch (and, with extraction noise, overshoot a little) without
+    crossing, and two nearly parallel segments that overlap are a match, not a contradiction.
+    """
+    out = np.zeros(len(t), dtype=bool)
+    if len(prep.long1) == 0 or len(prep.long2) == 0 or len(t) == 0:
+        return out
+    a = prep.s1[prep.long1]
+    b = prep.s2[prep.long2]
+    margin = params.segment_distance_threshold * params.point_distance_tolerance
+    ua = a[:, 2:4] - a[:, 0:2]
+    na = np.column_stack([-ua[:, 1], ua[:, 0]]) / np.hypot(ua[:, 0], ua[:, 1])[:, None]
+    step = max(1, CHUNK_ENTRIES // (len(a) * len(b)))
+    for c0 in range(0, len(t), step):
+        bt = _transform(b, t[c0 : c0 + step])  # (c, nb, 4)
+        # Signed distances of b's ends from a's lines and of a's ends from b's lines: (c, na, nb).
+        ends_b = [bt[:, None, :, 0:2], bt[:, None, :, 2:4]]
+        db = [np.einsum("...j,...j->...", e - a[None, :, None, 0:2], na[None, :, None, :]) for e in ends_b]
+        ub = bt[..., 2:4] - bt[..., 0:2]
+        nb = np.stack([-ub[..., 1], ub[..., 0]], axis=-1) / np.hypot(ub[..., 0], ub[..., 1])[..., None]
+        da = [
+            np.einsum("...j,...j->...", a[None, :, None, s : s + 2] - bt[:, None, :, 0:2], nb[:, None, :, :])
+            for s in (0, 2)
+        ]
+        b_crosses_a = (np.minimum(db[0], db[1]) < -margin) & (np.maximum(db[0], db[1]) > margin)
+        a_crosses_b = (np.minimum(da[0], da[1]) < -margin) & (np.maximum(da[0], da[1]) > margin)
+        out[c0 : c0 + step] = (b_crosses_a & a_crosses_b).any(axis=(1, 2))
+    return out
+
+
+def _transform(seg: Array, t: Array) -> Array:
+    c = np.cos(t[:, 2])[:, None]
+    s = np.sin(t[:, 2])[:, None]
+    out = np.empty((len(t), len(seg), 4))
+    for k in (0, 2):
+        out[:, :, k] = c * seg[None, :, k] - s * seg[None, :, k + 1] + t[:, 0, None]
+        out[:, :, k + 1] = s * seg[None, :, k] + c * seg[None, :, k + 1] + t[:, 1, None]
+    return out
+
+
+def _block_values(
+    prep: PreparedPairs, block: int, t: Array, params: IntegrationParams, want_pairs: bool = False
+) -> tuple[Array, tuple[IntArray, IntArray, IntArray, Array] | None]:
+    """Sum of matching values over the pairs of one S1 block, for each candidate."""
+    order, ext, pi, pk = prep.blocks[block]
+    d_max = params.segment_distance_threshold * params.point_distance_tolerance
+    theta = np.mod(t[:, 2] + prep.period / 2, prep.period) - prep.period / 2
+    lo = np.searchsorted(ext, theta - PAIR_ANGLE_LIMIT, side="left")
+    hi = np.searchsorted(ext, theta + PAIR_ANGLE_LIMIT, side="right")
+    values = np.zeros(len(t))
+    found: list[tuple[IntArray, IntArray, IntArray, Array]] = []
+    counts = hi - lo
+    c0 = 0
+    while c0 < len(t):
+        # As many candidates as fit in one chunk of entries.
+        csum = np.cumsum(counts[c0:])
+        c1 = c0 + max(1, int(np.searchsorted(csum, CHUNK_ENTRIES, side="right")))
+        owner, pos = ragged_ranges(lo[c0:c1], hi[c0:c1])
+        pair = order[pos]
+        i = pi[pair]
+        k = pk[pair]
+        tc = t[c0:c1]
+        cos = np.cos(tc[:, 2])
+        sin = np.sin(tc[:, 2])
+        oc, os_ = cos[owner], sin[owner]
+        m2 = prep.mid2[k]
+        mx = oc * m2[:, 0] - os_ * m2[:, 1] + tc[owner, 0]
+        my = os_ * m2[:, 0] + oc * m2[:, 1] + tc[owner, 1]
+        reach = prep.half1[i] + prep.half2[k] + d_max
+        near = (mx - prep.mid1[i, 0]) ** 2 + (my - prep.mid1[i, 1]) ** 2 <= reach * reach
+        owner, i, k, oc, os_ = owner[near], i[near], k[near], oc[near], os_[near]
+        b = prep.s2[k]
+        tx, ty = tc[owner, 0], tc[owner, 1]
+        bt = np.column_stack(
+            [
+                oc * b[:, 0] - os_ * b[:, 1] + tx,
+                os_ * b[:, 0] + oc * b[:, 1] + ty,
+                oc * b[:, 2] - os_ * b[:, 3] + tx,
+                os_ * b[:, 2] + oc * b[:, 3] + ty,
+            ]
+        )
+        mv = matching_value(
+            prep.s1[i],
+            bt,
+            params.point_distance_tolerance,
+            params.segment_distance_threshold,
+            params.penalization_base,
+        )
+        values[c0:c1] += np.bincount(owner, weights=mv, minlength=c1 - c0)
+        if want_pairs:
+            pos_mv = mv > 0
+            found.append((owner[pos_mv] + c0, i[pos_mv], k[pos_mv], mv[pos_mv]))
+        c0 = c1
+    if not want_pairs:
+        return values, None
+    if not found:
+        z = np.zeros(0, np.int64)
+        return values, (z, z, z, np.zeros(0))
+    return values, tuple(np.concatenate(parts) for parts in zip(*found, strict=True))  # type: ignore[return-value]
+
+
+def transformation_values(
+    prep: PreparedPairs,
+    t: Array,
+    params: IntegrationParams,
+    best_known: float | None = None,
+) -> Array:
+    """The transformation value of each candidate (Algorithm 4, steps 2-23).
+
+    Discarded candidates (steps 6-8) get -1. With ``best_known`` (the early stop of III-B), a
+    candidate whose value plus the length of S1 not yet evaluated falls below ``best_known`` is
+    dropped and also gets -1: it cannot be the best.
+    """
+    values = np.zeros(len(t))
+    alive = ~refused(prep, t, params)
+    values[~alive] = -1.0
+    for b in range(len(prep.blocks)):
+        idx = np.flatnonzero(alive)
+        if len(idx) == 0:
+            break
+        v, _ = _block_values(prep, b, t[idx], params)
+        values[idx] += v
+        if best_known is not None and b + 1 < len(prep.blocks):
+            hopeless = values[idx] + prep.remaining_after[b] < best_known
+            values[idx[hopeless]] = -1.0
+            alive[idx[hopeless]] = False
+    return values
+
+
+def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> tuple[IntArray, IntArray, Array]:
+    """Pairs (i in S1, k in S2) with a positive matching value under one transformation.
+
+    One transformation needs no sorting: the same orientation and midpoint filters run densely
+    over the n1 x n2 pairs.
+    """
+    x, y, theta = (float(v) for v in np.asarray(t, dtype=np.float64).reshape(3))
+    c, s = math.cos(theta), math.sin(theta)
+    s2 = prep.s2
+    bt = np.column_stack(
+        [
+            c * s2[:, 0] - s * s2[:, 1] + x,
+            s * s2[:, 0] + c * s2[:, 1] + y,
+            c * s2[:, 2] - s * s2[:, 3] + x,
+            s * s2[:, 2] + c * s2[:, 3] + y,
+        ]
+    )
+    d_max = params.segment_distance_threshold * params.point_distance_tolerance
+    mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
+    dx = prep.mid1[:, None, 0] - mid2[None, :, 0]
+    dy = prep.mid1[:, None, 1] - mid2[None, :, 1]
+    reach = prep.half1[:, None] + prep.half2[None, :] + d_max
+    rot = np.mod(prep.phi1[:, None] - prep.phi2[None, :] - theta + prep.period / 2, prep.period) - prep.period / 2
+    i, k = np.nonzero((dx * dx + dy * dy <= reach * reach) & (np.abs(rot) <= PAIR_ANGLE_LIMIT))
+    mv = matching_value(
+        prep.s1[i], bt[k], params.point_distance_tolerance, params.segment_distance_threshold, params.penalization_base
+    )
+    keep = mv > 0
+    return i[keep].astype(np.int64), k[keep].astype(np.int64), mv[keep]
+
+
+def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams) -> float:
+    """The transformation value of one transformation (-1 when discarded)."""
+    tt = np.asarray(t, dtype=np.float64).reshape(1, 3)
+    if refused(prep, tt, params)[0]:
+        return -1.0
+    return float(matched_pairs(prep, tt, params)[2].sum())

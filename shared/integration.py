@@ -1,0 +1,291 @@
+"""INTEGRATE (paper III, Algorithm 1): the transformation of S2 on S1 from geometry alone.
+
+1. Find transformations (Algorithm 2/3, :mod:`fleetmap.shared.candidates`).
+2. Evaluate them and keep the best (Algorithm 4, :mod:`fleetmap.shared.evaluation`), then refine
+   the few best distinct ones by least squares (:mod:`fleetmap.shared.refine`) and keep the one
+   with the highest transformation value.
+3. Fuse S1 and S2^t (Algorithm 5, :mod:`fleetmap.shared.fusion`), on demand.
+
+Validity (``valid``): the paper leaves it to a user threshold on the value (V-B) and reports that
+right integrations of its local maps scored about 10 m and wrong ones about 5 m. A fixed
+threshold cannot serve both a pair of scans (a few metres of wall) and a pair of local maps
+(tens of metres), so the rule is relative to the maps' sizes: an integration is valid when its
+value is at least ``valid_min_value`` metres *and* at least ``valid_min_fraction`` of the total
+segment length of the smaller map, i.e. a fair share of what the smaller map saw is explained by
+the other. The benchmark (``benchmarks/integration.py``) measures how well this separates right
+from wrong integrations on real scans.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from fleetmap.shared.candidates import IntArray, find_transformations
+from fleetmap.shared.config import HEURISTICS, IntegrationParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.evaluation import (
+    PreparedPairs,
+    matched_pairs,
+    prepare,
+    transformation_value,
+    transformation_values,
+)
+from fleetmap.shared.geometry import Array, Transform2D, lengths
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.refine import refine_transform
+from fleetmap.shared.visibility import FreeSpace
+
+AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
+"""What auto tries: the paper's heuristics, fleetmap's segment alignments (for corridors, which
+have no angles), and all pairs while the maps are small enough for that to stay cheap."""
+
+FIRST_CHUNK = 256
+"""The most supported candidates are evaluated in full first; their best score seeds the early stop."""
+
+DISTINCT_TRANSLATION = 0.10
+DISTINCT_ROTATION = 0.035
+"""Candidates closer than this (m, rad) are refined only once: refinement converges within."""
+
+SHORTLIST = 64
+"""Candidates (best values first) whose free-space consistency is measured before the choice."""
+
+
+@dataclass(frozen=True)
+class Integration:
+    """The outcome of integrating S2 on S1: ``transform`` maps S2's frame into S1's."""
+
+    transform: Transform2D
+    value: float
+    valid: bool
+    seconds: float
+    candidates: int
+    """Distinct transformations evaluated."""
+    heuristic: str
+    """The heuristic whose transformation won (for auto: the one that found it first)."""
+    violation: float = 0.0
+    """Wall length (m) each map puts in the other's seen free space (scans only)."""
+    runner_up: float = 0.0
+    """Score of the best transformation clearly different from the chosen one (more than
+    AMBIGUITY_TRANSLATION or AMBIGUITY_ROTATION away): close to the best's in a repetitive world."""
+    matches: tuple[IntArray, IntArray] = field(repr=False, default=(np.zeros(0, np.int64), np.zeros(0, np.int64)))
+    """Matched segment pairs (index in S1, index in S2) under ``transform``."""
+
+    def to_json_dict(self) -> dict[str, float | bool]:
+        return {
+            "x": self.transform.x,
+            "y": self.transform.y,
+            "theta": self.transform.theta,
+            "value": self.value,
+            "valid": self.valid,
+            "seconds": self.seconds,
+        }
+
+
+def is_valid(
+    value: float, violation: float, runner_up: float, m1: SegmentMap, m2: SegmentMap, params: IntegrationParams
+) -> bool:
+    """The validity rule of the module docstring."""
+    smaller = min(m1.total_length, m2.total_length)
+    return (
+        value >= params.valid_min_value
+        and value >= params.valid_min_fraction * smaller
+        and violation <= params.valid_max_violation * value
+        and runner_up <= params.valid_max_ambiguity * (value - violation)
+    )
+
+
+def gather_candidates(
+    m1: SegmentMap, m2: SegmentMap, heuristic: str, params: IntegrationParams
+) -> tuple[Array, IntArray]:
+    """Candidate transformations and the index (in AUTO_ORDER) of the heuristic behind each."""
+    names = AUTO_ORDER if heuristic == "auto" else (heuristic,)
+    parts, labels = [], []
+    for name in names:
+        if heuristic != "auto" and name == "alignments":
+            continue
+        if heuristic == "auto" and name == "all":
+            # auto tries all pairs only while that stays cheap (small maps).
+            n1, n2 = len(m1), len(m2)
+            if (
+                n1 * (n1 - 1) / 2 * n2 * (n2 - 1) * params.angle_difference_tolerance / math.pi
+                > params.auto_max_all_candidates
+            ):
+                continue
+        t = find_transformations(m1, m2, name, params)
+        parts.append(t)
+        labels.append(np.full(len(t), AUTO_ORDER.index(name), dtype=np.int64))
+    if not parts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    return np.vstack(parts), np.concatenate(labels)
+
+
+def distinct_candidates(t: Array, labels: IntArray, params: IntegrationParams) -> tuple[Array, IntArray]:
+    """Candidates closer than POINTDISTANCETOLERANCE and 0.3 degrees are one; most supported first.
+
+    Support is the number of candidates in the same 0.1 m / 0.05 rad cell: the right
+    transformation is usually found from many angle pairs, so evaluating the most supported
+    candidates first lets the early stop prune the rest.
+    """
+    if len(t) == 0:
+        return t, labels
+    q = params.point_distance_tolerance
+    fine = np.column_stack([np.round(t[:, 0] / q), np.round(t[:, 1] / q), np.round(t[:, 2] / 0.005)]).astype(np.int64)
+    _, first = np.unique(fine, axis=0, return_index=True)
+    coarse = np.column_stack([np.round(t[:, 0] / 0.1), np.round(t[:, 1] / 0.1), np.round(t[:, 2] / 0.05)]).astype(
+        np.int64
+    )
+    _, cell, support = np.unique(coarse, axis=0, return_inverse=True, return_counts=True)
+    keep = np.sort(first)
+    order = np.lexsort((keep, -support[cell.ravel()[keep]]))
+    chosen = keep[order]
+    return t[chosen], labels[chosen]
+
+
+def _pick_distinct(t: Array, values: Array, k: int) -> list[int]:
+    """Indices of the k best candidates that differ by more than DISTINCT_TRANSLATION or DISTINCT_ROTATION."""
+    picked: list[int] = []
+    for idx in np.argsort(-values, kind="stable"):
+        if values[idx] <= 0 or len(picked) >= k:
+            break
+        ok = True
+        for j in picked:
+            d = math.hypot(t[idx, 0] - t[j, 0], t[idx, 1] - t[j, 1])
+            a = abs(math.remainder(t[idx, 2] - t[j, 2], 2 * math.pi))
+            if d < DISTINCT_TRANSLATION and a < DISTINCT_ROTATION:
+                ok = False
+                break
+        if ok:
+            picked.append(int(idx))
+    return picked
+
+
+def check_map(m: SegmentMap, name: str) -> None:
+    if len(m) == 0:
+        raise BadInput(name, "the map is empty (no segments)")
+    if not np.isfinite(m.segments).all():
+        raise BadInput(name, "the map has NaN or infinite coordinates")
+    if (lengths(m.segments) <= 0).any():
+        raise BadInput(name, "the map has a zero-length segment")
+
+
+def integrate(
+    m1: SegmentMap,
+    m2: SegmentMap,
+    params: IntegrationParams | None = None,
+    heuristic: str | None = None,
+) -> Integration:
+    """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity.
+
+    The best transformation has the highest *score*: its transformation value minus the wall
+    length it puts in the seen free space of a scan (:mod:`fleetmap.shared.visibility`; zero for
+    maps that are not scans, so the score is the paper's value there).
+    """
+    p = params or IntegrationParams()
+    h = heuristic or p.heuristic
+    if h not in HEURISTICS:
+        raise BadInput("heuristic", f"unknown heuristic {h!r} (known: {', '.join(HEURISTICS)})")
+    check_map(m1, "S1")
+    check_map(m2, "S2")
+    start = time.perf_counter()
+    oriented = m1.oriented and m2.oriented
+    prep = prepare(m1.segments, m2.segments, oriented, p)
+    free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.free_space_margin)
+    raw, labels = gather_candidates(m1, m2, h, p)
+    cand, labels = distinct_candidates(raw, labels, p)
+    best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
+    runner_up = 0.0
+    if len(cand):
+        values = np.full(len(cand), -1.0)
+        head = slice(0, min(FIRST_CHUNK, len(cand)))
+        values[head] = transformation_values(prep, cand[head], p)
+        head_best = _shortlist_scores(cand[head], values[head], free)
+        if len(cand) > FIRST_CHUNK:
+            known = float(head_best.max()) if len(head_best) else 0.0
+            values[FIRST_CHUNK:] = transformation_values(prep, cand[FIRST_CHUNK:], p, best_known=max(known, 0.0))
+        shortlist = np.argsort(-values, kind="stable")[:SHORTLIST]
+        shortlist = shortlist[values[shortlist] > 0]
+        scores = values[shortlist] - free.violation(cand[shortlist]) if free.active else values[shortlist]
+        picked = _pick_distinct(cand[shortlist], scores, max(1, p.refine_candidates) if p.refine else 1)
+        finals: list[_Choice] = []
+        for j in picked:
+            idx = int(shortlist[j])
+            finals.append(
+                _Choice(Transform2D.from_array(cand[idx]), float(values[idx]), float(scores[j]), int(labels[idx]))
+            )
+        if p.refine:
+            # Two stages: a few steps for every pick, then to convergence for those still in the race.
+            finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS) for c in finals]
+            top = max((c.score for c in finals), default=0.0)
+            finals = [_refined(prep, free, c, p, 12) if c.score >= REFINE_KEEP * top else c for c in finals]
+        for choice in finals:
+            if choice.score > best.score:
+                best = choice
+        alternatives = [(c.transform.as_array(), c.score) for c in finals]
+        alternatives += [(cand[int(i)], float(sc)) for i, sc in zip(shortlist, scores, strict=True)]
+        runner_up = max(
+            (sc for t, sc in alternatives if _far(t, best.transform)),
+            default=0.0,
+        )
+    matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    seconds = time.perf_counter() - start
+    violation = best.value - best.score
+    return Integration(
+        transform=best.transform,
+        value=best.value,
+        valid=is_valid(best.value, violation, max(runner_up, 0.0), m1, m2, p),
+        seconds=seconds,
+        candidates=len(cand),
+        heuristic=AUTO_ORDER[best.label] if h == "auto" else h,
+        violation=violation,
+        runner_up=max(runner_up, 0.0),
+        matches=matches,
+    )
+
+
+AMBIGUITY_TRANSLATION = 0.5
+AMBIGUITY_ROTATION = 0.17
+
+
+def _far(t: Array, ref: Transform2D) -> bool:
+    return (
+        math.hypot(t[0] - ref.x, t[1] - ref.y) > AMBIGUITY_TRANSLATION
+        or abs(math.remainder(t[2] - ref.theta, 2 * math.pi)) > AMBIGUITY_ROTATION
+    )
+
+
+@dataclass(frozen=True)
+class _Choice:
+    transform: Transform2D
+    value: float
+    score: float
+    label: int
+
+
+REFINE_FIRST_STEPS = 3
+REFINE_KEEP = 0.6
+"""Picks scoring under this fraction of the best after the first steps are not refined further."""
+
+
+def _refined(prep: PreparedPairs, free: FreeSpace, c: _Choice, p: IntegrationParams, steps: int) -> _Choice:
+    """``c`` refined by least squares, if that raises its score."""
+    t = refine_transform(prep, c.transform, p, iterations=steps)
+    v = transformation_value(prep, t.as_array(), p)
+    score = v - float(free.violation(t.as_array())[0]) if free.active else v
+    return _Choice(t, v, score, c.label) if score >= c.score else c
+
+
+def _shortlist_scores(t: Array, values: Array, free: FreeSpace) -> Array:
+    """Scores of the best few candidates of a batch (value minus free-space violation)."""
+    top = np.argsort(-values, kind="stable")[:8]
+    top = top[values[top] > 0]
+    if len(top) == 0:
+        return np.zeros(0)
+    return values[top] - free.violation(t[top]) if free.active else values[top]
+
+
+def _matches(prep: PreparedPairs, t: Transform2D, p: IntegrationParams) -> tuple[IntArray, IntArray]:
+    i, k, _ = matched_pairs(prep, t.as_array(), p)
+    return i, k

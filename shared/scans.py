@@ -1,0 +1,169 @@
+"""Range scans and their readers: CARMEN logs and the ranges JSONL of the contracts.
+
+A :class:`RangeScan` is one laser sweep in the laser's frame (x forward, y left): beam i points at
+``angle_min + i * angle_increment``. A range that is not finite, is <= 0 or is >= ``range_max``
+is "no return". The pose a log may carry (``odom``) is kept for benchmarks only; the algorithms
+never read it.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Array
+
+
+@dataclass(frozen=True)
+class RangeScan:
+    stamp: float
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: Array
+    odom: tuple[float, float, float] | None = None
+    """The pose written on the log line (odometry or SLAM-corrected): never used by the algorithms."""
+
+    def to_json_dict(self) -> dict[str, Any]:
+        return {
+            "stamp": self.stamp,
+            "angle_min": self.angle_min,
+            "angle_increment": self.angle_increment,
+            "range_max": self.range_max,
+            "ranges": [float(r) if math.isfinite(r) else None for r in self.ranges],
+        }
+
+
+def half_circle_angles(n: int) -> tuple[float, float]:
+    """angle_min and angle_increment of an n-beam FLASER/RLASER line.
+
+    FLASER lines do not say their field of view. CARMEN's logs (and the datasets' README) spread
+    the beams over the half circle -90..+90 degrees, first beam to the right, both ends included.
+    """
+    return -math.pi / 2.0, math.pi / max(n - 1, 1)
+
+
+def _open_text(path: Path) -> IO[str]:
+    if path.suffix == ".gz":
+        return gzip.open(path, "rt", encoding="utf-8", errors="replace")
+    return path.open("r", encoding="utf-8", errors="replace")
+
+
+def _floats(tokens: list[str], source: str) -> Array:
+    try:
+        return np.array([float(t) for t in tokens], dtype=np.float64)
+    except ValueError:
+        raise BadInput(source, "expected numbers") from None
+
+
+def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | None:
+    """One CARMEN log line as a scan, or None for lines that carry no laser data."""
+    tokens = line.split()
+    if not tokens:
+        return None
+    kind = tokens[0]
+    try:
+        if kind in ("FLASER", "RLASER"):
+            n = int(tokens[1])
+            ranges = _floats(tokens[2 : 2 + n], source)
+            rest = tokens[2 + n :]
+            if len(ranges) != n or len(rest) < 7:
+                raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
+            pose = _floats(rest[0:3], source)
+            stamp = float(rest[6])
+            angle_min, inc = half_circle_angles(n)
+            return RangeScan(stamp, angle_min, inc, range_max, ranges, (pose[0], pose[1], pose[2]))
+        if kind in ("ROBOTLASER1", "ROBOTLASER2"):
+            start, _fov, res, max_range = _floats(tokens[2:6], source)
+            n = int(tokens[8])
+            ranges = _floats(tokens[9 : 9 + n], source)
+            n_rem = int(tokens[9 + n])
+            rest = tokens[10 + n + n_rem :]
+            if len(ranges) != n or len(rest) < 12:
+                raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
+            pose = _floats(rest[0:3], source)
+            stamp = float(rest[11])
+            return RangeScan(stamp, start, res, min(max_range, range_max), ranges, (pose[0], pose[1], pose[2]))
+    except (IndexError, ValueError):
+        raise BadInput(source, f"malformed {kind} line") from None
+    return None
+
+
+def read_carmen(path: str | Path, range_max: float = math.inf) -> Iterator[RangeScan]:
+    """Scans of a CARMEN log (plain or .gz): FLASER, RLASER and ROBOTLASER1 lines, in file order.
+
+    ``range_max`` marks the no-return reading of FLASER/RLASER lines (which do not carry it):
+    readings at or beyond it are no return.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(str(path), "no such file")
+    if p.is_dir():
+        raise BadInput(str(path), "is a directory, not a CARMEN log")
+    found_any = False
+    with _open_text(p) as fh:
+        try:
+            for lineno, line in enumerate(fh, 1):
+                if not line.startswith(("FLASER", "RLASER", "ROBOTLASER")):
+                    continue
+                scan = parse_carmen_line(line, f"{path}:{lineno}", range_max)
+                if scan is not None:
+                    found_any = True
+                    yield scan
+        except (OSError, EOFError) as exc:
+            raise BadInput(str(path), f"cannot read (corrupt or truncated file?): {exc}") from None
+    if not found_any:
+        raise BadInput(str(path), "no FLASER, RLASER or ROBOTLASER1 lines: not a CARMEN laser log")
+
+
+def scan_from_dict(data: Any, source: str) -> RangeScan:
+    """A RangeScan from one decoded ranges-JSONL object; errors name ``source`` and the field."""
+    if not isinstance(data, dict):
+        raise BadInput(source, f"a range scan must be a JSON object, got {type(data).__name__}")
+    values: dict[str, float] = {}
+    for key in ("angle_min", "angle_increment", "range_max"):
+        v = data.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise BadInput(source, f"field '{key}' must be a finite number, got {v!r}")
+        values[key] = float(v)
+    if values["angle_increment"] == 0:
+        raise BadInput(source, "field 'angle_increment' must not be zero")
+    stamp = data.get("stamp", 0.0)
+    if isinstance(stamp, bool) or not isinstance(stamp, (int, float)) or not math.isfinite(stamp):
+        raise BadInput(source, f"field 'stamp' must be a finite number, got {stamp!r}")
+    ranges = data.get("ranges")
+    if not isinstance(ranges, list):
+        raise BadInput(source, f"field 'ranges' must be a list of numbers, got {type(ranges).__name__}")
+    out = np.empty(len(ranges))
+    for i, r in enumerate(ranges):
+        if r is None:
+            out[i] = math.nan  # JSON has no NaN: null is a no-return beam
+        elif isinstance(r, bool) or not isinstance(r, (int, float)):
+            raise BadInput(source, f"field 'ranges'[{i}] must be a number, got {r!r}")
+        else:
+            out[i] = float(r)
+    return RangeScan(float(stamp), values["angle_min"], values["angle_increment"], values["range_max"], out)
+
+
+def read_ranges_jsonl(path: str | Path) -> Iterator[RangeScan]:
+    """Scans of a ranges JSONL file (one scan per line, blank lines skipped)."""
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(str(path), "no such file")
+    with _open_text(p) as fh:
+        for lineno, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            source = f"{path}:{lineno}"
+            try:
+                data = json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise BadInput(source, f"malformed JSON: {exc.msg}") from None
+            yield scan_from_dict(data, source)

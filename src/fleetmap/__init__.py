@@ -1,0 +1,12 @@
+"""fleetmap: one global segment map for a fleet of robots that know nothing of where they are.
+
+Following Amigoni, Gasparini & Gini, "Building Segment-Based Maps Without Pose Information"
+(Proc. IEEE 94(7), 2006). The library lives in subpackages:
+
+- ``fleetmap.shared``: geometry, segment extraction, integration and fusion, config, file formats
+- ``fleetmap.merger``: merging many maps (known order and the map graph)
+- ``fleetmap.agents``: the robot agent
+- ``fleetmap.scenarios``: simulated worlds, the laser simulator and ground-truth metrics
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,3 @@
+from fleetmap.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,58 @@
+"""The ``fleetmap`` command line: one subcommand per module of ``fleetmap.commands``.
+
+Every command exits 0 on success, 2 on bad input (one line on stderr naming the input and what is
+wrong with it) and 1 on any other failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from fleetmap import __version__
+from fleetmap.shared.errors import BadInput, FleetmapError
+
+COMMANDS = ("extract", "integrate")
+"""Modules of fleetmap.commands, in the order ``--help`` lists them."""
+
+log = logging.getLogger("fleetmap")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fleetmap",
+        description="Pose-free segment maps for robot fleets (Amigoni, Gasparini & Gini 2006).",
+    )
+    parser.add_argument("--version", action="version", version=f"fleetmap {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMANDS:
+        importlib.import_module(f"fleetmap.commands.{name}").register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        return int(args.func(args) or 0)
+    except BadInput as exc:
+        print(f"fleetmap {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except FleetmapError as exc:
+        print(f"fleetmap {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"fleetmap {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 1
+    except Exception as exc:  # the CLI's one handler: anything unexpected is exit 1, traceback with -v
+        log.debug("unexpected failure", exc_info=True)
+        print(f"fleetmap {args.command}: failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1

@@ -1,0 +1,1 @@
+"""Subcommands of the fleetmap CLI: each module has ``register(subparsers)`` setting ``func``."""

@@ -1,0 +1,65 @@
+"""Synthetic worlds and scans for the tests (seeded, so every run sees the same data)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.extraction import extract_segments
+from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.mapfile import SegmentMap
+
+# A 12 m x 10 m room with an irregular inside: boxes, an L-shaped wall, a slanted wall and a
+# pillar, so that no rotation or shift of it looks like itself.
+ROOM = np.array(
+    [
+        [0, 0, 12, 0],
+        [12, 0, 12, 10],
+        [12, 10, 0, 10],
+        [0, 10, 0, 0],
+        [2, 2, 3.5, 2],
+        [3.5, 2, 3.5, 3],
+        [3.5, 3, 2, 3],
+        [2, 3, 2, 2],
+        [7, 6, 9.5, 6],
+        [9.5, 6, 9.5, 8.5],
+        [8, 1, 10.5, 2.2],
+        [5, 7.5, 5.6, 7.5],
+        [5.6, 7.5, 5.6, 8.1],
+        [5.6, 8.1, 5, 8.1],
+        [5, 8.1, 5, 7.5],
+        [0, 5, 1.2, 5],
+        [10.8, 4, 12, 4.6],
+    ],
+    dtype=np.float64,
+)
+
+OMNI = LaserParams(fov=2 * math.pi - math.radians(1.0), resolution=math.radians(1.0), max_range=8.0, noise=0.01)
+"""A 360 degree laser (1 deg, 8 m, 1 cm noise): any rotation between two poses keeps an overlap."""
+
+
+def scan_map(world: Array, pose: tuple[float, float, float], laser: LaserParams, seed: int) -> SegmentMap:
+    scan = simulate_scan(world, pose, laser, np.random.default_rng(seed))
+    return SegmentMap(extract_segments(scan, ExtractionParams(max_range=laser.max_range)), ordered=True, oriented=True)
+
+
+def pose_pair(rng: np.random.Generator, max_shift: float = 3.0) -> tuple[tuple[float, float, float], Transform2D]:
+    """A laser pose A inside ROOM (away from walls and boxes) and a random T = pose of B in A's frame
+    (any rotation in [-pi, pi), translation up to ``max_shift``) keeping B inside the room too."""
+    free = [(4.5, 4.5), (6.5, 4.0), (4.0, 6.0), (6.0, 2.5), (9.0, 4.5), (3.0, 7.5)]
+    while True:
+        ax, ay = free[int(rng.integers(len(free)))]
+        a = (ax + rng.uniform(-0.3, 0.3), ay + rng.uniform(-0.3, 0.3), rng.uniform(-math.pi, math.pi))
+        r = rng.uniform(0.0, max_shift)
+        phi = rng.uniform(-math.pi, math.pi)
+        t = Transform2D(r * math.cos(phi), r * math.sin(phi), rng.uniform(-math.pi, math.pi))
+        b = Transform2D(*a).compose(t)
+        if 1.0 < b.x < 11.0 and 1.0 < b.y < 9.0 and _clear(b.x, b.y):
+            return a, t
+
+
+def _clear(x: float, y: float) -> bool:
+    boxes = [(1.5, 1.5, 4.0, 3.5), (6.5, 5.5, 10.0, 9.0), (4.5, 7.0, 6.1, 8.6), (7.5, 0.5, 11.0, 2.7)]
+    return not any(x0 <= x <= x1 and y0 <= y <= y1 for x0, y0, x1, y1 in boxes)

@@ -1,0 +1,154 @@
+"""Segment extraction (paper III-D) and the scan readers."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.extraction import clusters, extract_segments, split_polyline
+from fleetmap.shared.geometry import lengths, point_segment_distance
+from fleetmap.shared.scans import RangeScan, read_carmen, read_ranges_jsonl
+
+CORNER = np.array([[3.0, -4.0, 3.0, 2.0], [3.0, 2.0, -3.0, 2.0]])
+
+
+def scan_of(walls: np.ndarray, noise: float = 0.0, seed: int = 0) -> RangeScan:
+    return simulate_scan(walls, (0.0, 0.0, 0.0), LaserParams(noise=noise), np.random.default_rng(seed))
+
+
+def test_a_noiseless_corner_gives_touching_segments_on_the_walls() -> None:
+    # The paper's polyline: both walls, and a short cut across the corner between two beams.
+    seg = extract_segments(scan_of(CORNER), ExtractionParams(line_fit=False))
+    assert len(seg) == 3 and lengths(seg)[1] < 0.1
+    np.testing.assert_allclose(seg[:-1, 2:4], seg[1:, 0:2], atol=1e-9)
+    np.testing.assert_allclose(seg[0, [0, 2]], [3.0, 3.0], atol=1e-6)
+    np.testing.assert_allclose(seg[2, [1, 3]], [2.0, 2.0], atol=1e-6)
+
+
+def test_line_fit_puts_the_corner_where_the_walls_cross() -> None:
+    seg = extract_segments(scan_of(CORNER, noise=0.005, seed=2), ExtractionParams(line_fit=True))
+    assert len(seg) == 2
+    np.testing.assert_allclose(seg[0, 2:4], seg[1, 0:2], atol=1e-9)
+    assert math.hypot(seg[0, 2] - 3.0, seg[0, 3] - 2.0) < 0.01
+
+
+@pytest.mark.parametrize("line_fit", [False, True])
+def test_every_point_is_within_kappa_of_its_segments(line_fit: bool) -> None:
+    scan = scan_of(CORNER, noise=0.005, seed=3)
+    params = ExtractionParams(line_fit=line_fit)
+    seg = extract_segments(scan, params)
+    a = scan.angle_min + np.arange(len(scan.ranges)) * scan.angle_increment
+    ok = np.isfinite(scan.ranges)
+    pts = np.column_stack([scan.ranges[ok] * np.cos(a[ok]), scan.ranges[ok] * np.sin(a[ok])])
+    d = point_segment_distance(pts[:, None, :], seg[None, :, :]).min(axis=1)
+    # The paper's polylines pass within kappa of every point; fitted lines within 2 kappa.
+    assert d.max() <= (2 if line_fit else 1) * params.kappa + 1e-9
+
+
+def test_line_fit_keeps_a_noisy_wall_in_one_piece() -> None:
+    wall = np.array([[2.0, -3.0, 2.0, 3.0]])
+    # 1.5 cm noise (or 5 cm range quantisation, as in the aces log) puts readings beyond kappa.
+    plain = extract_segments(scan_of(wall, noise=0.015, seed=1), ExtractionParams(line_fit=False))
+    fitted = extract_segments(scan_of(wall, noise=0.015, seed=1), ExtractionParams(line_fit=True))
+    assert len(plain) > 3  # the paper's split cuts at every reading beyond kappa
+    assert len(fitted) == 1
+    assert abs(fitted[0, 0] - 2.0) < 0.01 and abs(fitted[0, 2] - 2.0) < 0.01
+    assert lengths(fitted)[0] > 5.8
+
+
+def test_segments_run_counter_clockwise_with_the_sensor_on_their_left() -> None:
+    seg = extract_segments(scan_of(CORNER, noise=0.01))
+    cross = (seg[:, 2] - seg[:, 0]) * (0 - seg[:, 1]) - (seg[:, 3] - seg[:, 1]) * (0 - seg[:, 0])
+    assert (cross > 0).all()
+    bearings = np.arctan2(seg[:, 1], seg[:, 0])
+    assert (np.diff(bearings) > 0).all()
+
+
+def test_no_return_beams_and_far_ranges_are_dropped() -> None:
+    r = np.full(181, 2.0)
+    holes = [(10, 20, np.nan), (30, 40, 0.0), (50, 60, 100.0), (70, 80, 9.0)]  # 100 > range_max, 9 > max_range
+    for lo, hi, value in holes:
+        r[lo:hi] = value
+    scan = RangeScan(0.0, -math.pi / 2, math.radians(1), 81.9, r)
+    seg = extract_segments(scan, ExtractionParams(line_fit=False, max_range=8.0))
+    pts = seg.reshape(-1, 2)
+    np.testing.assert_allclose(np.hypot(pts[:, 0], pts[:, 1]), 2.0, atol=1e-9)
+    beam = np.round((np.arctan2(pts[:, 1], pts[:, 0]) + math.pi / 2) / math.radians(1)).astype(int)
+    for lo, hi, _ in holes:
+        assert not ((beam >= lo) & (beam < hi)).any()
+    # Each of the five runs of returns is covered from its first beam to its last.
+    assert set(beam) >= {0, 9, 20, 29, 40, 49, 60, 69, 80, 180}
+
+
+def test_clusters_break_where_consecutive_points_are_tau_apart() -> None:
+    pts = np.array([[0, 0], [0.1, 0], [0.2, 0], [0.6, 0], [0.7, 0]], dtype=float)
+    assert [len(c) for c in clusters(pts, 0.2)] == [3, 2]
+
+
+def test_split_adds_the_farthest_point_until_within_kappa() -> None:
+    pts = np.array([[0, 0], [1, 0.01], [2, 0.5], [3, 0.0]], dtype=float)
+    assert split_polyline(pts, 0.025) == [0, 1, 2, 3]
+    assert split_polyline(pts, 1.0) == [0, 3]
+
+
+def _flaser_line(ranges: list[float], stamp: float) -> str:
+    return f"FLASER {len(ranges)} {' '.join(map(str, ranges))} 1 2 0.5 1 2 0.5 {stamp} host {stamp}\n"
+
+
+def test_carmen_reader_reads_flaser_rlaser_and_robotlaser1_plain_and_gz(tmp_path: Path) -> None:
+    ranges = [2.0] * 181
+    robot = (
+        "ROBOTLASER1 0 -1.5707963 3.1415926 0.0174533 81.9 0.01 0 181 "
+        + " ".join(["3.0"] * 181)
+        + " 0 0 0 0 0 0 0 0 0 0 0 0 42.5 host 42.5\n"
+    )
+    text = (
+        "# comment\nODOM 0 0 0 0 0 0 1 host 1\n"
+        + _flaser_line(ranges, 10.0)
+        + _flaser_line(ranges, 11.0).replace("FLASER", "RLASER")
+        + robot
+    )
+    plain = tmp_path / "log.clf"
+    plain.write_text(text)
+    packed = tmp_path / "log.clf.gz"
+    with gzip.open(packed, "wt") as fh:
+        fh.write(text)
+    for path in (plain, packed):
+        scans = list(read_carmen(path, range_max=81.9))
+        assert [s.stamp for s in scans] == [10.0, 11.0, 42.5]
+        assert math.isclose(scans[0].angle_min, -math.pi / 2)
+        assert math.isclose(scans[0].angle_min + 180 * scans[0].angle_increment, math.pi / 2)
+        assert scans[2].ranges[0] == 3.0 and math.isclose(scans[2].angle_increment, 0.0174533)
+        assert scans[0].odom == (1.0, 2.0, 0.5)
+
+
+def test_carmen_reader_names_the_line_of_a_truncated_record(tmp_path: Path) -> None:
+    path = tmp_path / "bad.clf"
+    path.write_text(_flaser_line([2.0] * 181, 1.0) + "FLASER 181 1.0 2.0\n")
+    with pytest.raises(BadInput, match=r"bad.clf:2"):
+        list(read_carmen(path))
+
+
+def test_carmen_reader_rejects_a_file_without_laser_lines(tmp_path: Path) -> None:
+    path = tmp_path / "odom.clf"
+    path.write_text("ODOM 0 0 0 0 0 0 1 host 1\n")
+    with pytest.raises(BadInput, match="not a CARMEN laser log"):
+        list(read_carmen(path))
+
+
+def test_ranges_jsonl_reader_accepts_null_as_no_return_and_names_bad_fields(tmp_path: Path) -> None:
+    good = {"stamp": 1.5, "angle_min": -1.0, "angle_increment": 0.01, "range_max": 8.0, "ranges": [1.0, None, 2.0]}
+    path = tmp_path / "scans.jsonl"
+    path.write_text(json.dumps(good) + "\n\n" + json.dumps({**good, "angle_increment": "x"}) + "\n")
+    reader = read_ranges_jsonl(path)
+    first = next(reader)
+    assert first.stamp == 1.5 and math.isnan(first.ranges[1])
+    with pytest.raises(BadInput, match=r"scans.jsonl:3: field 'angle_increment'"):
+        next(reader)

@@ -1,0 +1,158 @@
+"""INTEGRATE (paper III): known transforms recovered from geometry alone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fleetmap.shared.candidates import (
+    find_transformations,
+    pairs_consecutive,
+    pairs_histogram,
+)
+from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.evaluation import prepare, refused, transformation_values
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.integration import integrate
+from fleetmap.shared.mapfile import SegmentMap
+
+from tests.helpers import OMNI, ROOM, pose_pair, scan_map
+
+TRANS_TOL = 0.02
+ROT_TOL = math.radians(0.5)
+
+
+def room_pairs(n: int, seed: int) -> list[tuple[SegmentMap, SegmentMap, Transform2D]]:
+    """n pairs of 360-degree scans of ROOM, 1 cm noise, any rotation, shifts up to 3 m."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        a, t = pose_pair(rng)
+        b = Transform2D(*a).compose(t)
+        out.append(
+            (
+                scan_map(ROOM, a, OMNI, seed=2 * k + seed),
+                scan_map(ROOM, (b.x, b.y, b.theta), OMNI, seed=2 * k + 1 + seed),
+                t,
+            )
+        )
+    return out
+
+
+PAIRS = room_pairs(8, seed=11)
+
+
+@pytest.mark.parametrize("case", range(len(PAIRS)))
+def test_auto_recovers_the_transform_within_2cm_and_half_a_degree(case: int) -> None:
+    a, b, truth = PAIRS[case]
+    r = integrate(a, b)
+    dt, dr = r.transform.distance(truth)
+    assert dt < TRANS_TOL and dr < ROT_TOL, f"error {dt:.3f} m {math.degrees(dr):.2f} deg"
+    assert r.valid
+    assert r.value > 0.3 * min(a.total_length, b.total_length)
+
+
+def test_rotations_span_the_whole_circle_and_shifts_reach_3m() -> None:
+    thetas = [t.theta for _, _, t in room_pairs(30, seed=5)]
+    shifts = [math.hypot(t.x, t.y) for _, _, t in room_pairs(30, seed=5)]
+    assert min(thetas) < -2.5 and max(thetas) > 2.5 and max(shifts) > 2.4
+
+
+@pytest.mark.parametrize("heuristic", ["all", "consecutive", "random", "histogram"])
+def test_each_heuristic_recovers_most_transforms(heuristic: str) -> None:
+    ok = 0
+    for a, b, truth in PAIRS[:6]:
+        dt, dr = integrate(a, b, heuristic=heuristic).transform.distance(truth)
+        ok += dt < TRANS_TOL and dr < ROT_TOL
+    assert ok >= 5, f"{heuristic}: {ok}/6"
+
+
+def test_all_finds_a_superset_of_the_consecutive_transformations() -> None:
+    a, b, _ = PAIRS[0]
+    p = IntegrationParams(consecutive_touching_only=True)
+    cons = find_transformations(a, b, "consecutive", p)
+    everything = find_transformations(a, b, "all", p)
+    assert len(cons) > 0 and len(everything) > len(cons)
+    # Every consecutive transformation is among all's (same angle pairs, same arithmetic).
+    d = np.abs(cons[:, None, :] - everything[None, :, :]).max(axis=2).min(axis=1)
+    assert d.max() < 1e-9
+
+
+def test_consecutive_pairs_follow_the_variant() -> None:
+    seg = np.array([[0, 0, 1, 0], [1, 0, 1, 1], [1.5, 1, 2.5, 1], [2.5, 1, 2.6, 1.05]], dtype=float)
+    m = SegmentMap(seg, ordered=True, oriented=True)
+    touching = pairs_consecutive(m, IntegrationParams(consecutive_touching_only=True))
+    assert list(zip(*touching, strict=True)) == [(0, 1), (2, 3)]
+    improved = pairs_consecutive(m, IntegrationParams(segment_length_percentage=20))
+    # The last segment is shorter than 20 % of the longest: it forms no angle.
+    assert list(zip(*improved, strict=True)) == [(0, 1), (1, 2)]
+
+
+def test_histogram_pairs_principal_with_normal_direction_segments() -> None:
+    seg = np.array([[0, 0, 4, 0], [0, 1, 3, 1], [0, 0, 0, 2], [1, 1, 2, 2]], dtype=float)
+    p, q = pairs_histogram(seg, IntegrationParams(nslots=18))
+    assert sorted(zip(p.tolist(), q.tolist(), strict=True)) == [(0, 2), (1, 2)]
+
+
+def test_random_heuristic_is_reproducible_with_its_seed() -> None:
+    a, b, _ = PAIRS[1]
+    one = find_transformations(a, b, "random", IntegrationParams(seed=3))
+    two = find_transformations(a, b, "random", IntegrationParams(seed=3))
+    other = find_transformations(a, b, "random", IntegrationParams(seed=4))
+    np.testing.assert_array_equal(one, two)
+    assert len(one) > 0 and not (len(one) == len(other) and np.array_equal(one, other))
+
+
+def test_a_transformation_that_crosses_two_long_walls_is_refused() -> None:
+    s1 = np.array([[0.0, -1.0, 0.0, 1.0]])
+    s2 = np.array([[-1.0, 0.0, 1.0, 0.0]])
+    prep = prepare(s1, s2, True, IntegrationParams())
+    crossing = np.array([[0.0, 0.0, 0.0]])
+    corner = np.array([[1.0, 1.0, 0.0]])  # s2 moved to end where s1 ends: they touch, not cross
+    assert refused(prep, crossing, IntegrationParams())[0]
+    assert not refused(prep, corner, IntegrationParams())[0]
+    assert transformation_values(prep, crossing, IntegrationParams())[0] == -1.0
+
+
+def test_early_stop_keeps_the_best_transformation() -> None:
+    a, b, _truth = PAIRS[2]
+    p = IntegrationParams()
+    t = find_transformations(a, b, "histogram", p)
+    prep = prepare(a.segments, b.segments, True, p)
+    full = transformation_values(prep, t, p)
+    best = float(full.max())
+    pruned = transformation_values(prep, t, p, best_known=0.9 * best)
+    assert int(np.argmax(pruned)) == int(np.argmax(full)) and pruned.max() == best
+    assert (pruned == -1).sum() > (full == -1).sum()  # some hopeless candidates were dropped
+
+
+def test_maps_of_different_places_give_an_invalid_integration() -> None:
+    a = scan_map(ROOM, (4.5, 4.5, 0.3), OMNI, seed=1)
+    corridor = np.array([[0, 0, 9, 0], [9, 1.8, 0, 1.8], [3, 0, 3, -1], [6, 1.8, 6, 3]], dtype=float)
+    b = scan_map(corridor, (4.5, 0.9, 0.0), OMNI, seed=2)
+    assert not integrate(a, b).valid
+
+
+def test_unoriented_maps_are_integrated_too() -> None:
+    a, b, truth = PAIRS[3]
+    flip = b.segments[:, [2, 3, 0, 1]].copy()
+    flip[::2] = b.segments[::2]  # half the segments drawn the other way
+    r = integrate(SegmentMap(a.segments), SegmentMap(flip))
+    dt, dr = r.transform.distance(truth)
+    assert dt < TRANS_TOL and dr < ROT_TOL
+
+
+@pytest.mark.parametrize(
+    "segments, message",
+    [
+        (np.zeros((0, 4)), "empty"),
+        (np.array([[0.0, 0.0, np.nan, 1.0]]), "NaN or infinite"),
+        (np.array([[1.0, 1.0, 1.0, 1.0]]), "zero-length"),
+    ],
+)
+def test_bad_maps_are_refused_with_a_clear_error(segments: np.ndarray, message: str) -> None:
+    good = PAIRS[0][0]
+    with pytest.raises(BadInput, match=message):
+        integrate(good, SegmentMap(segments))

@@ -1,0 +1,133 @@
+"""The command line, run as a user runs it: exit codes, one-line errors, JSON exactly as the contracts."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fleetmap.scenarios.laser import LaserParams, simulate_scan
+
+from tests.helpers import ROOM
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "src" / "fleetmap" / "examples"
+
+
+def fleetmap(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "fleetmap", *args], capture_output=True, text=True, input=stdin, timeout=120
+    )
+
+
+def write_map(path: Path, segments: list[list[float]], **extra: object) -> str:
+    path.write_text(json.dumps({"segments": segments, "ordered": True, **extra}))
+    return str(path)
+
+
+def test_integrate_json_prints_the_contract_fields_and_recovers_the_example() -> None:
+    r = fleetmap("integrate", str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json"), "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert set(out) == {"x", "y", "theta", "value", "valid", "seconds"}
+    # The example scans were simulated from (4.5, 4.5, 0.4) and (5.8, 5.2, 1.3).
+    assert math.hypot(out["x"] - 1.46997, out["y"] - 0.13850) < 0.02
+    assert abs(out["theta"] - 0.9) < math.radians(0.5)
+    assert out["valid"] is True and out["value"] > 3 and 0 < out["seconds"] < 5
+
+
+def test_integrate_batch_answers_every_line_in_order(tmp_path: Path) -> None:
+    a = json.loads((EXAMPLES / "scan_a.json").read_text())
+    b = json.loads((EXAMPLES / "scan_b.json").read_text())
+    lines = [{"id": "ab", "a": a, "b": b}, {"id": "ba", "a": b, "b": a}, {"id": "aa", "a": a, "b": a}]
+    batch = tmp_path / "pairs.jsonl"
+    batch.write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    r = fleetmap("integrate", "--batch", str(batch), "--json")
+    assert r.returncode == 0, r.stderr
+    rows = [json.loads(x) for x in r.stdout.splitlines()]
+    assert [x["id"] for x in rows] == ["ab", "ba", "aa"]
+    assert all(set(x) == {"id", "x", "y", "theta", "value", "valid", "seconds"} for x in rows)
+    # B on A and A on B are inverse transforms; A on itself is the identity.
+    ab, ba, aa = rows
+    c, s = math.cos(ab["theta"]), math.sin(ab["theta"])
+    assert abs(ba["theta"] + ab["theta"]) < 0.01
+    assert math.hypot(ba["x"] + c * ab["x"] + s * ab["y"], ba["y"] - s * ab["x"] + c * ab["y"]) < 0.03
+    assert math.hypot(aa["x"], aa["y"]) < 1e-6 and abs(aa["theta"]) < 1e-6
+
+
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ("{not json", "malformed JSON"),
+        ('{"segments": [[0, 0, NaN, 1]]}', "NaN or infinite"),
+        ('{"segments": [[0, 0, 1e999, 1]]}', "NaN or infinite"),
+        (json.dumps({"segments": [[1, 1, 1, 1]]}), "zero length"),
+        (json.dumps({"segments": []}), "empty"),
+        (json.dumps({"segments": [[0, 0, 1]]}), "segment 0 must be"),
+        (json.dumps([1, 2]), "must be a JSON object"),
+    ],
+)
+def test_bad_map_files_exit_2_with_one_line_naming_the_file(tmp_path: Path, content: str, needle: str) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text(content)
+    r = fleetmap("integrate", str(EXAMPLES / "scan_a.json"), str(bad), "--json")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(bad) in lines[0] and needle in lines[0], r.stderr
+    assert r.stdout == ""
+
+
+def test_a_missing_file_exits_2_naming_it(tmp_path: Path) -> None:
+    r = fleetmap("integrate", str(tmp_path / "nope.json"), str(EXAMPLES / "scan_a.json"))
+    assert r.returncode == 2 and "nope.json: no such file" in r.stderr
+
+
+def test_a_bad_batch_line_exits_2_naming_line_and_id(tmp_path: Path) -> None:
+    a = json.loads((EXAMPLES / "scan_a.json").read_text())
+    batch = tmp_path / "pairs.jsonl"
+    batch.write_text(
+        json.dumps({"id": "ok", "a": a, "b": a}) + "\n" + json.dumps({"id": "x7", "a": a, "b": {"segments": []}}) + "\n"
+    )
+    r = fleetmap("integrate", "--batch", str(batch), "--json")
+    assert r.returncode == 2 and "pairs.jsonl:2 (id x7) map b" in r.stderr and "empty" in r.stderr
+
+
+def test_parameter_overrides_and_config_files_are_checked(tmp_path: Path) -> None:
+    a, b = str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json")
+    r = fleetmap("integrate", a, b, "--heuristic", "histogram", "--point-distance-tolerance", "0.01", "--json")
+    assert r.returncode == 0, r.stderr
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text("[integration]\npoint_distance_tolerence = 0.01\n")
+    r = fleetmap("integrate", a, b, "--config", str(cfg))
+    assert r.returncode == 2 and "point_distance_tolerence" in r.stderr and "unknown parameter" in r.stderr
+    r = fleetmap("integrate", a, b, "--heuristic", "psychic")
+    assert r.returncode == 2 and "psychic" in r.stderr
+
+
+def test_extract_writes_one_line_per_scan_in_order(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    scans = [simulate_scan(ROOM, (4.0 + 0.3 * k, 4.5, 0.2 * k), LaserParams(), rng, stamp=100.0 + k) for k in range(3)]
+    src = tmp_path / "scans.jsonl"
+    src.write_text("\n".join(json.dumps(s.to_json_dict()) for s in scans) + "\n")
+    out = tmp_path / "segments.jsonl"
+    r = fleetmap("extract", str(src), "--format", "ranges-jsonl", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    rows = [json.loads(x) for x in out.read_text().splitlines()]
+    assert [x["stamp"] for x in rows] == [100.0, 101.0, 102.0]
+    assert all(x["ordered"] is True and len(x["segments"]) >= 4 for x in rows)
+
+
+def test_extract_reads_carmen_and_rejects_garbage(tmp_path: Path) -> None:
+    log = tmp_path / "run.clf"
+    ranges = " ".join(["2.0"] * 181)
+    log.write_text(f"FLASER 181 {ranges} 0 0 0 0 0 0 5.0 host 5.0\n")
+    out = tmp_path / "o.jsonl"
+    assert fleetmap("extract", str(log), "--format", "carmen", "--out", str(out)).returncode == 0
+    assert json.loads(out.read_text())["stamp"] == 5.0
+    junk = tmp_path / "junk.clf"
+    junk.write_text("hello\n")
+    r = fleetmap("extract", str(junk), "--format", "carmen", "--out", str(out))
+    assert r.returncode == 2 and "junk.clf" in r.stderr and len(r.stderr.strip().splitlines()) == 1
