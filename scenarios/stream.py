@@ -1,0 +1,63 @@
+"""The scans a simulated robot takes, as a live agent receives them.
+
+:func:`robot_stream` yields, for each scan of a robot's plan (:func:`fleetmap.scenarios.fleet.plan`),
+its index, stamp (scenario seconds), true laser pose (world frame) and the simulated
+:class:`~fleetmap.shared.scans.RangeScan`. The noise of scan k of robot r is drawn from its own
+generator seeded by (scenario seed, robot id, k): every run of a scenario gives the same scans,
+and a stream restarted at scan k gives the same scans from there on.
+
+The true pose is ground truth for scoring: an agent sends the scan, never the pose (the scan's
+``odom`` is left empty for that reason).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from fleetmap.scenarios.fleet import PlannedScan, Scenario, plan
+from fleetmap.scenarios.laser import noisy_ranges, true_ranges
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.scans import RangeScan
+
+
+@dataclass(frozen=True)
+class SimulatedScan:
+    """One scan of a simulated robot, with its ground truth."""
+
+    robot: str
+    index: int
+    stamp: float
+    """Scenario seconds."""
+    pose: Transform2D
+    """True laser pose in the world frame: ground truth, never sent to the algorithms."""
+    leg: int
+    """0 before the robot's first kidnap, k after its k-th."""
+    scan: RangeScan
+
+
+def scan_rng(seed: int, robot_id: str, index: int) -> np.random.Generator:
+    """The generator of one scan's noise, independent of every other scan's."""
+    return np.random.default_rng([seed, zlib.crc32(robot_id.encode("utf-8")), index])
+
+
+def simulate(scenario: Scenario, planned: PlannedScan) -> SimulatedScan:
+    """The scan of one planned pose (deterministic)."""
+    p = scenario.laser
+    pose = planned.pose
+    r, _ = true_ranges(scenario.world.walls, (pose.x, pose.y, pose.theta), p)
+    r = noisy_ranges(r, p, scan_rng(scenario.seed, planned.robot, planned.index))
+    scan = RangeScan(planned.stamp, -p.fov / 2.0, p.resolution, p.max_range, r)
+    return SimulatedScan(planned.robot, planned.index, planned.stamp, pose, planned.leg, scan)
+
+
+def robot_stream(scenario: Scenario, robot_id: str, start_index: int = 0) -> Iterator[SimulatedScan]:
+    """The scans of one robot, in order, from scan ``start_index`` on.
+
+    The stream ends when the robot's path ends or it leaves or crashes (the live runner stops the
+    process); a kidnap shows only as a jump in the (true) poses.
+    """
+    for planned in plan(scenario, robot_id)[start_index:]:
+        yield simulate(scenario, planned)
