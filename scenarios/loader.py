@@ -405,7 +405,11 @@ def read_scenario(path: str | Path) -> Scenario:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(path), f"not valid TOML: {exc}") from None
-    return parse_scenario(data, str(path), p.stem)
+    scenario = parse_scenario(data, str(path), p.stem)
+    log.debug(
+        "scenario %s from %s: %d robots, %d events", scenario.name, path, len(scenario.robots), len(scenario.events)
+    )
+    return scenario
 
 
 def list_scenarios() -> list[str]:

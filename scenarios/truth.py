@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from fleetmap.scenarios.fleet import Kidnap, MergerRestart, PlannedScan, Scenario, plan
+from fleetmap.scenarios.fleet import Event, Kidnap, MergerRestart, PlannedScan, Scenario, plan
 from fleetmap.scenarios.metrics import visible_walls
 from fleetmap.shared.geometry import Array, Transform2D
 
@@ -43,7 +43,7 @@ class GroundTruth:
         }
 
 
-def event_to_dict(e: Any) -> dict[str, Any]:
+def event_to_dict(e: Event) -> dict[str, Any]:
     out: dict[str, Any] = {"t": e.t, "type": e.kind}
     if isinstance(e, MergerRestart):
         out["down_for"] = e.down_for
