@@ -1,0 +1,170 @@
+"""Zenoh key expressions of a fleet, and the names that go into them.
+
+Everything a fleet says lives under one prefix, ``fleet/<fleet>`` (``../shared/DESIGN.md``, wire
+conventions)::
+
+    fleet/<fleet>/robots/<robot>/scan        Scan
+    fleet/<fleet>/robots/<robot>/localmap    LocalMap
+    fleet/<fleet>/robots/<robot>/pose        RobotPose
+    fleet/<fleet>/merger/globalmap           GlobalMap
+    fleet/<fleet>/merger/edges               MergeEdge
+    fleet/<fleet>/merger/state               queryable: the current global state
+    fleet/<fleet>/events                     FleetEvent
+    fleet/<fleet>/alive/<robot>              liveliness token: the robot is up
+    fleet/<fleet>/services/<service>         liveliness token: a service (merger, recorder) is up
+
+Robot ids and fleet names have one format, ``^[a-z][a-z0-9_-]{0,31}$``: short, lower case, safe
+in a key expression (no ``/``, ``*``, ``$`` or ``?``) and in a file name. A local map is named by
+its *map key* ``<robot>/<epoch>``, the node name of the merger's map graph.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+from fleetmap.shared.errors import BadInput
+
+NAME_PATTERN = re.compile(r"[a-z][a-z0-9_-]{0,31}")
+"""Robot ids, fleet names and service names (matched whole)."""
+
+MAP_KEY_PATTERN = re.compile(r"([a-z][a-z0-9_-]{0,31})/(0|[1-9][0-9]{0,17})")
+"""``<robot>/<epoch>``: a local map; the epoch is a non-negative integer without leading zeros."""
+
+DEFAULT_FLEET = "default"
+
+KeyKind = Literal["scan", "localmap", "pose", "globalmap", "edges", "state", "events", "alive", "services"]
+KEY_KINDS: tuple[str, ...] = get_args(KeyKind)
+ROBOT_KINDS = ("scan", "localmap", "pose")
+"""Kinds whose key names a robot: ``fleet/<fleet>/robots/<robot>/<kind>``."""
+
+
+def check_name(value: object, what: str) -> str:
+    """``value`` if it is a valid robot id / fleet name, else BadInput naming ``what``."""
+    if not isinstance(value, str):
+        raise BadInput(what, f"expected a string, got {type(value).__name__}")
+    if NAME_PATTERN.fullmatch(value) is None:
+        raise BadInput(what, f"{value[:64]!r} is not a valid name (^[a-z][a-z0-9_-]{{0,31}}$)")
+    return value
+
+
+def map_key(robot: str, epoch: int) -> str:
+    """The name of a robot's local map of one epoch: ``<robot>/<epoch>``."""
+    check_name(robot, "robot")
+    if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        raise BadInput("epoch", f"expected a non-negative integer, got {epoch!r}")
+    return f"{robot}/{epoch}"
+
+
+def parse_map_key(key: str) -> tuple[str, int]:
+    """``(robot, epoch)`` of a map key ``<robot>/<epoch>``."""
+    match = MAP_KEY_PATTERN.fullmatch(key) if isinstance(key, str) else None
+    if match is None:
+        raise BadInput("map key", f"{str(key)[:64]!r} is not <robot>/<epoch>")
+    return match.group(1), int(match.group(2))
+
+
+@dataclass(frozen=True)
+class ParsedKey:
+    """What a key of the fleet is: its kind and, for robot and presence keys, the name in it."""
+
+    kind: KeyKind
+    robot: str | None = None
+    """The robot of a robots/<robot>/... or alive/<robot> key; the service of a services/<name> key."""
+
+
+@dataclass(frozen=True)
+class FleetKeys:
+    """The key expressions of one fleet."""
+
+    fleet: str = DEFAULT_FLEET
+
+    def __post_init__(self) -> None:
+        check_name(self.fleet, "fleet")
+
+    @property
+    def prefix(self) -> str:
+        return f"fleet/{self.fleet}"
+
+    @property
+    def everything(self) -> str:
+        """Every key of the fleet (what the recorder subscribes to)."""
+        return f"{self.prefix}/**"
+
+    def scan(self, robot: str) -> str:
+        return f"{self.prefix}/robots/{check_name(robot, 'robot')}/scan"
+
+    def localmap(self, robot: str) -> str:
+        return f"{self.prefix}/robots/{check_name(robot, 'robot')}/localmap"
+
+    def pose(self, robot: str) -> str:
+        return f"{self.prefix}/robots/{check_name(robot, 'robot')}/pose"
+
+    @property
+    def all_scans(self) -> str:
+        return f"{self.prefix}/robots/*/scan"
+
+    @property
+    def all_localmaps(self) -> str:
+        return f"{self.prefix}/robots/*/localmap"
+
+    @property
+    def all_poses(self) -> str:
+        return f"{self.prefix}/robots/*/pose"
+
+    @property
+    def globalmap(self) -> str:
+        return f"{self.prefix}/merger/globalmap"
+
+    @property
+    def edges(self) -> str:
+        return f"{self.prefix}/merger/edges"
+
+    @property
+    def state(self) -> str:
+        """The merger's queryable: a query returns the current global state."""
+        return f"{self.prefix}/merger/state"
+
+    @property
+    def events(self) -> str:
+        return f"{self.prefix}/events"
+
+    def alive(self, robot: str) -> str:
+        """The liveliness token a robot holds while it is up."""
+        return f"{self.prefix}/alive/{check_name(robot, 'robot')}"
+
+    @property
+    def all_alive(self) -> str:
+        return f"{self.prefix}/alive/*"
+
+    def service(self, name: str) -> str:
+        """The liveliness token a service (``merger``, ``recorder``) holds while it is up."""
+        return f"{self.prefix}/services/{check_name(name, 'service')}"
+
+    @property
+    def all_services(self) -> str:
+        return f"{self.prefix}/services/*"
+
+    def parse(self, key: str) -> ParsedKey:
+        """The kind (and robot) of a concrete key of this fleet; BadInput for any other key."""
+        head = self.prefix + "/"
+        if not isinstance(key, str) or not key.startswith(head):
+            raise BadInput("key", f"{str(key)[:128]!r} is not under {head}")
+        parts = key[len(head) :].split("/")
+        match parts:
+            case ["robots", robot, kind] if kind in ROBOT_KINDS and NAME_PATTERN.fullmatch(robot):
+                return ParsedKey(kind, robot)  # type: ignore[arg-type]  # kind is one of ROBOT_KINDS
+            case ["merger", "globalmap"]:
+                return ParsedKey("globalmap")
+            case ["merger", "edges"]:
+                return ParsedKey("edges")
+            case ["merger", "state"]:
+                return ParsedKey("state")
+            case ["events"]:
+                return ParsedKey("events")
+            case ["alive", robot] if NAME_PATTERN.fullmatch(robot):
+                return ParsedKey("alive", robot)
+            case ["services", name] if NAME_PATTERN.fullmatch(name):
+                return ParsedKey("services", name)
+        raise BadInput("key", f"{key[:128]!r} is not a fleetmap key")

@@ -1,0 +1,629 @@
+"""The messages of the bus: typed, versioned, validated msgpack maps.
+
+Every payload is a msgpack map ``{"schema": "fleetmap.<Name>", "v": <version>, <fields>...}``.
+Each message type is a frozen dataclass that validates every field when it is built, whether by a
+service about to publish it or by :func:`decode` on receipt, so a bad message is refused where it
+is made and where it arrives. A refusal is a :class:`BadMessage` whose text names the message, the
+field and the reason::
+
+    fleetmap.LocalMap field 'segments': 7 floats is not a multiple of 4
+
+Conventions on the wire:
+
+- segments travel as one ``bin`` of little-endian float64, ``n * 4`` values ``[x1, y1, x2, y2]``,
+  and decode to a read-only ``(n, 4)`` array; NaN, infinite coordinates and zero-length segments
+  are refused;
+- transforms are maps ``{"x", "y", "theta"}`` (``../shared/CONTRACTS.md``, Transform);
+- ``stamp`` is seconds (the scan's time: simulated or wall clock), finite and non-negative;
+- a local map is named by its map key ``<robot>/<epoch>`` (:func:`fleetmap.shared.keys.map_key`);
+- optional fields are ``nil`` or absent; unknown fields are ignored, so a newer sender may add
+  optional fields without breaking older receivers; a ``v`` this code does not read is refused.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+from collections.abc import Mapping, Sequence
+from dataclasses import MISSING, dataclass, fields, is_dataclass
+from typing import Any, ClassVar, Self
+
+import msgpack
+import numpy as np
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Array, Transform2D, lengths
+from fleetmap.shared.keys import MAP_KEY_PATTERN, NAME_PATTERN
+from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH
+from fleetmap.shared.scans import RangeScan
+
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+"""Payloads larger than this are refused before they are unpacked."""
+MAX_SEGMENTS = 200_000
+"""The most segments one message carries (a global map: all its components together)."""
+MAX_BEAMS = 100_000
+"""The most range readings of one scan."""
+MAX_MAPS = 100_000
+"""The most local maps a global map names."""
+MAX_TEXT = 256
+"""The longest string field (characters)."""
+MAX_INT = 2**63 - 1
+
+EVENT_KINDS = frozenset(
+    {
+        "join",  # a robot's liveliness token appeared
+        "leave",  # ... and disappeared (clean exit, crash or lost link)
+        "epoch",  # a robot started a new local map (robot: who; detail: why)
+        "kidnap",  # a scenario carried a robot away (ground truth, for the report)
+        "relocalized",  # the merger placed a robot's new epoch in the global map again
+        "merger_start",
+        "merger_stop",
+        "republish_request",  # a (re)started merger asks every robot for its latest local map
+        "recorder_start",
+        "recorder_stop",
+        "scenario_start",
+        "scenario_end",
+    }
+)
+"""What a FleetEvent may say. Add a kind here before a service publishes it."""
+
+
+class BadMessage(BadInput):
+    """A payload that is not a valid fleetmap message; the text names the message and the field."""
+
+    def __init__(self, schema: str, field: str | None, reason: str) -> None:
+        self.schema = schema
+        self.field = field
+        super().__init__(schema if field is None else f"{schema} field {field!r}", reason)
+
+
+# --- field validators: (schema, field, value) -> the value, normalised; BadMessage otherwise ---
+
+
+def _robot(schema: str, name: str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise BadMessage(schema, name, f"expected a robot id (string), got {type(value).__name__}")
+    if NAME_PATTERN.fullmatch(value) is None:
+        raise BadMessage(schema, name, f"{value[:64]!r} is not a robot id (^[a-z][a-z0-9_-]{{0,31}}$)")
+    return value
+
+
+def _map_key(schema: str, name: str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise BadMessage(schema, name, f"expected a map key (string), got {type(value).__name__}")
+    if MAP_KEY_PATTERN.fullmatch(value) is None:
+        raise BadMessage(schema, name, f"{value[:64]!r} is not a map key <robot>/<epoch>")
+    return value
+
+
+def _count(schema: str, name: str, value: Any) -> int:
+    """A non-negative integer (epoch, version, index, sequence number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise BadMessage(schema, name, f"expected a non-negative integer, got {type(value).__name__}")
+    if not 0 <= value <= MAX_INT:
+        raise BadMessage(schema, name, f"expected a non-negative integer, got {value}")
+    return int(value)
+
+
+def _optional_count(schema: str, name: str, value: Any) -> int | None:
+    return None if value is None else _count(schema, name, value)
+
+
+def _number(schema: str, name: str, value: Any, *, minimum: float | None = None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise BadMessage(schema, name, f"expected a number, got {type(value).__name__}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise BadMessage(schema, name, f"{number} is not finite")
+    if minimum is not None and number < minimum:
+        raise BadMessage(schema, name, f"{number} is below {minimum}")
+    return number
+
+
+def _stamp(schema: str, name: str, value: Any) -> float:
+    return _number(schema, name, value, minimum=0.0)
+
+
+def _flag(schema: str, name: str, value: Any) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise BadMessage(schema, name, f"expected true or false, got {type(value).__name__}")
+    return bool(value)
+
+
+def _text(schema: str, name: str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise BadMessage(schema, name, f"expected a string, got {type(value).__name__}")
+    if len(value) > MAX_TEXT:
+        raise BadMessage(schema, name, f"{len(value)} characters is more than {MAX_TEXT}")
+    return value
+
+
+def _transform(schema: str, name: str, value: Any) -> Transform2D:
+    """A Transform2D, or its wire form ``{"x", "y", "theta"}``, with finite fields."""
+    if isinstance(value, Transform2D):
+        x, y, theta = value.x, value.y, value.theta
+    elif isinstance(value, Mapping):
+        missing = [k for k in ("x", "y", "theta") if k not in value]
+        if missing:
+            raise BadMessage(schema, name, f"a transform needs x, y and theta; missing {', '.join(missing)}")
+        x, y, theta = value["x"], value["y"], value["theta"]
+    else:
+        raise BadMessage(schema, name, f"expected a transform {{x, y, theta}}, got {type(value).__name__}")
+    return Transform2D(
+        _number(schema, f"{name}.x", x), _number(schema, f"{name}.y", y), _number(schema, f"{name}.theta", theta)
+    )
+
+
+def _optional_transform(schema: str, name: str, value: Any) -> Transform2D | None:
+    return None if value is None else _transform(schema, name, value)
+
+
+def _readonly(array: Array) -> Array:
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def _segments(schema: str, name: str, value: Any, limit: int = MAX_SEGMENTS) -> Array:
+    """Segments as an (n, 4) float64 array, from an array-like or the wire's packed float64 bytes."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        raw = bytes(value)
+        if len(raw) % 8:
+            raise BadMessage(schema, name, f"{len(raw)} bytes is not a whole number of float64")
+        if len(raw) // 8 % 4:
+            raise BadMessage(schema, name, f"{len(raw) // 8} floats is not a multiple of 4")
+        if len(raw) // 32 > limit:
+            raise BadMessage(schema, name, f"{len(raw) // 32} segments is more than {limit}")
+        array = np.frombuffer(raw, dtype="<f8").reshape(-1, 4)
+    elif isinstance(value, (np.ndarray, list, tuple)):
+        try:
+            array = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise BadMessage(schema, name, "expected rows of 4 numbers [x1, y1, x2, y2]") from None
+        if array.size == 0:
+            array = array.reshape(0, 4)
+        if array.ndim != 2 or array.shape[1] != 4:
+            raise BadMessage(schema, name, f"expected shape (n, 4), got {array.shape}")
+        if array.shape[0] > limit:
+            raise BadMessage(schema, name, f"{array.shape[0]} segments is more than {limit}")
+    else:
+        raise BadMessage(schema, name, f"expected packed float64 segments, got {type(value).__name__}")
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite)[0])
+        raise BadMessage(schema, name, f"segment {i} has a NaN or infinite coordinate")
+    short = lengths(array) < MIN_SEGMENT_LENGTH
+    if short.any():
+        i = int(np.flatnonzero(short)[0])
+        raise BadMessage(schema, name, f"segment {i} has zero length")
+    return _readonly(array)
+
+
+def _ranges_array(schema: str, name: str, value: Any) -> Array:
+    """Range readings as a 1-D float32 array; NaN and infinity are allowed (no return)."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        raw = bytes(value)
+        if len(raw) % 4:
+            raise BadMessage(schema, name, f"{len(raw)} bytes is not a whole number of float32")
+        array = np.frombuffer(raw, dtype="<f4")
+    elif isinstance(value, (np.ndarray, list, tuple)):
+        try:
+            array = np.asarray(value, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise BadMessage(schema, name, "expected a list of numbers") from None
+        if array.ndim != 1:
+            raise BadMessage(schema, name, f"expected one reading per beam, got shape {array.shape}")
+    else:
+        raise BadMessage(schema, name, f"expected packed float32 ranges, got {type(value).__name__}")
+    if array.shape[0] > MAX_BEAMS:
+        raise BadMessage(schema, name, f"{array.shape[0]} readings is more than {MAX_BEAMS}")
+    return _readonly(array)
+
+
+def _mapping(schema: str, name: str, value: Any) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise BadMessage(schema, name, f"expected a map, got {type(value).__name__}")
+    return value
+
+
+def _sequence(schema: str, name: str, value: Any, limit: int) -> Sequence[Any]:
+    if not isinstance(value, (list, tuple)):
+        raise BadMessage(schema, name, f"expected a list, got {type(value).__name__}")
+    if len(value) > limit:
+        raise BadMessage(schema, name, f"{len(value)} items is more than {limit}")
+    return value
+
+
+def _part(cls: type[Any], schema: str, name: str, value: Any) -> Any:
+    """A nested part (``cls`` instance) from itself or from its wire map, errors under ``name``."""
+    if isinstance(value, cls):
+        return value
+    data = _mapping(schema, name, value)
+    kwargs = {}
+    for f in fields(cls):
+        if f.name in data:
+            kwargs[f.name] = data[f.name]
+        elif f.default is MISSING and f.default_factory is MISSING:
+            raise BadMessage(schema, f"{name}.{f.name}", "missing")
+    try:
+        return cls(**kwargs)
+    except BadMessage as exc:
+        raise BadMessage(schema, name if exc.field is None else f"{name}.{exc.field}", exc.reason) from None
+
+
+def _set(obj: object, name: str, value: Any) -> None:
+    object.__setattr__(obj, name, value)
+
+
+# --- parts of messages ---
+
+
+@dataclass(frozen=True, eq=False)
+class LaserRanges:
+    """A scan's raw laser readings, kept so replays and viewers can use them.
+
+    Beam i points at ``angle_min + i * angle_increment``; a reading that is not finite, is <= 0
+    or is >= ``range_max`` is no return (``../shared/CONTRACTS.md``, Range scan). Readings travel
+    as little-endian float32.
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.LaserRanges"
+
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: Array
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "angle_min", _number(s, "angle_min", self.angle_min))
+        _set(self, "angle_increment", _number(s, "angle_increment", self.angle_increment))
+        if self.angle_increment == 0.0:
+            raise BadMessage(s, "angle_increment", "is zero")
+        range_max = self.range_max
+        if isinstance(range_max, bool) or not isinstance(range_max, (int, float, np.integer, np.floating)):
+            raise BadMessage(s, "range_max", f"expected a number, got {type(range_max).__name__}")
+        if not float(range_max) > 0.0:  # infinity is allowed: a log that does not say its range
+            raise BadMessage(s, "range_max", f"{range_max} is not a positive number")
+        _set(self, "range_max", float(range_max))
+        _set(self, "ranges", _ranges_array(s, "ranges", self.ranges))
+
+    @staticmethod
+    def from_range_scan(scan: RangeScan) -> LaserRanges:
+        return LaserRanges(scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges)
+
+    def to_range_scan(self, stamp: float) -> RangeScan:
+        return RangeScan(stamp, self.angle_min, self.angle_increment, self.range_max, self.ranges.astype(np.float64))
+
+
+@dataclass(frozen=True)
+class EpochLink:
+    """How a local map's epoch follows the robot's previous one.
+
+    ``transform`` is the new epoch's frame in the previous epoch's frame when the robot knows it
+    (a restart in place), and None when it does not (a kidnap: never a guess).
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.EpochLink"
+
+    epoch: int
+    reason: str = ""
+    transform: Transform2D | None = None
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "reason", _text(s, "reason", self.reason))
+        _set(self, "transform", _optional_transform(s, "transform", self.transform))
+
+
+@dataclass(frozen=True, eq=False)
+class Component:
+    """One connected component of the map graph: local maps merged into one global map.
+
+    ``poses[key]`` places local map ``key`` in the component's frame, which is the anchor's frame;
+    ``segments`` is the merged map in that frame.
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.Component"
+
+    anchor: str
+    members: tuple[str, ...]
+    poses: Mapping[str, Transform2D]
+    segments: Array
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "anchor", _map_key(s, "anchor", self.anchor))
+        members = tuple(
+            _map_key(s, f"members[{i}]", m) for i, m in enumerate(_sequence(s, "members", self.members, MAX_MAPS))
+        )
+        if len(set(members)) != len(members):
+            raise BadMessage(s, "members", "a map is listed twice")
+        if self.anchor not in members:
+            raise BadMessage(s, "anchor", f"{self.anchor!r} is not one of the members")
+        raw_poses = _mapping(s, "poses", self.poses)
+        poses = {}
+        for key, pose in raw_poses.items():
+            poses[_map_key(s, "poses", key)] = _transform(s, f"poses[{key}]", pose)
+        if set(poses) != set(members):
+            unplaced = sorted(set(members) - set(poses))
+            extra = sorted(set(poses) - set(members))
+            what = f"members without a pose: {unplaced[:3]}" if unplaced else f"poses of non-members: {extra[:3]}"
+            raise BadMessage(s, "poses", what)
+        _set(self, "members", members)
+        _set(self, "poses", types.MappingProxyType(poses))
+        _set(self, "segments", _segments(s, "segments", self.segments))
+
+
+# --- messages ---
+
+
+class WireMessage:
+    """What every message has: a schema name, a version and msgpack coding."""
+
+    SCHEMA: ClassVar[str]
+    VERSION: ClassVar[int] = 1
+    READS: ClassVar[tuple[int, ...]] = (1,)
+    """Versions of this schema that :func:`decode` accepts."""
+
+    stamp: float
+
+    def to_msgpack(self) -> bytes:
+        out: dict[str, Any] = {"schema": self.SCHEMA, "v": self.VERSION}
+        for f in fields(self):  # type: ignore[arg-type]  # every subclass is a dataclass
+            out[f.name] = _to_wire(getattr(self, f.name))
+        packed: bytes = msgpack.packb(out, use_bin_type=True)
+        return packed
+
+    @classmethod
+    def from_msgpack(cls, data: bytes) -> Self:
+        message = decode(data)
+        if not isinstance(message, cls):
+            raise BadMessage(cls.SCHEMA, "schema", f"expected {cls.SCHEMA}, got {message.SCHEMA}")
+        return message
+
+    @classmethod
+    def _from_wire(cls, data: Mapping[str, Any]) -> Self:
+        kwargs = {}
+        for f in fields(cls):  # type: ignore[arg-type]  # every subclass is a dataclass
+            if f.name in data:
+                kwargs[f.name] = data[f.name]
+            elif f.default is MISSING and f.default_factory is MISSING:
+                raise BadMessage(cls.SCHEMA, f.name, "missing")
+        return cls(**kwargs)
+
+
+def _to_wire(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return np.ascontiguousarray(value, dtype="<f4" if value.dtype == np.float32 else "<f8").tobytes()
+    if isinstance(value, Transform2D):
+        return {"x": value.x, "y": value.y, "theta": value.theta}
+    if is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _to_wire(getattr(value, f.name)) for f in fields(value)}
+    if isinstance(value, Mapping):
+        return {k: _to_wire(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_to_wire(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True, eq=False)
+class Scan(WireMessage):
+    """One laser sweep of a robot: its segments (paper III-D) in the laser's frame."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.Scan"
+
+    robot: str
+    epoch: int
+    index: int
+    """The scan's number in the robot's stream (0, 1, ...)."""
+    stamp: float
+    segments: Array
+    ranges: LaserRanges | None = None
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "robot", _robot(s, "robot", self.robot))
+        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "index", _count(s, "index", self.index))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        _set(self, "segments", _segments(s, "segments", self.segments))
+        if self.ranges is not None:
+            _set(self, "ranges", _part(LaserRanges, s, "ranges", self.ranges))
+
+
+@dataclass(frozen=True, eq=False)
+class LocalMap(WireMessage):
+    """A robot's local map of one epoch, version ``version`` (it grows as scans are integrated)."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.LocalMap"
+
+    robot: str
+    epoch: int
+    version: int
+    stamp: float
+    segments: Array
+    scans: int
+    """How many scans went into it."""
+    pose: Transform2D | None = None
+    """The robot's current pose in this local map's frame; None when the robot is lost."""
+    previous_epoch_link: EpochLink | None = None
+    """Set on the first versions of an epoch that follows another one of the same robot."""
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "robot", _robot(s, "robot", self.robot))
+        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "version", _count(s, "version", self.version))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        _set(self, "segments", _segments(s, "segments", self.segments))
+        _set(self, "scans", _count(s, "scans", self.scans))
+        _set(self, "pose", _optional_transform(s, "pose", self.pose))
+        if self.previous_epoch_link is not None:
+            link = _part(EpochLink, s, "previous_epoch_link", self.previous_epoch_link)
+            if link.epoch >= self.epoch:
+                raise BadMessage(s, "previous_epoch_link.epoch", f"{link.epoch} is not before epoch {self.epoch}")
+            _set(self, "previous_epoch_link", link)
+
+    @property
+    def key(self) -> str:
+        """The map key ``<robot>/<epoch>``."""
+        return f"{self.robot}/{self.epoch}"
+
+
+@dataclass(frozen=True)
+class MergeEdge(WireMessage):
+    """An integration attempt between local maps a and b: ``(x, y, theta)`` maps b into a's frame."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.MergeEdge"
+
+    a: str
+    b: str
+    x: float
+    y: float
+    theta: float
+    value: float
+    """The paper's transformation value (matched length, m)."""
+    valid: bool
+    stamp: float
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "a", _map_key(s, "a", self.a))
+        _set(self, "b", _map_key(s, "b", self.b))
+        if self.a == self.b:
+            raise BadMessage(s, "b", f"an edge joins two different maps, got {self.a!r} twice")
+        for name in ("x", "y", "theta"):
+            _set(self, name, _number(s, name, getattr(self, name)))
+        _set(self, "value", _number(s, "value", self.value, minimum=0.0))
+        _set(self, "valid", _flag(s, "valid", self.valid))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+
+    @property
+    def transform(self) -> Transform2D:
+        return Transform2D(self.x, self.y, self.theta)
+
+
+@dataclass(frozen=True, eq=False)
+class GlobalMap(WireMessage):
+    """The merger's global maps: one per connected component of the map graph."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.GlobalMap"
+
+    seq: int
+    """Increases with every global map the merger publishes."""
+    stamp: float
+    components: tuple[Component, ...]
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "seq", _count(s, "seq", self.seq))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        raw = _sequence(s, "components", self.components, MAX_MAPS)
+        components = tuple(_part(Component, s, f"components[{i}]", c) for i, c in enumerate(raw))
+        seen: set[str] = set()
+        for i, component in enumerate(components):
+            twice = seen.intersection(component.members)
+            if twice:
+                raise BadMessage(s, f"components[{i}].members", f"{sorted(twice)[0]!r} is in two components")
+            seen.update(component.members)
+        if len(seen) > MAX_MAPS:
+            raise BadMessage(s, "components", f"{len(seen)} maps is more than {MAX_MAPS}")
+        total = sum(len(c.segments) for c in components)
+        if total > MAX_SEGMENTS:
+            raise BadMessage(s, "components", f"{total} segments is more than {MAX_SEGMENTS}")
+        _set(self, "components", components)
+
+    def component_of(self, key: str) -> int | None:
+        """The index of the component that holds map ``key``, or None."""
+        for i, component in enumerate(self.components):
+            if key in component.poses:
+                return i
+        return None
+
+
+@dataclass(frozen=True)
+class RobotPose(WireMessage):
+    """A robot's pose in the frame of global map component ``component`` (of the latest GlobalMap).
+
+    ``pose`` None means unknown (the robot is lost, or its epoch is not placed yet), never a guess;
+    then ``component`` is None too.
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.RobotPose"
+
+    robot: str
+    epoch: int
+    stamp: float
+    pose: Transform2D | None
+    component: int | None
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "robot", _robot(s, "robot", self.robot))
+        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        _set(self, "pose", _optional_transform(s, "pose", self.pose))
+        _set(self, "component", _optional_count(s, "component", self.component))
+        if (self.pose is None) != (self.component is None):
+            raise BadMessage(s, "component", "a pose needs its component, and an unknown pose has none")
+
+
+@dataclass(frozen=True)
+class FleetEvent(WireMessage):
+    """Something that happened to the fleet: a robot joined, left, started an epoch, ..."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.FleetEvent"
+
+    kind: str
+    """One of :data:`EVENT_KINDS`."""
+    robot: str | None
+    stamp: float
+    detail: str = ""
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        if not isinstance(self.kind, str) or self.kind not in EVENT_KINDS:
+            raise BadMessage(s, "kind", f"{str(self.kind)[:64]!r} is not one of {', '.join(sorted(EVENT_KINDS))}")
+        if self.robot is not None:
+            _set(self, "robot", _robot(s, "robot", self.robot))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        _set(self, "detail", _text(s, "detail", self.detail))
+
+
+Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent
+"""Any message of the bus."""
+
+MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent]] = {
+    cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent)
+}
+
+
+def unpack(data: bytes) -> dict[str, Any]:
+    """The msgpack map of a payload, with its schema and version checked, not yet its fields."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise BadMessage("message", None, f"expected bytes, got {type(data).__name__}")
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
+    try:
+        raw = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except (msgpack.UnpackException, ValueError) as exc:
+        raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
+    if not isinstance(raw, dict):
+        raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
+    if "schema" not in raw:
+        raise BadMessage("message", "schema", "missing")
+    schema = raw["schema"]
+    if schema not in MESSAGE_TYPES:
+        raise BadMessage("message", "schema", f"{str(schema)[:64]!r} is not a fleetmap message schema")
+    version = raw.get("v")
+    cls = MESSAGE_TYPES[schema]
+    if isinstance(version, bool) or version not in cls.READS:
+        raise BadMessage(schema, "v", f"version {str(version)[:32]} is not one this fleetmap reads {cls.READS}")
+    return raw
+
+
+def decode(data: bytes) -> Message:
+    """The message of a payload, every field validated; BadMessage names what is wrong."""
+    raw = unpack(data)
+    return MESSAGE_TYPES[raw["schema"]]._from_wire(raw)

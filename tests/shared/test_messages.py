@@ -1,0 +1,417 @@
+"""The bus messages: round trips, and every kind of bad field refused with its name."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import msgpack
+import numpy as np
+import pytest
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys, map_key, parse_map_key
+from fleetmap.shared.messages import (
+    MAX_SEGMENTS,
+    BadMessage,
+    Component,
+    EpochLink,
+    FleetEvent,
+    GlobalMap,
+    LaserRanges,
+    LocalMap,
+    MergeEdge,
+    RobotPose,
+    Scan,
+    decode,
+)
+from fleetmap.shared.scans import RangeScan
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+SEGMENTS = np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 1.0, 2.5], [-3.25, 4.0, 0.5, 0.125]])
+
+
+def scan() -> Scan:
+    ranges = LaserRanges(-math.pi / 2, math.pi / 180, 8.0, np.array([1.5, math.inf, math.nan, 7.25]))
+    return Scan("r1", 2, 17, 123.25, SEGMENTS, ranges)
+
+
+def local_map() -> LocalMap:
+    link = EpochLink(1, "kidnap", None)
+    return LocalMap("r1", 2, 5, 130.0, SEGMENTS, 12, Transform2D(0.5, -1.0, 0.25), link)
+
+
+def global_map() -> GlobalMap:
+    first = Component("r1/0", ("r1/0", "r2/0"), {"r1/0": Transform2D(), "r2/0": Transform2D(1.0, 2.0, -0.5)}, SEGMENTS)
+    second = Component("r3/1", ("r3/1",), {"r3/1": Transform2D()}, SEGMENTS[:1])
+    return GlobalMap(7, 140.5, (first, second))
+
+
+def wire(message: object) -> dict:
+    return msgpack.unpackb(message.to_msgpack(), raw=False)  # type: ignore[attr-defined]
+
+
+def repack(data: dict) -> bytes:
+    return msgpack.packb(data, use_bin_type=True)
+
+
+def refused(data: dict) -> str:
+    with pytest.raises(BadMessage) as info:
+        decode(repack(data))
+    return str(info.value)
+
+
+# --- round trips ---
+
+
+def test_scan_round_trip_keeps_segments_and_raw_ranges():
+    back = decode(scan().to_msgpack())
+    assert isinstance(back, Scan)
+    assert (back.robot, back.epoch, back.index, back.stamp) == ("r1", 2, 17, 123.25)
+    np.testing.assert_array_equal(back.segments, SEGMENTS)
+    assert back.ranges is not None
+    assert back.ranges.ranges.dtype == np.float32
+    np.testing.assert_array_equal(back.ranges.ranges, np.array([1.5, math.inf, math.nan, 7.25], dtype=np.float32))
+    assert back.ranges.angle_increment == pytest.approx(math.pi / 180)
+
+
+def test_scan_ranges_convert_to_and_from_a_range_scan():
+    rs = RangeScan(3.0, -1.0, 0.5, math.inf, np.array([1.0, 2.0, math.nan]))
+    back = decode(Scan("r1", 0, 0, 3.0, SEGMENTS, LaserRanges.from_range_scan(rs)).to_msgpack())
+    assert isinstance(back, Scan) and back.ranges is not None
+    again = back.ranges.to_range_scan(back.stamp)
+    assert (again.stamp, again.angle_min, again.angle_increment, again.range_max) == (3.0, -1.0, 0.5, math.inf)
+    np.testing.assert_array_equal(again.ranges, rs.ranges)
+
+
+def test_local_map_round_trip():
+    back = LocalMap.from_msgpack(local_map().to_msgpack())
+    assert (back.robot, back.epoch, back.version, back.scans, back.key) == ("r1", 2, 5, 12, "r1/2")
+    assert back.pose == Transform2D(0.5, -1.0, 0.25)
+    assert back.previous_epoch_link == EpochLink(1, "kidnap", None)
+    np.testing.assert_array_equal(back.segments, SEGMENTS)
+
+
+def test_a_lost_robot_has_no_pose_in_its_local_map():
+    lost = LocalMap("r1", 0, 0, 0.0, SEGMENTS, 1, None)
+    assert LocalMap.from_msgpack(lost.to_msgpack()).pose is None
+
+
+def test_global_map_round_trip():
+    back = GlobalMap.from_msgpack(global_map().to_msgpack())
+    assert back.seq == 7 and len(back.components) == 2
+    first = back.components[0]
+    assert first.anchor == "r1/0" and first.members == ("r1/0", "r2/0")
+    assert first.poses["r2/0"] == Transform2D(1.0, 2.0, -0.5)
+    np.testing.assert_array_equal(first.segments, SEGMENTS)
+    assert back.component_of("r3/1") == 1 and back.component_of("r9/0") is None
+
+
+def test_value_messages_round_trip_equal():
+    for message in (
+        MergeEdge("r1/0", "r2/3", 1.0, -2.0, 0.5, 12.5, True, 9.0),
+        RobotPose("r2", 3, 9.5, Transform2D(1.0, 2.0, 3.0), 0),
+        RobotPose("r2", 4, 9.5, None, None),
+        FleetEvent("join", "r2", 1.0, "fleet/default/alive/r2"),
+        FleetEvent("merger_start", None, 2.0),
+    ):
+        assert type(message).from_msgpack(message.to_msgpack()) == message
+
+
+def test_payload_is_a_msgpack_map_with_schema_version_and_packed_float64_segments():
+    data = wire(local_map())
+    assert data["schema"] == "fleetmap.LocalMap" and data["v"] == 1
+    assert data["segments"] == struct.pack("<12d", *SEGMENTS.ravel())
+    assert data["pose"] == {"x": 0.5, "y": -1.0, "theta": 0.25}
+
+
+def test_decoded_segments_are_read_only():
+    back = LocalMap.from_msgpack(local_map().to_msgpack())
+    with pytest.raises(ValueError):
+        back.segments[0, 0] = 5.0
+
+
+def test_unknown_fields_are_ignored_so_senders_can_add_optional_ones():
+    data = wire(local_map())
+    data["coverage"] = 0.5
+    assert LocalMap.from_msgpack(repack(data)).version == 5
+
+
+def test_from_msgpack_of_another_type_is_refused():
+    with pytest.raises(BadMessage, match=r"expected fleetmap\.LocalMap, got fleetmap\.Scan"):
+        LocalMap.from_msgpack(scan().to_msgpack())
+
+
+# --- validation names the field and the reason ---
+
+
+def test_segments_not_a_multiple_of_four_floats():
+    data = wire(local_map())
+    data["segments"] = data["segments"][:-8]
+    assert refused(data) == "fleetmap.LocalMap field 'segments': 11 floats is not a multiple of 4"
+
+
+@pytest.mark.parametrize(
+    ("row", "reason"),
+    [
+        ([0.0, 0.0, math.nan, 1.0], "segment 1 has a NaN or infinite coordinate"),
+        ([0.0, 0.0, math.inf, 1.0], "segment 1 has a NaN or infinite coordinate"),
+        ([2.0, 3.0, 2.0, 3.0], "segment 1 has zero length"),
+    ],
+)
+def test_bad_segments_are_refused(row, reason):
+    data = wire(local_map())
+    bad = SEGMENTS.copy()
+    bad[1] = row
+    data["segments"] = bad.astype("<f8").tobytes()
+    assert refused(data) == f"fleetmap.LocalMap field 'segments': {reason}"
+
+
+def test_too_many_segments_are_refused_before_decoding_them():
+    data = wire(local_map())
+    data["segments"] = bytes(32 * (MAX_SEGMENTS + 1))
+    assert "200001 segments is more than 200000" in refused(data)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "reason"),
+    [
+        ("robot", "R1", "'R1' is not a robot id"),
+        ("robot", "r" * 33, "is not a robot id"),
+        ("robot", 7, "expected a robot id (string), got int"),
+        ("epoch", -1, "expected a non-negative integer, got -1"),
+        ("epoch", 1.5, "expected a non-negative integer, got float"),
+        ("epoch", True, "expected a non-negative integer, got bool"),
+        ("version", "3", "expected a non-negative integer, got str"),
+        ("stamp", math.nan, "nan is not finite"),
+        ("stamp", -1.0, "-1.0 is below 0.0"),
+        ("scans", None, "expected a non-negative integer, got NoneType"),
+        ("pose", {"x": 1.0, "y": 2.0}, "missing theta"),
+        ("pose", [1.0, 2.0, 3.0], "expected a transform {x, y, theta}, got list"),
+    ],
+)
+def test_bad_local_map_fields_are_named(field, value, reason):
+    data = wire(local_map())
+    data[field] = value
+    text = refused(data)
+    assert text.startswith(f"fleetmap.LocalMap field '{field}")
+    assert reason in text
+
+
+def test_missing_field_is_named():
+    data = wire(local_map())
+    del data["version"]
+    assert refused(data) == "fleetmap.LocalMap field 'version': missing"
+
+
+def test_nested_fields_are_named_with_their_path():
+    data = wire(global_map())
+    data["components"][0]["poses"]["r2/0"]["x"] = math.inf
+    assert refused(data) == "fleetmap.GlobalMap field 'components[0].poses[r2/0].x': inf is not finite"
+
+
+def test_previous_epoch_link_must_point_back():
+    with pytest.raises(BadMessage, match=r"'previous_epoch_link\.epoch': 2 is not before epoch 2"):
+        LocalMap("r1", 2, 0, 0.0, SEGMENTS, 1, None, EpochLink(2))
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        (lambda c: c.update(anchor="r9/0"), "'r9/0' is not one of the members"),
+        (lambda c: c.update(members=["r1/0", "r1/0", "r2/0"]), "a map is listed twice"),
+        (lambda c: c["poses"].pop("r2/0"), "members without a pose: ['r2/0']"),
+        (lambda c: c.update(members=["r1/0", "r2/x"]), "'r2/x' is not a map key <robot>/<epoch>"),
+    ],
+)
+def test_inconsistent_components_are_refused(change, reason):
+    data = wire(global_map())
+    change(data["components"][0])
+    assert reason in refused(data)
+
+
+def test_a_map_in_two_components_is_refused():
+    data = wire(global_map())
+    data["components"][1] = data["components"][0]
+    assert "'r1/0' is in two components" in refused(data)
+
+
+def test_edges_need_two_different_map_keys_and_a_non_negative_value():
+    with pytest.raises(BadMessage, match="'a': 'r1' is not a map key"):
+        MergeEdge("r1", "r2/0", 0.0, 0.0, 0.0, 1.0, True, 0.0)
+    with pytest.raises(BadMessage, match="two different maps"):
+        MergeEdge("r1/0", "r1/0", 0.0, 0.0, 0.0, 1.0, True, 0.0)
+    with pytest.raises(BadMessage, match=r"'value': -1\.0 is below 0\.0"):
+        MergeEdge("r1/0", "r2/0", 0.0, 0.0, 0.0, -1.0, True, 0.0)
+    with pytest.raises(BadMessage, match="'valid': expected true or false, got int"):
+        MergeEdge("r1/0", "r2/0", 0.0, 0.0, 0.0, 1.0, 1, 0.0)  # type: ignore[arg-type]
+
+
+def test_an_unknown_pose_has_no_component_and_a_known_one_needs_it():
+    with pytest.raises(BadMessage, match="'component'"):
+        RobotPose("r1", 0, 0.0, None, 0)
+    with pytest.raises(BadMessage, match="'component'"):
+        RobotPose("r1", 0, 0.0, Transform2D(), None)
+
+
+def test_event_kinds_and_detail_length_are_checked():
+    with pytest.raises(BadMessage, match="'kind': 'teleport' is not one of"):
+        FleetEvent("teleport", "r1", 0.0)
+    with pytest.raises(BadMessage, match="'detail': 257 characters is more than 256"):
+        FleetEvent("join", "r1", 0.0, "x" * 257)
+
+
+def test_laser_ranges_are_checked():
+    with pytest.raises(BadMessage, match="'angle_increment': is zero"):
+        LaserRanges(0.0, 0.0, 8.0, np.ones(3))
+    with pytest.raises(BadMessage, match="'range_max'"):
+        LaserRanges(0.0, 0.1, -1.0, np.ones(3))
+    data = wire(scan())
+    data["ranges"]["ranges"] = b"\x00" * 7
+    assert refused(data) == "fleetmap.Scan field 'ranges.ranges': 7 bytes is not a whole number of float32"
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (b"", "not msgpack"),
+        (b"\xc1", "not msgpack"),
+        (msgpack.packb([1, 2]), "expected a msgpack map, got list"),
+        (msgpack.packb({"schema": "fleetmap.Teleport", "v": 1}), "'fleetmap.Teleport' is not a fleetmap message"),
+        (msgpack.packb({"v": 1}), "message field .schema.: missing"),
+        (msgpack.packb({"schema": "fleetmap.Scan", "v": 2}), "version 2 is not one this fleetmap reads"),
+        (msgpack.packb({1: 2}), "not msgpack"),
+    ],
+)
+def test_payloads_that_are_not_messages(payload, reason):
+    with pytest.raises(BadMessage, match=reason):
+        decode(payload)
+
+
+def test_bad_message_is_bad_input_so_the_cli_reports_it_as_such():
+    assert issubclass(BadMessage, BadInput)
+
+
+def test_messages_built_in_code_are_validated_too():
+    with pytest.raises(BadMessage, match=r"fleetmap\.Scan field 'segments'"):
+        Scan("r1", 0, 0, 0.0, np.array([[0.0, 0.0, 0.0, 0.0]]))
+    np.testing.assert_array_equal(Scan("r1", 0, 0, 0.0, []).segments, np.zeros((0, 4)))
+
+
+# --- keys ---
+
+
+def test_keys_build_and_parse_back():
+    keys = FleetKeys("lab-2")
+    assert keys.scan("r1") == "fleet/lab-2/robots/r1/scan"
+    assert keys.alive("r1") == "fleet/lab-2/alive/r1"
+    assert keys.everything == "fleet/lab-2/**"
+    for key, kind, robot in [
+        (keys.scan("r1"), "scan", "r1"),
+        (keys.localmap("r_2"), "localmap", "r_2"),
+        (keys.pose("r3"), "pose", "r3"),
+        (keys.globalmap, "globalmap", None),
+        (keys.edges, "edges", None),
+        (keys.state, "state", None),
+        (keys.events, "events", None),
+        (keys.alive("r4"), "alive", "r4"),
+        (keys.service("merger"), "services", "merger"),
+    ]:
+        parsed = keys.parse(key)
+        assert (parsed.kind, parsed.robot) == (kind, robot)
+
+
+@pytest.mark.parametrize(
+    "key",
+    ["fleet/other/robots/r1/scan", "fleet/lab-2/robots/R1/scan", "fleet/lab-2/robots/r1/odom", "fleet/lab-2"],
+)
+def test_keys_of_other_fleets_or_kinds_are_not_parsed(key):
+    with pytest.raises(BadInput):
+        FleetKeys("lab-2").parse(key)
+
+
+def test_fleet_and_robot_names_are_validated():
+    with pytest.raises(BadInput, match="fleet"):
+        FleetKeys("Lab 2")
+    with pytest.raises(BadInput, match="robot"):
+        FleetKeys().scan("r/1")
+    with pytest.raises(BadInput, match="robot"):
+        FleetKeys().alive("*")
+
+
+def test_map_keys():
+    assert map_key("r1", 3) == "r1/3"
+    assert parse_map_key("r1/3") == ("r1", 3)
+    for bad in ("r1/03", "r1/-1", "r1", "R1/0"):
+        with pytest.raises(BadInput):
+            parse_map_key(bad)
+
+
+# --- fuzz ---
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=512))
+def test_random_bytes_decode_or_raise_bad_message(data):
+    try:
+        message = decode(data)
+    except BadMessage:
+        return
+    assert message.SCHEMA.startswith("fleetmap.")
+
+
+FIELD_VALUES = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**63), max_value=2**64 - 1)
+    | st.floats()
+    | st.text(max_size=40)
+    | st.binary(max_size=64)
+    | st.sampled_from(["r1", "r1/0", "r2/3"]),
+    lambda children: (
+        st.lists(children, max_size=4)
+        | st.dictionaries(
+            st.sampled_from(["x", "y", "theta", "anchor", "members", "poses", "segments", "epoch", "reason"]),
+            children,
+            max_size=5,
+        )
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.sampled_from([scan, local_map, global_map]),
+    st.dictionaries(st.text(min_size=1, max_size=12), FIELD_VALUES, max_size=3),
+    st.data(),
+)
+def test_messages_with_random_fields_decode_or_raise_bad_message(make, extra, data):
+    """Well-formed maps of a real schema with some fields replaced by anything at all."""
+    fields = wire(make())
+    names = sorted(k for k in fields if k not in ("schema", "v"))
+    for name in data.draw(st.lists(st.sampled_from(names), max_size=3)):
+        fields[name] = data.draw(FIELD_VALUES)
+    fields.update({k: v for k, v in extra.items() if k not in ("schema", "v")})
+    try:
+        message = decode(repack(fields))
+    except BadMessage:
+        return
+    assert fields["schema"] == message.SCHEMA
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.tuples(*[st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)] * 4), min_size=0, max_size=50
+    ).filter(lambda rows: all(math.hypot(r[2] - r[0], r[3] - r[1]) > 1e-3 for r in rows)),
+    st.integers(min_value=0, max_value=2**63 - 1),
+)
+def test_any_valid_local_map_round_trips_exactly(rows, version):
+    segments = np.array(rows, dtype=np.float64).reshape(-1, 4)
+    message = LocalMap("r1", 0, version, 1.0, segments, 1)
+    back = LocalMap.from_msgpack(message.to_msgpack())
+    assert back.version == version
+    np.testing.assert_array_equal(back.segments, segments)
+    assert back.to_msgpack() == message.to_msgpack()
