@@ -1,0 +1,330 @@
+"""The bus: the same contract over real zenoh sessions on loopback and in memory; zenoh flags.
+
+The zenoh tests open two sessions in this process, one listening on a free loopback port and one
+connecting to it; the slow ones run the other side in a child process and kill it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+from fleetmap.shared.bus import Bus, BusError, InMemoryBus, ZenohBus
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.zenoh_config import (
+    DEFAULT_ENDPOINT,
+    ZenohOptions,
+    add_zenoh_arguments,
+    free_loopback_endpoint,
+    zenoh_config,
+    zenoh_options_from_args,
+)
+
+from tests.bus_helpers import WAIT, Inbox, open_zenoh, open_zenoh_pair, sync_declarations
+
+KEYS = FleetKeys("t")
+
+
+@pytest.fixture(params=["zenoh", "memory"])
+def pair(request: pytest.FixtureRequest) -> Iterator[tuple[Bus, Bus]]:
+    """Two buses that see each other: two zenoh sessions on loopback, or two in-memory peers."""
+    if request.param == "zenoh":
+        a, b = open_zenoh_pair()
+    else:
+        a = InMemoryBus()
+        b = a.peer()
+    try:
+        yield a, b
+    finally:
+        b.close()
+        a.close()
+
+
+def test_published_payloads_arrive_exactly_in_order_with_their_keys(pair):
+    a, b = pair
+    inbox = Inbox()
+    a.subscribe(KEYS.all_scans, inbox)
+    assert b.wait_for_subscribers(KEYS.scan("r1"), WAIT)
+    payloads = [bytes([i % 256]) * (i + 1) for i in range(100)]
+    for payload in payloads:
+        b.publish(KEYS.scan("r1"), payload)
+    b.publish(KEYS.localmap("r1"), b"not a scan")  # another key: not for this subscriber
+    assert inbox.wait_for(100)
+    assert inbox.items == [(KEYS.scan("r1"), p) for p in payloads]
+    assert a.stats.received == 100 and b.stats.published == 101
+
+
+def test_a_callback_that_raises_is_counted_and_the_next_message_still_arrives(pair):
+    a, b = pair
+    inbox = Inbox()
+
+    def fragile(key: str, payload: bytes) -> None:
+        if payload == b"bad":
+            raise ValueError("cannot handle this")
+        inbox(key, payload)
+
+    a.subscribe(KEYS.events, fragile)
+    assert b.wait_for_subscribers(KEYS.events, WAIT)
+    b.publish(KEYS.events, b"bad")
+    b.publish(KEYS.events, b"good")
+    assert inbox.wait_for(1)
+    assert inbox.items == [(KEYS.events, b"good")]
+    assert a.stats.callback_errors == 1
+
+
+def test_a_closed_subscription_receives_nothing_more(pair):
+    a, b = pair
+    closed, open_ = Inbox(), Inbox()
+    handle = a.subscribe(KEYS.events, closed)
+    a.subscribe(KEYS.events, open_)
+    assert b.wait_for_subscribers(KEYS.events, WAIT)
+    b.publish(KEYS.events, b"1")
+    assert closed.wait_for(1) and open_.wait_for(1)
+    handle.close()
+    b.publish(KEYS.events, b"2")
+    assert open_.wait_for(2)
+    assert closed.items == [(KEYS.events, b"1")]
+
+
+def test_query_returns_the_queryables_answer(pair):
+    a, b = pair
+    a.declare_queryable(KEYS.state, lambda selector: b"state for " + selector.encode())
+    sync_declarations(a, b)
+    assert b.query(KEYS.state, timeout=WAIT) == [b"state for " + KEYS.state.encode()]
+
+
+def test_a_failing_queryable_answers_an_error_not_an_exception(pair):
+    a, b = pair
+
+    def broken(selector: str) -> bytes:
+        raise RuntimeError("no state yet")
+
+    a.declare_queryable(KEYS.state, broken)
+    sync_declarations(a, b)
+    assert b.query(KEYS.state, timeout=WAIT) == []
+    assert b.stats.query_errors == 1
+    assert a.stats.callback_errors == 1
+
+
+def test_query_without_queryable_returns_nothing(pair):
+    _, b = pair
+    assert b.query(KEYS.state, timeout=0.2) == []
+
+
+def test_liveliness_join_history_and_leave(pair):
+    a, b = pair
+    early = b.declare_liveliness(KEYS.alive("r1"))
+    joins, leaves = Inbox(), Inbox()
+    a.subscribe_liveliness(KEYS.all_alive, joins, leaves, history=True)
+    assert joins.wait_for(1), "a token that existed before the subscription is reported (history)"
+    late = b.declare_liveliness(KEYS.alive("r2"))
+    assert joins.wait_for(2)
+    assert sorted(k for (k,) in joins.items) == [KEYS.alive("r1"), KEYS.alive("r2")]
+    early.close()
+    assert leaves.wait_for(1)
+    assert leaves.items == [(KEYS.alive("r1"),)]
+    late.close()
+    assert leaves.wait_for(2)
+
+
+def test_closing_a_bus_makes_its_tokens_leave(pair):
+    a, b = pair
+    joins, leaves = Inbox(), Inbox()
+    a.subscribe_liveliness(KEYS.all_alive, joins, leaves)
+    b.declare_liveliness(KEYS.alive("r1"))
+    assert joins.wait_for(1)
+    b.close()
+    assert leaves.wait_for(1)
+    with pytest.raises(BusError, match="closed"):
+        b.publish(KEYS.events, b"x")
+
+
+def test_bad_key_expressions_are_bad_input(pair):
+    a, _ = pair
+    with pytest.raises(BadInput, match="not a valid key expression"):
+        a.publish("fleet//t", b"x")
+    with pytest.raises(BadInput, match="not a valid key expression"):
+        a.subscribe("fleet/t/**/**/", Inbox())
+
+
+def test_zenoh_payloads_carry_the_msgpack_encoding():
+    a, b = open_zenoh_pair()
+    with a, b:
+        encodings = Inbox()
+        a.session.declare_subscriber(KEYS.events, lambda sample: encodings(str(sample.encoding)))
+        assert b.wait_for_subscribers(KEYS.events, WAIT)
+        b.publish(KEYS.events, b"x")
+        assert encodings.wait_for(1)
+        assert encodings.items == [("application/msgpack",)]
+
+
+# --- the shared zenoh flags ---
+
+
+def config_of(options: ZenohOptions) -> dict[str, object]:
+    config = zenoh_config(options)
+    keys = ("mode", "listen/endpoints", "connect/endpoints", "scouting/multicast/enabled", "transport/link/tx/lease")
+    return {k: json.loads(config.get_json(k)) for k in keys}
+
+
+def test_default_is_a_loopback_peer_with_multicast_off_and_a_short_lease():
+    assert config_of(ZenohOptions()) == {
+        "mode": "peer",
+        "listen/endpoints": ["tcp/127.0.0.1:0"],
+        "connect/endpoints": [DEFAULT_ENDPOINT],
+        "scouting/multicast/enabled": False,
+        "transport/link/tx/lease": 2000,
+    }
+
+
+def test_endpoint_defaults_per_mode():
+    hub = config_of(ZenohOptions(listen=("tcp/127.0.0.1:7500",)))
+    assert hub["listen/endpoints"] == ["tcp/127.0.0.1:7500"] and hub["connect/endpoints"] == []
+    spoke = config_of(ZenohOptions(connect=("tcp/127.0.0.1:7500",)))
+    assert spoke["listen/endpoints"] == ["tcp/127.0.0.1:0"]
+    assert spoke["connect/endpoints"] == ["tcp/127.0.0.1:7500"]
+    router = config_of(ZenohOptions(mode="router"))
+    assert router["mode"] == "router" and router["listen/endpoints"] == [DEFAULT_ENDPOINT]
+    client = config_of(ZenohOptions(mode="client"))
+    assert client["connect/endpoints"] == [DEFAULT_ENDPOINT]
+
+
+def test_flags_parse_into_options():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_zenoh_arguments(parser)
+    args = parser.parse_args(
+        ["--mode", "client", "--connect", "tcp/10.0.0.1:7447", "--connect", "tcp/10.0.0.2:7447", "--fleet", "lab"]
+    )
+    options = zenoh_options_from_args(args)
+    assert options == ZenohOptions("client", ("tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"), (), None, "lab")
+    assert options.keys.scan("r1") == "fleet/lab/robots/r1/scan"
+
+
+def test_a_config_file_decides_and_flags_override_it(tmp_path):
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7600"]}, // robots\n}')
+    from_file = config_of(ZenohOptions(config_file=str(path)))
+    assert from_file["mode"] == "client" and from_file["connect/endpoints"] == ["tcp/127.0.0.1:7600"]
+    overridden = config_of(ZenohOptions(mode="peer", connect=("tcp/127.0.0.1:7601",), config_file=str(path)))
+    assert overridden["mode"] == "peer" and overridden["connect/endpoints"] == ["tcp/127.0.0.1:7601"]
+
+
+def test_bad_zenoh_options_are_bad_input(tmp_path):
+    with pytest.raises(BadInput, match=r"--connect foo: .*Endpoints must be of the form"):
+        zenoh_config(ZenohOptions(connect=("foo",)))
+    with pytest.raises(BadInput, match="no such zenoh config file"):
+        zenoh_config(ZenohOptions(config_file=str(tmp_path / "missing.json5")))
+    broken = tmp_path / "broken.json5"
+    broken.write_text("{mode: ")
+    with pytest.raises(BadInput, match="not a valid zenoh config"):
+        zenoh_config(ZenohOptions(config_file=str(broken)))
+    with pytest.raises(BadInput, match="--mode"):
+        ZenohOptions(mode="hub")
+    with pytest.raises(BadInput, match="--fleet"):
+        ZenohOptions(fleet="Lab/1")
+
+
+def test_a_listen_port_in_use_fails_to_open_with_bus_error():
+    endpoint = free_loopback_endpoint()
+    with ZenohBus.open(ZenohOptions(listen=(endpoint,))), pytest.raises(BusError, match="Address already in use"):
+        ZenohBus.open(ZenohOptions(listen=(endpoint,)))
+
+
+# --- across processes (slow) ---
+
+CHILD = """
+import sys
+from fleetmap.shared.bus import ZenohBus
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.zenoh_config import ZenohOptions
+
+keys = FleetKeys("t")
+with ZenohBus.open(ZenohOptions(connect=(sys.argv[1],), fleet="t")) as bus:
+    bus.declare_liveliness(keys.alive("child"))
+    count = int(sys.argv[2])
+    if count and not bus.wait_for_subscribers(keys.scan("child"), 5.0):
+        sys.exit(3)
+    for i in range(count):
+        bus.publish(keys.scan("child"), i.to_bytes(4, "little") * 64)
+    print("ready", flush=True)
+    sys.stdin.read()  # until the parent closes our stdin, or kills us
+"""
+
+
+def start_child(endpoint: str, count: int) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-c", CHILD, endpoint, str(count)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+@pytest.fixture
+def listener() -> Iterator[tuple[ZenohBus, str]]:
+    endpoint = free_loopback_endpoint()
+    with open_zenoh(ZenohOptions(listen=(endpoint,), fleet="t")) as bus:
+        yield bus, endpoint
+
+
+@pytest.mark.slow
+def test_another_process_publishes_and_leaves_cleanly(listener):
+    bus, endpoint = listener
+    scans, joins, leaves = Inbox(), Inbox(), Inbox()
+    bus.subscribe(KEYS.all_scans, scans)
+    bus.subscribe_liveliness(KEYS.all_alive, joins, leaves)
+    child = start_child(endpoint, 500)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "ready"
+        assert joins.wait_for(1) and joins.items == [(KEYS.alive("child"),)]
+        assert scans.wait_for(500)
+        assert [p for _, p in scans.items] == [i.to_bytes(4, "little") * 64 for i in range(500)]
+        assert child.stdin is not None
+        child.stdin.close()
+        assert child.wait(WAIT) == 0
+        assert leaves.wait_for(1)
+    finally:
+        child.kill()
+        child.wait()
+
+
+@pytest.mark.slow
+def test_a_killed_process_is_seen_leaving_within_two_seconds(listener):
+    bus, endpoint = listener
+    joins, leaves = Inbox(), Inbox()
+    left_at: list[float] = []
+    bus.subscribe_liveliness(KEYS.all_alive, joins, lambda key: (left_at.append(time.monotonic()), leaves(key)))
+    child = start_child(endpoint, 0)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "ready"
+        assert joins.wait_for(1)
+        killed_at = time.monotonic()
+        child.send_signal(signal.SIGKILL)
+        assert leaves.wait_for(1, timeout=2.0), "the killed robot's token did not leave within 2 s"
+        assert left_at[0] - killed_at < 2.0
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_zenoh_key_matching_of_the_in_memory_bus_follows_zenoh():
+    bus = InMemoryBus()
+    inbox = Inbox()
+    bus.subscribe("fleet/t/**", inbox)
+    bus.subscribe("fleet/t/robots/*/scan", inbox)
+    bus.publish("fleet/t/robots/r1/scan", b"1")
+    bus.publish("fleet/t/events", b"2")
+    bus.publish("fleet/u/events", b"3")
+    assert [p for _, p in inbox.items] == [b"1", b"1", b"2"]
+    assert zenoh.KeyExpr("fleet/t/**").intersects("fleet/t/events")
