@@ -10,6 +10,7 @@ conventions)::
     fleet/<fleet>/merger/edges               MergeEdge
     fleet/<fleet>/merger/state               queryable: the current global state
     fleet/<fleet>/events                     FleetEvent
+    fleet/<fleet>/recorder/stats             queryable: what the recorder has recorded so far
     fleet/<fleet>/alive/<robot>              liveliness token: the robot is up
     fleet/<fleet>/services/<service>         liveliness token: a service (merger, recorder) is up
 
@@ -34,7 +35,9 @@ MAP_KEY_PATTERN = re.compile(r"([a-z][a-z0-9_-]{0,31})/(0|[1-9][0-9]{0,17})")
 
 DEFAULT_FLEET = "default"
 
-KeyKind = Literal["scan", "localmap", "pose", "globalmap", "edges", "state", "events", "alive", "services"]
+KeyKind = Literal[
+    "scan", "localmap", "pose", "globalmap", "edges", "state", "events", "alive", "services", "recorder_stats"
+]
 KEY_KINDS: tuple[str, ...] = get_args(KeyKind)
 ROBOT_KINDS = ("scan", "localmap", "pose")
 """Kinds whose key names a robot: ``fleet/<fleet>/robots/<robot>/<kind>``."""
@@ -130,6 +133,11 @@ class FleetKeys:
     def events(self) -> str:
         return f"{self.prefix}/events"
 
+    @property
+    def recorder_stats(self) -> str:
+        """The recorder's queryable: messages recorded so far, per topic."""
+        return f"{self.prefix}/recorder/stats"
+
     def alive(self, robot: str) -> str:
         """The liveliness token a robot holds while it is up."""
         return f"{self.prefix}/alive/{check_name(robot, 'robot')}"
@@ -163,6 +171,8 @@ class FleetKeys:
                 return ParsedKey("state")
             case ["events"]:
                 return ParsedKey("events")
+            case ["recorder", "stats"]:
+                return ParsedKey("recorder_stats")
             case ["alive", robot] if NAME_PATTERN.fullmatch(robot):
                 return ParsedKey("alive", robot)
             case ["services", name] if NAME_PATTERN.fullmatch(name):

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
-from fleetmap.shared.bus import Bus, BusError, ZenohBus
+from fleetmap.shared.bus import Bus, BusError, InMemoryBus, ZenohBus
 from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint, zenoh_config
 
 WAIT = 5.0
@@ -69,3 +70,16 @@ def open_zenoh_pair(fleet: str = "t") -> tuple[ZenohBus, ZenohBus]:
     except BusError:
         listener.close()
         raise
+
+
+@contextmanager
+def bus_pair(kind: str) -> Iterator[tuple[Bus, Bus]]:
+    """Two buses that see each other, closed afterwards: ``zenoh`` sessions on loopback, or
+    ``memory`` peers."""
+    if kind == "zenoh":
+        a, b = open_zenoh_pair()
+    else:
+        a = InMemoryBus()
+        b = a.peer()
+    with a, b:
+        yield a, b

@@ -28,24 +28,15 @@ from fleetmap.shared.zenoh_config import (
     zenoh_options_from_args,
 )
 
-from tests.bus_helpers import WAIT, Inbox, open_zenoh, open_zenoh_pair, sync_declarations
+from tests.bus_helpers import WAIT, Inbox, bus_pair, open_zenoh, open_zenoh_pair, sync_declarations
 
 KEYS = FleetKeys("t")
 
 
 @pytest.fixture(params=["zenoh", "memory"])
 def pair(request: pytest.FixtureRequest) -> Iterator[tuple[Bus, Bus]]:
-    """Two buses that see each other: two zenoh sessions on loopback, or two in-memory peers."""
-    if request.param == "zenoh":
-        a, b = open_zenoh_pair()
-    else:
-        a = InMemoryBus()
-        b = a.peer()
-    try:
-        yield a, b
-    finally:
-        b.close()
-        a.close()
+    with bus_pair(request.param) as buses:
+        yield buses
 
 
 def test_published_payloads_arrive_exactly_in_order_with_their_keys(pair):

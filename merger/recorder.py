@@ -1,0 +1,356 @@
+"""The recorder: every message of the fleet, and every presence change, into one MCAP file.
+
+:class:`Recorder` is the library call: feed it ``(key, payload, receive_time_ns)`` and presence
+changes, call :meth:`Recorder.tick` with the time now and then, and :meth:`Recorder.finish` at
+the end; it needs no network. :class:`RecorderService` runs it on a bus: it subscribes to
+``fleet/<fleet>/**`` and to liveliness under the fleet, ticks on a timer, and holds the
+``fleet/<fleet>/services/recorder`` token while it records, so whoever starts it can wait for
+it to be ready; its queryable ``fleet/<fleet>/recorder/stats`` answers what it has recorded so
+far (:meth:`RecorderSummary.from_msgpack`), so whoever stops it can first wait for it to catch up.
+
+What goes into the file (see :mod:`fleetmap.shared.recording`): every payload raw, on a channel
+named by its key, and a Foxglove view of every valid one. A malformed payload was on the bus, so
+it is recorded raw too; it gets no view and is counted, and it never stops the recorder. Presence
+changes are recorded as FleetEvent payloads (join, leave) on the liveliness key's channel.
+
+Every message gets a log time later than the one before (its receive time, or 1 ns after the
+previous one when two arrive out of order across zenoh threads), so a replay in log-time order
+is the order the recorder saw. The file is flushed when its oldest unflushed message is
+``flush_interval`` old (0.5 s) and the service ticks every 0.1 s: a crash loses at most ~0.6 s.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from types import TracebackType
+from typing import ClassVar, Self
+
+import msgpack
+from fleetmap.shared.bus import Bus, Handle
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import (
+    BadMessage,
+    FleetEvent,
+    GlobalMap,
+    LocalMap,
+    MergeEdge,
+    Message,
+    RobotPose,
+    Scan,
+    decode,
+)
+from fleetmap.shared.recording import RecordingWriter, foxglove_views, seconds_to_ns
+
+log = logging.getLogger(__name__)
+
+FLUSH_INTERVAL = 0.5
+"""Seconds a received message may wait in memory before its chunk is written."""
+TICK_PERIOD = 0.1
+"""How often the service checks whether to flush (s)."""
+LOGGED_MALFORMED = 20
+"""Malformed messages logged one by one; after that, one line every 1000."""
+
+EXPECTED: dict[str, tuple[type[Message], ...]] = {
+    "scan": (Scan,),
+    "localmap": (LocalMap,),
+    "pose": (RobotPose,),
+    "globalmap": (GlobalMap,),
+    "edges": (MergeEdge,),
+    "events": (FleetEvent,),
+    "state": (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent),
+}
+"""The message types each kind of key carries; a payload of another type is malformed there."""
+
+
+@dataclass(frozen=True)
+class RecorderSummary:
+    """What a recorder recorded, per raw topic."""
+
+    messages: dict[str, int]
+    payload_bytes: dict[str, int]
+    malformed: dict[str, int]
+    foxglove_messages: int
+    late: int = 0
+    """Messages that arrived after the file was finished (dropped)."""
+
+    SCHEMA: ClassVar[str] = "fleetmap.RecorderStats"
+
+    @property
+    def total(self) -> int:
+        return sum(self.messages.values())
+
+    def to_msgpack(self) -> bytes:
+        """The answer of the recorder's stats queryable (``FleetKeys.recorder_stats``)."""
+        data = {"schema": self.SCHEMA, "v": 1, **asdict(self)}
+        packed: bytes = msgpack.packb(data, use_bin_type=True)
+        return packed
+
+    @classmethod
+    def from_msgpack(cls, data: bytes) -> RecorderSummary:
+        try:
+            raw = msgpack.unpackb(data, raw=False)
+        except (msgpack.UnpackException, ValueError) as exc:
+            raise BadMessage(cls.SCHEMA, None, f"not msgpack: {exc}"[:200]) from None
+        if not isinstance(raw, dict) or raw.get("schema") != cls.SCHEMA:
+            raise BadMessage(cls.SCHEMA, "schema", "not a recorder stats answer")
+        counts = {}
+        for name in ("messages", "payload_bytes", "malformed"):
+            table = raw.get(name)
+            if not isinstance(table, dict) or not all(
+                isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) for k, v in table.items()
+            ):
+                raise BadMessage(cls.SCHEMA, name, "expected a map of topic to count")
+            counts[name] = table
+        numbers = {}
+        for name in ("foxglove_messages", "late"):
+            value = raw.get(name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise BadMessage(cls.SCHEMA, name, "expected a count")
+            numbers[name] = value
+        return cls(counts["messages"], counts["payload_bytes"], counts["malformed"], **numbers)
+
+    @property
+    def total_malformed(self) -> int:
+        return sum(self.malformed.values())
+
+    def table(self) -> str:
+        """A summary table: messages, bytes and malformed messages per topic."""
+        width = max([len("topic"), *(len(t) for t in self.messages)])
+        rows = [
+            (t, self.messages[t], self.payload_bytes.get(t, 0), self.malformed.get(t, 0)) for t in sorted(self.messages)
+        ]
+        rows.append(("total", self.total, sum(self.payload_bytes.values()), self.total_malformed))
+        lines = [f"{'topic':<{width}} {'messages':>9} {'bytes':>12} {'malformed':>9}"]
+        lines += [f"{t:<{width}} {n:>9} {size:>12} {bad:>9}" for t, n, size, bad in rows]
+        return "\n".join(lines)
+
+
+@dataclass
+class _Counts:
+    messages: Counter[str] = field(default_factory=Counter)
+    payload_bytes: Counter[str] = field(default_factory=Counter)
+    malformed: Counter[str] = field(default_factory=Counter)
+    foxglove: int = 0
+    late: int = 0
+
+
+class Recorder:
+    """Writes what it is fed into a recording; thread-safe, clock given by the caller."""
+
+    def __init__(
+        self,
+        writer: RecordingWriter,
+        keys: FleetKeys,
+        *,
+        metadata: Mapping[str, Mapping[str, str]] | None = None,
+        flush_interval: float = FLUSH_INTERVAL,
+        foxglove: bool = True,
+    ) -> None:
+        self._writer = writer
+        self._keys = keys
+        self._flush_interval_ns = int(flush_interval * 1e9)
+        self._foxglove = foxglove
+        self._lock = threading.Lock()
+        self._counts = _Counts()
+        self._last_log_time = 0
+        self._pending_since: int | None = None
+        self._finished = False
+        for name, data in (metadata or {}).items():
+            writer.add_metadata(name, data)
+
+    def feed(self, key: str, payload: bytes, receive_time_ns: int) -> None:
+        """Record one payload received on ``key``; never raises for a bad payload."""
+        message, problem = self._check(key, payload)
+        with self._lock:
+            if self._finished:
+                self._counts.late += 1
+                return
+            log_time = self._log_time(receive_time_ns)
+            publish_time = seconds_to_ns(message.stamp) if message is not None else log_time
+            self._writer.write_raw(key, payload, log_time, publish_time)
+            self._counts.messages[key] += 1
+            self._counts.payload_bytes[key] += len(payload)
+            if message is None:
+                self._malformed(key, problem)
+            elif self._foxglove:
+                self._write_views(message, key, log_time, publish_time)
+            self._maybe_flush(receive_time_ns)
+
+    def feed_presence(self, key: str, joined: bool, receive_time_ns: int) -> None:
+        """Record a liveliness token appearing (``joined``) or disappearing, as a FleetEvent."""
+        try:
+            parsed = self._keys.parse(key)
+        except BadInput:
+            parsed = None
+        robot = parsed.robot if parsed is not None and parsed.kind == "alive" else None
+        event = FleetEvent("join" if joined else "leave", robot, receive_time_ns / 1e9, detail=key)
+        payload = event.to_msgpack()
+        with self._lock:
+            if self._finished:
+                self._counts.late += 1
+                return
+            log_time = self._log_time(receive_time_ns)
+            self._writer.write_raw(key, payload, log_time, log_time, source="liveliness")
+            self._counts.messages[key] += 1
+            self._counts.payload_bytes[key] += len(payload)
+            if self._foxglove:
+                self._write_views(event, self._keys.events, log_time, log_time)
+            self._maybe_flush(receive_time_ns)
+
+    def tick(self, now_ns: int) -> bool:
+        """Flush if the oldest unflushed message is ``flush_interval`` old; whether it flushed."""
+        with self._lock:
+            return not self._finished and self._maybe_flush(now_ns)
+
+    def summary(self) -> RecorderSummary:
+        with self._lock:
+            c = self._counts
+            return RecorderSummary(dict(c.messages), dict(c.payload_bytes), dict(c.malformed), c.foxglove, c.late)
+
+    def finish(self) -> RecorderSummary:
+        """Finish the file (indexes and summary); later feeds are counted as late and dropped."""
+        with self._lock:
+            if not self._finished:
+                self._finished = True
+                self._writer.finish()
+        return self.summary()
+
+    # --- inside the lock, or pure ---
+
+    def _check(self, key: str, payload: bytes) -> tuple[Message | None, str]:
+        """The message of a payload if it is valid on ``key``, else None and why not."""
+        try:
+            parsed = self._keys.parse(key)
+            message = decode(payload)
+        except BadInput as exc:  # BadMessage, or a key that is not the fleet's
+            return None, str(exc)
+        expected = EXPECTED.get(parsed.kind, ())
+        if not isinstance(message, expected):
+            return None, f"{message.SCHEMA} is not a message of a {parsed.kind} key"
+        robot = getattr(message, "robot", None)
+        if parsed.kind in ("scan", "localmap", "pose") and robot != parsed.robot:
+            return None, f"a message of robot {robot!r} on robot {parsed.robot!r}'s key"
+        return message, ""
+
+    def _log_time(self, receive_time_ns: int) -> int:
+        self._last_log_time = max(int(receive_time_ns), self._last_log_time + 1)
+        if self._pending_since is None:
+            self._pending_since = int(receive_time_ns)
+        return self._last_log_time
+
+    def _write_views(self, message: Message, key: str, log_time: int, publish_time: int) -> None:
+        for view in foxglove_views(message, key):
+            self._writer.write_foxglove(view.topic, view.schema, view.data, log_time, publish_time)
+            self._counts.foxglove += 1
+
+    def _malformed(self, key: str, problem: str) -> None:
+        self._counts.malformed[key] += 1
+        n = sum(self._counts.malformed.values())
+        if n <= LOGGED_MALFORMED:
+            log.warning("malformed message on %s (recorded raw): %s", key, problem)
+        elif n % 1000 == 0:
+            log.warning("%d malformed messages so far (recorded raw); latest on %s: %s", n, key, problem)
+
+    def _maybe_flush(self, now_ns: int) -> bool:
+        if self._pending_since is None or now_ns - self._pending_since < self._flush_interval_ns:
+            return False
+        self._writer.flush()
+        self._pending_since = None
+        return True
+
+
+class RecorderService:
+    """A Recorder on a bus: ``with RecorderService(bus, recorder, keys): ...`` records until closed."""
+
+    def __init__(
+        self,
+        bus: Bus,
+        recorder: Recorder,
+        keys: FleetKeys,
+        *,
+        clock: Callable[[], int] = time.time_ns,
+        tick_period: float = TICK_PERIOD,
+    ) -> None:
+        self.bus = bus
+        self.recorder = recorder
+        self.keys = keys
+        self._clock = clock
+        self._tick_period = tick_period
+        self._handles: list[Handle] = []
+        self._stop = threading.Event()
+        self._ticker = threading.Thread(target=self._tick_loop, name="recorder-flush", daemon=True)
+
+    def start(self) -> None:
+        """Subscribe, then announce the recorder (its liveliness token means: recording now)."""
+        self._handles.append(self.bus.subscribe(self.keys.everything, self._on_sample))
+        self._handles.append(
+            self.bus.subscribe_liveliness(
+                self.keys.everything,
+                lambda key: self.recorder.feed_presence(key, True, self._clock()),
+                lambda key: self.recorder.feed_presence(key, False, self._clock()),
+                history=True,
+            )
+        )
+        self._ticker.start()
+        self._handles.append(self.bus.declare_queryable(self.keys.recorder_stats, self._stats))
+        self._handles.append(self.bus.declare_liveliness(self.keys.service("recorder")))
+        log.info("recording %s", self.keys.everything)
+
+    def _stats(self, selector: str) -> bytes:
+        return self.recorder.summary().to_msgpack()
+
+    def _on_sample(self, key: str, payload: bytes) -> None:
+        self.recorder.feed(key, payload, self._clock())
+
+    def _tick_loop(self) -> None:
+        while not self._stop.wait(self._tick_period):
+            self.recorder.tick(self._clock())
+
+    def stop(self) -> RecorderSummary:
+        """Stop listening and finish the file."""
+        for handle in reversed(self._handles):
+            handle.close()
+        self._handles.clear()
+        self._stop.set()
+        if self._ticker.is_alive():
+            self._ticker.join()
+        return self.recorder.finish()
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+
+def query_recorder_stats(bus: Bus, keys: FleetKeys, timeout: float = 2.0) -> RecorderSummary | None:
+    """What the fleet's recorder has recorded so far, or None when no recorder answers."""
+    for payload in bus.query(keys.recorder_stats, timeout):
+        try:
+            return RecorderSummary.from_msgpack(payload)
+        except BadMessage as exc:
+            log.warning("recorder stats: %s", exc)
+    return None
+
+
+def wait_until_recorded(bus: Bus, keys: FleetKeys, expected: Mapping[str, int], timeout: float) -> bool:
+    """Whether the recorder has recorded at least ``expected[topic]`` messages on every topic,
+    asking it every 50 ms for at most ``timeout`` seconds (stop a recorder only once it says so)."""
+    deadline = time.monotonic() + timeout
+    pause = threading.Event()
+    while True:
+        stats = query_recorder_stats(bus, keys, timeout=max(0.05, min(1.0, deadline - time.monotonic())))
+        if stats is not None and all(stats.messages.get(t, 0) >= n for t, n in expected.items()):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        pause.wait(0.05)

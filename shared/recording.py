@@ -1,0 +1,451 @@
+"""Session recordings in MCAP: the writer, the Foxglove views of fleet messages, and the reader.
+
+A recording holds two kinds of channels:
+
+- **raw** channels, one per key expression seen on the bus: topic = the key, message encoding
+  ``msgpack``, no schema, the exact payload bytes; ``log_time`` is when the recorder received the
+  message, ``publish_time`` the message's own stamp. Replays read these.
+- **Foxglove** channels, so a person can open the session in Foxglove (which does not decode
+  msgpack): ``foxglove.SceneUpdate`` line lists on ``/foxglove/<key>`` for scans, local maps and
+  global maps, ``foxglove.FrameTransform`` on ``/tf`` for where local maps and robots are, and
+  ``foxglove.Log`` on ``/foxglove/<fleet events key>`` for fleet events.
+
+Frames: a scan is drawn in its robot's frame (``r1``), a local map in its own frame (its map key,
+``r1/0``), global map component k in ``global`` (k = 0) or ``global/<k>``; a global map places its
+members' frames in its component frames, and a robot pose places the robot's frame.
+
+Files are chunked and ZSTD-compressed; the recorder flushes every second, so a file cut short by
+a crash still holds everything up to its last complete chunk, and :class:`RecordingReader` reads
+such a file up to there and reports how much it read.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import zlib
+from collections import Counter
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any, Self
+
+import numpy as np
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, RobotPose, Scan
+from fleetmap.shared.messages import Message as FleetMessage
+from foxglove import Schema
+from foxglove.messages import (
+    Color,
+    FrameTransform,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Log,
+    LogLevel,
+    Point3,
+    Quaternion,
+    SceneEntity,
+    SceneEntityDeletion,
+    SceneEntityDeletionType,
+    SceneUpdate,
+    Timestamp,
+    Vector3,
+)
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from fleetmap import __version__
+
+log = logging.getLogger(__name__)
+
+RAW_ENCODING = "msgpack"
+"""The message encoding of the raw channels (registered in the MCAP well-known encodings)."""
+FOXGLOVE_PREFIX = "/foxglove/"
+TF_TOPIC = "/tf"
+PROFILE = ""
+"""MCAP profile: none of the registered ones (ros1, ros2) applies."""
+CHUNK_SIZE = 1024 * 1024
+MAGIC = b"\x89MCAP0\r\n"
+
+SCENE_UPDATE: Schema = SceneUpdate.get_schema()
+FRAME_TRANSFORM: Schema = FrameTransform.get_schema()
+LOG: Schema = Log.get_schema()
+
+PALETTE = (
+    (0.12, 0.47, 0.71),
+    (1.00, 0.50, 0.05),
+    (0.17, 0.63, 0.17),
+    (0.84, 0.15, 0.16),
+    (0.58, 0.40, 0.74),
+    (0.55, 0.34, 0.29),
+    (0.89, 0.47, 0.76),
+    (0.09, 0.75, 0.81),
+)
+"""Robot colours (matplotlib's tab10, without its greys and olive)."""
+
+
+def seconds_to_ns(stamp: float) -> int:
+    return round(stamp * 1e9)
+
+
+# --- writer ---
+
+
+class RecordingWriter:
+    """An MCAP file of raw and Foxglove channels. Channels and schemas are registered on first use."""
+
+    def __init__(
+        self,
+        output: str | Path | IO[bytes],
+        *,
+        chunk_size: int = CHUNK_SIZE,
+        compression: CompressionType = CompressionType.ZSTD,
+    ) -> None:
+        self._owned: IO[bytes] | None = None
+        if isinstance(output, (str, Path)):
+            try:
+                self._owned = open(output, "wb")  # noqa: SIM115 - closed by finish()
+            except OSError as exc:
+                raise BadInput(str(output), f"cannot write: {exc.strerror}") from None
+            stream: IO[bytes] = self._owned
+        else:
+            stream = output
+        self._writer = Writer(stream, chunk_size=chunk_size, compression=compression)
+        self._writer.start(profile=PROFILE, library=f"fleetmap {__version__}")
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._sequence: Counter[int] = Counter()
+        self._finished = False
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+
+    def _channel(self, topic: str, encoding: str, schema: Schema | None, metadata: Mapping[str, str]) -> int:
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            schema_id = 0
+            if schema is not None:
+                schema_id = self._schemas.get(schema.name, 0)
+                if schema_id == 0:
+                    schema_id = self._writer.register_schema(schema.name, schema.encoding, schema.data)
+                    self._schemas[schema.name] = schema_id
+            channel_id = self._writer.register_channel(topic, encoding, schema_id, dict(metadata))
+            self._channels[topic] = channel_id
+        return channel_id
+
+    def write_raw(self, topic: str, payload: bytes, log_time: int, publish_time: int, source: str = "zenoh") -> None:
+        """One message of the bus, bytes as received (``source``: zenoh sample or liveliness change)."""
+        channel_id = self._channel(topic, RAW_ENCODING, None, {"source": source})
+        self._add(channel_id, payload, log_time, publish_time)
+
+    def write_foxglove(self, topic: str, schema: Schema, data: bytes, log_time: int, publish_time: int) -> None:
+        channel_id = self._channel(topic, schema.encoding, schema, {})
+        self._add(channel_id, data, log_time, publish_time)
+
+    def _add(self, channel_id: int, data: bytes, log_time: int, publish_time: int) -> None:
+        self._sequence[channel_id] += 1
+        self._writer.add_message(channel_id, log_time, data, publish_time, sequence=self._sequence[channel_id])
+
+    def flush(self) -> None:
+        """End the chunk in progress and push it to the file, so a crash cannot lose it."""
+        self._writer.flush()
+
+    def finish(self) -> None:
+        """Write the indexes and the summary; closes the file if this writer opened it."""
+        if self._finished:
+            return
+        self._finished = True
+        self._writer.finish()
+        if self._owned is not None:
+            self._owned.close()
+
+
+def config_metadata(config: FleetmapConfig) -> dict[str, str]:
+    """A config as MCAP metadata: every ``section.field`` and the whole TOML."""
+    out = {
+        f"{section}.{name}": str(value)
+        for section, values in config.to_dict().items()
+        for name, value in values.items()
+    }
+    out["toml"] = config.to_toml()
+    return out
+
+
+# --- Foxglove views ---
+
+
+@dataclass(frozen=True)
+class FoxgloveView:
+    """One Foxglove-typed message to write for a fleet message."""
+
+    topic: str
+    schema: Schema
+    data: bytes
+
+
+def robot_color(robot: str, alpha: float = 1.0) -> Color:
+    r, g, b = PALETTE[zlib.crc32(robot.encode()) % len(PALETTE)]
+    return Color(r=r, g=g, b=b, a=alpha)
+
+
+def component_frame(index: int) -> str:
+    """The Foxglove frame of global map component ``index``: ``global`` for the first one."""
+    return "global" if index == 0 else f"global/{index}"
+
+
+def _timestamp(stamp: float) -> Timestamp:
+    sec = math.floor(stamp)
+    return Timestamp(sec, min(round((stamp - sec) * 1e9), 999_999_999))
+
+
+def _lines(segments: Array, color: Color, thickness: float) -> LinePrimitive:
+    points = [Point3(x=x, y=y, z=0.0) for x, y in np.asarray(segments).reshape(-1, 2).tolist()]
+    return LinePrimitive(
+        type=LinePrimitiveLineType.LineList, thickness=thickness, scale_invariant=True, points=points, color=color
+    )
+
+
+def _entity(entity_id: str, frame: str, stamp: float, segments: Array, color: Color, thickness: float) -> SceneEntity:
+    return SceneEntity(
+        timestamp=_timestamp(stamp),
+        frame_id=frame,
+        id=entity_id,
+        lines=[_lines(segments, color, thickness)] if len(segments) else [],
+    )
+
+
+def _frame_transform(parent: str, child: str, pose: Transform2D, stamp: float) -> bytes:
+    half = pose.theta / 2.0
+    return FrameTransform(
+        timestamp=_timestamp(stamp),
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=pose.x, y=pose.y, z=0.0),
+        rotation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)),
+    ).encode()
+
+
+def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
+    """What a person sees of ``message`` (received on ``key``) in Foxglove; pure."""
+    topic = FOXGLOVE_PREFIX + key
+    match message:
+        case Scan():
+            entity = _entity(
+                f"scan/{message.robot}",
+                message.robot,
+                message.stamp,
+                message.segments,
+                robot_color(message.robot, 0.5),
+                1.0,
+            )
+            return [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
+        case LocalMap():
+            entity = _entity(message.key, message.key, message.stamp, message.segments, robot_color(message.robot), 2.0)
+            return [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
+        case GlobalMap():
+            white = Color(r=0.9, g=0.9, b=0.9, a=1.0)
+            entities = [
+                _entity(f"component/{i}", component_frame(i), message.stamp, c.segments, white, 2.0)
+                for i, c in enumerate(message.components)
+            ]
+            # components merge and reorder: drop the previous global map's entities first
+            drop = SceneEntityDeletion(timestamp=_timestamp(message.stamp), type=SceneEntityDeletionType.All)
+            views = [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(deletions=[drop], entities=entities).encode())]
+            for i, component in enumerate(message.components):
+                for member, pose in component.poses.items():
+                    data = _frame_transform(component_frame(i), member, pose, message.stamp)
+                    views.append(FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data))
+            return views
+        case RobotPose(pose=Transform2D() as pose, component=int() as component):
+            data = _frame_transform(component_frame(component), message.robot, pose, message.stamp)
+            return [FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data)]
+        case FleetEvent():
+            text = f"{message.kind} {message.robot or ''} {message.detail}".strip()
+            entry = Log(timestamp=_timestamp(message.stamp), level=LogLevel.Info, message=text, name="fleetmap")
+            return [FoxgloveView(topic, LOG, entry.encode())]
+    return []  # an unknown pose (never drawn as a guess) and merge edges have no view
+
+
+# --- reader ---
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    """One raw message of a recording: the key it was received on and its exact bytes."""
+
+    topic: str
+    payload: bytes
+    log_time: int
+    """When the recorder received it (ns since the Unix epoch)."""
+    publish_time: int
+    """The message's own stamp (ns), or log_time when it had none."""
+    sequence: int
+
+
+@dataclass(frozen=True)
+class ReadReport:
+    """How much of a recording was read."""
+
+    source: str
+    complete: bool
+    """Whether the file was finished (has its summary); a crashed recorder leaves it incomplete."""
+    messages: int
+    bytes_read: int
+    """For an incomplete file: up to the end of its last complete record."""
+    file_bytes: int
+
+    @property
+    def warning(self) -> str | None:
+        if self.complete:
+            return None
+        return (
+            f"{self.source}: the recording ends abruptly (not finished by its recorder): read {self.messages} "
+            f"messages from its complete chunks, {self.bytes_read} of {self.file_bytes} bytes"
+        )
+
+
+class _Truncated(Exception):
+    """The stream ended inside a record."""
+
+
+class _ExactReader:
+    """A stream whose short reads raise _Truncated, so a cut-off file ends in one known way."""
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self._stream = stream
+        self.position = 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._stream.read(size)
+        if size >= 0 and len(data) < size:
+            raise _Truncated
+        self.position += len(data)
+        return data
+
+
+class RecordingReader:
+    """The raw messages of a recording, from a finished file or one a crash cut short.
+
+    ``messages()`` yields them in log-time order (the recorder gives every message a later log
+    time than the one before, so file order is log-time order also where no index can be used);
+    afterwards ``report`` says how much was read, and ``report.warning`` is set for a cut-off file.
+    Foxglove channels are skipped: they are views, not data.
+    """
+
+    def __init__(self, source: str | Path | IO[bytes]) -> None:
+        self._owned: IO[bytes] | None = None
+        if isinstance(source, (str, Path)):
+            self.source = str(source)
+            try:
+                self._owned = open(source, "rb")  # noqa: SIM115 - closed by close()
+            except FileNotFoundError:
+                raise BadInput(self.source, "no such file") from None
+            except OSError as exc:
+                raise BadInput(self.source, f"cannot read: {exc.strerror}") from None
+            self._stream: IO[bytes] = self._owned
+        else:
+            self.source = getattr(source, "name", "<stream>")
+            self._stream = source
+        self._start = self._stream.tell()
+        self._size = self._stream.seek(0, 2) - self._start
+        if self._size < len(MAGIC) or self._read_at(0, len(MAGIC)) != MAGIC:
+            raise BadInput(self.source, "not an MCAP file")
+        self.complete = self._size >= 2 * len(MAGIC) and self._read_at(self._size - len(MAGIC), len(MAGIC)) == MAGIC
+        self._messages = 0
+        self._bytes_read = self._size if self.complete else 0
+
+    def _read_at(self, offset: int, size: int) -> bytes:
+        self._stream.seek(self._start + offset)
+        return self._stream.read(size)
+
+    @property
+    def report(self) -> ReadReport:
+        return ReadReport(self.source, self.complete, self._messages, self._bytes_read, self._size)
+
+    def messages(
+        self, *, topics: Iterable[str] | None = None, start_time: int | None = None, end_time: int | None = None
+    ) -> Iterator[RecordedMessage]:
+        """Raw messages with ``start_time <= log_time < end_time`` (ns), on ``topics`` if given."""
+        self._messages = 0
+        wanted = set(topics) if topics is not None else None
+        records = self._indexed() if self.complete else self._streamed()
+        for channel, message in records:
+            if channel.message_encoding != RAW_ENCODING or (wanted is not None and channel.topic not in wanted):
+                continue
+            if (start_time is not None and message.log_time < start_time) or (
+                end_time is not None and message.log_time >= end_time
+            ):
+                continue
+            self._messages += 1
+            yield RecordedMessage(channel.topic, message.data, message.log_time, message.publish_time, message.sequence)
+        if not self.complete:
+            log.warning("%s", self.report.warning)
+
+    def _indexed(self) -> Iterator[tuple[Channel, Message]]:
+        self._stream.seek(self._start)
+        try:
+            for _, channel, message in make_reader(self._stream).iter_messages(log_time_order=True):
+                yield channel, message
+        except McapError as exc:
+            raise BadInput(self.source, f"corrupt MCAP file: {exc}") from None
+
+    def _records(self, emit_chunks: bool) -> Iterator[Any]:
+        """Every complete record of a file with no summary; stops (quietly) at the cut."""
+        self._stream.seek(self._start)
+        exact = _ExactReader(self._stream)
+        self._bytes_read = 0
+        try:
+            for record in StreamReader(exact, emit_chunks=emit_chunks).records:  # type: ignore[arg-type]
+                self._bytes_read = exact.position
+                yield record
+        except _Truncated:
+            return
+        except McapError as exc:
+            raise BadInput(self.source, f"corrupt MCAP file: {exc}") from None
+
+    def _streamed(self) -> Iterator[tuple[Channel, Message]]:
+        channels: dict[int, Channel] = {}
+        last_log_time = -1
+        for record in self._records(emit_chunks=False):
+            if isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and record.channel_id in channels:
+                if record.log_time < last_log_time:
+                    log.warning("%s: messages out of log-time order; replaying them in file order", self.source)
+                last_log_time = max(last_log_time, record.log_time)
+                yield channels[record.channel_id], record
+
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """Every metadata record of the file, by name (the recorder's config and session)."""
+        out: dict[str, dict[str, str]] = {}
+        if self.complete:
+            self._stream.seek(self._start)
+            for record in make_reader(self._stream).iter_metadata():
+                out[record.name] = dict(record.metadata)
+            return out
+        for record in self._records(emit_chunks=True):
+            if isinstance(record, Metadata):
+                out[record.name] = dict(record.metadata)
+        return out
+
+    def topic_counts(self) -> dict[str, int]:
+        """How many raw messages each topic holds (reads the whole file)."""
+        return dict(Counter(m.topic for m in self.messages()))
+
+    def close(self) -> None:
+        if self._owned is not None:
+            self._owned.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
