@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -34,6 +35,11 @@ QueryHandler = Callable[[str], bytes]
 """``handler(selector) -> payload`` answering a query."""
 PresenceCallback = Callable[[str], None]
 """``callback(key)`` for a liveliness token that appears or disappears."""
+
+BARRIER_PREFIX = "fleetmap/barrier"
+"""Every ZenohBus answers queries on ``fleetmap/barrier/<zid>`` (outside any fleet's keys)."""
+FLUSH_TIMEOUT = 5.0
+"""How long ``close`` waits for the other sessions to confirm what was published (s)."""
 
 LOGGED_ERRORS = 10
 """Callback failures logged with a traceback; after that, one line every LOG_EVERY failures."""
@@ -90,8 +96,12 @@ class Bus(Protocol):
     def wait_for_subscribers(self, key: str, timeout: float) -> bool:
         """Whether some subscriber matches ``key``, waiting up to ``timeout`` seconds for one."""
 
+    def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
+        """Wait until what was published so far has reached the other fleetmap sessions; whether
+        they all confirmed within ``timeout`` seconds. ``close`` does it first."""
+
     def close(self) -> None:
-        """Undeclare everything and leave; further calls raise BusError."""
+        """Flush, undeclare everything and leave; further calls raise BusError."""
 
     def __enter__(self) -> Self: ...
 
@@ -183,6 +193,10 @@ class ZenohBus(_BusBase):
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._handles: list[_ZenohHandle] = []
         self._closed = False
+        # Answers other sessions' flush(): the query travels behind their data, so its reply means
+        # their data has left them. Without it, zenoh drops what is still queued when a session closes.
+        barrier = session.declare_queryable(f"{BARRIER_PREFIX}/{session.zid()}", _answer_barrier)
+        self._handles.append(_ZenohHandle(barrier, self._forget))
 
     @classmethod
     def open(cls, options: ZenohOptions | zenoh.Config) -> ZenohBus:
@@ -316,10 +330,31 @@ class ZenohBus(_BusBase):
         finally:
             listener.undeclare()
 
+    def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
+        self._check_open()
+        started = time.monotonic()
+        replies = self.session.get(
+            f"{BARRIER_PREFIX}/*",
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout,
+        )
+        answered = sum(1 for reply in replies if reply.ok is not None)
+        if time.monotonic() - started >= timeout:
+            log.warning(
+                "flush: only %d sessions confirmed within %.1f s; what is still queued may be lost", answered, timeout
+            )
+            return False
+        return True
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
                 return
+            published = self.stats.published
+        if published:
+            self.flush()
+        with self._lock:
             self._closed = True
             handles = list(self._handles)
             publishers = list(self._publishers.values())
@@ -328,6 +363,11 @@ class ZenohBus(_BusBase):
         for publisher in publishers:
             publisher.undeclare()
         self.session.close()
+
+
+def _answer_barrier(query: zenoh.Query) -> None:
+    with query:
+        query.reply(query.key_expr, b"")
 
 
 def _short(exc: Exception) -> str:
@@ -458,6 +498,10 @@ class InMemoryBus(_BusBase):
         for key in present:
             self._guard.run(f"liveliness join {key}", on_join, key)
         return _MemoryHandle(lambda: self._hub.presence.pop(pid, None))
+
+    def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
+        self._check_open()
+        return True  # delivery is synchronous: nothing is ever in flight
 
     def wait_for_subscribers(self, key: str, timeout: float) -> bool:
         self._check_open()

@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 
@@ -144,6 +145,24 @@ def test_bad_key_expressions_are_bad_input(pair):
         a.publish("fleet//t", b"x")
     with pytest.raises(BadInput, match="not a valid key expression"):
         a.subscribe("fleet/t/**/**/", Inbox())
+
+
+def test_closing_right_after_publishing_loses_nothing_even_to_a_slow_subscriber():
+    """zenoh drops what a closing session still has queued; close() flushes first."""
+    a, b = open_zenoh_pair()
+    with a:
+        inbox = Inbox()
+
+        def slow(key: str, payload: bytes) -> None:
+            threading.Event().wait(0.0002)  # a subscriber doing real work per message
+            inbox(key, payload)
+
+        a.subscribe(KEYS.all_scans, slow)
+        assert b.wait_for_subscribers(KEYS.scan("r1"), WAIT)
+        for i in range(1500):
+            b.publish(KEYS.scan("r1"), i.to_bytes(4, "little") * 2500)
+        b.close()
+        assert inbox.wait_for(1500, timeout=10.0), f"{len(inbox.items)} of 1500 arrived"
 
 
 def test_zenoh_payloads_carry_the_msgpack_encoding():

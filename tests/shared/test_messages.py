@@ -381,7 +381,7 @@ FIELD_VALUES = st.recursive(
 )
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.sampled_from([scan, local_map, global_map]),
     st.dictionaries(st.text(min_size=1, max_size=12), FIELD_VALUES, max_size=3),
