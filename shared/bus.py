@@ -8,6 +8,10 @@ Payloads are bytes (fleetmap messages, :mod:`fleetmap.shared.messages`); keys co
 :mod:`fleetmap.shared.keys`. Callbacks run on the bus's threads (zenoh's, or the publisher's for
 the in-memory bus) and must be quick; one that raises is logged and counted in
 :attr:`BusStats.callback_errors` and never reaches zenoh.
+
+Closing a zenoh session drops what it still has queued, so :meth:`ZenohBus.close` first flushes:
+it queries ``fleetmap/barrier/*``, which every ZenohBus answers, and the replies come back behind
+the data. A router with access control must allow query and reply on ``fleetmap/barrier/**``.
 """
 
 from __future__ import annotations

@@ -338,3 +338,32 @@ def test_zenoh_key_matching_of_the_in_memory_bus_follows_zenoh():
     bus.publish("fleet/u/events", b"3")
     assert [p for _, p in inbox.items] == [b"1", b"1", b"2"]
     assert zenoh.KeyExpr("fleet/t/**").intersects("fleet/t/events")
+
+
+@pytest.mark.slow
+def test_clients_talk_through_a_fleetmap_router_that_stops_on_sigterm():
+    endpoint = free_loopback_endpoint()
+    router = subprocess.Popen(
+        [sys.executable, "-m", "fleetmap", "router", "--listen", endpoint],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert router.stderr is not None and "zenoh router" in router.stderr.readline()
+        client = ZenohOptions(mode="client", connect=(endpoint,), fleet="t")
+        with open_zenoh(client) as robot, open_zenoh(client) as merger:
+            joins, maps = Inbox(), Inbox()
+            merger.subscribe_liveliness(KEYS.all_alive, joins, lambda key: None)
+            merger.subscribe(KEYS.all_localmaps, maps)
+            robot.declare_liveliness(KEYS.alive("r1"))
+            assert joins.wait_for(1)
+            assert robot.wait_for_subscribers(KEYS.localmap("r1"), WAIT)
+            robot.publish(KEYS.localmap("r1"), b"map")
+            assert maps.wait_for(1) and maps.items == [(KEYS.localmap("r1"), b"map")]
+        router.send_signal(signal.SIGTERM)
+        stdout, _ = router.communicate(timeout=WAIT)
+        assert router.returncode == 0 and "zenoh router stopped" in stdout
+    finally:
+        router.kill()
+        router.wait()
