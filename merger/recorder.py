@@ -33,7 +33,7 @@ from typing import ClassVar, Self
 import msgpack
 from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.keys import ROBOT_KINDS, FleetKeys
 from fleetmap.shared.messages import (
     BadMessage,
     FleetEvent,
@@ -234,7 +234,7 @@ class Recorder:
         if not isinstance(message, expected):
             return None, f"{message.SCHEMA} is not a message of a {parsed.kind} key"
         robot = getattr(message, "robot", None)
-        if parsed.kind in ("scan", "localmap", "pose") and robot != parsed.robot:
+        if parsed.kind in ROBOT_KINDS and robot != parsed.robot:
             return None, f"a message of robot {robot!r} on robot {parsed.robot!r}'s key"
         return message, ""
 
