@@ -24,6 +24,7 @@ from fleetmap.shared.zenoh_config import (
     DEFAULT_ENDPOINT,
     ZenohOptions,
     add_zenoh_arguments,
+    endpoints_argv,
     free_loopback_endpoint,
     zenoh_config,
     zenoh_options_from_args,
@@ -218,6 +219,8 @@ def test_flags_parse_into_options():
     options = zenoh_options_from_args(args)
     assert options == ZenohOptions("client", ("tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"), (), None, "lab")
     assert options.keys.scan("r1") == "fleet/lab/robots/r1/scan"
+    # a parent (fleetmap run) hands its children the same options
+    assert zenoh_options_from_args(parser.parse_args(endpoints_argv(options))) == options
 
 
 def test_a_config_file_decides_and_flags_override_it(tmp_path):
