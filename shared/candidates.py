@@ -54,12 +54,24 @@ class AngleSet:
         return int(self.first.shape[0])
 
 
-def angle_set(segments: Array, first: IntArray, second: IntArray, params: IntegrationParams, period: float) -> AngleSet:
-    """Angles of the given segment pairs, without pairs too close to parallel to have a vertex."""
+def angle_set(
+    segments: Array, first: IntArray, second: IntArray, params: IntegrationParams, period: float, limit: int = 0
+) -> AngleSet:
+    """Angles of the given segment pairs, without pairs too close to parallel to have a vertex.
+
+    With ``limit`` > 0 only that many angles are kept, those whose shorter segment is longest
+    (the paper's own preference: long segments are the reliable ones). Large partial maps would
+    otherwise give angle sets whose matches run into the hundreds of millions.
+    """
     phi = orientations(segments)
     alpha = np.mod(phi[second] - phi[first] + period / 2, period) - period / 2
     keep = np.abs(np.sin(alpha)) >= math.sin(params.min_vertex_angle)
     first, second, alpha = first[keep], second[keep], alpha[keep]
+    if 0 < limit < len(first):
+        ln = lengths(segments)
+        best = np.argsort(-np.minimum(ln[first], ln[second]), kind="stable")[:limit]
+        best.sort()
+        first, second, alpha = first[best], second[best], alpha[best]
     a = segments[first]
     b = segments[second]
     ux, uy = a[:, 2] - a[:, 0], a[:, 3] - a[:, 1]
@@ -281,7 +293,8 @@ def find_transformations(m1: SegmentMap, m2: SegmentMap, heuristic: str, params:
             p2 = pairs_histogram(s2, params)
         else:
             raise ValueError(f"unknown heuristic {heuristic!r}")
-        a1 = angle_set(s1, p1[0], p1[1], params, period)
-        a2 = angle_set(s2, *_both_orders(*p2), params, period)
+        limit = 0 if heuristic == "all" else params.max_angles
+        a1 = angle_set(s1, p1[0], p1[1], params, period, limit)
+        a2 = angle_set(s2, *_both_orders(*p2), params, period, 2 * limit)
         t = match_angles(a1, a2, params, period)
     return t

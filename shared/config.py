@@ -89,6 +89,14 @@ class IntegrationParams:
     """Which transformations to try: all, consecutive, random, histogram, or auto (the best of them)."""
     seed: int = 0
     """Seed of the random heuristic, so results are reproducible."""
+    max_angles: int = 300
+    """The consecutive and histogram heuristics use at most this many angles per map, those of the
+    longest segments (fleetmap: large partial maps would give hundreds of millions of matches)."""
+    max_search_segments: int = 150
+    """Maps with more segments are searched on their longest this many (fleetmap: large partial maps);
+    the best transformations are then refined and valued on the full maps."""
+    max_evaluated: int = 8000
+    """At most this many distinct transformations are evaluated, the most supported first."""
     min_vertex_angle: float = 0.35
     """Two segments closer to parallel than this (rad) form no angle: their vertex is ill defined."""
     refine: bool = True
@@ -104,7 +112,7 @@ class IntegrationParams:
     """An integration is valid only if its value is at least this (m) ..."""
     valid_min_fraction: float = 0.2
     """... and at least this fraction of the smaller map's total segment length ..."""
-    valid_max_violation: float = 0.1
+    valid_max_violation: float = 0.2
     """... and puts at most this fraction of its value in the other scan's seen free space ..."""
     valid_max_ambiguity: float = 0.8
     """... and no clearly different transformation scores more than this fraction of its score."""

@@ -23,18 +23,23 @@ What makes it fast without changing the result that matters:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from fleetmap.shared.candidates import IntArray, ragged_ranges
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Array, lengths, matching_value, orientations
+from scipy.spatial import cKDTree
 
 PAIR_ANGLE_LIMIT = 0.5
 """Pairs further from parallel than this (rad) are not evaluated (see the module docstring)."""
 
 CHUNK_ENTRIES = 1_500_000
 """Candidate-pair entries processed at once: bounds memory to a few tens of MB."""
+
+
+DENSE_PAIRS = 250_000
+"""Up to this many segment pairs, one transformation's pairs are found densely; above, with a k-d tree."""
 
 
 @dataclass(frozen=True)
@@ -49,28 +54,57 @@ class PreparedPairs:
     half1: Array
     mid2: Array
     half2: Array
-    blocks: list[tuple[IntArray, Array, IntArray, IntArray]]
-    """Per block of S1 (longest segments first): sorted pair rotations (tripled for
-    wrap-around), the pair index behind each, and the pairs' S1 and S2 indices."""
-    remaining_after: list[float]
-    """Total length of S1 not yet evaluated after each block."""
     long1: IntArray
     long2: IntArray
     phi1: Array
     phi2: Array
+    cache: dict[str, object] = field(default_factory=dict, compare=False, repr=False)
+    """Built on first use: the pair table for many candidates (per block of S1, longest segments
+    first: sorted pair rotations tripled for wrap-around, the pair behind each, and the pairs' S1
+    and S2 indices, with the length of S1 left after each block) and S1's k-d tree."""
+
+    @property
+    def blocks(self) -> list[tuple[IntArray, Array, IntArray, IntArray]]:
+        return _blocks(self)[0]
+
+    @property
+    def remaining_after(self) -> list[float]:
+        return _blocks(self)[1]
 
 
-def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams, blocks: int = 3) -> PreparedPairs:
+def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams) -> PreparedPairs:
     period = 2 * math.pi if oriented else math.pi
     len1, len2 = lengths(s1), lengths(s2)
-    phi1, phi2 = orientations(s1), orientations(s2)
+    refuse = params.segment_length_refuse
+    return PreparedPairs(
+        s1=s1,
+        s2=s2,
+        period=period,
+        len1=len1,
+        mid1=0.5 * (s1[:, 0:2] + s1[:, 2:4]),
+        half1=0.5 * len1,
+        mid2=0.5 * (s2[:, 0:2] + s2[:, 2:4]),
+        half2=0.5 * len2,
+        long1=np.flatnonzero(len1 > refuse),
+        long2=np.flatnonzero(len2 > refuse),
+        phi1=orientations(s1),
+        phi2=orientations(s2),
+    )
+
+
+def _blocks(prep: PreparedPairs) -> tuple[list[tuple[IntArray, Array, IntArray, IntArray]], list[float]]:
+    """The pair table for many candidates, built on first use (see PreparedPairs.blocks)."""
+    cached = prep.cache.get("blocks")
+    if cached is not None:
+        return cached  # type: ignore[return-value]
+    s1, s2, period = prep.s1, prep.s2, prep.period
+    len1, phi1, phi2 = prep.len1, prep.phi1, prep.phi2
     order1 = np.argsort(-len1, kind="stable")
     cum = np.cumsum(len1[order1])
     total = float(cum[-1]) if len(cum) else 0.0
     # Block edges at fixed fractions of S1's length: the first block holds the longest segments.
-    fractions = [0.5, 0.8, 1.0][-blocks:] if blocks <= 3 else list(np.linspace(0, 1, blocks + 1)[1:])
     edges = [0]
-    for f in fractions:
+    for f in BLOCK_FRACTIONS:
         e = int(np.searchsorted(cum, f * total - 1e-12, side="left")) + 1
         e = min(max(e, edges[-1] + 1), len(s1))
         if e > edges[-1]:
@@ -90,23 +124,12 @@ def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams, blo
         ext = np.concatenate([rs - period, rs, rs + period])
         block_list.append((np.concatenate([order, order, order]), ext, i, k))
         remaining.append(total - float(cum[edges[b + 1] - 1]))
-    refuse = params.segment_length_refuse
-    return PreparedPairs(
-        s1=s1,
-        s2=s2,
-        period=period,
-        len1=len1,
-        mid1=0.5 * (s1[:, 0:2] + s1[:, 2:4]),
-        half1=0.5 * len1,
-        mid2=0.5 * (s2[:, 0:2] + s2[:, 2:4]),
-        half2=0.5 * len2,
-        blocks=block_list,
-        remaining_after=remaining,
-        long1=np.flatnonzero(len1 > refuse),
-        long2=np.flatnonzero(len2 > refuse),
-        phi1=phi1,
-        phi2=phi2,
-    )
+    prep.cache["blocks"] = (block_list, remaining)
+    return block_list, remaining
+
+
+BLOCK_FRACTIONS = (0.5, 0.8, 1.0)
+"""S1 is evaluated in blocks holding these fractions of its length, longest segments first."""
 
 
 def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
@@ -262,16 +285,47 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     )
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
-    dx = prep.mid1[:, None, 0] - mid2[None, :, 0]
-    dy = prep.mid1[:, None, 1] - mid2[None, :, 1]
-    reach = prep.half1[:, None] + prep.half2[None, :] + d_max
-    rot = np.mod(prep.phi1[:, None] - prep.phi2[None, :] - theta + prep.period / 2, prep.period) - prep.period / 2
-    i, k = np.nonzero((dx * dx + dy * dy <= reach * reach) & (np.abs(rot) <= PAIR_ANGLE_LIMIT))
+    if len(prep.s1) * len(prep.s2) <= DENSE_PAIRS:
+        i, k = (a.ravel() for a in np.indices((len(prep.s1), len(prep.s2))))
+    else:
+        i, k = _tree_pairs(prep, mid2, d_max)
+    dx = prep.mid1[i, 0] - mid2[k, 0]
+    dy = prep.mid1[i, 1] - mid2[k, 1]
+    reach = prep.half1[i] + prep.half2[k] + d_max
+    rot = np.mod(prep.phi1[i] - prep.phi2[k] - theta + prep.period / 2, prep.period) - prep.period / 2
+    near = (dx * dx + dy * dy <= reach * reach) & (np.abs(rot) <= PAIR_ANGLE_LIMIT)
+    i, k = i[near], k[near]
     mv = matching_value(
         prep.s1[i], bt[k], params.point_distance_tolerance, params.segment_distance_threshold, params.penalization_base
     )
     keep = mv > 0
     return i[keep].astype(np.int64), k[keep].astype(np.int64), mv[keep]
+
+
+PIECE = 1.0
+"""S1's segments are indexed as pieces at most this long (m) in its k-d tree."""
+
+
+def _tree_pairs(prep: PreparedPairs, mid2: Array, d_max: float) -> tuple[IntArray, IntArray]:
+    """Pairs (i, k) whose segments may overlap, from a k-d tree of S1's pieces (large maps)."""
+    tree = prep.cache.get("tree")
+    if tree is None:
+        counts = np.maximum(np.ceil(prep.len1 / PIECE).astype(np.int64), 1)
+        owner = np.repeat(np.arange(len(prep.s1)), counts)
+        frac = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + 0.5) / np.repeat(
+            counts, counts
+        )
+        s = prep.s1[owner]
+        points = s[:, 0:2] + (s[:, 2:4] - s[:, 0:2]) * frac[:, None]
+        tree = (cKDTree(points), owner)
+        prep.cache["tree"] = tree
+    kd: cKDTree
+    kd, owner = tree  # type: ignore[misc]
+    hits = kd.query_ball_point(mid2, prep.half2 + 0.5 * PIECE + d_max)
+    k = np.repeat(np.arange(len(mid2)), [len(h) for h in hits])
+    i = owner[np.concatenate(hits).astype(np.int64)] if len(k) else np.zeros(0, np.int64)
+    pairs = np.unique(np.column_stack([i, k]), axis=0) if len(k) else np.zeros((0, 2), np.int64)
+    return pairs[:, 0], pairs[:, 1]
 
 
 def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams) -> float:

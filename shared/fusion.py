@@ -10,6 +10,11 @@ Two choices the paper leaves open, made here:
   (and, for oriented maps, face the same way). A short segment near a corner can have a small
   positive matching value with both walls; letting it join them would fuse two perpendicular
   walls into one chain and cut the corner.
+- A segment of S2^t left out of every chain but lying, end to end, within
+  SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE of S1's segments is *absorbed*: that part
+  of the environment is already in the map. Real scans hold many short pieces (clutter, range
+  quantisation) whose directions are too noisy to chain; without this, a map built from a
+  hundred scans keeps most of their segments and grows without bound.
 - The greedy polyline (Algorithm 5 with each segment considered once) is built along the chain's
   main direction u: P0 joins the two farthest extremes; then, repeatedly, the chain segment
   farthest (distance d of III-B) from the polyline piece facing it is inserted in place of the
@@ -26,10 +31,11 @@ import numpy as np
 from fleetmap.shared.candidates import IntArray
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.evaluation import matched_pairs, prepare
-from fleetmap.shared.geometry import Array, Transform2D, lengths, segment_distance
+from fleetmap.shared.geometry import Array, Transform2D, lengths, segment_distance, segment_points
 from fleetmap.shared.mapfile import SegmentMap
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 def matching_chains(
@@ -122,7 +128,23 @@ def fuse(m1: SegmentMap, m2: SegmentMap, transform: Transform2D, params: Integra
         verts = chain_polyline(np.vstack([s1[c1], s2t[c2]]), p.fusion_tolerance)
         pieces = np.hstack([verts[:-1], verts[1:]])
         out.append(pieces[lengths(pieces) > 1e-6])
-    # Algorithm 5, step 2: the unmatched segments of both maps.
+    # Algorithm 5, step 2: the unmatched segments of both maps (less those S1 already holds).
     out.append(s1[~in_chain1])
-    out.append(s2t[~in_chain2])
+    rest = s2t[~in_chain2]
+    out.append(rest[~absorbed(s1, rest, p.segment_distance_threshold * p.point_distance_tolerance)])
     return SegmentMap(np.vstack(out), ordered=False, oriented=oriented)
+
+
+ABSORB_SPACING = 0.05
+"""Spacing (m) of the points checked along a segment that may be absorbed."""
+
+
+def absorbed(s1: Array, s2: Array, distance: float) -> Array:
+    """Which segments of s2 lie entirely (sampled every ABSORB_SPACING) within ``distance`` of s1."""
+    if len(s1) == 0 or len(s2) == 0:
+        return np.zeros(len(s2), dtype=bool)
+    ref, _ = segment_points(s1, ABSORB_SPACING / 2)
+    pts, owner = segment_points(s2, ABSORB_SPACING)
+    d, _ = cKDTree(ref).query(pts, distance_upper_bound=distance + ABSORB_SPACING / 4)
+    far = np.bincount(owner, weights=~np.isfinite(d), minlength=len(s2))
+    return far == 0

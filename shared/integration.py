@@ -191,30 +191,41 @@ def integrate(
     check_map(m2, "S2")
     start = time.perf_counter()
     oriented = m1.oriented and m2.oriented
-    prep = prepare(m1.segments, m2.segments, oriented, p)
+    # Large partial maps are searched on their longest segments; the choice is made on the full maps.
+    search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
+    reduced = search1 is not m1 or search2 is not m2
+    search = prepare(search1.segments, search2.segments, oriented, p)
+    prep = prepare(m1.segments, m2.segments, oriented, p) if reduced else search
     free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.free_space_margin)
-    raw, labels = gather_candidates(m1, m2, h, p)
+    raw, labels = gather_candidates(search1, search2, h, p)
     cand, labels = distinct_candidates(raw, labels, p)
+    if 0 < p.max_evaluated < len(cand):
+        cand, labels = cand[: p.max_evaluated], labels[: p.max_evaluated]  # the most supported
     best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
     runner_up = 0.0
     if len(cand):
         values = np.full(len(cand), -1.0)
         head = slice(0, min(FIRST_CHUNK, len(cand)))
-        values[head] = transformation_values(prep, cand[head], p)
+        values[head] = transformation_values(search, cand[head], p)
         head_best = _shortlist_scores(cand[head], values[head], free)
         if len(cand) > FIRST_CHUNK:
             known = float(head_best.max()) if len(head_best) else 0.0
-            values[FIRST_CHUNK:] = transformation_values(prep, cand[FIRST_CHUNK:], p, best_known=max(known, 0.0))
+            values[FIRST_CHUNK:] = transformation_values(search, cand[FIRST_CHUNK:], p, best_known=max(known, 0.0))
         shortlist = np.argsort(-values, kind="stable")[:SHORTLIST]
         shortlist = shortlist[values[shortlist] > 0]
         scores = values[shortlist] - free.violation(cand[shortlist]) if free.active else values[shortlist]
         picked = _pick_distinct(cand[shortlist], scores, max(1, p.refine_candidates) if p.refine else 1)
-        finals: list[_Choice] = []
-        for j in picked:
-            idx = int(shortlist[j])
-            finals.append(
-                _Choice(Transform2D.from_array(cand[idx]), float(values[idx]), float(scores[j]), int(labels[idx]))
+        finals = [
+            _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
+            if reduced
+            else _Choice(
+                Transform2D.from_array(cand[shortlist[j]]),
+                float(values[shortlist[j]]),
+                float(scores[j]),
+                int(labels[shortlist[j]]),
             )
+            for j in picked
+        ]
         if p.refine:
             # Two stages: a few steps for every pick, then to convergence for those still in the race.
             finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS) for c in finals]
@@ -223,12 +234,17 @@ def integrate(
         for choice in finals:
             if choice.score > best.score:
                 best = choice
-        alternatives = [(c.transform.as_array(), c.score) for c in finals]
-        alternatives += [(cand[int(i)], float(sc)) for i, sc in zip(shortlist, scores, strict=True)]
-        runner_up = max(
-            (sc for t, sc in alternatives if _far(t, best.transform)),
-            default=0.0,
-        )
+        runner_up = max((c.score for c in finals if _far(c.transform.as_array(), best.transform)), default=0.0)
+        # The best clearly different candidate that was not refined counts too.
+        others = [j for j in range(len(shortlist)) if _far(cand[shortlist[j]], best.transform)]
+        if others:
+            j = max(others, key=lambda j: scores[j])
+            other = (
+                _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), 0, p).score
+                if reduced
+                else float(scores[j])
+            )
+            runner_up = max(runner_up, other)
     matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
     seconds = time.perf_counter() - start
     violation = best.value - best.score
@@ -267,6 +283,20 @@ class _Choice:
 REFINE_FIRST_STEPS = 3
 REFINE_KEEP = 0.6
 """Picks scoring under this fraction of the best after the first steps are not refined further."""
+
+
+def _evaluated(prep: PreparedPairs, free: FreeSpace, t: Transform2D, label: int, p: IntegrationParams) -> _Choice:
+    """A transformation with its value (and score) on the full maps."""
+    v = transformation_value(prep, t.as_array(), p)
+    return _Choice(t, v, v - float(free.violation(t.as_array())[0]) if free.active else v, label)
+
+
+def _longest(m: SegmentMap, limit: int) -> SegmentMap:
+    """``m`` itself, or its ``limit`` longest segments (in their order) when it has more."""
+    if limit <= 0 or len(m) <= limit:
+        return m
+    keep = np.sort(np.argsort(-lengths(m.segments), kind="stable")[:limit])
+    return SegmentMap(m.segments[keep], ordered=m.ordered, oriented=m.oriented)
 
 
 def _refined(prep: PreparedPairs, free: FreeSpace, c: _Choice, p: IntegrationParams, steps: int) -> _Choice:

@@ -1,0 +1,414 @@
+"""The map graph: merging partial maps whose order nobody knows (the paper's future work, VI).
+
+Nodes are partial maps (a robot's local map, one per epoch); edges are integration attempts, each
+with its transform, transformation value and validity. The merge order is read off the graph:
+
+1. **Maximum spanning forest** over the valid edges, weighted by transformation value (Kruskal,
+   best value first), with a *cycle check* on every edge that closes a cycle: its transform must
+   agree with the composition of the tree path between its ends. Edges that agree are kept as
+   loop closures; edges that disagree are rejected. If more rejected edges accuse one tree edge
+   than loop closures (and the edge itself) support it, that tree edge is the wrong one: it is
+   rejected and the forest is built again. So one wrong integration,
+   however high its value, cannot corrupt a map that has redundant evidence (ROS map_merge trusts
+   one tree and lets the map jump).
+2. **Placement**: each tree is one global map; every map is placed by composing transforms along
+   the tree from the component's anchor, and where loop closures exist all poses are refined
+   together by least squares over SE(2) (value-weighted, robust loss, anchor fixed).
+3. **Fusion**: each map is fused once into the global frame (the pivot method's lesson: no line
+   is fused again and again).
+
+The graph is incremental: a new map is integrated with the existing ones, most similar first (a
+rotation-invariant correlation of segment-orientation histograms), and pairs already integrated
+are never integrated again. Anchors are stable: by default the first map of a component stays its
+anchor as maps are added.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from fleetmap.shared.config import IntegrationParams, MergeParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.fusion import fuse
+from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
+from fleetmap.shared.integration import integrate
+from fleetmap.shared.mapfile import SegmentMap
+from scipy.optimize import least_squares
+
+log = logging.getLogger(__name__)
+
+HISTOGRAM_BINS = 36
+
+
+@dataclass(frozen=True)
+class Edge:
+    """An integration attempt: ``transform`` maps b's frame into a's (b's pose in a)."""
+
+    a: str
+    b: str
+    transform: Transform2D
+    value: float
+    valid: bool
+    runner_up: float = 0.0
+    seconds: float = 0.0
+    versions: tuple[int, int] = (0, 0)
+
+    def reversed(self) -> Edge:
+        return replace(self, a=self.b, b=self.a, transform=self.transform.inverse(), versions=self.versions[::-1])
+
+    def key(self) -> tuple[str, str]:
+        return (self.a, self.b) if self.a <= self.b else (self.b, self.a)
+
+
+@dataclass
+class _Node:
+    map: SegmentMap
+    order: int
+    version: int
+    histogram: Array
+
+
+@dataclass(frozen=True)
+class Component:
+    """One global map: its anchor, members, their poses in the anchor's frame, the fused segments."""
+
+    anchor: str
+    members: tuple[str, ...]
+    poses: dict[str, Transform2D]
+    segments: Array = field(repr=False)
+
+
+@dataclass(frozen=True)
+class MergeResult:
+    poses: dict[str, Transform2D | None]
+    """Every map's pose in its component's anchor frame; None for a map merged with nothing."""
+    components: list[Component]
+    """Largest first (most members, then most segment length)."""
+    tree: list[Edge]
+    loops: list[Edge]
+    rejected: list[Edge]
+    """Valid edges that disagreed with the rest of the graph."""
+
+    def component_of(self, key: str) -> Component | None:
+        return next((c for c in self.components if key in c.members), None)
+
+
+def orientation_histogram(segments: Array) -> Array:
+    """Length-weighted histogram of segment directions (unit norm), for similarity."""
+    bins = np.floor((orientations(segments) + math.pi) / (2 * math.pi) * HISTOGRAM_BINS).astype(np.int64)
+    h = np.bincount(np.clip(bins, 0, HISTOGRAM_BINS - 1), weights=lengths(segments), minlength=HISTOGRAM_BINS)
+    # Segments without an orientation convention count both ways.
+    n = np.linalg.norm(h)
+    return h / n if n > 0 else h
+
+
+def similarity(h1: Array, h2: Array) -> float:
+    """Rotation-invariant similarity: the best circular correlation of two histograms."""
+    spectrum = np.fft.irfft(np.fft.rfft(h1) * np.conj(np.fft.rfft(h2)), n=len(h1))
+    return float(spectrum.max())
+
+
+def _disagreement(a: Transform2D, b: Transform2D) -> tuple[float, float]:
+    return a.distance(b)
+
+
+class MapGraph:
+    """Partial maps and their pairwise integrations; :meth:`solve` gives the global maps."""
+
+    def __init__(
+        self,
+        integration: IntegrationParams | None = None,
+        merge: MergeParams | None = None,
+        anchor: str = "first",
+    ) -> None:
+        if anchor not in ("first", "largest"):
+            raise BadInput("anchor", f"expected 'first' or 'largest', got {anchor!r}")
+        self.integration = integration or IntegrationParams()
+        self.merge = merge or MergeParams()
+        self.anchor = anchor
+        self._nodes: dict[str, _Node] = {}
+        self._edges: dict[tuple[str, str], Edge] = {}
+        self._counter = 0
+
+    # -- nodes and edges -------------------------------------------------------------------
+    def __contains__(self, key: str) -> bool:
+        return key in self._nodes
+
+    def __len__(self) -> int:
+        return len(self._nodes)
+
+    @property
+    def keys(self) -> list[str]:
+        return sorted(self._nodes, key=lambda k: self._nodes[k].order)
+
+    def map_of(self, key: str) -> SegmentMap:
+        return self._nodes[key].map
+
+    def version_of(self, key: str) -> int:
+        return self._nodes[key].version
+
+    @property
+    def edges(self) -> list[Edge]:
+        return list(self._edges.values())
+
+    def candidates_for(self, key: str) -> list[str]:
+        """Existing maps to integrate ``key`` with, most similar first (at most max_candidates)."""
+        h = self._nodes[key].histogram
+        others = [k for k in self.keys if k != key]
+        ranked = sorted(others, key=lambda k: (-similarity(self._nodes[k].histogram, h), self._nodes[k].order))
+        limit = self.merge.max_candidates
+        return ranked[:limit] if limit > 0 else ranked
+
+    def put_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> bool:
+        """Add a map or replace it with a newer version (its old edges go). False if not newer."""
+        if len(segment_map) == 0:
+            raise BadInput(key, "the map is empty (no segments)")
+        node = self._nodes.get(key)
+        if node is not None:
+            if version <= node.version:
+                return False
+            node.map, node.version = segment_map, version
+            node.histogram = orientation_histogram(segment_map.segments)
+            for k in [k for k in self._edges if key in k]:
+                del self._edges[k]
+            return True
+        self._nodes[key] = _Node(segment_map, self._counter, version, orientation_histogram(segment_map.segments))
+        self._counter += 1
+        return True
+
+    def remove_map(self, key: str) -> None:
+        self._nodes.pop(key, None)
+        for k in [k for k in self._edges if key in k]:
+            del self._edges[k]
+
+    def add_edge(self, edge: Edge) -> None:
+        """Record an integration (computed here or elsewhere, e.g. restored from a recording)."""
+        if edge.a not in self._nodes or edge.b not in self._nodes:
+            raise BadInput(f"edge {edge.a}-{edge.b}", "names a map that is not in the graph")
+        self._edges[edge.key()] = edge
+
+    def edge(self, a: str, b: str) -> Edge | None:
+        e = self._edges.get((a, b) if a <= b else (b, a))
+        if e is None:
+            return None
+        return e if e.a == a else e.reversed()
+
+    def integrate_pair(self, a: str, b: str) -> Edge:
+        """INTEGRATE(a, b) unless this pair (at these versions) is already known."""
+        known = self.edge(a, b)
+        va, vb = self._nodes[a].version, self._nodes[b].version
+        if known is not None and known.versions == (va, vb):
+            return known
+        r = integrate(self._nodes[a].map, self._nodes[b].map, self.integration)
+        e = Edge(a, b, r.transform, r.value, r.valid, r.runner_up, r.seconds, (va, vb))
+        self._edges[e.key()] = e
+        return e
+
+    def add_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> list[Edge]:
+        """Add (or update) a map and integrate it with the existing maps, most similar first."""
+        if not self.put_map(key, segment_map, version):
+            return []
+        # The older map is S1: integration results then do not depend on arrival order of others.
+        return [self._oriented_pair(other, key) for other in self.candidates_for(key)]
+
+    def _oriented_pair(self, x: str, y: str) -> Edge:
+        a, b = (x, y) if self._nodes[x].order < self._nodes[y].order else (y, x)
+        return self.integrate_pair(a, b)
+
+    # -- solving ---------------------------------------------------------------------------
+    def solve(self, fuse_maps: bool = True) -> MergeResult:
+        valid = [e for e in self._edges.values() if e.valid]
+        order = {k: n.order for k, n in self._nodes.items()}
+        valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
+        excluded: set[tuple[str, str]] = set()
+        while True:
+            tree, loops, conflicts, adjacency = self._kruskal([e for e in valid if e.key() not in excluded])
+            culprit = _culprit(tree, loops, conflicts, adjacency)
+            if culprit is None:
+                break
+            log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
+            excluded.add(culprit.key())
+        rejected = conflicts + [e for e in valid if e.key() in excluded]
+        components = self._components(tree, loops, fuse_maps)
+        poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
+        for c in components:
+            if len(c.members) > 1:
+                poses.update(c.poses)
+        return MergeResult(poses, components, tree, loops, rejected)
+
+    def _tolerance(self, hops: int) -> tuple[float, float]:
+        s = math.sqrt(max(hops, 1))
+        return self.merge.cycle_translation_tolerance * s, self.merge.cycle_rotation_tolerance * s
+
+    def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
+        """Maximum spanning forest with the cycle check; poses relative to each tree's root."""
+        root = {k: k for k in self._nodes}
+        rel = {k: Transform2D.identity() for k in self._nodes}  # pose of k in root[k]'s frame
+        members = {k: [k] for k in self._nodes}
+        tree: list[Edge] = []
+        loops: list[Edge] = []
+        conflicts: list[Edge] = []
+        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        for e in edges:
+            ra, rb = root[e.a], root[e.b]
+            if ra != rb:
+                # Pose of rb's frame in ra's frame: P_a * T_ab * P_b^-1.
+                move = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
+                small, big = (ra, rb) if len(members[ra]) < len(members[rb]) else (rb, ra)
+                if small == ra:
+                    move = move.inverse()
+                for k in members[small]:
+                    rel[k] = move.compose(rel[k])
+                    root[k] = big
+                members[big].extend(members.pop(small))
+                tree.append(e)
+                adjacency[e.a].append(e)
+                adjacency[e.b].append(e.reversed())
+            else:
+                predicted = rel[e.a].inverse().compose(rel[e.b])
+                dt, dr = _disagreement(predicted, e.transform)
+                hops = len(_tree_path(adjacency, e.a, e.b))
+                tol_t, tol_r = self._tolerance(hops)
+                (loops if dt <= tol_t and dr <= tol_r else conflicts).append(e)
+        return tree, loops, conflicts, adjacency
+
+    def _components(self, tree: list[Edge], loops: list[Edge], fuse_maps: bool) -> list[Component]:
+        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        for e in tree:
+            adjacency[e.a].append(e)
+            adjacency[e.b].append(e.reversed())
+        seen: set[str] = set()
+        out = []
+        for start in self.keys:
+            if start in seen:
+                continue
+            # Breadth-first from any member to collect the component, then from its anchor.
+            group = _bfs_order(adjacency, start)
+            seen.update(group)
+            anchor = self._pick_anchor(group)
+            order = _bfs_order(adjacency, anchor)
+            poses = {anchor: Transform2D.identity()}
+            via: dict[str, Edge] = {}
+            for k in order:
+                for e in adjacency[k]:
+                    if e.b not in poses:
+                        poses[e.b] = poses[k].compose(e.transform)
+                        via[e.b] = e
+            group_set = set(group)
+            cycle_edges = [e for e in loops if e.a in group_set]
+            if cycle_edges:
+                poses = self._least_squares(anchor, poses, [via[k] for k in order if k in via] + cycle_edges)
+            segments = self._fuse(order, poses) if fuse_maps else np.zeros((0, 4))
+            out.append(Component(anchor, tuple(order), poses, segments))
+        out.sort(key=lambda c: (-len(c.members), -sum(self._nodes[k].map.total_length for k in c.members)))
+        return out
+
+    def _pick_anchor(self, group: list[str]) -> str:
+        if self.anchor == "first":
+            return min(group, key=lambda k: self._nodes[k].order)
+        return min(group, key=lambda k: (-self._nodes[k].map.total_length, k))
+
+    def _least_squares(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
+        """All poses of a component refined together over SE(2) (value-weighted, robust loss)."""
+        free = [k for k in poses if k != anchor]
+        index = {k: i for i, k in enumerate(free)}
+        x0 = np.concatenate([poses[k].as_array() for k in free])
+        weights = np.sqrt(np.array([max(e.value, 1e-3) for e in edges]))
+        sigma_t, sigma_r = 0.05, 0.01
+
+        def pose(x: Array, k: str) -> Transform2D:
+            if k == anchor:
+                return poses[anchor]
+            i = index[k]
+            return Transform2D(x[3 * i], x[3 * i + 1], x[3 * i + 2])
+
+        def residuals(x: Array) -> Array:
+            out = np.empty(3 * len(edges))
+            for j, e in enumerate(edges):
+                err = e.transform.inverse().compose(pose(x, e.a).inverse().compose(pose(x, e.b)))
+                out[3 * j : 3 * j + 3] = (
+                    np.array([err.x / sigma_t, err.y / sigma_t, float(wrap_angle(err.theta)) / sigma_r]) * weights[j]
+                )
+            return out
+
+        sol = least_squares(residuals, x0, loss="soft_l1", f_scale=3.0, x_scale="jac")
+        refined = {anchor: poses[anchor]}
+        for k in free:
+            refined[k] = Transform2D.from_array(sol.x[3 * index[k] : 3 * index[k] + 3])
+        return refined
+
+    def _fuse(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
+        """Each map fused once into the global frame, in tree order from the anchor."""
+        merged: SegmentMap | None = None
+        for k in order:
+            m = self._nodes[k].map
+            if merged is None:
+                merged = SegmentMap(poses[k].apply(m.segments), ordered=False, oriented=m.oriented)
+            else:
+                merged = fuse(merged, m, poses[k], self.integration)
+        return merged.segments if merged is not None else np.zeros((0, 4))
+
+
+def _culprit(
+    tree: list[Edge], loops: list[Edge], conflicts: list[Edge], adjacency: dict[str, list[Edge]]
+) -> Edge | None:
+    """The tree edge that more cycles accuse than support, if any.
+
+    Each rejected edge votes against the tree edges on its cycle; each loop closure votes for
+    them; a tree edge also counts as one vote for itself. The culprit has the most votes against
+    it beyond those for it. Votes are counted, not weighted by value: a wrong integration can have
+    a high value (a repetitive building matched one rack off), and value grows with map size.
+    In a single cycle (a triangle) no edge stands out, and the edge that closes it is rejected.
+    """
+    if not conflicts:
+        return None
+    bad: dict[tuple[str, str], float] = {}
+    good: dict[tuple[str, str], float] = {}
+    for votes, edges in ((bad, conflicts), (good, loops)):
+        for e in edges:
+            for t in _tree_path(adjacency, e.a, e.b):
+                votes[t.key()] = votes.get(t.key(), 0.0) + 1.0
+    best, margin = None, 0.0
+    for t in tree:
+        m = bad.get(t.key(), 0.0) - good.get(t.key(), 0.0) - 1.0
+        if m > margin:
+            best, margin = t, m
+    return best
+
+
+def _bfs_order(adjacency: dict[str, list[Edge]], start: str) -> list[str]:
+    order = [start]
+    seen = {start}
+    i = 0
+    while i < len(order):
+        for e in adjacency[order[i]]:
+            if e.b not in seen:
+                seen.add(e.b)
+                order.append(e.b)
+        i += 1
+    return order
+
+
+def _tree_path(adjacency: dict[str, list[Edge]], a: str, b: str) -> list[Edge]:
+    """Tree edges on the path from a to b (empty if not connected)."""
+    prev: dict[str, Edge | None] = {a: None}
+    queue = [a]
+    i = 0
+    while i < len(queue) and b not in prev:
+        for e in adjacency[queue[i]]:
+            if e.b not in prev:
+                prev[e.b] = e
+                queue.append(e.b)
+        i += 1
+    if b not in prev:
+        return []
+    path: list[Edge] = []
+    k = b
+    while (step := prev[k]) is not None:
+        path.append(step)
+        k = step.a
+    return path[::-1]

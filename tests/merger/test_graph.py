@@ -1,0 +1,117 @@
+"""The map graph: unknown merge order, cycle checks, components, incremental use."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+from fleetmap.merger.graph import Edge, MapGraph
+from fleetmap.shared.geometry import Transform2D
+
+from tests.helpers import OMNI, ROOM, scan_map
+
+POSES = [(3.0, 4.5, 0.3), (5.0, 5.0, 2.0), (7.0, 4.0, -1.0), (9.0, 4.0, 2.8), (4.5, 7.0, -2.2)]
+MAPS = {f"m{k}": scan_map(ROOM, p, OMNI, seed=40 + k) for k, p in enumerate(POSES)}
+TRUE = {f"m{k}": Transform2D(*p) for k, p in enumerate(POSES)}
+
+
+def _solve(order: list[str], **kw: object) -> tuple[MapGraph, object]:
+    g = MapGraph(anchor="largest", **kw)  # type: ignore[arg-type]
+    for key in order:
+        g.add_map(key, MAPS[key])
+    return g, g.solve()
+
+
+def _check_against_truth(result: object) -> None:
+    comp = result.components[0]  # type: ignore[attr-defined]
+    assert set(comp.members) == set(MAPS)
+    world = TRUE[comp.anchor]
+    for key, pose in comp.poses.items():
+        dt, dr = world.compose(pose).distance(TRUE[key])
+        assert dt < 0.05 and dr < math.radians(1), f"{key}: {dt:.3f} m {math.degrees(dr):.2f} deg"
+
+
+def test_every_map_is_placed_right_with_no_order_given() -> None:
+    _, result = _solve(list(MAPS))
+    _check_against_truth(result)
+    assert result.rejected == []  # type: ignore[attr-defined]
+
+
+def test_the_same_maps_in_any_order_give_the_same_poses() -> None:
+    _, first = _solve(list(MAPS))
+    for seed in range(3):
+        order = list(MAPS)
+        random.Random(seed).shuffle(order)
+        _, other = _solve(order)
+        assert other.components[0].anchor == first.components[0].anchor  # type: ignore[attr-defined]
+        for key in MAPS:
+            dt, dr = other.poses[key].distance(first.poses[key])  # type: ignore[attr-defined]
+            assert dt < 0.01 and dr < math.radians(0.1)
+
+
+def test_an_injected_wrong_edge_is_rejected_by_the_cycle_check() -> None:
+    g, _ = _solve(list(MAPS))
+    true_edge = g.edge("m0", "m2")
+    assert true_edge is not None and true_edge.valid
+    # A wrong integration, more confident than any right one: 2 m and 90 degrees off.
+    wrong = Edge("m0", "m2", true_edge.transform.compose(Transform2D(2.0, 0.0, math.pi / 2)), 100.0, True)
+    g.add_edge(wrong)
+    result = g.solve()
+    assert any(e.a == "m0" and e.b == "m2" and e.value == 100.0 for e in result.rejected)
+    _check_against_truth(result)
+
+
+def test_maps_with_no_overlap_end_up_in_separate_components() -> None:
+    g, _ = _solve(list(MAPS))
+    # Another building: an L-shaped room with a pillar, 200 m away.
+    other = (
+        np.array(
+            [
+                [0, 0, 9, 0],
+                [9, 0, 9, 4],
+                [9, 4, 4, 4],
+                [4, 4, 4, 8],
+                [4, 8, 0, 8],
+                [0, 8, 0, 0],
+                [2, 5, 2.5, 5],
+                [2.5, 5, 2.5, 5.5],
+                [2.5, 5.5, 2, 5.5],
+                [2, 5.5, 2, 5],
+                [6, 0, 7, 1.0],
+            ],
+            dtype=float,
+        )
+        + 200
+    )
+    g.add_map("far1", scan_map(other, (202.0, 202.0, 0.0), OMNI, seed=1))
+    g.add_map("far2", scan_map(other, (203.0, 201.5, 1.4), OMNI, seed=2))
+    result = g.solve()
+    groups = sorted(sorted(c.members) for c in result.components)
+    assert groups == sorted([sorted(MAPS), ["far1", "far2"]])
+    far = result.component_of("far1")
+    assert far is not None and far.anchor in ("far1", "far2")
+
+
+def test_known_pairs_are_not_integrated_again_and_removal_forgets_a_map() -> None:
+    g, _ = _solve(list(MAPS)[:3])
+    before = {e.key(): e for e in g.edges}
+    new = g.add_map("m3", MAPS["m3"])
+    assert {e.key() for e in new} == {("m0", "m3"), ("m1", "m3"), ("m2", "m3")}
+    assert all(g.edge(*k) == e for k, e in before.items())  # untouched
+    g.remove_map("m1")
+    assert "m1" not in g and all("m1" not in e.key() for e in g.edges)
+    assert set(g.solve().components[0].members) == {"m0", "m2", "m3"}
+
+
+def test_the_first_anchor_stays_put_as_maps_are_added() -> None:
+    g = MapGraph(anchor="first")
+    g.add_map("m2", MAPS["m2"])
+    g.add_map("m0", MAPS["m0"])
+    pose_m0 = g.solve().poses["m0"]
+    for key in ("m1", "m3", "m4"):
+        g.add_map(key, MAPS[key])
+        result = g.solve()
+        assert result.components[0].anchor == "m2"
+        dt, dr = result.poses["m0"].distance(pose_m0)  # type: ignore[union-attr]
+        assert dt < 0.02 and dr < math.radians(0.3)

@@ -1,0 +1,70 @@
+"""Known-order merging (paper IV): sequential, tree, pivot, and the online pivot builder."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fleetmap.merger.sequence import PivotMapBuilder, pivot, sequential, tree
+from fleetmap.scenarios.laser import LaserParams
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.mapfile import SegmentMap
+
+from tests.helpers import ROOM, scan_map
+
+# A robot crossing the room and turning: steps of 0.5-0.9 m and up to 0.5 rad between scans.
+TRAJECTORY = [(2.0 + 0.65 * k, 4.5 + 0.4 * math.sin(k / 2), 0.28 * k) for k in range(11)]
+SCANS = [scan_map(ROOM, pose, LaserParams(), seed=100 + k) for k, pose in enumerate(TRAJECTORY)]
+TRUTH = [Transform2D(*TRAJECTORY[0]).inverse().compose(Transform2D(*p)) for p in TRAJECTORY]
+
+
+def _assert_trajectory(poses: list[Transform2D | None]) -> None:
+    for k, (est, true) in enumerate(zip(poses, TRUTH, strict=True)):
+        assert est is not None, f"scan {k} not placed"
+        dt, dr = est.distance(true)
+        assert dt < 0.05 and dr < math.radians(1.0), f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
+
+
+@pytest.mark.parametrize(
+    "method",
+    [sequential, tree, lambda m: tree(m, shortcut_from_level=None), pivot, lambda m: pivot(m, variant="pairs")],
+    ids=["sequential", "tree", "tree-no-shortcut", "pivot", "pivot-pairs"],
+)
+def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method) -> None:  # type: ignore[no-untyped-def]
+    result = method(SCANS)
+    _assert_trajectory(result.poses)
+    # The merged map is in the first scan's frame and has fused the overlapping walls.
+    assert len(result.map) < sum(len(s) for s in SCANS) / 2
+
+
+def test_integration_counts_are_the_papers() -> None:
+    n = len(SCANS)
+    assert sequential(SCANS).integrations == n - 1
+    assert pivot(SCANS).integrations == n - 1
+    # The tree method needs n(n - 1)/2 when every integration is valid (its fallback adds calls otherwise).
+    assert tree(SCANS, shortcut_from_level=None).integrations >= n * (n - 1) // 2
+
+
+def test_the_pivot_builder_leaves_a_scan_from_elsewhere_unplaced_and_goes_on() -> None:
+    elsewhere = scan_map(
+        np.array([[0, 0, 30, 0], [30, 2, 0, 2.0], [10, 0, 10, -3.0]]), (5.0, 1.0, 0.0), LaserParams(), 9
+    )
+    builder = PivotMapBuilder(use_map=False)
+    steps = [builder.add(m) for m in [*SCANS[:4], elsewhere, *SCANS[4:6]]]
+    assert [s.pose is None for s in steps] == [False, False, False, False, True, False, False]
+    assert steps[4].integration is not None and not steps[4].integration.valid
+    # After the stranger, scan 4 was integrated with scan 3 (the last placed) and placed right.
+    dt, dr = steps[5].pose.distance(TRUTH[4])  # type: ignore[union-attr]
+    assert dt < 0.05 and dr < math.radians(1.0)
+
+
+def test_bad_input_is_refused() -> None:
+    from fleetmap.shared.errors import BadInput
+
+    with pytest.raises(BadInput, match="no maps"):
+        pivot([])
+    with pytest.raises(BadInput, match="variant"):
+        pivot(SCANS[:2], variant="diagonal")
+    with pytest.raises(BadInput, match="empty"):
+        sequential([SCANS[0], SegmentMap(np.zeros((0, 4)))])
