@@ -40,6 +40,7 @@ from fleetmap.shared.messages import (
     GlobalMap,
     LocalMap,
     MergeEdge,
+    MergerStep,
     Message,
     RobotPose,
     Scan,
@@ -62,6 +63,7 @@ EXPECTED: dict[str, tuple[type[Message], ...]] = {
     "pose": (RobotPose,),
     "globalmap": (GlobalMap,),
     "edges": (MergeEdge,),
+    "steps": (MergerStep,),
     "events": (FleetEvent,),
     "state": (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent),
 }

@@ -8,6 +8,7 @@ conventions)::
     fleet/<fleet>/robots/<robot>/pose        RobotPose
     fleet/<fleet>/merger/globalmap           GlobalMap
     fleet/<fleet>/merger/edges               MergeEdge
+    fleet/<fleet>/merger/steps               MergerStep (what the merger integrated, in order)
     fleet/<fleet>/merger/state               queryable: the current global state
     fleet/<fleet>/events                     FleetEvent
     fleet/<fleet>/recorder/stats             queryable: what the recorder has recorded so far
@@ -36,7 +37,7 @@ MAP_KEY_PATTERN = re.compile(r"([a-z][a-z0-9_-]{0,31})/(0|[1-9][0-9]{0,17})")
 DEFAULT_FLEET = "default"
 
 KeyKind = Literal[
-    "scan", "localmap", "pose", "globalmap", "edges", "state", "events", "alive", "services", "recorder_stats"
+    "scan", "localmap", "pose", "globalmap", "edges", "steps", "state", "events", "alive", "services", "recorder_stats"
 ]
 KEY_KINDS: tuple[str, ...] = get_args(KeyKind)
 ROBOT_KINDS = ("scan", "localmap", "pose")
@@ -125,6 +126,11 @@ class FleetKeys:
         return f"{self.prefix}/merger/edges"
 
     @property
+    def steps(self) -> str:
+        """MergerStep: the local maps the merger integrated, in its order (what replay follows)."""
+        return f"{self.prefix}/merger/steps"
+
+    @property
     def state(self) -> str:
         """The merger's queryable: a query returns the current global state."""
         return f"{self.prefix}/merger/state"
@@ -167,6 +173,8 @@ class FleetKeys:
                 return ParsedKey("globalmap")
             case ["merger", "edges"]:
                 return ParsedKey("edges")
+            case ["merger", "steps"]:
+                return ParsedKey("steps")
             case ["merger", "state"]:
                 return ParsedKey("state")
             case ["events"]:

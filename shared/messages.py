@@ -591,11 +591,39 @@ class FleetEvent(WireMessage):
         _set(self, "detail", _text(s, "detail", self.detail))
 
 
-Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent
+@dataclass(frozen=True, eq=False)
+class MergerStep(WireMessage):
+    """The local map versions the merger integrated in one step, in the order it took them.
+
+    The merger is deterministic given its inputs in order; a replay feeds the recorded local
+    maps in the order these steps give, so it rebuilds exactly the live global map even where the
+    recorder heard two robots in the other order.
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.MergerStep"
+
+    seq: int
+    stamp: float
+    maps: tuple[str, ...]
+    versions: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "seq", _count(s, "seq", self.seq))
+        _set(self, "stamp", _stamp(s, "stamp", self.stamp))
+        maps = _sequence(s, "maps", self.maps, MAX_MAPS)
+        versions = _sequence(s, "versions", self.versions, MAX_MAPS)
+        if len(maps) != len(versions):
+            raise BadMessage(s, "versions", f"{len(versions)} versions for {len(maps)} maps")
+        _set(self, "maps", tuple(_map_key(s, f"maps[{i}]", m) for i, m in enumerate(maps)))
+        _set(self, "versions", tuple(_count(s, f"versions[{i}]", v) for i, v in enumerate(versions)))
+
+
+Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep
 """Any message of the bus."""
 
-MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent]] = {
-    cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent)
+MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep]] = {
+    cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent, MergerStep)
 }
 
 
