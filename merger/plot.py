@@ -22,9 +22,10 @@ def plot_merged(
     fused: Array | None = None,
     notes: Sequence[str] = (),
     title: str = "fleetmap: merged map",
+    colors: Mapping[str, int] | None = None,
 ) -> None:
-    """Each placed map in its own colour (over the true walls when known), unplaced maps and
-    ``notes`` (e.g. rejected edges) listed under the plot."""
+    """Each placed map in its own colour (or its group's, ``colors``: e.g. one per robot) over the
+    true walls when known; unplaced maps and ``notes`` (e.g. rejected edges) listed under the plot."""
     fig, ax = plt.subplots(figsize=(9, 8))
     if truth is not None and len(truth):
         ax.add_collection(
@@ -42,10 +43,9 @@ def plot_merged(
             unplaced.append(name)
             continue
         moved = pose.apply(segments)
-        ax.add_collection(
-            LineCollection(list(moved.reshape(-1, 2, 2)), colors=[cmap(i % cmap.N)], linewidths=1.2, label=name)
-        )
-        ax.plot([pose.x], [pose.y], marker="o", color=cmap(i % cmap.N), markersize=4)
+        colour = cmap((colors[name] if colors is not None and name in colors else i) % cmap.N)
+        ax.add_collection(LineCollection(list(moved.reshape(-1, 2, 2)), colors=[colour], linewidths=1.2, label=name))
+        ax.plot([pose.x], [pose.y], marker="o", color=colour, markersize=4)
     ax.autoscale()
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")

@@ -63,3 +63,25 @@ def pose_pair(rng: np.random.Generator, max_shift: float = 3.0) -> tuple[tuple[f
 def _clear(x: float, y: float) -> bool:
     boxes = [(1.5, 1.5, 4.0, 3.5), (6.5, 5.5, 10.0, 9.0), (4.5, 7.0, 6.1, 8.6), (7.5, 0.5, 11.0, 2.7)]
     return not any(x0 <= x <= x1 and y0 <= y <= y1 for x0, y0, x1, y1 in boxes)
+
+
+def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch: int = 0, version: int = 0):  # type: ignore[no-untyped-def]
+    """A robot's local map built from its scans ``start:stop`` placed at their TRUE poses (a perfect
+    agent), as the LocalMap message the merger receives; its frame is scan ``start``'s, as an
+    agent's epoch would be. Returns (message, true pose of the frame in the world)."""
+    from fleetmap.scenarios import load_scenario, robot_stream
+    from fleetmap.shared.fusion import fuse
+    from fleetmap.shared.messages import LocalMap
+
+    sc = load_scenario(scenario_name)
+    scans = [s for s in robot_stream(sc, robot) if start <= s.index < stop]
+    frame = scans[0].pose
+    merged = None
+    for s in scans:
+        m = SegmentMap(extract_segments(s.scan), ordered=True, oriented=True)
+        t = frame.inverse().compose(s.pose)
+        merged = SegmentMap(t.apply(m.segments), oriented=True) if merged is None else fuse(merged, m, t)
+    assert merged is not None
+    last = frame.inverse().compose(scans[-1].pose)
+    message = LocalMap(robot, epoch, version, scans[-1].stamp, merged.segments, len(scans), last)
+    return message, frame

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from fleetmap import __version__
 from fleetmap.merger.recorder import Recorder, RecorderService
+from fleetmap.scenarios import load_scenario
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import load_config
 from fleetmap.shared.errors import BadInput
@@ -34,6 +35,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="the MCAP file to write (replaced if it exists)")
     p.add_argument("--config", metavar="FILE", help="the fleet's TOML config, stored in the file (default: defaults)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--scenario",
+        metavar="FILE",
+        help="the scenario being run (TOML), stored in the file so a replay can score against its truth",
+    )
     p.add_argument("--no-foxglove", action="store_true", help="raw channels only (no Foxglove views)")
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
@@ -56,6 +62,10 @@ def run(args: argparse.Namespace) -> int:
         "fleetmap.zenoh": describe(config),
         "fleetmap.config": config_metadata(fleet_config),
     }
+    if args.scenario:
+        # Validated first: a recording should not carry a scenario that cannot be read back.
+        load_scenario(args.scenario)
+        metadata["fleetmap.scenario"] = {"toml": Path(args.scenario).read_text(encoding="utf-8")}
     with ZenohBus.open(config) as bus:
         writer = RecordingWriter(out)
         recorder = Recorder(writer, options.keys, metadata=metadata, foxglove=not args.no_foxglove)

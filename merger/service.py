@@ -1,0 +1,458 @@
+"""The merger service: local maps in, global maps and robot poses out.
+
+:class:`Merger` is the whole logic as a library (no network, no clock): ``receive`` takes the bytes
+of a bus message, ``step`` integrates what arrived since the last step into the map graph
+(:mod:`fleetmap.merger.graph`) and returns the messages to publish. It is deterministic given the
+same messages in the same order, which is what lets a recorded session replay to the same map:
+every step is published as a :class:`~fleetmap.shared.messages.MergerStep` naming the local map
+versions it integrated, in order, and a replay follows those steps.
+
+What it publishes after a step:
+
+- ``GlobalMap``: every component of the graph (anchor, members, poses, fused segments), the
+  largest first;
+- ``RobotPose`` for every robot: its pose in its component's frame, composed from the pose of its
+  current local map and its pose in that map. A robot whose current epoch is merged with nothing
+  (a kidnapped robot that has not been relocalized yet) is reported *unknown*: pose None, never a
+  guess. A robot's first epoch, before anything merges, is placed only if it is the largest
+  component (it is the global map);
+- ``MergeEdge`` for every integration computed in the step, ``MergerStep``, and ``FleetEvent``
+  "relocalized" when a later epoch of a robot is placed for the first time.
+
+:class:`MergerService` wraps it for a bus: subscriptions, a queryable with the current global map
+(a late viewer or a rejoining robot gets it at once), presence from liveliness tokens, and an
+optional state file that a restarted merger loads (:meth:`Merger.save_state`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+from fleetmap.merger.graph import Edge, MapGraph, MergeResult
+from fleetmap.shared.bus import Bus, Handle
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.messages import (
+    BadMessage,
+    Component,
+    FleetEvent,
+    GlobalMap,
+    LocalMap,
+    MergeEdge,
+    MergerStep,
+    RobotPose,
+    Scan,
+    decode,
+)
+
+log = logging.getLogger(__name__)
+
+STATE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    key: str
+    payload: bytes
+
+
+@dataclass
+class MergerStats:
+    received: Counter[str] = field(default_factory=Counter)
+    """Messages received, per schema."""
+    malformed: int = 0
+    malformed_reasons: Counter[str] = field(default_factory=Counter)
+    """Malformed messages per 'schema field' (what was wrong)."""
+    ignored: int = 0
+    """Well-formed messages not meant for the merger on the key they came on."""
+    stale: int = 0
+    """Local maps older than (or as old as) the version already held."""
+    steps: int = 0
+    integrations: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "received": dict(self.received),
+            "malformed": self.malformed,
+            "malformed_reasons": dict(self.malformed_reasons),
+            "ignored": self.ignored,
+            "stale": self.stale,
+            "steps": self.steps,
+            "integrations": self.integrations,
+        }
+
+
+@dataclass
+class _Robot:
+    epoch: int = 0
+    stamp: float = 0.0
+    """Stamp of the robot's latest local map: when its pose in that map was true."""
+    pose_in_map: dict[int, Transform2D | None] = field(default_factory=dict)
+    relocalized: set[int] = field(default_factory=set)
+    present: bool = False
+
+
+class Merger:
+    """The merger's logic: :meth:`receive` messages, :meth:`step`, publish what it returns."""
+
+    def __init__(self, keys: FleetKeys, config: FleetmapConfig | None = None) -> None:
+        self.keys = keys
+        self.config = config or FleetmapConfig()
+        self.graph = MapGraph(self.config.integration, self.config.merge, anchor="first")
+        self.stats = MergerStats()
+        self.seq = 0
+        self.stamp = 0.0
+        self.links: dict[str, str] = {}
+        """New epoch's map key -> the previous epoch's (the graph links the epochs of a robot)."""
+        self._pending: dict[str, LocalMap] = {}
+        self._robots: dict[str, _Robot] = {}
+        self._result: MergeResult | None = None
+        self._global: GlobalMap | None = None
+
+    # -- input -----------------------------------------------------------------------------
+    def receive(self, key: str, payload: bytes) -> list[Outgoing]:
+        """Take one message off the bus; a malformed one is dropped, logged and counted."""
+        try:
+            message = decode(payload)
+        except BadMessage as exc:
+            self.stats.malformed += 1
+            self.stats.malformed_reasons[f"{exc.schema} {exc.field}"] += 1
+            if self.stats.malformed <= 20 or self.stats.malformed % 1000 == 0:
+                log.warning("dropped a malformed message on %s: %s (%d so far)", key, exc, self.stats.malformed)
+            return []
+        self.stats.received[message.SCHEMA] += 1
+        if isinstance(message, LocalMap):
+            if key != self.keys.localmap(message.robot):
+                self.stats.ignored += 1
+                return []
+            self._take_local_map(message)
+        elif isinstance(message, Scan):
+            self._robot(message.robot)  # a robot that only scans so far is known, not placed
+        elif isinstance(message, FleetEvent) and message.kind == "epoch" and message.robot is not None:
+            self._robot(message.robot)
+        else:
+            self.stats.ignored += 1
+        return []
+
+    def _robot(self, name: str) -> _Robot:
+        return self._robots.setdefault(name, _Robot())
+
+    def _take_local_map(self, m: LocalMap) -> None:
+        key = m.key
+        held = self.graph.version_of(key) if key in self.graph else -1
+        waiting = self._pending.get(key)
+        if m.version <= held or (waiting is not None and m.version <= waiting.version):
+            self.stats.stale += 1
+            return
+        if len(m.segments) == 0:
+            self.stats.ignored += 1
+            return
+        # Arrival order of the first version decides the order of a step; later versions replace it.
+        self._pending[key] = m
+
+    def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
+        """A robot's liveliness token appeared or went: a join or leave event. Its maps stay."""
+        r = self._robot(robot)
+        r.present = present
+        kind = "join" if present else "leave"
+        return [Outgoing(self.keys.events, FleetEvent(kind, robot, max(stamp, 0.0)).to_msgpack())]
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+    # -- one step --------------------------------------------------------------------------
+    def step(self) -> list[Outgoing]:
+        """Integrate every local map received since the last step; the messages to publish."""
+        if not self._pending:
+            return []
+        batch = list(self._pending.values())
+        self._pending.clear()
+        out: list[Outgoing] = []
+        new_edges: list[Edge] = []
+        for m in batch:
+            new_edges += self._integrate(m)
+        self.seq += 1
+        self.stats.steps += 1
+        self.stats.integrations += len(new_edges)
+        self.stamp = max([self.stamp] + [m.stamp for m in batch])
+        out.append(
+            Outgoing(
+                self.keys.steps,
+                MergerStep(
+                    self.seq, self.stamp, tuple(m.key for m in batch), tuple(m.version for m in batch)
+                ).to_msgpack(),
+            )
+        )
+        for e in new_edges:
+            t = e.transform
+            edge = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
+            out.append(Outgoing(self.keys.edges, edge.to_msgpack()))
+        self._result = self.graph.solve()
+        self._global = self._global_map(self._result)
+        out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
+        out += self._robot_poses()
+        return out
+
+    def _integrate(self, m: LocalMap) -> list[Edge]:
+        r = self._robot(m.robot)
+        if m.epoch >= r.epoch:
+            r.epoch, r.stamp = m.epoch, m.stamp
+        r.pose_in_map[m.epoch] = m.pose
+        if m.previous_epoch_link is not None:
+            self.links[m.key] = f"{m.robot}/{m.previous_epoch_link.epoch}"
+        segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
+        return self.graph.add_map(m.key, segment_map, m.version)
+
+    def _global_map(self, result: MergeResult) -> GlobalMap:
+        components = tuple(
+            Component(c.anchor, tuple(c.members), dict(c.poses), np.asarray(c.segments)) for c in result.components
+        )
+        return GlobalMap(self.seq, self.stamp, components)
+
+    def robot_pose(self, robot: str) -> tuple[Transform2D | None, int | None]:
+        """A robot's pose in its component's frame and the component's index; (None, None) if unknown."""
+        r = self._robots.get(robot)
+        if r is None or self._result is None or self._global is None:
+            return None, None
+        key = f"{robot}/{r.epoch}"
+        in_map = r.pose_in_map.get(r.epoch)
+        index = self._global.component_of(key)
+        if in_map is None or index is None:
+            return None, None
+        component = self._result.components[index]
+        merged = len(component.members) > 1
+        if not merged and not (r.epoch == 0 and index == 0):
+            return None, None  # a later epoch merged with nothing: the robot is lost, not guessed
+        return component.poses[key].compose(in_map), index
+
+    def _robot_poses(self) -> list[Outgoing]:
+        out = []
+        for robot in sorted(self._robots):
+            r = self._robots[robot]
+            pose, index = self.robot_pose(robot)
+            if r.pose_in_map.get(r.epoch, None) is None and f"{robot}/{r.epoch}" not in self.graph:
+                continue  # no local map yet: nothing to say
+            out.append(Outgoing(self.keys.pose(robot), RobotPose(robot, r.epoch, r.stamp, pose, index).to_msgpack()))
+            if pose is not None and r.epoch > 0 and r.epoch not in r.relocalized:
+                r.relocalized.add(r.epoch)
+                detail = json.dumps({"epoch": r.epoch, "component": index})
+                out.append(
+                    Outgoing(self.keys.events, FleetEvent("relocalized", robot, self.stamp, detail).to_msgpack())
+                )
+        return out
+
+    @property
+    def global_map(self) -> GlobalMap:
+        """The current global map (empty before the first step)."""
+        return self._global if self._global is not None else GlobalMap(self.seq, self.stamp, ())
+
+    @property
+    def result(self) -> MergeResult | None:
+        return self._result
+
+    # -- state file ------------------------------------------------------------------------
+    def save_state(self, path: str | Path) -> None:
+        """Everything needed to resume: maps (with versions, in insertion order), edges, robots.
+
+        Written to a temporary file and renamed, so a merger killed while saving leaves the
+        previous state whole.
+        """
+        nodes = [
+            {
+                "key": k,
+                "version": self.graph.version_of(k),
+                "segments": np.ascontiguousarray(self.graph.map_of(k).segments, dtype="<f8").tobytes(),
+            }
+            for k in self.graph.keys
+        ]
+        edges = [
+            {
+                "a": e.a,
+                "b": e.b,
+                "t": [e.transform.x, e.transform.y, e.transform.theta],
+                "value": e.value,
+                "valid": e.valid,
+                "runner_up": e.runner_up,
+                "seconds": e.seconds,
+                "versions": list(e.versions),
+            }
+            for e in self.graph.edges
+        ]
+        robots = {
+            name: {
+                "epoch": r.epoch,
+                "stamp": r.stamp,
+                "pose_in_map": {str(ep): None if p is None else [p.x, p.y, p.theta] for ep, p in r.pose_in_map.items()},
+                "relocalized": sorted(r.relocalized),
+            }
+            for name, r in self._robots.items()
+        }
+        state = {
+            "v": STATE_VERSION,
+            "seq": self.seq,
+            "stamp": self.stamp,
+            "nodes": nodes,
+            "edges": edges,
+            "robots": robots,
+            "links": self.links,
+        }
+        p = Path(path)
+        tmp = p.with_name(p.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            fh.write(msgpack.packb(state, use_bin_type=True))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+
+    def load_state(self, path: str | Path) -> None:
+        """Restore a state written by :meth:`save_state` (the graph is not recomputed)."""
+        source = str(path)
+        try:
+            state = msgpack.unpackb(Path(path).read_bytes(), raw=False)
+            if not isinstance(state, dict) or state.get("v") != STATE_VERSION:
+                raise BadInput(source, f"not a fleetmap merger state file (version {STATE_VERSION})")
+            graph = MapGraph(self.config.integration, self.config.merge, anchor="first")
+            for n in state["nodes"]:
+                seg = np.frombuffer(n["segments"], dtype="<f8").reshape(-1, 4).copy()
+                graph.put_map(n["key"], SegmentMap(seg, ordered=False, oriented=True), int(n["version"]))
+            for e in state["edges"]:
+                graph.add_edge(
+                    Edge(
+                        e["a"],
+                        e["b"],
+                        Transform2D(*e["t"]),
+                        float(e["value"]),
+                        bool(e["valid"]),
+                        float(e["runner_up"]),
+                        float(e["seconds"]),
+                        (int(e["versions"][0]), int(e["versions"][1])),
+                    )
+                )
+            robots = {}
+            for name, r in state["robots"].items():
+                robot = _Robot(epoch=int(r["epoch"]), stamp=float(r["stamp"]), relocalized=set(r["relocalized"]))
+                robot.pose_in_map = {
+                    int(ep): None if p is None else Transform2D(*p) for ep, p in r["pose_in_map"].items()
+                }
+                robots[name] = robot
+        except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException) as exc:
+            raise BadInput(source, f"cannot load the merger state: {exc}") from None
+        self.graph, self._robots = graph, robots
+        self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
+        if len(self.graph):
+            self._result = self.graph.solve()
+            self._global = self._global_map(self._result)
+
+
+class MergerService:
+    """:class:`Merger` on a bus: the live service (``fleetmap merger``).
+
+    Bus callbacks only queue what arrives (a callback that blocked would stall the whole zenoh
+    session); one thread, :meth:`run`, takes the queue in order, steps the merger and publishes.
+    The queryable answers from the last published global map without waiting for a step.
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        merger: Merger,
+        *,
+        state_file: str | Path | None = None,
+        tick: float = 0.05,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.bus = bus
+        self.merger = merger
+        self.keys = merger.keys
+        self.state_file = Path(state_file) if state_file else None
+        self.tick = tick
+        self.clock = clock
+        self._inbox: queue.SimpleQueue[tuple[str, bytes | bool]] = queue.SimpleQueue()
+        self._handles: list[Handle] = []
+        self._snapshot = merger.global_map.to_msgpack()
+
+    def start(self) -> None:
+        keys = self.keys
+        self._handles.append(self.bus.subscribe(keys.all_localmaps, self._on_message))
+        self._handles.append(self.bus.subscribe(keys.all_scans, self._on_message))
+        self._handles.append(self.bus.subscribe(keys.events, self._on_message))
+        self._handles.append(self.bus.declare_queryable(keys.state, self._on_query))
+        self._handles.append(
+            self.bus.subscribe_liveliness(
+                keys.all_alive,
+                lambda k: self._inbox.put((k, True)),
+                lambda k: self._inbox.put((k, False)),
+                history=True,
+            )
+        )
+        self._handles.append(self.bus.declare_liveliness(keys.service("merger")))
+        now = self.clock()
+        self.bus.publish(keys.events, FleetEvent("merger_start", None, now).to_msgpack())
+        # A (re)started merger asks every robot for its latest local map of every epoch.
+        self.bus.publish(keys.events, FleetEvent("republish_request", None, now).to_msgpack())
+
+    def _on_message(self, key: str, payload: bytes) -> None:
+        self._inbox.put((key, payload))
+
+    def _on_query(self, selector: str) -> bytes:
+        return self._snapshot
+
+    def _publish(self, out: list[Outgoing]) -> None:
+        for o in out:
+            self.bus.publish(o.key, o.payload)
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                key, item = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(item, bool):
+                robot = key.rsplit("/", 1)[-1]
+                log.info("robot %s %s", robot, "joined" if item else "left")
+                self._publish(self.merger.presence(robot, item, self.clock()))
+            else:
+                self._publish(self.merger.receive(key, item))
+
+    def run_once(self) -> bool:
+        """Take what arrived and step if a local map is pending; True if it stepped."""
+        self._drain()
+        if not self.merger.pending:
+            return False
+        out = self.merger.step()
+        if self.state_file is not None:
+            self.merger.save_state(self.state_file)
+        self._snapshot = self.merger.global_map.to_msgpack()
+        self._publish(out)
+        return True
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            if not self.run_once():
+                stop.wait(self.tick)
+        self.run_once()
+
+    def close(self) -> None:
+        try:
+            self.bus.publish(self.keys.events, FleetEvent("merger_stop", None, self.clock()).to_msgpack())
+            self.bus.flush()
+        finally:
+            for h in self._handles:
+                h.close()
+            self._handles.clear()

@@ -1,0 +1,53 @@
+"""``fleetmap merger``: the merger service on the bus."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from fleetmap.merger.service import Merger, MergerService
+from fleetmap.shared.bus import ZenohBus
+from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "merger",
+        help="run the merger service",
+        description="Subscribe to the local maps of every robot, keep the map graph, and publish the global "
+        "map(s) and every robot's pose in the global frame whenever they change. With --state it keeps its "
+        "graph in a file and resumes from it when restarted.",
+    )
+    p.add_argument("--state", metavar="FILE", help="state file: written after every step, loaded at start")
+    add_zenoh_arguments(p)
+    add_config_arguments(p, ["integration", "merge"])
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    options = zenoh_options_from_args(args)
+    merger = Merger(options.keys, config)
+    if args.state and Path(args.state).exists():
+        merger.load_state(args.state)
+        log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
+    with stop_on_signals() as stop, ZenohBus.open(options) as bus:
+        service = MergerService(bus, merger, state_file=args.state)
+        service.start()
+        try:
+            service.run(stop)
+        finally:
+            service.close()
+    s = merger.stats
+    log.warning(
+        "merger stopped: %d steps, %d integrations, %d maps; %d malformed messages dropped",
+        s.steps,
+        s.integrations,
+        len(merger.graph),
+        s.malformed,
+    )
+    return 0

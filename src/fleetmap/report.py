@@ -1,0 +1,329 @@
+"""What a session produced, scored: ``global_map.json``, ``global_map.png`` and ``report.json``.
+
+A live run and a replay write the same outputs from the same input: the messages of the session
+in order (:class:`SessionLog`). With a scenario the report scores against its ground truth (the
+true pose of every scan, never seen by the algorithms); a replay of real data has no truth, and
+its error and coverage fields are null (``../shared/CONTRACTS.md``).
+
+The frame of a local map ``<robot>/<epoch>`` is the laser frame of the epoch's first scan
+(the pivot method's), so its true pose is that scan's true pose. The global frame is the anchor
+map's; the world-to-global alignment comes from the anchor's true pose.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetmap.scenarios import GroundTruth, Scenario, ground_truth
+from fleetmap.scenarios.fleet import Kidnap
+from fleetmap.scenarios.metrics import coverage, map_error, pose_error, world_from_global
+from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, Message, RobotPose, Scan, decode
+
+FALSE_RELOCALIZATION_M = 1.0
+"""A relocalization farther than this from the truth is a false one."""
+
+
+@dataclass
+class SessionLog:
+    """The messages of a session that the outputs are made of, in bus order."""
+
+    global_maps: list[GlobalMap] = field(default_factory=list)
+    poses: list[tuple[RobotPose, int]] = field(default_factory=list)
+    """Each robot pose with the number of global maps received before it."""
+    local_maps: dict[str, LocalMap] = field(default_factory=dict)
+    """The latest version of every local map."""
+    scans: dict[str, list[tuple[int, float, int]]] = field(default_factory=dict)
+    """Per robot: (index, stamp, epoch) of every scan."""
+    epoch_first_scan: dict[tuple[str, int], int] = field(default_factory=dict)
+    events: list[FleetEvent] = field(default_factory=list)
+    malformed: int = 0
+
+    def add(self, message: Message) -> None:
+        match message:
+            case GlobalMap():
+                self.global_maps.append(message)
+            case RobotPose():
+                self.poses.append((message, len(self.global_maps)))
+            case LocalMap():
+                held = self.local_maps.get(message.key)
+                if held is None or message.version >= held.version:
+                    self.local_maps[message.key] = message
+            case Scan():
+                self.scans.setdefault(message.robot, []).append((message.index, message.stamp, message.epoch))
+                self.epoch_first_scan.setdefault((message.robot, message.epoch), message.index)
+            case FleetEvent():
+                self.events.append(message)
+                if message.kind == "epoch" and message.robot is not None:
+                    detail = _json(message.detail)
+                    if isinstance(detail.get("epoch"), int) and isinstance(detail.get("first_scan"), int):
+                        self.epoch_first_scan[(message.robot, detail["epoch"])] = detail["first_scan"]
+
+    def add_payload(self, payload: bytes) -> None:
+        try:
+            self.add(decode(payload))
+        except BadMessage:
+            self.malformed += 1
+
+    @property
+    def final(self) -> GlobalMap | None:
+        return self.global_maps[-1] if self.global_maps else None
+
+    def robots(self) -> list[str]:
+        names = set(self.scans) | {m.robot for m in self.local_maps.values()}
+        return sorted(names)
+
+
+def _json(text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}
+
+
+def log_from_recording(messages: Iterable[tuple[str, bytes]], keys: FleetKeys) -> SessionLog:
+    """A session log from recorded (topic, payload) pairs of one fleet."""
+    log = SessionLog()
+    for topic, payload in messages:
+        if topic.startswith(keys.prefix + "/"):
+            log.add_payload(payload)
+    return log
+
+
+@dataclass(frozen=True)
+class Truth:
+    scenario: Scenario
+    truth: GroundTruth
+
+    def scan_pose(self, robot: str, index: int) -> Transform2D | None:
+        try:
+            return self.truth.pose(robot, index)
+        except (KeyError, IndexError, ValueError):
+            return None
+
+
+def make_truth(scenario: Scenario | None) -> Truth | None:
+    return None if scenario is None else Truth(scenario, ground_truth(scenario))
+
+
+def _world_global(log: SessionLog, truth: Truth, gmap: GlobalMap, component: int) -> Transform2D | None:
+    """World-from-global of one component of a global map, from its anchor's true pose."""
+    anchor = gmap.components[component].anchor
+    robot, epoch = anchor.rsplit("/", 1)
+    first = log.epoch_first_scan.get((robot, int(epoch)))
+    true = truth.scan_pose(robot, first) if first is not None else None
+    if true is None:
+        return None
+    return world_from_global(true, gmap.components[component].poses[anchor])
+
+
+def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
+    """report.json: the contract's fields, and per map, per robot and per kidnap details."""
+    final = log.final
+    robots = sorted(set(log.robots()) | ({r.id for r in truth.scenario.robots} if truth else set()))
+    latest_pose: dict[str, RobotPose] = {}
+    for pose, _ in log.poses:
+        latest_pose[pose.robot] = pose
+    placed = [
+        r for r in robots if r in latest_pose and latest_pose[r].pose is not None and latest_pose[r].component == 0
+    ]
+    report: dict[str, Any] = {
+        "map_error_mean_m": None,
+        "map_error_p95_m": None,
+        "coverage": None,
+        "robots_total": len(robots),
+        "robots_placed": len(placed),
+        "kidnaps": [],
+        "maps": {},
+        "robots": {},
+        "components": [] if final is None else [list(c.members) for c in final.components],
+        "global_map_seq": None if final is None else final.seq,
+        "malformed_messages": log.malformed,
+    }
+    if final is None or not final.components:
+        return report
+    main = final.components[0]
+    world = _world_global(log, truth, final, 0) if truth is not None else None
+    if truth is not None and world is not None:
+        walls = np.asarray(truth.scenario.world.walls)
+        segments_world = world.apply(np.asarray(main.segments)) if len(main.segments) else np.zeros((0, 4))
+        err = map_error(segments_world, walls)
+        report["map_error_mean_m"] = err.mean
+        report["map_error_p95_m"] = err.p95
+        report["coverage"] = coverage(segments_world, truth.truth.visible)
+    for key in sorted(log.local_maps):
+        entry: dict[str, Any] = {"placed": key in main.poses, "component": final.component_of(key)}
+        robot, epoch = key.rsplit("/", 1)
+        first = log.epoch_first_scan.get((robot, int(epoch)))
+        if key in main.poses and truth is not None and world is not None and first is not None:
+            true = truth.scan_pose(robot, first)
+            if true is not None:
+                e = pose_error(main.poses[key], true, world)
+                entry.update(error_m=e.translation_m, error_deg=e.rotation_deg)
+        report["maps"][key] = entry
+    for robot in robots:
+        p = latest_pose.get(robot)
+        entry = {"placed": robot in placed, "epoch": None if p is None else p.epoch}
+        err_r = _robot_pose_error(log, truth, p, len(log.global_maps)) if p is not None else None
+        if err_r is not None:
+            entry.update(error_m=err_r[0], error_deg=err_r[1])
+        report["robots"][robot] = entry
+    if truth is not None:
+        report["kidnaps"] = [_kidnap(log, truth, e) for e in truth.scenario.events if isinstance(e, Kidnap)]
+    return report
+
+
+def _robot_pose_error(
+    log: SessionLog, truth: Truth | None, p: RobotPose, maps_before: int
+) -> tuple[float, float] | None:
+    """Error of a published robot pose against the true pose of the scan it was computed at."""
+    if truth is None or p.pose is None or p.component is None or maps_before == 0:
+        return None
+    gmap = log.global_maps[maps_before - 1]
+    if p.component >= len(gmap.components):
+        return None
+    world = _world_global(log, truth, gmap, p.component)
+    index = _scan_at(log, p.robot, p.stamp)
+    true = truth.scan_pose(p.robot, index) if index is not None else None
+    if world is None or true is None:
+        return None
+    e = pose_error(p.pose, true, world)
+    return e.translation_m, e.rotation_deg
+
+
+def _scan_at(log: SessionLog, robot: str, stamp: float) -> int | None:
+    best = None
+    for index, s, _ in log.scans.get(robot, []):
+        if abs(s - stamp) < 1e-6:
+            best = index
+    return best
+
+
+def _kidnap(log: SessionLog, truth: Truth, event: Kidnap) -> dict[str, Any]:
+    """Scans and seconds from a kidnap to the robot's first pose in a later epoch, and its error."""
+    out: dict[str, Any] = {
+        "robot": event.robot,
+        "time": event.t,
+        "relocalized": False,
+        "scans_to_relocalize": None,
+        "seconds_to_relocalize": None,
+        "pose_error_m": None,
+        "pose_error_deg": None,
+        "false_relocalization": False,
+    }
+    before = [ep for (r, ep), idx in log.epoch_first_scan.items() if r == event.robot]
+    scans = log.scans.get(event.robot, [])
+    new_epochs = [
+        ep
+        for ep in sorted(before)
+        if any(i == log.epoch_first_scan[(event.robot, ep)] and s >= event.t - 1e-9 for i, s, _ in scans)
+    ]
+    out["new_epoch"] = new_epochs[0] if new_epochs else None
+    for p, maps_before in log.poses:
+        if p.robot != event.robot or p.pose is None or not new_epochs or p.epoch < new_epochs[0]:
+            continue
+        out["relocalized"] = True
+        out["seconds_to_relocalize"] = max(p.stamp - event.t, 0.0)
+        out["scans_to_relocalize"] = sum(1 for _, s, _ in scans if event.t - 1e-9 <= s <= p.stamp + 1e-9)
+        err = _robot_pose_error(log, truth, p, maps_before)
+        if err is not None:
+            out["pose_error_m"], out["pose_error_deg"] = err
+            out["false_relocalization"] = err[0] > FALSE_RELOCALIZATION_M
+        break
+    return out
+
+
+def global_map_json(log: SessionLog) -> dict[str, Any]:
+    """global_map.json: the largest component as a map file, with every local map's pose (or null)."""
+    final = log.final
+    main = final.components[0] if final is not None and final.components else None
+    segments = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
+    out = SegmentMap(segments.round(6), ordered=False, oriented=True).to_json_dict()
+    keys = sorted(set(log.local_maps) | (set(main.members) if main is not None else set()))
+    out["poses"] = {k: (main.poses[k].to_dict() if main is not None and k in main.poses else None) for k in keys}
+    out["anchor"] = None if main is None else main.anchor
+    return out
+
+
+def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, title: str) -> dict[str, Any]:
+    """Write global_map.json, global_map.png and report.json into ``out_dir``; return the report."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    report = build_report(log, truth)
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    (out / "global_map.json").write_text(json.dumps(global_map_json(log)) + "\n", encoding="utf-8")
+    plot_session(log, truth, out / "global_map.png", title)
+    return report
+
+
+def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -> None:
+    from fleetmap.merger.plot import plot_merged
+
+    final = log.final
+    main = final.components[0] if final is not None and final.components else None
+    maps: dict[str, Array] = {k: np.asarray(m.segments) for k, m in sorted(log.local_maps.items())}
+    poses: dict[str, Transform2D | None] = {k: (main.poses.get(k) if main is not None else None) for k in maps}
+    walls = None
+    if truth is not None and final is not None and main is not None:
+        world = _world_global(log, truth, final, 0)
+        if world is not None:
+            walls = world.inverse().apply(np.asarray(truth.scenario.world.walls))
+    robots = sorted({k.rsplit("/", 1)[0] for k in maps})
+    colors = {k: robots.index(k.rsplit("/", 1)[0]) for k in maps}
+    notes = []
+    if final is not None and len(final.components) > 1:
+        notes.append(
+            f"{len(final.components) - 1} other component(s): "
+            + "; ".join(", ".join(c.members) for c in final.components[1:4])
+        )
+    plot_merged(
+        path,
+        maps,
+        poses,
+        truth=walls,
+        fused=np.asarray(main.segments) if main is not None else None,
+        notes=notes,
+        title=title,
+        colors=colors,
+    )
+
+
+def summary_table(report: dict[str, Any]) -> str:
+    """A short table for the terminal."""
+
+    def fmt(v: Any, unit: str = "", scale: float = 1.0, digits: int = 3) -> str:
+        return "n/a" if v is None else f"{v * scale:.{digits}f}{unit}"
+
+    lines = [
+        f"robots placed      {report['robots_placed']} / {report['robots_total']}",
+        f"map error (mean)   {fmt(report['map_error_mean_m'], ' m')}",
+        f"map error (p95)    {fmt(report['map_error_p95_m'], ' m')}",
+        f"coverage           {fmt(report['coverage'], ' %', 100.0, 1)}",
+        f"components         {len(report['components'])}",
+    ]
+    for name, r in report["robots"].items():
+        err = "" if "error_m" not in r else f"  error {r['error_m']:.3f} m {r['error_deg']:.2f} deg"
+        lines.append(f"  {name:10s} epoch {r['epoch']}  {'placed' if r['placed'] else 'NOT placed'}{err}")
+    for k in report["kidnaps"]:
+        state = (
+            f"relocalized after {k['scans_to_relocalize']} scans, {k['seconds_to_relocalize']:.1f} s, "
+            f"error {fmt(k['pose_error_m'], ' m')}"
+            if k["relocalized"]
+            else "NOT relocalized"
+        )
+        lines.append(f"kidnap {k['robot']} at {k['time']:.1f} s: {state}")
+    return "\n".join(lines)
+
+
+def finite(v: float | None) -> float | None:
+    return None if v is None or not math.isfinite(v) else v

@@ -1,0 +1,324 @@
+"""``fleetmap run``: a live multi-robot session of a scenario, every part a real process.
+
+The runner starts a zenoh router on a free loopback port, the recorder, the merger and one agent
+process per robot (the same commands a deployment runs, see docker-compose.yml), all connected
+to the router. It plays the scenario's events on the scenario clock (scaled by ``speed``): a
+robot joins when its agent starts, leaves with SIGTERM, crashes with SIGKILL; a merger restart
+is a SIGKILL and a new merger on the same state file after ``down_for``; kidnaps happen inside
+the robots' simulated streams. When every robot is done and the merger has integrated every
+local map published, it stops the merger and the recorder (after the recorder has every message
+the runner saw on the bus) and writes the outputs from the recording (:mod:`fleetmap.report`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from fleetmap.merger.recorder import wait_until_recorded
+from fleetmap.report import log_from_recording, make_truth, write_outputs
+from fleetmap.scenarios import Scenario, scenario_to_toml
+from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
+from fleetmap.shared.bus import ZenohBus
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import FleetmapError
+from fleetmap.shared.messages import BadMessage, LocalMap, MergerStep, decode
+from fleetmap.shared.recording import RecordingReader
+from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+
+log = logging.getLogger(__name__)
+
+READY_TIMEOUT = 30.0
+"""Seconds a service may take to start (python, numpy, zenoh) before the run gives up."""
+CATCH_UP_TIMEOUT = 300.0
+"""Seconds the merger may take, after the robots are done, to integrate the last local maps."""
+
+
+class SessionError(FleetmapError):
+    """A part of the session failed (a service did not start, died, or never caught up)."""
+
+
+@dataclass
+class _Child:
+    name: str
+    argv: list[str]
+    log_path: Path
+    popen: subprocess.Popen[bytes] | None = None
+    log_file: IO[bytes] | None = None
+
+    def start(self) -> None:
+        self.log_file = open(self.log_path, "ab")  # noqa: SIM115  (closed in stop())
+        self.popen = subprocess.Popen(self.argv, stdout=self.log_file, stderr=subprocess.STDOUT)
+
+    @property
+    def running(self) -> bool:
+        return self.popen is not None and self.popen.poll() is None
+
+    def signal(self, sig: int) -> None:
+        if self.popen is not None and self.popen.poll() is None:
+            self.popen.send_signal(sig)
+
+    def stop(self, timeout: float = 20.0) -> int | None:
+        """SIGTERM, then SIGKILL after ``timeout``; the exit code."""
+        if self.popen is None:
+            return None
+        if self.running:
+            self.popen.send_signal(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+                self.popen.wait(5)
+        if self.log_file is not None:
+            self.log_file.close()
+            self.log_file = None
+        return self.popen.returncode
+
+
+@dataclass
+class _Watch:
+    """What the runner hears on the bus: messages per topic, local maps published and integrated."""
+
+    counts: Counter[str] = field(default_factory=Counter)
+    published: dict[str, int] = field(default_factory=dict)
+    integrated: dict[str, int] = field(default_factory=dict)
+    services: set[str] = field(default_factory=set)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    changed: threading.Event = field(default_factory=threading.Event)
+
+    def on_message(self, key: str, payload: bytes) -> None:
+        with self.lock:
+            self.counts[key] += 1
+        try:
+            message = decode(payload)
+        except BadMessage:
+            return
+        with self.lock:
+            if isinstance(message, LocalMap):
+                self.published[message.key] = max(self.published.get(message.key, -1), message.version)
+            elif isinstance(message, MergerStep):
+                for k, v in zip(message.maps, message.versions, strict=True):
+                    self.integrated[k] = max(self.integrated.get(k, -1), v)
+        self.changed.set()
+
+    def caught_up(self) -> bool:
+        with self.lock:
+            return all(self.integrated.get(k, -1) >= v for k, v in self.published.items())
+
+
+def _wait(predicate: Callable[[], bool], timeout: float, what: str, event: threading.Event | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise SessionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        if event is not None:
+            event.wait(min(left, 0.2))
+            event.clear()
+        else:
+            time.sleep(min(left, 0.05))
+
+
+@dataclass
+class Session:
+    """One live run of a scenario (see the module docstring)."""
+
+    scenario: Scenario
+    out_dir: Path
+    config: FleetmapConfig
+    speed: float = 2.0
+    fleet: str = "run"
+    progress: bool = True
+    python: str = sys.executable
+    children: list[_Child] = field(default_factory=list)
+
+    def _fleetmap(self, *args: str) -> list[str]:
+        return [self.python, "-m", "fleetmap", *args]
+
+    def _child(self, name: str, *args: str) -> _Child:
+        child = _Child(name, self._fleetmap(*args), self.out_dir / "logs" / f"{name}.log")
+        self.children.append(child)
+        child.start()
+        return child
+
+    def run(self) -> dict[str, Any]:
+        if self.speed <= 0:
+            raise SessionError("--speed must be positive: the scenario's events are played on its clock")
+        out = self.out_dir
+        (out / "logs").mkdir(parents=True, exist_ok=True)
+        scenario_file = out / "scenario.toml"
+        scenario_file.write_text(scenario_to_toml(self.scenario), encoding="utf-8")
+        config_file = out / "config.toml"
+        config_file.write_text(self.config.to_toml(), encoding="utf-8")
+        state_file = out / "merger.state"
+        state_file.unlink(missing_ok=True)
+        endpoint = free_loopback_endpoint()
+        common = ["--connect", endpoint, "--mode", "client", "--fleet", self.fleet]
+        started = time.monotonic()
+        try:
+            self._child("router", "router", "--listen", endpoint)
+            options = ZenohOptions(mode="client", connect=(endpoint,), fleet=self.fleet)
+            _wait(lambda: _port_open(endpoint), READY_TIMEOUT, "the zenoh router")
+            with ZenohBus.open(options) as bus:
+                keys = options.keys
+                watch = _Watch()
+                bus.subscribe(keys.everything, watch.on_message)
+                bus.subscribe_liveliness(
+                    keys.all_services, lambda k: watch.services.add(k.rsplit("/", 1)[-1]), lambda k: None
+                )
+                record = self._child(
+                    "recorder",
+                    "record",
+                    "--out",
+                    str(out / "session.mcap"),
+                    "--config",
+                    str(config_file),
+                    "--scenario",
+                    str(scenario_file),
+                    *common,
+                )
+                _wait(lambda: "recorder" in watch.services or not record.running, READY_TIMEOUT, "the recorder")
+                merger_args = ("merger", "--state", str(state_file), "--config", str(config_file), *common)
+                merger = self._child("merger", *merger_args)
+                _wait(lambda: "merger" in watch.services or not merger.running, READY_TIMEOUT, "the merger")
+                for c in (record, merger):
+                    if not c.running:
+                        raise SessionError(f"the {c.name} did not start (see {c.log_path})")
+                merger = self._play(scenario_file, config_file, common, merger_args, merger)
+                _wait(watch.caught_up, CATCH_UP_TIMEOUT, "the merger to integrate every local map", watch.changed)
+                with watch.lock:
+                    expected = dict(watch.counts)
+                if not wait_until_recorded(bus, keys, expected, timeout=30.0):
+                    log.warning("the recorder did not confirm every message the runner saw")
+                merger.stop()
+                record.stop()
+        finally:
+            for c in reversed(self.children):
+                c.stop()
+        seconds = time.monotonic() - started
+        reader = RecordingReader(out / "session.mcap")
+        with reader:
+            session = log_from_recording(((m.topic, m.payload) for m in reader.messages()), options.keys)
+            counts = reader.topic_counts()
+        report = write_outputs(session, make_truth(self.scenario), out, f"fleetmap run: {self.scenario.name}")
+        report["seconds"] = seconds
+        report["messages_seen"] = sum(expected.values())
+        report["messages_recorded"] = sum(counts.get(k, 0) for k in expected)
+        report["speed"] = self.speed
+        _write_json(out / "report.json", report)
+        return report
+
+    def _play(
+        self, scenario_file: Path, config_file: Path, common: list[str], merger_args: tuple[str, ...], merger: _Child
+    ) -> _Child:
+        """Start the agents and play the events on the scenario clock; returns the current merger."""
+        sc = self.scenario
+        actions: list[tuple[float, int, str, Any]] = []
+        for r in sc.robots:
+            actions.append((r.start, 0, "start", r.id))
+        for e in sc.events:
+            if isinstance(e, Leave):
+                actions.append((e.t, 1, "leave", e.robot))
+            elif isinstance(e, Crash):
+                actions.append((e.t, 1, "crash", e.robot))
+            elif isinstance(e, MergerRestart):
+                actions.append((e.t, 2, "merger_kill", None))
+                actions.append((e.t + e.down_for, 3, "merger_start", None))
+        actions.sort(key=lambda a: (a[0], a[1]))
+        end = scenario_end(sc)
+        agents: dict[str, _Child] = {}
+        t0 = time.monotonic()
+        bar = _progress(end, self.progress)
+        try:
+            for at, _, what, robot in actions:
+                while (now := (time.monotonic() - t0) * self.speed) < at:
+                    bar(now)
+                    time.sleep(min(0.1, (at - now) / self.speed))
+                if what == "start":
+                    agents[robot] = self._child(
+                        f"agent-{robot}",
+                        "agent",
+                        "--robot",
+                        robot,
+                        "--scenario",
+                        str(scenario_file),
+                        "--speed",
+                        str(self.speed),
+                        "--config",
+                        str(config_file),
+                        *common,
+                    )
+                elif what == "leave":
+                    agents[robot].signal(signal.SIGTERM)
+                elif what == "crash":
+                    agents[robot].signal(signal.SIGKILL)
+                elif what == "merger_kill":
+                    merger.signal(signal.SIGKILL)
+                    merger.stop()
+                elif what == "merger_start":
+                    merger = self._child(f"merger-{len(self.children)}", *merger_args)
+            deadline = time.monotonic() + end / self.speed + READY_TIMEOUT + 60.0
+            while any(a.running for a in agents.values()):
+                bar((time.monotonic() - t0) * self.speed)
+                if time.monotonic() > deadline:
+                    raise SessionError("the robots did not finish their scenario in time")
+                time.sleep(0.1)
+            bar(end)
+        finally:
+            bar(None)
+        for name, a in agents.items():
+            code = a.popen.returncode if a.popen is not None else None
+            if code not in (0, -signal.SIGKILL, -signal.SIGTERM):
+                raise SessionError(f"agent {name} failed with exit code {code} (see {a.log_path})")
+        if not merger.running:
+            raise SessionError(f"the merger died (see {merger.log_path})")
+        return merger
+
+
+def _progress(total: float, enabled: bool) -> Callable[[float | None], None]:
+    """A progress bar over scenario seconds (tqdm on stderr); call with None to close it."""
+    if not enabled:
+        return lambda t: None
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=round(total, 1), unit="s", desc="scenario", leave=False, bar_format="{l_bar}{bar}| {n:.1f}/{total} s"
+    )
+
+    def update(t: float | None) -> None:
+        if t is None:
+            bar.close()
+            return
+        bar.n = round(min(t, total), 1)
+        bar.refresh()
+
+    return update
+
+
+def _port_open(endpoint: str) -> bool:
+    import socket
+
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    try:
+        with socket.create_connection((host, int(port)), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    import json
+
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    os.replace(tmp, path)

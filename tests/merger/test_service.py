@@ -1,0 +1,126 @@
+"""The merger's logic as a library: local maps in, global map and robot poses out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fleetmap.merger.service import Merger
+from fleetmap.scenarios.metrics import pose_error, world_from_global
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, MergeEdge, MergerStep, RobotPose, decode
+
+from tests.helpers import true_local_map
+
+KEYS = FleetKeys("test")
+
+
+@pytest.fixture(scope="module")
+def maps() -> dict[str, tuple[LocalMap, Transform2D]]:
+    """Whole-path local maps of the three department robots (perfect agents)."""
+    return {r: true_local_map("department", r, 0, 200) for r in ("r1", "r2", "r3")}
+
+
+def _decoded(out: list) -> list:  # type: ignore[type-arg]
+    return [decode(o.payload) for o in out]
+
+
+def _feed(merger: Merger, messages: list[LocalMap]) -> list:  # type: ignore[type-arg]
+    for m in messages:
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    return _decoded(merger.step())
+
+
+def test_three_robots_are_merged_and_placed(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = Merger(KEYS)
+    out = _feed(merger, [maps[r][0] for r in ("r1", "r2", "r3")])
+    step = next(m for m in out if isinstance(m, MergerStep))
+    assert step.maps == ("r1/0", "r2/0", "r3/0") and step.versions == (0, 0, 0)
+    assert sum(isinstance(m, MergeEdge) for m in out) == 3
+    gmap = next(m for m in out if isinstance(m, GlobalMap))
+    assert len(gmap.components) == 1 and set(gmap.components[0].members) == {"r1/0", "r2/0", "r3/0"}
+    comp = gmap.components[0]
+    world = world_from_global(maps[comp.anchor.split("/")[0]][1], comp.poses[comp.anchor])
+    poses = {m.robot: m for m in out if isinstance(m, RobotPose)}
+    assert set(poses) == {"r1", "r2", "r3"}
+    for robot, (local, frame) in maps.items():
+        p = poses[robot]
+        assert p.pose is not None and p.component == 0 and p.stamp == local.stamp
+        true_last = frame.compose(local.pose)  # the robot's true pose at its last scan
+        e = pose_error(p.pose, true_last, world)
+        assert e.translation_m < 0.10 and e.rotation_deg < 1.0, f"{robot}: {e}"
+
+
+def test_a_flood_of_malformed_messages_is_counted_and_changes_nothing(maps) -> None:  # type: ignore[no-untyped-def]
+    clean, noisy = Merger(KEYS), Merger(KEYS)
+    rng = np.random.default_rng(0)
+    for k in range(300):
+        noisy.receive(KEYS.localmap("r1"), rng.bytes(int(rng.integers(0, 200))))
+        noisy.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack()[: 10 + k])  # truncated
+    bad_robot = maps["r1"][0].to_msgpack().replace(b"r1", b"R!")
+    noisy.receive(KEYS.localmap("r1"), bad_robot)
+    a = _feed(clean, [maps["r1"][0], maps["r2"][0]])
+    b = _feed(noisy, [maps["r1"][0], maps["r2"][0]])
+    assert noisy.stats.malformed == 601
+    assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
+
+
+def test_the_same_messages_in_the_same_order_give_identical_outputs(maps) -> None:  # type: ignore[no-untyped-def]
+    runs = []
+    for _ in range(2):
+        merger = Merger(KEYS)
+        out = _feed(merger, [maps["r2"][0], maps["r3"][0]]) + _feed(merger, [maps["r1"][0]])
+        runs.append([m.to_msgpack() for m in out])
+    assert runs[0] == runs[1]
+
+
+def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    original = Merger(KEYS)
+    _feed(original, [maps["r1"][0], maps["r2"][0]])
+    original.save_state(tmp_path / "merger.state")
+    restored = Merger(KEYS)
+    restored.load_state(tmp_path / "merger.state")
+    assert restored.global_map.to_msgpack() == original.global_map.to_msgpack()
+    a = _feed(original, [maps["r3"][0]])
+    b = _feed(restored, [maps["r3"][0]])
+    assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
+
+
+def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = Merger(KEYS)
+    first, _ = true_local_map("department", "r1", 0, 6, version=0)
+    _feed(merger, [first, maps["r2"][0]])
+    assert _feed(merger, [first]) == [] and merger.stats.stale == 1
+    newer = LocalMap("r1", 0, 1, maps["r1"][0].stamp, maps["r1"][0].segments, 30, maps["r1"][0].pose)
+    out = _feed(merger, [newer])
+    assert next(m for m in out if isinstance(m, MergerStep)).versions == (1,)
+
+
+def test_a_lost_robot_is_unknown_until_relocalized(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = Merger(KEYS)
+    _feed(merger, [maps["r1"][0], maps["r2"][0]])
+    # r1 starts epoch 1 seeing next to nothing (a box in an open space): it cannot be placed.
+    elsewhere = LocalMap("r1", 1, 0, 50.0, np.array([[1.0, -0.3, 1.0, 0.3], [1.0, 0.3, 1.4, 0.3]]), 1, Transform2D())
+    out = _feed(merger, [elsewhere])
+    pose = next(m for m in out if isinstance(m, RobotPose) and m.robot == "r1")
+    assert pose.epoch == 1 and pose.pose is None and pose.component is None
+    # Its next epoch sees the department again (r3's stretch): relocalized, with an event.
+    back = LocalMap("r1", 2, 0, 99.0, maps["r3"][0].segments, 40, maps["r3"][0].pose)
+    out = _feed(merger, [back])
+    pose = next(m for m in out if isinstance(m, RobotPose) and m.robot == "r1")
+    assert pose.epoch == 2 and pose.pose is not None and pose.component == 0
+    event = next(m for m in out if isinstance(m, FleetEvent))
+    assert event.kind == "relocalized" and event.robot == "r1"
+
+
+def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = Merger(KEYS)
+    join = _decoded(merger.presence("r1", True, 1.0))
+    assert join[0].kind == "join" and join[0].robot == "r1"
+    _feed(merger, [maps["r1"][0], maps["r2"][0]])
+    leave = _decoded(merger.presence("r1", False, 2.0))
+    assert leave[0].kind == "leave"
+    assert "r1/0" in merger.global_map.components[0].members
+    assert math.isfinite(merger.global_map.stamp)
