@@ -191,14 +191,6 @@ class Merger:
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
         self.stamp = max([self.stamp] + [m.stamp for m in batch])
-        out.append(
-            Outgoing(
-                self.keys.steps,
-                MergerStep(
-                    self.seq, self.stamp, tuple(m.key for m in batch), tuple(m.version for m in batch)
-                ).to_msgpack(),
-            )
-        )
         for e in new_edges:
             t = e.transform
             edge = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
@@ -207,6 +199,9 @@ class Merger:
         self._global = self._global_map(self._result)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += self._robot_poses()
+        # Last: whoever sees the step has seen everything it produced (fleetmap run waits on it).
+        step = MergerStep(self.seq, self.stamp, tuple(m.key for m in batch), tuple(m.version for m in batch))
+        out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         return out
 
     def _integrate(self, m: LocalMap) -> list[Edge]:

@@ -134,9 +134,10 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
     latest_pose: dict[str, RobotPose] = {}
     for pose, _ in log.poses:
         latest_pose[pose.robot] = pose
-    placed = [
-        r for r in robots if r in latest_pose and latest_pose[r].pose is not None and latest_pose[r].component == 0
-    ]
+    # A robot is placed when the local map of its latest epoch is part of the global map.
+    latest_epoch = {r: max((e for (rr, e) in log.epoch_first_scan if rr == r), default=0) for r in robots}
+    main_members = set(final.components[0].members) if final is not None and final.components else set()
+    placed = [r for r in robots if f"{r}/{latest_epoch[r]}" in main_members]
     report: dict[str, Any] = {
         "map_error_mean_m": None,
         "map_error_p95_m": None,
@@ -173,7 +174,11 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
         report["maps"][key] = entry
     for robot in robots:
         p = latest_pose.get(robot)
-        entry = {"placed": robot in placed, "epoch": None if p is None else p.epoch}
+        entry = {
+            "placed": robot in placed,
+            "epoch": latest_epoch[robot],
+            "pose_known": p is not None and p.pose is not None,
+        }
         err_r = _robot_pose_error(log, truth, p, len(log.global_maps)) if p is not None else None
         if err_r is not None:
             entry.update(error_m=err_r[0], error_deg=err_r[1])
