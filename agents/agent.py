@@ -1,0 +1,217 @@
+"""The robot agent's logic: scans in, bus messages out (no network, no clock).
+
+For every scan the agent extracts segments (paper III-D) and grows its local map online with the
+pivot method (paper IV-C, Algorithm 6; :class:`~fleetmap.merger.sequence.PivotMapBuilder`): each
+scan is integrated with the previous placed one, its transform composed with that scan's pose, and
+the scan fused into the map, whose frame is the first scan's laser frame.
+
+A robot that knows nothing of where it is cannot tell a kidnap from any other change of view but
+by geometry: when ``kidnap_after`` scans in a row cannot be placed (no valid integration with the
+previous scan nor with the local map), the agent closes the local map and starts a new *epoch*
+whose frame is the first of those scans; the others are integrated into it. One unplaced scan
+followed by a placed one (a person walking by the laser) changes nothing. Scans without any
+segment (nothing within reach) are not placed, and count neither for nor against a kidnap: they
+say nothing about where the robot is.
+
+What :meth:`Agent.add_scan` returns, in this order:
+
+- on a new epoch: the closed epoch's final LocalMap (when it changed since its last version), the
+  FleetEvent ``epoch``, the Scan (in the new epoch) and the new epoch's LocalMap version 0;
+- otherwise: the Scan, then the LocalMap when it is due (the epoch's first scan, then every
+  ``publish_every`` placed scans).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+
+from fleetmap.merger.sequence import PivotMapBuilder
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.extraction import extract_segments
+from fleetmap.shared.geometry import Array, Transform2D, lengths
+from fleetmap.shared.keys import check_name
+from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH, SegmentMap
+from fleetmap.shared.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan
+from fleetmap.shared.scans import RangeScan
+
+log = logging.getLogger(__name__)
+
+KIDNAP_REASON = "{n} consecutive scans did not integrate with the local map"
+"""The reason of an epoch started by the kidnap check (EpochLink.reason and the event's detail)."""
+
+
+@dataclass(frozen=True)
+class AgentCounts:
+    """What an agent has done so far."""
+
+    scans: int
+    placed: int
+    """Scans placed in their epoch's local map (each epoch's first scan included)."""
+    epochs: int
+    """Epochs started (0 until the first scan with segments)."""
+    local_maps: int
+    """LocalMap versions emitted (republished ones not counted)."""
+
+
+@dataclass(frozen=True)
+class _Unplaced:
+    index: int
+    map: SegmentMap
+
+
+class _Epoch:
+    """One local map of the robot being built: the pivot builder and what was last published of it."""
+
+    def __init__(self, number: int, config: FleetmapConfig, link: EpochLink | None) -> None:
+        self.number = number
+        self.link = link
+        self.builder = PivotMapBuilder(config.integration)
+        self.placed = 0
+        self.pose: Transform2D | None = None
+        self.version = -1
+        self.published_placed = 0
+        self.published_pose: Transform2D | None = None
+        self.latest: LocalMap | None = None
+
+    @property
+    def started(self) -> bool:
+        return self.placed > 0
+
+    @property
+    def changed(self) -> bool:
+        return self.placed != self.published_placed or self.pose != self.published_pose
+
+    def add(self, scan: SegmentMap) -> bool:
+        """Integrate one scan (Algorithm 6, steps 3-6); whether it was placed."""
+        step = self.builder.add(scan)
+        self.pose = step.pose
+        if step.pose is not None:
+            self.placed += 1
+        return step.pose is not None
+
+
+class Agent:
+    """One robot's local mapping: ``add_scan`` for each scan, ``finish`` at the end.
+
+    Deterministic: the same scans give the same messages, byte for byte.
+    """
+
+    def __init__(self, robot: str, config: FleetmapConfig | None = None, publish_every: int = 3, kidnap_after: int = 2):
+        self.robot = check_name(robot, "robot")
+        for name, value in (("publish_every", publish_every), ("kidnap_after", kidnap_after)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise BadInput(name, f"must be a positive integer, got {value!r}")
+        self.config = config or FleetmapConfig()
+        self.publish_every = publish_every
+        self.kidnap_after = kidnap_after
+        self._epoch = _Epoch(0, self.config, None)
+        self._closed: list[LocalMap] = []
+        """The latest version of every closed epoch, in epoch order."""
+        self._unplaced: list[_Unplaced] = []
+        """The scans with segments that could not be placed since the last placed one."""
+        self._scans = 0
+        self._placed = 0
+        self._local_maps = 0
+        self._last_stamp = 0.0
+
+    @property
+    def epoch(self) -> int:
+        """The current epoch (the one the next scan goes into)."""
+        return self._epoch.number
+
+    @property
+    def counts(self) -> AgentCounts:
+        return AgentCounts(self._scans, self._placed, self.epoch + int(self._epoch.started), self._local_maps)
+
+    def add_scan(self, index: int, stamp: float, scan: RangeScan) -> list[Message]:
+        """The messages to publish for one scan, in order (see the module docstring)."""
+        segments = extract_segments(scan, self.config.extraction)
+        scan_map = SegmentMap(segments, ordered=True, oriented=True)
+        ranges = LaserRanges.from_range_scan(scan)
+        self._scans += 1
+        self._last_stamp = stamp
+        out: list[Message] = []
+        current = self._epoch
+        if len(segments) == 0:
+            current.pose = None  # nothing in reach: the robot cannot say where it is
+        elif not current.started:
+            self._place(current, scan_map)  # the epoch's frame
+        elif self._place(current, scan_map):
+            self._unplaced.clear()
+        else:
+            self._unplaced.append(_Unplaced(index, scan_map))
+            if len(self._unplaced) >= self.kidnap_after:
+                out += self._new_epoch(stamp)
+        out.append(Scan(self.robot, self.epoch, index, stamp, segments, ranges))
+        current = self._epoch
+        due = current.version < 0 or current.placed - current.published_placed >= self.publish_every
+        if current.started and due:
+            out.append(self._local_map(stamp))
+        return out
+
+    def finish(self) -> list[Message]:
+        """The current epoch's final LocalMap, unless its latest version already says it all."""
+        if self._epoch.started and self._epoch.changed:
+            return [self._local_map(self._last_stamp)]
+        return []
+
+    def republish(self) -> list[Message]:
+        """The latest LocalMap of every epoch so far, as they were published (for a merger that
+        (re)started and must lose nothing)."""
+        latest = [] if self._epoch.latest is None else [self._epoch.latest]
+        return [*self._closed, *latest]
+
+    # --- internals ---
+
+    def _place(self, epoch: _Epoch, scan_map: SegmentMap) -> bool:
+        placed = epoch.add(scan_map)
+        self._placed += int(placed)
+        return placed
+
+    def _new_epoch(self, stamp: float) -> list[Message]:
+        """Close the current epoch and start the next from the unplaced scans (the first is its frame)."""
+        out: list[Message] = []
+        old = self._epoch
+        old.pose = None  # the robot is no longer anywhere in the old local map
+        if old.changed:
+            out.append(self._local_map(stamp))
+        if old.latest is not None:
+            self._closed.append(old.latest)
+        seeds, self._unplaced = self._unplaced, []
+        reason = KIDNAP_REASON.format(n=len(seeds))
+        new = _Epoch(old.number + 1, self.config, EpochLink(old.number, reason, transform=None))
+        self._epoch = new
+        for seed in seeds:  # the first one is placed: it is the new epoch's frame
+            if self._place(new, seed.map):
+                self._unplaced.clear()
+            else:
+                self._unplaced.append(seed)
+        detail = {"epoch": new.number, "first_scan": seeds[0].index, "previous_epoch": old.number, "reason": reason}
+        log.info("%s: epoch %d from scan %d (%s)", self.robot, new.number, seeds[0].index, reason)
+        out.append(FleetEvent("epoch", self.robot, stamp, json.dumps(detail)))
+        return out
+
+    def _local_map(self, stamp: float) -> LocalMap:
+        epoch = self._epoch
+        epoch.version += 1
+        message = LocalMap(
+            self.robot,
+            epoch.number,
+            epoch.version,
+            stamp,
+            _wire_segments(epoch.builder.map.segments),
+            epoch.placed,
+            epoch.pose,
+            epoch.link,
+        )
+        epoch.published_placed, epoch.published_pose, epoch.latest = epoch.placed, epoch.pose, message
+        self._local_maps += 1
+        return message
+
+
+def _wire_segments(segments: Array) -> Array:
+    """The map's segments as a message carries them: fusion may leave a degenerate one behind."""
+    return segments[lengths(segments) >= MIN_SEGMENT_LENGTH]

@@ -1,0 +1,145 @@
+"""The agent's logic on simulated robots: what it publishes, how good its local map is, and when
+it starts a new epoch."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from fleetmap.agents.agent import Agent
+from fleetmap.scenarios import load_scenario, map_error, robot_stream
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
+
+from tests.agents.conftest import blocked, epoch_events, kidnap_index, run, source_scans
+
+
+def local_maps(messages, epoch=None):
+    return [m for m in messages if isinstance(m, LocalMap) and (epoch is None or m.epoch == epoch)]
+
+
+def world_error(local_map, frame_pose, walls):
+    """How far a local map lies from the true walls, placed by its frame scan's true pose."""
+    return map_error(frame_pose.apply(np.asarray(local_map.segments)), walls)
+
+
+def test_every_scan_is_published_once_in_order_with_its_readings(r2_stream, r2_messages):
+    scans = [m for m in r2_messages if isinstance(m, Scan)]
+    assert [s.index for s in scans] == [s.index for s in r2_stream]
+    assert [s.stamp for s in scans] == [s.stamp for s in r2_stream]
+    for sent, simulated in zip(scans, r2_stream, strict=True):
+        assert sent.robot == "r2" and sent.epoch == 0 and len(sent.segments) > 0
+        assert sent.ranges is not None
+        np.testing.assert_array_equal(sent.ranges.ranges, simulated.scan.ranges.astype(np.float32))
+        assert decode(sent.to_msgpack()).index == sent.index  # every message is valid on the wire
+
+
+def test_the_local_map_grows_in_versions_and_matches_the_true_walls(department, r2_stream, r2_messages):
+    maps = local_maps(r2_messages)
+    assert [m.version for m in maps] == list(range(len(maps)))
+    assert all(m.epoch == 0 and m.previous_epoch_link is None for m in maps)
+    # version 0 at the first scan (the epoch's frame), then every 3 placed scans, the last on finish
+    assert maps[0].scans == 1 and maps[0].pose == maps[0].pose.identity()
+    assert [m.scans for m in maps[:-1]] == [1 + 3 * k for k in range(len(maps) - 1)]
+    assert maps[-1].scans >= len(r2_stream) - 1, "all but one scan at most integrate with the previous one"
+    error = world_error(maps[-1], r2_stream[0].pose, department.world.walls)
+    assert error.mean < 0.03 and error.p95 < 0.08
+    # the robot's pose in its local map is where it truly is, seen from the first scan
+    placed = [m for m in maps if m.pose is not None][-1]
+    at = next(s for s in r2_stream if s.stamp == placed.stamp)
+    translation, rotation = placed.pose.distance(r2_stream[0].pose.inverse().compose(at.pose))
+    assert at.index > 10 and translation < 0.10 and rotation < np.radians(2)
+
+
+def test_a_kidnap_starts_a_new_epoch_from_the_first_scan_after_it(kidnapped, kidnapped_stream, kidnapped_run):
+    kidnap = kidnap_index(kidnapped_stream)
+    messages = kidnapped_run.messages
+    [(said_at, event)] = [(i, m) for i, out in kidnapped_run.steps for m in out if isinstance(m, FleetEvent)]
+    [detail] = epoch_events(messages)
+    assert event.kind == "epoch" and event.robot == "r1"
+    assert set(detail) == {"epoch", "first_scan", "previous_epoch", "reason"}
+    assert detail["epoch"] == 1 and detail["previous_epoch"] == 0 and detail["first_scan"] == kidnap
+    assert said_at <= kidnap + kidnapped_run.agent.kidnap_after - 1
+    # the scans from the one that decided it on are in the new epoch
+    assert {m.epoch for m in messages if isinstance(m, Scan) and m.index >= said_at} == {1}
+    # the old local map is closed with the robot no longer in it; the new one says where it comes from
+    old, new = local_maps(messages, 0), local_maps(messages, 1)
+    assert old[-1].pose is None and messages.index(old[-1]) < messages.index(event) < messages.index(new[0])
+    assert [m.version for m in new] == list(range(len(new)))
+    assert {(m.previous_epoch_link.epoch, m.previous_epoch_link.transform) for m in new} == {(0, None)}
+    # the new epoch's frame is the first scan after the kidnap: its map fits the walls from there
+    frame = next(s for s in kidnapped_stream if s.index == kidnap)
+    assert world_error(new[-1], frame.pose, kidnapped.world.walls).mean < 0.03
+    assert world_error(old[-1], kidnapped_stream[0].pose, kidnapped.world.walls).mean < 0.03
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="shared/integration.py judges the hallway scan before the kidnap and the hall scan after it a valid "
+    "match (9 m off), so the agent sees no unplaced scan; remove this mark when integration refuses it",
+)
+def test_the_kidnap_of_the_bundled_department_events_scenario_starts_an_epoch():
+    scenario = load_scenario("department-events")
+    stream = list(robot_stream(scenario, "r1"))
+    kidnap = kidnap_index(stream)
+    # from three scans before the kidnap (in the hallway) to two after it (in the hall)
+    messages = run(Agent("r1", kidnap_after=2), source_scans(stream[kidnap - 3 : kidnap + 2]))
+    assert kidnap in [e["first_scan"] for e in epoch_events(messages)]
+
+
+def test_one_blocked_scan_is_not_a_kidnap_but_two_in_a_row_are_a_new_view(r2_stream):
+    scans = r2_stream[:6]
+    once = run(Agent("r2"), source_scans([*scans[:3], blocked(scans[3]), *scans[4:]]))
+    assert epoch_events(once) == []
+    assert {m.epoch for m in once if isinstance(m, Scan)} == {0}
+    assert local_maps(once)[-1].scans == 5, "the blocked scan is left out of the map"
+
+    twice = run(Agent("r2"), source_scans([*scans[:3], blocked(scans[3]), blocked(scans[4]), scans[5]]))
+    assert [e["first_scan"] for e in epoch_events(twice)][:1] == [scans[3].index]
+
+
+def test_republish_gives_the_latest_map_of_every_epoch_unchanged(kidnapped_run):
+    latest = {m.epoch: m for m in local_maps(kidnapped_run.messages)}
+    again = kidnapped_run.agent.republish()
+    assert [(m.epoch, m.version) for m in again] == [(0, latest[0].version), (1, latest[1].version)]
+    assert [m.to_msgpack() for m in again] == [latest[0].to_msgpack(), latest[1].to_msgpack()]
+
+
+def test_the_same_scans_give_byte_identical_messages(r2_stream):
+    scans = source_scans(r2_stream[:5])
+    first = [m.to_msgpack() for m in run(Agent("r2"), scans)]
+    second = [m.to_msgpack() for m in run(Agent("r2"), scans)]
+    assert first == second and len(first) > 5
+
+
+def test_finish_says_the_last_version_once(r2_stream):
+    agent = Agent("r2", publish_every=2)
+    for index, stamp, scan in source_scans(r2_stream[:3]):  # versions at scans 1 and 3
+        published = agent.add_scan(index, stamp, scan)
+    assert isinstance(published[-1], LocalMap) and published[-1].scans == 3
+    assert agent.finish() == []
+    index, stamp, scan = source_scans(r2_stream[3:4])[0]
+    agent.add_scan(index, stamp, scan)
+    [final] = agent.finish()
+    assert (final.version, final.scans, final.stamp) == (2, 4, stamp)
+    assert agent.finish() == []
+
+
+def test_scans_that_see_nothing_are_published_but_place_nothing(r2_stream):
+    empty = [replace(s, scan=replace(s.scan, ranges=np.full_like(s.scan.ranges, np.inf))) for s in r2_stream[:3]]
+    agent = Agent("r2", kidnap_after=1)
+    messages = run(agent, source_scans([*empty, *r2_stream[3:5]]))
+    assert [len(m.segments) for m in messages if isinstance(m, Scan)][:3] == [0, 0, 0]
+    assert epoch_events(messages) == []
+    # the first scan that sees walls is the frame of epoch 0
+    assert local_maps(messages)[0].stamp == r2_stream[3].stamp and agent.counts.placed == 2
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "named"),
+    [({"robot": "R1"}, "robot"), ({"publish_every": 0}, "publish_every"), ({"kidnap_after": 0}, "kidnap_after")],
+)
+def test_bad_parameters_are_refused_by_name(kwargs, named):
+    with pytest.raises(BadInput, match=named):
+        Agent(**{"robot": "r1", **kwargs})
