@@ -1,0 +1,188 @@
+"""The agent on the bus: paces a source's scans, publishes what the Agent says, answers republish requests.
+
+:func:`run_agent` is the I/O edge around :class:`~fleetmap.agents.agent.Agent`:
+
+1. declare the robot's liveliness token (``fleet/<fleet>/alive/<robot>``: the robot is up);
+2. listen on the fleet's events for ``republish_request`` (robot None or this robot), and answer
+   with the latest LocalMap of every epoch, so a merger that (re)started loses nothing;
+3. feed the scans to the agent at their stamps' pace (divided by ``speed``; 0: as fast as
+   possible; the first scan at once) and publish each message on its key as it comes;
+4. when the source ends or ``stop`` is set: the final LocalMap, flush the bus, undeclare.
+
+Requests arrive on the bus's threads; they only set a flag, and the loop's thread answers them,
+between scans or while waiting for the next one. A payload on the events key that is not a valid
+FleetEvent is counted and ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.sources import SourceScan
+from fleetmap.shared.bus import Bus, Handle
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
+
+log = logging.getLogger(__name__)
+
+POLL = 0.05
+"""Longest wait (s) before the loop looks again at stop and republish requests."""
+
+
+@dataclass(frozen=True)
+class AgentSummary:
+    """What one run of an agent did."""
+
+    robot: str
+    scans: int
+    placed: int
+    epochs: int
+    published: int
+    """Messages published (republished ones included)."""
+    republished: int
+    """Republish requests answered."""
+    bad_events: int
+    """Payloads on the events key that were not FleetEvents."""
+    stopped: bool
+    """True when ``stop`` ended the run before the source did."""
+    seconds: float
+
+    def line(self) -> str:
+        ended = "stopped" if self.stopped else "done"
+        return (
+            f"agent {self.robot} {ended}: {self.scans} scans, {self.placed} placed, {self.epochs} epochs, "
+            f"{self.published} messages published, {self.republished} republish requests, "
+            f"{self.bad_events} bad events, {self.seconds:.1f} s"
+        )
+
+
+class _RepublishRequests:
+    """Republish requests for one robot, from the bus's threads to the agent's loop."""
+
+    def __init__(self, robot: str) -> None:
+        self.robot = robot
+        self.pending = threading.Event()
+        self._lock = threading.Lock()
+        self.bad = 0
+
+    def on_event(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload)
+        except BadMessage as exc:
+            self._count_bad(f"{key}: {exc}")
+            return
+        if not isinstance(message, FleetEvent):
+            self._count_bad(f"{key}: a {message.SCHEMA} is not a fleet event")
+        elif message.kind == "republish_request" and message.robot in (None, self.robot):
+            self.pending.set()
+
+    def _count_bad(self, why: str) -> None:
+        with self._lock:
+            self.bad += 1
+            n = self.bad
+        log.warning("ignored on the events key (%d so far): %s", n, why)
+
+    def take(self) -> bool:
+        """Whether a request came since the last call."""
+        if self.pending.is_set():
+            self.pending.clear()
+            return True
+        return False
+
+
+def message_key(keys: FleetKeys, message: Message) -> str:
+    """Where an agent publishes a message: its scan, local map or the fleet's events key."""
+    if isinstance(message, Scan):
+        return keys.scan(message.robot)
+    if isinstance(message, LocalMap):
+        return keys.localmap(message.robot)
+    if isinstance(message, FleetEvent):
+        return keys.events
+    raise TypeError(f"an agent does not publish {type(message).__name__}")
+
+
+def run_agent(
+    source: Iterable[SourceScan],
+    agent: Agent,
+    bus: Bus,
+    keys: FleetKeys,
+    speed: float,
+    stop: threading.Event,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], object] | None = None,
+    wait_for_listener: float = 0.0,
+) -> AgentSummary:
+    """Run ``agent`` on ``source`` over ``bus`` until the source ends or ``stop`` is set.
+
+    ``sleep(seconds)`` waits between scans (default: ``stop.wait``, so a stop cuts the wait
+    short); ``clock`` and ``sleep`` are injectable so a test can step the pacing. With
+    ``wait_for_listener`` > 0 the first scan waits up to that many seconds for something to
+    subscribe to the robot's local maps (a merger or recorder starting at the same time).
+    """
+    if not speed >= 0:
+        raise BadInput("speed", f"must be 0 (as fast as possible) or positive, got {speed}")
+    wait = sleep if sleep is not None else stop.wait
+    requests = _RepublishRequests(agent.robot)
+    started = clock()
+    published = republished = 0
+
+    def publish(messages: list[Message]) -> None:
+        nonlocal published
+        for message in messages:
+            bus.publish(message_key(keys, message), message.to_msgpack())
+        published += len(messages)
+
+    def answer_requests() -> None:
+        nonlocal republished
+        if requests.take():
+            republished += 1
+            latest = agent.republish()
+            log.info("%s: republishing %d local maps", agent.robot, len(latest))
+            publish(latest)
+
+    handles: list[Handle] = [bus.declare_liveliness(keys.alive(agent.robot))]
+    stopped = False
+    try:
+        handles.append(bus.subscribe(keys.events, requests.on_event))
+        if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
+            log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))
+        first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
+        for index, stamp, scan in source:
+            if first is None:
+                first = (stamp, clock())
+            elif speed > 0:
+                due = first[1] + (stamp - first[0]) / speed
+                while not stop.is_set() and (left := due - clock()) > 0:
+                    answer_requests()
+                    wait(min(left, POLL))
+            answer_requests()
+            if stop.is_set():
+                stopped = True
+                break
+            publish(agent.add_scan(index, stamp, scan))
+        publish(agent.finish())
+        answer_requests()
+        bus.flush()
+    finally:
+        for handle in reversed(handles):
+            handle.close()
+    counts = agent.counts
+    summary = AgentSummary(
+        agent.robot,
+        counts.scans,
+        counts.placed,
+        counts.epochs,
+        published,
+        republished,
+        requests.bad,
+        stopped,
+        clock() - started,
+    )
+    log.info("%s", summary.line())
+    return summary

@@ -1,0 +1,108 @@
+"""``fleetmap agent``: one robot on the bus, from a simulated robot, a CARMEN log or a ROS 2 bag."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.process import run_agent
+from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
+from fleetmap.shared.bus import ZenohBus
+from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.keys import check_name
+from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
+
+log = logging.getLogger(__name__)
+
+WAIT_FOR_LISTENER = 5.0
+"""Seconds the first scan waits for a merger or recorder to listen (they may be starting too)."""
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "agent",
+        help="run one robot: extract segments, grow its local map, publish scans and local maps",
+        description="One robot agent on the fleet's bus. For each scan of its source it extracts segments "
+        "(paper III-D), grows its local map with the pivot method (paper IV-C, Algorithm 6) and publishes the "
+        "scan; every --publish-every placed scans it publishes the local map. After --kidnap-after scans in a "
+        "row that do not integrate, it starts a new local map (a new epoch) and says so on the events key. "
+        "It holds the liveliness token fleet/<fleet>/alive/<robot> while it runs, republishes its latest local "
+        "maps when a merger asks, and stops cleanly on SIGINT or SIGTERM (final local map, then leave).",
+    )
+    p.add_argument("--robot", required=True, metavar="ID", help="the robot id (^[a-z][a-z0-9_-]{0,31}$)")
+    source = p.add_argument_group("scan source (exactly one)")
+    given = source.add_mutually_exclusive_group(required=True)
+    given.add_argument("--scenario", metavar="NAME_OR_FILE", help="a bundled scenario name or a scenario .toml")
+    given.add_argument("--carmen", metavar="FILE", help="a CARMEN log (plain or .gz)")
+    given.add_argument("--ros2-bag", metavar="FILE", help="a ROS 2 bag in MCAP with sensor_msgs/LaserScan")
+    source.add_argument("--start", type=int, default=0, metavar="N", help="CARMEN: first scan (default 0)")
+    source.add_argument("--stop", type=int, default=None, metavar="M", help="CARMEN: stop before scan M (default: end)")
+    source.add_argument("--step", type=int, default=1, metavar="K", help="CARMEN: every K-th scan (default 1)")
+    source.add_argument(
+        "--range-max",
+        type=float,
+        default=math.inf,
+        metavar="R",
+        help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
+    )
+    source.add_argument("--topic", default="/scan", help="ROS 2 bag: the LaserScan topic (default /scan)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        metavar="X",
+        help="play the scans at X times their stamps' pace; 0: as fast as possible (default 1)",
+    )
+    p.add_argument(
+        "--publish-every", type=int, default=3, metavar="N", help="publish the local map every N placed scans"
+    )
+    p.add_argument(
+        "--kidnap-after",
+        type=int,
+        default=2,
+        metavar="N",
+        help="start a new epoch after N scans in a row that do not integrate (default 2)",
+    )
+    p.add_argument(
+        "--wait-for-listener",
+        type=float,
+        default=WAIT_FOR_LISTENER,
+        metavar="S",
+        help=f"wait up to S seconds for a subscriber before the first scan (default {WAIT_FOR_LISTENER:g})",
+    )
+    add_zenoh_arguments(p)
+    add_config_arguments(p, ["extraction", "integration"])
+    p.set_defaults(func=run)
+
+
+def make_source(args: argparse.Namespace) -> ScanSource:
+    """The source the flags name (files are checked here, before the agent goes on the bus)."""
+    if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
+        raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
+    if args.ros2_bag is None and args.topic != "/scan":
+        raise BadInput("--topic", "applies to --ros2-bag only")
+    if args.scenario is not None:
+        return ScenarioSource(args.scenario, args.robot)
+    if args.carmen is not None:
+        return CarmenSource(args.carmen, args.start, args.stop, args.step, args.range_max)
+    return Ros2BagSource(args.ros2_bag, args.topic)
+
+
+def run(args: argparse.Namespace) -> int:
+    robot = check_name(args.robot, "--robot")
+    if not args.speed >= 0 or math.isinf(args.speed):
+        raise BadInput("--speed", f"must be 0 (as fast as possible) or a positive number, got {args.speed}")
+    agent = Agent(robot, config_from_args(args), args.publish_every, args.kidnap_after)
+    source = make_source(args)
+    options = zenoh_options_from_args(args)
+    with stop_on_signals() as stop, ZenohBus.open(options) as bus:
+        print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
+        summary = run_agent(
+            source, agent, bus, options.keys, args.speed, stop, wait_for_listener=args.wait_for_listener
+        )
+    print(summary.line())
+    return 0

@@ -1,0 +1,216 @@
+"""The agent on a bus: presence, keys, pacing, republish requests, stopping; then the real
+``fleetmap agent`` process over zenoh on loopback (slow)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.process import run_agent
+from fleetmap.agents.sources import SourceScan
+from fleetmap.shared.bus import InMemoryBus
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
+from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+
+from tests.agents.conftest import source_scans
+from tests.bus_helpers import WAIT, Inbox, open_zenoh
+
+KEYS = FleetKeys("t")
+
+
+class Observer:
+    """A second bus that records what the agent's bus says, in order, with presence."""
+
+    def __init__(self, bus: InMemoryBus) -> None:
+        self.bus = bus
+        self.log: list[tuple[str, object]] = []
+        bus.subscribe(KEYS.everything, lambda key, payload: self.log.append((key, decode(payload))))
+        bus.subscribe_liveliness(
+            KEYS.all_alive, lambda key: self.log.append(("join", key)), lambda key: self.log.append(("leave", key))
+        )
+
+    def messages(self, kind: type) -> list:
+        return [m for _, m in self.log if isinstance(m, kind)]
+
+
+@pytest.fixture
+def buses() -> tuple[InMemoryBus, Observer]:
+    agent_bus = InMemoryBus()
+    return agent_bus, Observer(agent_bus.peer())
+
+
+@pytest.fixture(scope="module")
+def scans(r2_stream) -> list[SourceScan]:
+    return source_scans(r2_stream[:4])
+
+
+def test_the_agent_joins_publishes_everything_on_its_key_and_leaves(buses, scans):
+    bus, seen = buses
+    summary = run_agent(scans, Agent("r2"), bus, KEYS, speed=0, stop=threading.Event())
+    assert seen.log[0] == ("join", KEYS.alive("r2")) and seen.log[-1] == ("leave", KEYS.alive("r2"))
+    published = seen.log[1:-1]
+    assert [m.index for k, m in published if isinstance(m, Scan) and k == KEYS.scan("r2")] == [0, 1, 2, 3]
+    maps = [(k, m) for k, m in published if isinstance(m, LocalMap)]
+    assert {k for k, _ in maps} == {KEYS.localmap("r2")}
+    assert maps[-1][1].scans == 4, "the final local map holds every placed scan"
+    assert (summary.scans, summary.placed, summary.epochs, summary.stopped) == (4, 4, 1, False)
+    assert summary.published == len(published)
+
+
+def test_scans_are_paced_by_their_stamps_over_speed(buses, scans):
+    bus, _ = buses
+    now = [0.0]
+    sent_at: list[tuple[int, float]] = []
+    bus.subscribe(KEYS.scan("r2"), lambda key, payload: sent_at.append((decode(payload).index, now[0])))
+
+    def sleep(seconds: float) -> None:
+        now[0] += seconds
+
+    run_agent(scans, Agent("r2"), bus, KEYS, speed=2.0, stop=threading.Event(), clock=lambda: now[0], sleep=sleep)
+    # stamps 0, 0.5, 1.0, 1.5 s at twice their pace; the first at once
+    assert [i for i, _ in sent_at] == [0, 1, 2, 3]
+    assert [t for _, t in sent_at] == pytest.approx([0.0, 0.25, 0.5, 0.75], abs=1e-9)
+
+    never: list[float] = []
+    run_agent(scans, Agent("r2"), bus, KEYS, speed=0, stop=threading.Event(), sleep=never.append)
+    assert never == [], "speed 0 plays the scans as fast as possible"
+
+
+def test_a_republish_request_gets_the_latest_map_of_every_epoch_and_bad_events_are_ignored(buses, scans):
+    bus, seen = buses
+    asking = seen.bus
+
+    def source() -> Iterator[SourceScan]:
+        yield from scans[:2]
+        asking.publish(KEYS.events, b"\x93not a fleet event")
+        asking.publish(KEYS.events, Scan("r9", 0, 0, 0.0, []).to_msgpack())
+        asking.publish(KEYS.events, FleetEvent("republish_request", "r7", 1.0).to_msgpack())  # another robot's
+        asking.publish(KEYS.events, FleetEvent("republish_request", None, 1.0).to_msgpack())
+        yield from scans[2:]
+
+    agent = Agent("r2")
+    summary = run_agent(source(), agent, bus, KEYS, speed=0, stop=threading.Event())
+    maps = seen.messages(LocalMap)
+    # version 0 at the first scan, again on request (the same bytes), then the rest
+    assert [m.version for m in maps] == [0, 0, 1]
+    assert maps[1].to_msgpack() == maps[0].to_msgpack()
+    assert (summary.republished, summary.bad_events) == (1, 2)
+
+
+def test_a_stop_ends_the_run_with_the_final_local_map_and_a_leave(buses, scans):
+    bus, seen = buses
+    stop = threading.Event()
+
+    def source() -> Iterator[SourceScan]:
+        yield from scans[:2]
+        stop.set()  # as SIGTERM does
+        yield from scans[2:]
+
+    summary = run_agent(source(), Agent("r2", publish_every=5), bus, KEYS, speed=0, stop=stop)
+    assert summary.stopped and summary.scans == 2
+    final = seen.messages(LocalMap)[-1]
+    assert (final.version, final.scans, final.stamp) == (1, 2, scans[1].stamp)
+    assert seen.log[-1] == ("leave", KEYS.alive("r2"))
+
+
+def test_a_stop_cuts_the_wait_for_the_next_scan_short(buses, scans):
+    bus, seen = buses
+    stop = threading.Event()
+    timer = threading.Timer(0.1, stop.set)
+    timer.start()
+    started = time.monotonic()
+    try:
+        summary = run_agent(scans, Agent("r2"), bus, KEYS, speed=0.01, stop=stop)  # the next scan is due in 50 s
+    finally:
+        timer.cancel()
+    assert time.monotonic() - started < 2.0
+    assert summary.stopped and summary.scans == 1
+    assert seen.log[-1] == ("leave", KEYS.alive("r2"))
+
+
+# --- the fleetmap agent process over zenoh (slow) ---
+
+
+def start_agent(endpoint: str, *args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "fleetmap", "agent", "--connect", endpoint, "--fleet", "t", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+class Fleet:
+    """The test's side of the bus: a listening zenoh session that collects an agent's messages."""
+
+    def __init__(self) -> None:
+        self.endpoint = free_loopback_endpoint()
+        self.bus = open_zenoh(ZenohOptions(listen=(self.endpoint,), fleet="t"))
+        self.scans, self.maps = Inbox(), Inbox()
+        self.joined, self.left = threading.Event(), threading.Event()
+        self.left_at = 0.0
+        self.bus.subscribe(KEYS.all_scans, lambda key, payload: self.scans(decode(payload)))
+        self.bus.subscribe(KEYS.all_localmaps, lambda key, payload: self.maps(decode(payload)))
+        self.bus.subscribe_liveliness(KEYS.all_alive, lambda key: self.joined.set(), self._leave)
+
+    def _leave(self, key: str) -> None:
+        self.left_at = time.monotonic()
+        self.left.set()
+
+
+@pytest.fixture
+def fleet() -> Iterator[Fleet]:
+    f = Fleet()
+    with f.bus:
+        yield f
+
+
+@pytest.mark.slow
+def test_fleetmap_agent_publishes_its_robot_over_zenoh_and_leaves(fleet):
+    agent = start_agent(fleet.endpoint, "--scenario", "department", "--robot", "r2", "--speed", "0")
+    try:
+        assert fleet.joined.wait(15.0), "the agent's liveliness token did not appear"
+        assert agent.wait(30.0) == 0
+        stdout = agent.stdout.read() if agent.stdout else ""
+        assert fleet.left.wait(WAIT), "the agent did not leave"
+    finally:
+        agent.kill()
+        agent.wait()
+    scans = [m for (m,) in fleet.scans.items]
+    assert [s.index for s in scans] == list(range(32)) and {s.robot for s in scans} == {"r2"}
+    maps = [m for (m,) in fleet.maps.items]
+    assert [m.version for m in maps] == list(range(len(maps))) and len(maps) >= 10
+    assert maps[-1].stamp == scans[-1].stamp, "the final local map comes after the last scan"
+    assert "agent r2 done: 32 scans" in stdout
+
+
+@pytest.mark.slow
+def test_fleetmap_agent_answers_a_republish_request_and_leaves_cleanly_on_sigterm(fleet):
+    agent = start_agent(fleet.endpoint, "--scenario", "department", "--robot", "r2", "--speed", "1")
+    try:
+        assert fleet.maps.wait_for(1, timeout=15.0), "no local map from the agent"
+        fleet.bus.publish(KEYS.events, FleetEvent("republish_request", None, 0.0).to_msgpack())
+        assert fleet.maps.wait_until(lambda items: any(m.version == 0 for (m,) in items[1:]))
+        assert fleet.scans.wait_for(4)
+        agent.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        assert fleet.left.wait(2.0), "the agent did not leave within 2 s of SIGTERM"
+        assert fleet.left_at - sent < 2.0
+        stdout, _ = agent.communicate(timeout=WAIT)
+    finally:
+        agent.kill()
+        agent.wait()
+    assert agent.returncode == 0 and "agent r2 stopped" in stdout
+    scans = [m for (m,) in fleet.scans.items]
+    maps = [m for (m,) in fleet.maps.items]
+    assert len(scans) < 33, "it stopped before the end of its path"
+    assert maps[-1].stamp == scans[-1].stamp and maps[-1].scans >= 4, "a final local map, after the last scan"
