@@ -41,23 +41,25 @@ def run(args: argparse.Namespace) -> int:
     robots = frozenset(r.strip() for r in args.robots.split(",") if r.strip()) if args.robots else None
     overridden = args.config is not None or any(k.startswith("cfg__") and v is not None for k, v in vars(args).items())
     options = ReplayOptions(args.speed, args.start, args.stop, robots, config_from_args(args) if overridden else None)
-    bar = None
-    if not args.no_progress:
-        from tqdm import tqdm
-
-        bar = tqdm(desc="replay", unit="step", leave=False)
+    bars: list[object] = []
 
     def progress(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
+        # Created on the first step, once the recording has been read: bad input prints one line only.
+        if args.no_progress:
+            return
+        if not bars:
+            from tqdm import tqdm
+
+            bars.append(tqdm(desc="replay", unit="step", total=total, leave=False))
+        bar = bars[0]
+        bar.n = done  # type: ignore[attr-defined]
+        bar.refresh()  # type: ignore[attr-defined]
 
     try:
         result = replay(args.session, args.out, options, progress)
     finally:
-        if bar is not None:
-            bar.close()
+        for bar in bars:
+            bar.close()  # type: ignore[attr-defined]
     if result.warning:
         print(f"warning: {result.warning}")
     if args.json:

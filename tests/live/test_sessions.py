@@ -1,0 +1,112 @@
+"""Issue 6's proof: offline replay of a live session, and a merger restart that loses nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from fleetmap.scenarios import load_scenario, scenario_to_toml
+from fleetmap.shared.geometry import Transform2D
+
+pytestmark = pytest.mark.slow
+
+
+def fleetmap(*args: str, timeout: float = 480) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "fleetmap", *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("live") / "department"
+    r = fleetmap("run", "department", "--out", str(out), "--speed", "4", "--no-progress")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+def _poses(global_map: Path) -> dict[str, Transform2D]:
+    data = json.loads(global_map.read_text())
+    return {k: Transform2D(v["x"], v["y"], v["theta"]) for k, v in data["poses"].items() if v is not None}
+
+
+def test_a_replay_rebuilds_the_live_global_map_exactly(live: Path, tmp_path: Path) -> None:
+    r = fleetmap("replay", str(live / "session.mcap"), "--out", str(tmp_path), "--json", "--no-progress")
+    assert r.returncode == 0, r.stderr[-3000:]
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["replay"]["exact"] and report["replay"]["matches_live"] is True
+    live_map = json.loads((live / "global_map.json").read_text())
+    replayed = json.loads((tmp_path / "global_map.json").read_text())
+    assert replayed["segments"] == live_map["segments"] and replayed["poses"] == live_map["poses"]
+    live_report = json.loads((live / "report.json").read_text())
+    assert report["map_error_mean_m"] == live_report["map_error_mean_m"]
+    assert (tmp_path / "global_map.png").stat().st_size > 10_000
+
+
+def test_a_partial_replay_takes_only_the_chosen_robots_and_times(live: Path, tmp_path: Path) -> None:
+    r = fleetmap("replay", str(live / "session.mcap"), "--out", str(tmp_path), "--robots", "r1,r3", "--no-progress")
+    assert r.returncode == 0, r.stderr[-3000:]
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["replay"]["exact"] is False
+    assert report["maps"] and all(not k.startswith("r2/") for k in report["maps"])
+    early = tmp_path / "early"
+    r = fleetmap("replay", str(live / "session.mcap"), "--out", str(early), "--to", "2.0", "--no-progress")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (
+        json.loads((early / "report.json").read_text())["replay"]["local_maps_fed"]
+        < report["replay"]["local_maps_fed"] + 1000
+    )  # ran, and fed what the first two seconds held
+
+
+def test_a_recording_cut_short_replays_up_to_its_last_complete_chunk(live: Path, tmp_path: Path) -> None:
+    data = (live / "session.mcap").read_bytes()
+    cut = tmp_path / "crashed.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    r = fleetmap("replay", str(cut), "--out", str(tmp_path / "out"), "--no-progress")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "ends abruptly" in r.stdout and "messages" in r.stdout
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["replay"]["warning"] and report["replay"]["local_maps_fed"] > 0
+
+
+def test_bad_replay_inputs_exit_2(tmp_path: Path) -> None:
+    r = fleetmap("replay", str(tmp_path / "none.mcap"), "--out", str(tmp_path))
+    assert r.returncode == 2 and "none.mcap" in r.stderr
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    r = fleetmap("replay", str(junk), "--out", str(tmp_path))
+    assert r.returncode == 2 and "junk.mcap" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def _relative(poses: dict[str, Transform2D], ref: str) -> dict[str, Transform2D]:
+    base = poses[ref].inverse()
+    return {k: base.compose(p) for k, p in poses.items()}
+
+
+def test_a_merger_killed_and_restarted_ends_with_the_uninterrupted_map(tmp_path: Path) -> None:
+    restart = load_scenario("department-restart")
+    assert any(e.kind == "merger_restart" for e in restart.events)
+    calm = dataclasses.replace(restart, events=tuple(e for e in restart.events if e.kind != "merger_restart"))
+    calm_file = tmp_path / "calm.toml"
+    calm_file.write_text(scenario_to_toml(calm))
+    runs = {}
+    for name, scenario in (("restart", "department-restart"), ("calm", str(calm_file))):
+        out = tmp_path / name
+        r = fleetmap("run", scenario, "--out", str(out), "--speed", "3", "--no-progress")
+        assert r.returncode == 0, r.stderr[-3000:]
+        runs[name] = out
+    logs = sorted(p.name for p in (runs["restart"] / "logs").glob("merger*.log"))
+    assert len(logs) == 2, logs  # the merger was killed and a second one started
+    a, b = _poses(runs["restart"] / "global_map.json"), _poses(runs["calm"] / "global_map.json")
+    assert set(a) == set(b), "the same local maps are placed"
+    ref = sorted(a)[0]
+    ra, rb = _relative(a, ref), _relative(b, ref)
+    for key in a:
+        dt, dr = ra[key].distance(rb[key])
+        assert dt < 0.01 and math.degrees(dr) < 0.1, f"{key}: {dt:.4f} m {math.degrees(dr):.3f} deg"
+    restart_report = json.loads((runs["restart"] / "report.json").read_text())
+    calm_report = json.loads((runs["calm"] / "report.json").read_text())
+    assert set(restart_report["maps"]) == set(calm_report["maps"]), "no local map is lost"
