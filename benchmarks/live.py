@@ -1,0 +1,109 @@
+"""Benchmark: the live fleet end to end (run on demand, not in CI).
+
+For N = 1, 4 and 16 robots (the department scenario's paths, shared out round-robin, each robot
+with its own noise), a real session runs: router, merger, recorder and N agent processes on
+loopback, agents as fast as they can. From the recording it prints:
+
+- scans per second through the bus (Scan messages recorded / the time between first and last),
+- the merger's end-to-end latency: from a local map version's arrival at the recorder to the
+  arrival of the merger step that integrated it (median and 95th percentile; versions superseded
+  before the merger took them are not counted, which is the point of its coalescing),
+- the time the merger needed after the last scan to integrate every local map,
+- the recorder's throughput (all messages and bytes over the session).
+
+    python benchmarks/live.py                 # 1, 4 and 16 robots
+    python benchmarks/live.py --robots 4 --speed 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fleetmap.runner import Session
+from fleetmap.scenarios import load_scenario
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.messages import LocalMap, MergerStep, Scan, decode
+from fleetmap.shared.recording import RecordingReader
+
+
+def fleet_scenario(n: int):  # type: ignore[no-untyped-def]
+    base = load_scenario("department")
+    robots = tuple(dataclasses.replace(base.robots[i % len(base.robots)], id=f"b{i + 1}", start=0.0) for i in range(n))
+    return dataclasses.replace(base, name=f"department-x{n}", robots=robots, events=())
+
+
+def measure(n: int, speed: float, out: Path) -> dict[str, float]:
+    session = Session(fleet_scenario(n), out, FleetmapConfig(), speed=speed, fleet="bench", progress=False)
+    start = time.monotonic()
+    report = session.run()
+    wall = time.monotonic() - start
+    scans: list[int] = []
+    arrived: dict[tuple[str, int], int] = {}
+    latency: list[float] = []
+    total = size = 0
+    with RecordingReader(out / "session.mcap") as reader:
+        for m in reader.messages():
+            total += 1
+            size += len(m.payload)
+            try:
+                msg = decode(m.payload)
+            except Exception:  # noqa: BLE001  (not a fleetmap message: counted above, nothing more)
+                continue
+            if isinstance(msg, Scan):
+                scans.append(m.log_time)
+            elif isinstance(msg, LocalMap):
+                arrived.setdefault((msg.key, msg.version), m.log_time)
+            elif isinstance(msg, MergerStep):
+                for key, version in zip(msg.maps, msg.versions, strict=True):
+                    if (key, version) in arrived:
+                        latency.append((m.log_time - arrived[(key, version)]) / 1e9)
+            last = m.log_time
+    span = (max(scans) - min(scans)) / 1e9 if len(scans) > 1 else float("nan")
+    catch_up = (last - max(scans)) / 1e9 if scans else float("nan")
+    return {
+        "robots": n,
+        "scans": len(scans),
+        "scans_per_s": len(scans) / span if span > 0 else float("nan"),
+        "latency_median_s": float(np.median(latency)) if latency else float("nan"),
+        "latency_p95_s": float(np.percentile(latency, 95)) if latency else float("nan"),
+        "catch_up_s": catch_up,
+        "messages": total,
+        "messages_per_s": total / wall,
+        "mb_per_s": size / wall / 1e6,
+        "wall_s": wall,
+        "map_error_mean_m": report["map_error_mean_m"] or float("nan"),
+        "placed": report["robots_placed"],
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--robots", default="1,4,16")
+    ap.add_argument("--speed", type=float, default=1000.0, help="scenario speed (1000: as fast as they can)")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in (int(x) for x in args.robots.split(",")):
+            r = measure(n, args.speed, Path(tmp) / f"n{n}")
+            rows.append(r)
+            print(r, flush=True)
+    print()
+    print("| robots | scans | scans/s | latency median | latency p95 | merger catch-up | recorder msg/s | MB/s | placed |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['robots']} | {r['scans']} | {r['scans_per_s']:.1f} | {r['latency_median_s']:.2f} s "
+            f"| {r['latency_p95_s']:.2f} s | {r['catch_up_s']:.1f} s | {r['messages_per_s']:.0f} | {r['mb_per_s']:.2f} "
+            f"| {r['placed']}/{r['robots']} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
