@@ -27,7 +27,17 @@ from fleetmap.scenarios.metrics import coverage, map_error, pose_error, world_fr
 from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, Message, RobotPose, Scan, decode
+from fleetmap.shared.messages import (
+    BadMessage,
+    FleetEvent,
+    GlobalMap,
+    LaserRanges,
+    LocalMap,
+    Message,
+    RobotPose,
+    Scan,
+    decode,
+)
 
 FALSE_RELOCALIZATION_M = 1.0
 """A relocalization farther than this from the truth is a false one."""
@@ -45,6 +55,8 @@ class SessionLog:
     scans: dict[str, list[tuple[int, float, int]]] = field(default_factory=dict)
     """Per robot: (index, stamp, epoch) of every scan."""
     epoch_first_scan: dict[tuple[str, int], int] = field(default_factory=dict)
+    ranges: dict[tuple[str, int], LaserRanges] = field(default_factory=dict)
+    """The raw ranges of every scan that carried them, by (robot, index)."""
     events: list[FleetEvent] = field(default_factory=list)
     malformed: int = 0
 
@@ -61,6 +73,8 @@ class SessionLog:
             case Scan():
                 self.scans.setdefault(message.robot, []).append((message.index, message.stamp, message.epoch))
                 self.epoch_first_scan.setdefault((message.robot, message.epoch), message.index)
+                if message.ranges is not None:
+                    self.ranges[(message.robot, message.index)] = message.ranges
             case FleetEvent():
                 self.events.append(message)
                 if message.kind == "epoch" and message.robot is not None:
@@ -225,7 +239,10 @@ def _kidnap(log: SessionLog, truth: Truth, event: Kidnap) -> dict[str, Any]:
         "pose_error_m": None,
         "pose_error_deg": None,
         "false_relocalization": False,
+        "scans_after_overlap": None,
     }
+    overlap = _overlap_stamp(log, truth, event)
+    out["overlap_time"] = overlap
     before = [ep for (r, ep), idx in log.epoch_first_scan.items() if r == event.robot]
     scans = log.scans.get(event.robot, [])
     new_epochs = [
@@ -240,12 +257,63 @@ def _kidnap(log: SessionLog, truth: Truth, event: Kidnap) -> dict[str, Any]:
         out["relocalized"] = True
         out["seconds_to_relocalize"] = max(p.stamp - event.t, 0.0)
         out["scans_to_relocalize"] = sum(1 for _, s, _ in scans if event.t - 1e-9 <= s <= p.stamp + 1e-9)
+        if overlap is not None:
+            out["scans_after_overlap"] = sum(1 for _, s, _ in scans if overlap - 1e-9 <= s <= p.stamp + 1e-9)
         err = _robot_pose_error(log, truth, p, maps_before)
         if err is not None:
             out["pose_error_m"], out["pose_error_deg"] = err
             out["false_relocalization"] = err[0] > FALSE_RELOCALIZATION_M
         break
     return out
+
+
+OVERLAP_DISTANCE = 0.15
+"""A scan point within this (m) of a point another scan saw is in the mapped area."""
+OVERLAP_FRACTION = 0.5
+"""A scan overlaps the mapped area when at least this fraction of its points is in it."""
+
+
+def _world_points(log: SessionLog, truth: Truth, robot: str, index: int) -> Array:
+    """A scan's returns in the world frame (its true pose): ground truth for scoring only."""
+    r = log.ranges.get((robot, index))
+    pose = truth.scan_pose(robot, index)
+    if r is None or pose is None:
+        return np.zeros((0, 2))
+    rr = np.asarray(r.ranges, dtype=np.float64)
+    a = r.angle_min + np.arange(len(rr)) * r.angle_increment
+    ok = np.isfinite(rr) & (rr > 0) & (rr < r.range_max)
+    pts = np.column_stack([rr[ok] * np.cos(a[ok]), rr[ok] * np.sin(a[ok])])
+    return pose.apply_points(pts)
+
+
+def _overlap_stamp(log: SessionLog, truth: Truth, event: Kidnap) -> float | None:
+    """When the kidnapped robot's view first overlaps what the fleet had seen before it.
+
+    The mapped area is every point seen, by any robot, up to that scan, except the kidnapped
+    robot's own scans since the kidnap; a scan overlaps it when OVERLAP_FRACTION of its points
+    lie within OVERLAP_DISTANCE of it. This is when relocalization becomes possible at all.
+    """
+    from scipy.spatial import cKDTree
+
+    seen: list[tuple[float, Array]] = []
+    for robot, scans in log.scans.items():
+        for index, stamp, _ in scans:
+            if robot == event.robot and stamp >= event.t - 1e-9:
+                continue
+            pts = _world_points(log, truth, robot, index)
+            if len(pts):
+                seen.append((stamp, pts))
+    for index, stamp, _ in sorted(log.scans.get(event.robot, []), key=lambda x: x[1]):
+        if stamp < event.t - 1e-9:
+            continue
+        mine = _world_points(log, truth, event.robot, index)
+        before = [pts for s, pts in seen if s <= stamp + 1e-9]
+        if len(mine) == 0 or not before:
+            continue
+        d, _ = cKDTree(np.vstack(before)).query(mine, distance_upper_bound=OVERLAP_DISTANCE)
+        if np.isfinite(d).mean() >= OVERLAP_FRACTION:
+            return stamp
+    return None
 
 
 def global_map_json(log: SessionLog) -> dict[str, Any]:

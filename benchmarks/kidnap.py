@@ -1,0 +1,52 @@
+"""Benchmark: kidnapped robots in every bundled world (run on demand, not in CI).
+
+Runs a live session of each ``*-events`` scenario (every one kidnaps a robot into an area another
+robot maps) and prints, per kidnap: whether the robot was relocalized, the scans and seconds it
+took (from the kidnap, and from when its view first overlapped the mapped area), and the pose
+error afterwards; false relocalizations (> 1 m off) are counted. Issue 6's targets: every kidnap
+relocalized within (0.1 m, 2 deg) in at most 10 scans after the overlap, none false in the
+warehouse.
+
+    python benchmarks/kidnap.py [--scenarios department-events,office-events,warehouse-events]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+from fleetmap.runner import Session
+from fleetmap.scenarios import load_scenario
+from fleetmap.shared.config import FleetmapConfig
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenarios", default="department-events,office-events,warehouse-events")
+    ap.add_argument("--speed", type=float, default=3.0)
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenarios.split(","):
+            report = Session(
+                load_scenario(name), Path(tmp) / name, FleetmapConfig(), speed=args.speed, progress=False
+            ).run()
+            for k in report["kidnaps"]:
+                rows.append((name, report, k))
+                print(name, k, flush=True)
+    print()
+    print("| scenario | robot | relocalized | scans after kidnap | scans after overlap | seconds | error | false |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, report, k in rows:
+        err = "–" if k["pose_error_m"] is None else f"{k['pose_error_m']:.3f} m, {k['pose_error_deg']:.2f}°"
+        secs = "–" if k["seconds_to_relocalize"] is None else f"{k['seconds_to_relocalize']:.1f}"
+        print(
+            f"| {name} | {k['robot']} | {k['relocalized']} | {k['scans_to_relocalize']} | {k['scans_after_overlap']} "
+            f"| {secs} | {err} | {k['false_relocalization']} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
