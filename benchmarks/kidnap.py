@@ -16,9 +16,10 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from fleetmap.runner import Session
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
+
+from fleetmap.runner import Session
 
 
 def main() -> int:
@@ -33,12 +34,12 @@ def main() -> int:
                 load_scenario(name), Path(tmp) / name, FleetmapConfig(), speed=args.speed, progress=False
             ).run()
             for k in report["kidnaps"]:
-                rows.append((name, report, k))
+                rows.append((name, k))
                 print(name, k, flush=True)
     print()
     print("| scenario | robot | relocalized | scans after kidnap | scans after overlap | seconds | error | false |")
     print("|---|---|---|---|---|---|---|---|")
-    for name, report, k in rows:
+    for name, k in rows:
         err = "–" if k["pose_error_m"] is None else f"{k['pose_error_m']:.3f} m, {k['pose_error_deg']:.2f}°"
         secs = "–" if k["seconds_to_relocalize"] is None else f"{k['seconds_to_relocalize']:.1f}"
         print(

@@ -24,12 +24,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from fleetmap.runner import Session
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.messages import LocalMap, MergerStep, Scan, decode
+from fleetmap.shared.messages import BadMessage, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.recording import RecordingReader
+
+from fleetmap.runner import Session
 
 
 def fleet_scenario(n: int):  # type: ignore[no-untyped-def]
@@ -53,7 +53,7 @@ def measure(n: int, speed: float, out: Path) -> dict[str, float]:
             size += len(m.payload)
             try:
                 msg = decode(m.payload)
-            except Exception:  # noqa: BLE001  (not a fleetmap message: counted above, nothing more)
+            except BadMessage:  # not a fleetmap message: counted above, nothing more
                 continue
             if isinstance(msg, Scan):
                 scans.append(m.log_time)
@@ -94,7 +94,9 @@ def main() -> int:
             rows.append(r)
             print(r, flush=True)
     print()
-    print("| robots | scans | scans/s | latency median | latency p95 | merger catch-up | recorder msg/s | MB/s | placed |")
+    print(
+        "| robots | scans | scans/s | latency median | latency p95 | merger catch-up | recorder msg/s | MB/s | placed |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
