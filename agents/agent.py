@@ -8,7 +8,10 @@ the scan fused into the map, whose frame is the first scan's laser frame.
 A robot that knows nothing of where it is cannot tell a kidnap from any other change of view but
 by geometry: when ``kidnap_after`` scans in a row cannot be placed (no valid integration with the
 previous scan nor with the local map), the agent closes the local map and starts a new *epoch*
-whose frame is the first of those scans; the others are integrated into it. One unplaced scan
+whose frame is the first of those scans; the others are integrated into it. A scan is placed
+only where the robot can have gone since its last placed scan (``max_speed`` times the time
+between their stamps): a look-alike corridor 9 m away matches well, but a robot carried off in
+half a second did not drive there. One unplaced scan
 followed by a placed one (a person walking by the laser) changes nothing. Scans without any
 segment (nothing within reach) are not placed, and count neither for nor against a kidnap: they
 say nothing about where the robot is.
@@ -59,6 +62,7 @@ class AgentCounts:
 @dataclass(frozen=True)
 class _Unplaced:
     index: int
+    stamp: float
     map: SegmentMap
 
 
@@ -69,6 +73,10 @@ class _Epoch:
         self.number = number
         self.link = link
         self.builder = PivotMapBuilder(config.integration)
+        self.max_speed = config.integration.max_speed
+        self.slack = config.integration.witness_translation
+        self.placed_stamp: float | None = None
+        """Stamp of the last placed scan (the motion bound counts from it)."""
         self.placed = 0
         self.pose: Transform2D | None = None
         self.version = -1
@@ -84,12 +92,17 @@ class _Epoch:
     def changed(self) -> bool:
         return self.placed != self.published_placed or self.pose != self.published_pose
 
-    def add(self, scan: SegmentMap) -> bool:
-        """Integrate one scan (Algorithm 6, steps 3-6); whether it was placed."""
-        step = self.builder.add(scan)
+    def add(self, scan: SegmentMap, stamp: float) -> bool:
+        """Integrate one scan (Algorithm 6, steps 3-6) within the motion bound; whether it was placed."""
+        speed = self.max_speed
+        bound = None
+        if speed > 0 and self.placed_stamp is not None:
+            bound = speed * max(stamp - self.placed_stamp, 0.0) + self.slack
+        step = self.builder.add(scan, max_motion=bound)
         self.pose = step.pose
         if step.pose is not None:
             self.placed += 1
+            self.placed_stamp = stamp
         return step.pose is not None
 
 
@@ -138,11 +151,11 @@ class Agent:
         if len(segments) == 0:
             current.pose = None  # nothing in reach: the robot cannot say where it is
         elif not current.started:
-            self._place(current, scan_map)  # the epoch's frame
-        elif self._place(current, scan_map):
+            self._place(current, scan_map, stamp)  # the epoch's frame
+        elif self._place(current, scan_map, stamp):
             self._unplaced.clear()
         else:
-            self._unplaced.append(_Unplaced(index, scan_map))
+            self._unplaced.append(_Unplaced(index, stamp, scan_map))
             if len(self._unplaced) >= self.kidnap_after:
                 out += self._new_epoch(stamp)
         out.append(Scan(self.robot, self.epoch, index, stamp, segments, ranges))
@@ -166,8 +179,8 @@ class Agent:
 
     # --- internals ---
 
-    def _place(self, epoch: _Epoch, scan_map: SegmentMap) -> bool:
-        placed = epoch.add(scan_map)
+    def _place(self, epoch: _Epoch, scan_map: SegmentMap, stamp: float) -> bool:
+        placed = epoch.add(scan_map, stamp)
         self._placed += int(placed)
         return placed
 
@@ -185,7 +198,7 @@ class Agent:
         new = _Epoch(old.number + 1, self.config, EpochLink(old.number, reason, transform=None))
         self._epoch = new
         for seed in seeds:  # the first one is placed: it is the new epoch's frame
-            if self._place(new, seed.map):
+            if self._place(new, seed.map, seed.stamp):
                 self._unplaced.clear()
             else:
                 self._unplaced.append(seed)

@@ -35,8 +35,10 @@ from fleetmap.shared.config import IntegrationParams, MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
-from fleetmap.shared.integration import integrate
+from fleetmap.shared.integration import index_for, integrate
 from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex
+from fleetmap.shared.simplify import simplify
 from scipy.optimize import least_squares
 
 log = logging.getLogger(__name__)
@@ -56,6 +58,8 @@ class Edge:
     runner_up: float = 0.0
     seconds: float = 0.0
     versions: tuple[int, int] = (0, 0)
+    violation: float = 0.0
+    """Wall length the transform puts in the other map's seen free space (m)."""
 
     def reversed(self) -> Edge:
         return replace(self, a=self.b, b=self.a, transform=self.transform.inverse(), versions=self.versions[::-1])
@@ -70,6 +74,10 @@ class _Node:
     order: int
     version: int
     histogram: Array
+    work: SegmentMap
+    """The map as integrated and fused: simplified (fleetmap.shared.simplify) unless it is a scan."""
+    index: MapIndex | None = None
+    """Its grid index for the large-map path, built on first use and kept."""
 
 
 @dataclass(frozen=True)
@@ -173,12 +181,25 @@ class MapGraph:
                 return False
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)
+            node.work, node.index = self._work(segment_map), None
             for k in [k for k in self._edges if key in k]:
                 del self._edges[k]
             return True
-        self._nodes[key] = _Node(segment_map, self._counter, version, orientation_histogram(segment_map.segments))
+        self._nodes[key] = _Node(
+            segment_map, self._counter, version, orientation_histogram(segment_map.segments), self._work(segment_map)
+        )
         self._counter += 1
         return True
+
+    def _work(self, m: SegmentMap) -> SegmentMap:
+        tol = self.integration.simplify_tolerance
+        return simplify(m, tol) if tol > 0 and not m.ordered else m
+
+    def _index(self, key: str) -> MapIndex:
+        node = self._nodes[key]
+        if node.index is None:
+            node.index = index_for(node.work, self.integration)
+        return node.index
 
     def remove_map(self, key: str) -> None:
         self._nodes.pop(key, None)
@@ -203,8 +224,16 @@ class MapGraph:
         va, vb = self._nodes[a].version, self._nodes[b].version
         if known is not None and known.versions == (va, vb):
             return known
-        r = integrate(self._nodes[a].map, self._nodes[b].map, self.integration)
-        e = Edge(a, b, r.transform, r.value, r.valid, r.runner_up, r.seconds, (va, vb))
+        na, nb = self._nodes[a], self._nodes[b]
+        large = any(len(n.work) > self.integration.max_search_segments or VIEWPOINTS in n.work.extras for n in (na, nb))
+        r = integrate(
+            na.work,
+            nb.work,
+            self.integration,
+            index1=self._index(a) if large else None,
+            index2=self._index(b) if large else None,
+        )
+        e = Edge(a, b, r.transform, r.value, r.valid, r.runner_up, r.seconds, (va, vb), r.violation)
         self._edges[e.key()] = e
         return e
 
@@ -345,7 +374,7 @@ class MapGraph:
         """Each map fused once into the global frame, in tree order from the anchor."""
         merged: SegmentMap | None = None
         for k in order:
-            m = self._nodes[k].map
+            m = self._nodes[k].work
             if merged is None:
                 merged = SegmentMap(poses[k].apply(m.segments), ordered=False, oriented=m.oriented)
             else:

@@ -21,9 +21,11 @@ import numpy as np
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.fusion import fuse
-from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.integration import Integration, integrate
 from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
+from fleetmap.shared.simplify import simplify
 
 METHODS = ("sequential", "tree", "pivot")
 
@@ -154,53 +156,135 @@ class PivotMapBuilder:
     """The pivot method online (Algorithm 6): add maps one at a time, each integrated with the
     previous placed one, its transform composed with the previous pose, and fused once.
 
-    The built map's frame is the first map's. With ``use_map`` (fleetmap, beyond Algorithm 6), a
-    map that does not integrate validly with the previous one is integrated with the whole map
-    built so far, which has more context (the previous scan may have been blocked by a person, or
-    turned away). A map that integrates with neither is not fused and gets no pose; the next map
-    is integrated with the last placed one. (An agent takes failures as the sign of a kidnap and
-    starts a new builder: a new epoch.)
+    The built map's frame is the first map's. Beyond Algorithm 6 (fleetmap):
+
+    - **Map fallback** (``use_map``): a map that does not integrate validly with the previous one
+      is integrated with the map built so far, near the last placed pose (within
+      ``local_map_radius``), which has more context (the previous scan may have been blocked by a
+      person, or turned away). A map that integrates with neither is not fused and gets no pose;
+      the next map is integrated with the last placed one. (An agent takes failures as the sign of
+      a kidnap and starts a new builder: a new epoch.)
+    - **Viewpoints**: the built map carries the pose of every placed scan
+      (:mod:`fleetmap.shared.mapgrid`), so the fallback, and any later integration of the map
+      with another, judges transformations by the free space those scans saw: a scan placed one
+      door further down a corridor puts walls where the map's scans saw none.
+    - **Simplification**: whenever the map has grown by half since, it is simplified
+      (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
+      per stretch of wall rather than one per scan that saw it.
     """
 
     def __init__(self, params: IntegrationParams | None = None, fuse_pairs: bool = False, use_map: bool = True) -> None:
         self.params = params or IntegrationParams()
         self.fuse_pairs = fuse_pairs
         self.use_map = use_map
-        self.map = SegmentMap(np.zeros((0, 4)), ordered=False, oriented=True)
+        self._map = SegmentMap(np.zeros((0, 4)), ordered=False, oriented=True)
+        self._viewpoints: list[Array] = []
+        self._simplified_size = 0
         self.poses: list[Transform2D | None] = []
         self.integrations = 0
         self._last: SegmentMap | None = None
         self._last_pose = Transform2D.identity()
+        self._max_motion: float | None = None
+        self._before: tuple[SegmentMap, Transform2D] | None = None
+        """The placed map before the last one, and its pose (a second witness)."""
 
-    def add(self, m: SegmentMap) -> PivotStep:
+    @property
+    def map(self) -> SegmentMap:
+        """The map built so far (the first map's frame), carrying the placed maps' viewpoints."""
+        vp = np.vstack(self._viewpoints) if self._viewpoints else np.zeros((0, 5))
+        return with_viewpoints(self._map, vp)
+
+    def add(self, m: SegmentMap, max_motion: float | None = None) -> PivotStep:
+        """Integrate and fuse one map; ``max_motion`` (m), when given, is the farthest the new map
+        can be from the last placed one (a robot's speed times the time since): an integration
+        that puts it farther does not count (the agent's motion bound, ``max_speed``)."""
         if self._last is None:
             self._last = m
-            self.map = SegmentMap(m.segments.copy(), ordered=False, oriented=m.oriented)
+            self._map = SegmentMap(m.segments.copy(), ordered=False, oriented=m.oriented)
+            self._viewpoints.append(viewpoints_of(m))
             self.poses.append(Transform2D.identity())
             return PivotStep(Transform2D.identity(), None)
         r = integrate(self._last, m, self.params)
         self.integrations += 1
-        if r.valid:
-            # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
-            pose = self._last_pose.compose(r.transform)
-        elif self.use_map and len(self.poses) > 1:
-            r = integrate(self.map, m, self.params)
+        # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
+        witnesses = [_Witness(self._last_pose.compose(r.transform), r)]
+        if self.params.pivot_witnesses and self._before is not None:
+            r2 = integrate(self._before[0], m, self.params)
             self.integrations += 1
-            if not r.valid:
-                self.poses.append(None)
-                return PivotStep(None, r)
-            pose = r.transform
-            r = integrate(self._last, m, self.params) if self.fuse_pairs else r
-        else:
+            witnesses.append(_Witness(self._before[1].compose(r2.transform), r2))
+        self._max_motion = max_motion
+        placed = self._corroborated(witnesses) if len(witnesses) > 1 else self._if_possible(witnesses[0])
+        if placed is None and self.use_map and self._before is not None:
+            rm = integrate(self._near(self._last_pose), m, self.params)
+            self.integrations += 1
+            witnesses.append(_Witness(rm.transform, rm))
+            placed = self._corroborated(witnesses) if self.params.pivot_witnesses else self._if_possible(witnesses[-1])
+        if placed is None:
             self.poses.append(None)
-            return PivotStep(None, r)
+            return PivotStep(None, witnesses[-1].integration)
+        pose = placed.pose
         if self.fuse_pairs:
             # Fig. 13a: fuse S_{i-1,i} (in S_{i-1}'s frame) placed by t_{1,i-1}.
-            pair = fuse(self._last, m, r.transform, self.params)
-            self.map = fuse(self.map, pair, self._last_pose, self.params)
+            pair = fuse(self._last, m, self._last_pose.inverse().compose(pose), self.params)
+            self._map = fuse(self._map, pair, self._last_pose, self.params)
         else:
             # Fig. 13b, steps 5-6: fuse S_i itself, placed by t_{1,i}.
-            self.map = fuse(self.map, m, pose, self.params)
+            self._map = fuse(self._map, m, pose, self.params)
+        self._viewpoints.append(moved_viewpoints(viewpoints_of(m), pose))
+        tol = self.params.simplify_tolerance
+        if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
+            self._map = simplify(self._map, tol)
+            self._simplified_size = len(self._map)
+        self._before = (self._last, self._last_pose)
         self._last, self._last_pose = m, pose
         self.poses.append(pose)
-        return PivotStep(pose, r)
+        return PivotStep(pose, placed.integration)
+
+    def _corroborated(self, witnesses: list[_Witness]) -> _Witness | None:
+        """The first valid witness that another one agrees with (within the witness tolerances)."""
+        tt, tr = self.params.witness_translation, self.params.witness_rotation
+        for w in witnesses:
+            if self._if_possible(w) is None:
+                continue
+            for other in witnesses:
+                if other is not w:
+                    dt, dr = w.pose.distance(other.pose)
+                    if dt <= tt and dr <= tr:
+                        return w
+        return None
+
+    def _if_possible(self, w: _Witness) -> _Witness | None:
+        """``w`` if its integration is valid and within the motion bound of :meth:`add`."""
+        if not w.integration.valid:
+            return None
+        if self._max_motion is not None and w.pose.distance(self._last_pose)[0] > self._max_motion:
+            return None
+        return w
+
+    def _near(self, pose: Transform2D) -> SegmentMap:
+        """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
+        built = self.map
+        radius = self.params.local_map_radius
+        if radius <= 0:
+            return built
+        seg = built.segments
+        near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
+            axis=1
+        )
+        vp = viewpoints_of(built)
+        vp = vp[(np.abs(vp[:, 0] - pose.x) <= radius) & (np.abs(vp[:, 1] - pose.y) <= radius)]
+        if not near.any():
+            return built
+        return with_viewpoints(SegmentMap(seg[near], ordered=False, oriented=built.oriented), vp)
+
+
+@dataclass(frozen=True)
+class _Witness:
+    """Where one integration puts the new map in the built map's frame."""
+
+    pose: Transform2D
+    integration: Integration
+
+
+SIMPLIFY_FROM = 200
+"""The built map is simplified once it holds more segments than this (and half again each time)."""

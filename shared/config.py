@@ -116,6 +116,42 @@ class IntegrationParams:
     """... and puts at most this fraction of its value in the other scan's seen free space ..."""
     valid_max_ambiguity: float = 0.8
     """... and no clearly different transformation scores more than this fraction of its score."""
+    grid_resolution: float = 0.10
+    """Large maps (fleetmap, see fleetmap.shared.mapgrid): cell size (m) of the grids that rank
+    candidate transformations by matched wall length and wall length in seen free space."""
+    map_free_space_margin: float = 0.20
+    """Large maps: a wall point closer to a viewpoint than the map's wall in that bearing by more than
+    this (m) lies in the seen free space (a local map's own small errors need more than a scan's)."""
+    map_free_space_slope: float = 0.02
+    """Large maps: the free-space margin grows by this much per metre of range (far walls move most
+    under a small rotation error)."""
+    simplify_tolerance: float = 0.05
+    """Partial maps (fleetmap, see fleetmap.shared.simplify): segments within this (m) of one line
+    are replaced by one segment per covered stretch (0: never simplify)."""
+    pivot_witnesses: bool = True
+    """The pivot builder places a scan only when two integrations agree on its pose (fleetmap: one
+    valid integration with the last or the one-before-last placed scan, or the built map, and
+    another of them within the witness tolerances), so one wrong integration cannot place it."""
+    witness_translation: float = 0.30
+    """Two integrations agree when they put the new scan within this (m) ..."""
+    witness_rotation: float = 0.0524
+    """... and this (rad, 3 degrees) of each other."""
+    local_map_radius: float = 20.0
+    """The pivot builder's map fallback integrates a scan with the built map within this (m) of the
+    last placed pose (0: all of it)."""
+    valid_min_map_value: float = 8.0
+    """Two large partial maps: an integration is valid only if its value is at least this (m) ..."""
+    valid_max_map_violation: float = 0.1
+    """... and it puts at most this fraction of its value in the maps' seen free space ..."""
+    valid_max_map_ambiguity: float = 0.5
+    """... and no clearly different transformation scores more than this fraction of its score
+    (on the large-map path; see fleetmap.shared.integration for how these were measured)."""
+    max_speed: float = 3.0
+    """Robot agents (fleetmap): the fastest a robot moves (m/s). A scan whose integrations put it
+    farther from the last placed scan than this times the time between them (plus
+    ``witness_translation``) is not placed: a robot cannot be there, so the match is wrong (a
+    look-alike corridor) or the robot was carried off. 0: no bound. This is a physical limit, not
+    a pose: the robot still knows nothing of where it is."""
 
 
 @dataclass(frozen=True)

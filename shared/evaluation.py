@@ -328,9 +328,10 @@ def _tree_pairs(prep: PreparedPairs, mid2: Array, d_max: float) -> tuple[IntArra
     return pairs[:, 0], pairs[:, 1]
 
 
-def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams) -> float:
-    """The transformation value of one transformation (-1 when discarded)."""
+def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams, refuse: bool = True) -> float:
+    """The transformation value of one transformation (-1 when discarded; ``refuse=False`` skips
+    steps 6-8, for maps whose seen free space judges crossings instead)."""
     tt = np.asarray(t, dtype=np.float64).reshape(1, 3)
-    if refused(prep, tt, params)[0]:
+    if refuse and refused(prep, tt, params)[0]:
         return -1.0
     return float(matched_pairs(prep, tt, params)[2].sum())

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from fleetmap.merger.sequence import PivotMapBuilder, pivot, sequential, tree
 from fleetmap.scenarios.laser import LaserParams
+from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
 
@@ -41,7 +42,9 @@ def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method) -> No
 def test_integration_counts_are_the_papers() -> None:
     n = len(SCANS)
     assert sequential(SCANS).integrations == n - 1
-    assert pivot(SCANS).integrations == n - 1
+    # The paper's pivot method (no second witness): n - 1; fleetmap's witness adds one per map after the second.
+    assert pivot(SCANS, IntegrationParams(pivot_witnesses=False)).integrations == n - 1
+    assert pivot(SCANS).integrations == 2 * (n - 1) - 1
     # The tree method needs n(n - 1)/2 when every integration is valid (its fallback adds calls otherwise).
     assert tree(SCANS, shortcut_from_level=None).integrations >= n * (n - 1) // 2
 
@@ -56,6 +59,19 @@ def test_the_pivot_builder_leaves_a_scan_from_elsewhere_unplaced_and_goes_on() -
     assert steps[4].integration is not None and not steps[4].integration.valid
     # After the stranger, scan 4 was integrated with scan 3 (the last placed) and placed right.
     dt, dr = steps[5].pose.distance(TRUTH[4])  # type: ignore[union-attr]
+    assert dt < 0.05 and dr < math.radians(1.0)
+
+
+def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
+    builder = PivotMapBuilder()
+    for m in SCANS[:3]:
+        assert builder.add(m, max_motion=2.0).pose is not None
+    step = TRUTH[2].distance(TRUTH[3])[0]  # the true motion from scan 2 to scan 3 (about 0.7 m)
+    assert builder.add(SCANS[3], max_motion=0.5 * step).pose is None, "placed beyond the bound"
+    # The bound does not move the estimate: with room to spare, the scan is placed right.
+    pose = builder.add(SCANS[3], max_motion=2.0).pose
+    assert pose is not None
+    dt, dr = pose.distance(TRUTH[3])
     assert dt < 0.05 and dr < math.radians(1.0)
 
 

@@ -1,0 +1,334 @@
+"""Large partial maps: viewpoints, seen free space and a grid index (fleetmap, beyond the paper).
+
+The paper integrates partial maps exactly as it integrates scans (IV: "all the methods are
+applicable to the integration of two partial maps"), and notes that it gets slow and unreliable
+as they grow (V-B, V-C). Two partial maps of a real building share only a part of their walls,
+while their many long parallel walls (corridors, racks) let wrong transformations match tens of
+metres: the transformation value alone no longer separates right from wrong. What separates them
+is what the robots *saw*: a map built from scans knows from where each scan was taken, and the
+space between those viewpoints and the walls they saw is free. A wrong transformation puts one
+map's walls in the other's free space; the right one does not.
+
+- **Viewpoints.** A map may carry the poses of the scans it was built from, in its own frame:
+  ``SegmentMap.extras["viewpoints"]``, rows ``[x, y, theta, bearing_min, bearing_max]`` (the
+  bearings, in the scan's frame, that its segments span). The pivot method records them
+  (:class:`fleetmap.merger.sequence.PivotMapBuilder`); they survive a map file (extra keys are
+  kept). A scan (an ``ordered`` map) has one, at its origin.
+- **Free grid.** The cells seen free from any viewpoint: from each viewpoint, the range profile of
+  the map's own segments (:func:`fleetmap.shared.visibility.range_profile`: the nearest wall in
+  each bearing, within the span the scan covered) minus a margin that grows with range (the map's
+  own small rotation errors move far walls most). The map's walls include the scan's own, so
+  this never claims more than the scan saw.
+- **Map index.** For ranking many candidate transformations fast: a grid of the cells near the
+  map's walls, one layer per wall direction (a likelihood field, Thrun, Burgard & Fox 2005, 6.4;
+  Olson 2009's correlative matching), plus the free grid and points sampled along the walls. The
+  *grid score* of a transformation of B on A is the wall length of each map that lands near a
+  wall of the other facing the same way (averaged over the two directions) minus the wall length
+  of each that lands in the other's free space. It ranks the candidates of the paper's heuristics;
+  the best few are then valued exactly (Algorithm 4) and refined.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from fleetmap.shared.candidates import ragged_ranges
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, segment_points
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.visibility import range_profile
+
+VIEWPOINTS = "viewpoints"
+"""The key of a map's viewpoints in ``SegmentMap.extras``."""
+
+CHANNELS = 8
+"""Wall-direction layers of the hit grid (45 degrees each over a full turn)."""
+
+PROFILE_BINS = 720
+"""Bearing bins of a viewpoint's range profile (0.5 degree)."""
+PROFILE_WIDEN = 2
+"""A bin's free range is the smallest over this many bins on either side (1 degree)."""
+
+VIEWPOINT_SPACING = 0.5
+VIEWPOINT_TURN = 0.35
+"""A viewpoint closer than this (m) to one already drawn, and turned less than this (rad), adds
+nothing new to the free grid and is skipped."""
+
+MAX_CELLS = 4_000_000
+"""The grid's resolution is coarsened so that a map never needs more cells than this."""
+
+COARSE_POINTS = 160
+FINE_SPACING = 0.1
+"""Points sampled along a map's walls for the grid score: about COARSE_POINTS for the first pass
+over every candidate, one every FINE_SPACING metres for the second."""
+
+
+def scan_viewpoint(segments: Array) -> Array:
+    """The viewpoint of a scan ``(1, 5)``: its origin, and the bearings its segments span."""
+    ends = np.asarray(segments, dtype=np.float64).reshape(-1, 2)
+    if len(ends) == 0:
+        return np.zeros((0, 5))
+    bearing = np.arctan2(ends[:, 1], ends[:, 0])
+    return np.array([[0.0, 0.0, 0.0, float(bearing.min()), float(bearing.max())]])
+
+
+def viewpoints_of(m: SegmentMap) -> Array:
+    """A map's viewpoints ``(v, 5)``: those it carries, a scan's own, or none."""
+    raw = m.extras.get(VIEWPOINTS)
+    if raw is None:
+        return scan_viewpoint(m.segments) if m.ordered else np.zeros((0, 5))
+    try:
+        vp = np.asarray(raw, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise BadInput(VIEWPOINTS, "must be a list of [x, y, theta, bearing_min, bearing_max]") from None
+    if vp.size == 0:
+        return np.zeros((0, 5))
+    if vp.ndim != 2 or vp.shape[1] != 5:
+        raise BadInput(
+            VIEWPOINTS, f"must have rows of 5 numbers [x, y, theta, bearing_min, bearing_max], got {vp.shape}"
+        )
+    if not np.isfinite(vp).all():
+        raise BadInput(VIEWPOINTS, "has a NaN or infinite number")
+    return vp
+
+
+def with_viewpoints(m: SegmentMap, viewpoints: Array) -> SegmentMap:
+    """``m`` carrying ``viewpoints`` (rows ``[x, y, theta, bearing_min, bearing_max]``)."""
+    rows = [[float(v) for v in row] for row in np.asarray(viewpoints, dtype=np.float64).reshape(-1, 5)]
+    return SegmentMap(m.segments, ordered=m.ordered, oriented=m.oriented, extras={**m.extras, VIEWPOINTS: rows})
+
+
+def moved_viewpoints(viewpoints: Array, t: Transform2D) -> Array:
+    """Viewpoints moved by ``t`` (their bearings are in their own frame and do not change)."""
+    vp = np.asarray(viewpoints, dtype=np.float64).reshape(-1, 5).copy()
+    vp[:, 0:2] = t.apply_points(vp[:, 0:2])
+    vp[:, 2] = np.mod(vp[:, 2] + t.theta + math.pi, 2 * math.pi) - math.pi
+    return vp
+
+
+def distinct_viewpoints(viewpoints: Array) -> Array:
+    """The viewpoints that add to the free grid (greedy, in order; see VIEWPOINT_SPACING)."""
+    kept: list[int] = []
+    for k, (x, y, th, _, _) in enumerate(viewpoints):
+        if not any(
+            math.hypot(x - viewpoints[j, 0], y - viewpoints[j, 1]) < VIEWPOINT_SPACING
+            and abs(math.remainder(th - viewpoints[j, 2], 2 * math.pi)) < VIEWPOINT_TURN
+            for j in kept
+        ):
+            kept.append(k)
+    return viewpoints[kept]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A raster over a map: cell (i, j) covers ``origin + ([i, i+1), [j, j+1)) * resolution``."""
+
+    origin: Array
+    resolution: float
+    shape: tuple[int, int]
+
+    @staticmethod
+    def around(points: Array, resolution: float, pad: float = 1.0) -> Frame:
+        lo = points.min(axis=0) - pad
+        hi = points.max(axis=0) + pad
+        res = resolution
+        while math.ceil((hi[0] - lo[0]) / res) * math.ceil((hi[1] - lo[1]) / res) > MAX_CELLS:
+            res *= 1.5
+        shape = (math.ceil((hi[0] - lo[0]) / res) + 1, math.ceil((hi[1] - lo[1]) / res) + 1)
+        return Frame(lo, res, shape)
+
+    def cells(self, x: Array, y: Array) -> tuple[Array, Array, Array]:
+        """Cell indices of points and whether each falls on the grid (off-grid points get (0, 0))."""
+        i = np.floor((x - self.origin[0]) / self.resolution).astype(np.int64)
+        j = np.floor((y - self.origin[1]) / self.resolution).astype(np.int64)
+        on = (i >= 0) & (j >= 0) & (i < self.shape[0]) & (j < self.shape[1])
+        return np.where(on, i, 0), np.where(on, j, 0), on
+
+
+def free_grid(segments: Array, viewpoints: Array, frame: Frame, margin: float, slope: float) -> Array:
+    """Cells seen free from any viewpoint (see the module docstring); bool ``frame.shape``."""
+    free = np.zeros(frame.shape, dtype=bool)
+    if len(segments) == 0:
+        return free
+    width = 2 * math.pi / PROFILE_BINS
+    centre = (np.arange(PROFILE_BINS) + 0.5) * width - math.pi
+    step = 0.7 * frame.resolution
+    for x, y, th, b0, b1 in distinct_viewpoints(np.asarray(viewpoints, dtype=np.float64)):
+        pose = Transform2D(float(x), float(y), float(th))
+        profile = range_profile(pose.inverse().apply(segments), PROFILE_BINS, PROFILE_WIDEN)
+        profile[(centre < b0) | (centre > b1)] = 0.0
+        # Along each bearing, free up to the wall less the margin (which grows with range).
+        reach = (profile - margin) / (1.0 + slope)
+        count = np.where(reach > 0, np.floor(np.maximum(reach, 0) / step).astype(np.int64) + 1, 0)
+        owner, pos = ragged_ranges(np.zeros(PROFILE_BINS, np.int64), count)
+        if len(owner) == 0:
+            continue
+        r = (pos + 0.5) * step
+        r = np.minimum(r, reach[owner])
+        a = centre[owner] + th
+        i, j, on = frame.cells(x + r * np.cos(a), y + r * np.sin(a))
+        free[i[on], j[on]] = True
+    return free
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Points along a map's walls: position, wall direction, and the wall length each stands for."""
+
+    points: Array
+    direction: Array
+    weight: Array
+
+    @staticmethod
+    def along(segments: Array, spacing: float) -> Samples:
+        """One point every ``spacing`` metres of wall, the walls taken end to end (a segment
+        shorter than the spacing may get none), each standing for ``spacing`` metres."""
+        if len(segments) == 0:
+            return Samples(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+        ln = lengths(segments)
+        cum = np.cumsum(ln)
+        at = np.arange(0.5 * spacing, float(cum[-1]), spacing)
+        owner = np.minimum(np.searchsorted(cum, at, side="right"), len(segments) - 1)
+        frac = np.clip((at - (cum[owner] - ln[owner])) / np.maximum(ln[owner], 1e-12), 0.0, 1.0)
+        s = segments[owner]
+        pts = s[:, 0:2] + (s[:, 2:4] - s[:, 0:2]) * frac[:, None]
+        return Samples(pts, orientations(segments)[owner], np.full(len(at), spacing))
+
+
+@dataclass(frozen=True)
+class MapIndex:
+    """A map prepared for the grid score (see the module docstring); build with :func:`map_index`."""
+
+    frame: Frame
+    hits: Array
+    """``(CHANNELS, nx, ny)``: cells within reach of a wall of that direction (or a neighbouring one)."""
+    free: Array
+    """``(nx, ny)``: cells seen free from the map's viewpoints (all False without viewpoints)."""
+    coarse: Samples
+    fine: Samples
+    period: float
+    """2 pi for oriented maps (a wall's direction tells its seen side), pi otherwise."""
+    has_free: bool
+    code: Array
+    """``(CHANNELS, nx + 2, ny + 2)`` int8, padded with a zero border: 1 on the hit cells, -2 on the
+    free cells that are not, 0 elsewhere (twice the grid score's weights: the matched length is the
+    mean over the two directions)."""
+
+
+def map_index(m: SegmentMap, resolution: float, reach: float, margin: float, slope: float) -> MapIndex:
+    """Index ``m`` for the grid score: hit grid within ``reach`` of its walls, free grid from its viewpoints."""
+    seg = np.asarray(m.segments, dtype=np.float64)
+    vp = viewpoints_of(m)
+    corners = np.vstack([seg.reshape(-1, 2), vp[:, 0:2]]) if len(vp) else seg.reshape(-1, 2)
+    frame = Frame.around(corners, resolution)
+    period = 2 * math.pi if m.oriented else math.pi
+    # Hit grid: cells around points every half cell along the walls, in the wall's direction layer
+    # and its two neighbours (so a wall matches a wall within about 45 degrees).
+    wall_points, owner = segment_points(seg, frame.resolution / 2)
+    ch = _channel(orientations(seg)[owner], period)
+    hits = np.zeros((CHANNELS, *frame.shape), dtype=bool)
+    r = max(1, math.ceil(reach / frame.resolution))
+    offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r]
+    for di, dj in offsets:
+        i, j, on = frame.cells(wall_points[:, 0] + di * frame.resolution, wall_points[:, 1] + dj * frame.resolution)
+        for dc in (-1, 0, 1):
+            hits[(ch[on] + dc) % CHANNELS, i[on], j[on]] = True
+    free = free_grid(seg, vp, frame, margin, slope) if len(vp) else np.zeros(frame.shape, dtype=bool)
+    total = float(lengths(seg).sum())
+    coarse = Samples.along(seg, max(FINE_SPACING, total / COARSE_POINTS))
+    fine = Samples.along(seg, FINE_SPACING)
+    code = np.zeros((CHANNELS, frame.shape[0] + 2, frame.shape[1] + 2), dtype=np.int8)
+    code[:, 1:-1, 1:-1] = np.where(hits, np.int8(1), np.where(free[None], np.int8(-2), np.int8(0)))
+    return MapIndex(frame, hits, free, coarse, fine, period, bool(len(vp)), code)
+
+
+def _channel(direction: Array, period: float) -> Array:
+    return (np.floor(np.mod(direction, period) / period * CHANNELS).astype(np.int64)) % CHANNELS
+
+
+CHUNK = 1_000_000
+"""Candidate-point lookups done at once."""
+
+RANK_ROTATION_STEP = math.radians(0.25)
+"""For ranking, candidates are grouped by rotation rounded to this (rad); each group's points are
+turned once."""
+
+
+def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
+    """Grid score contributions of ``s`` moved by each transformation (rotations rounded, for ranking)."""
+    out = np.zeros(len(t))
+    if len(s.points) == 0 or len(t) == 0:
+        return out
+    code = index.code.reshape(-1)
+    nx, ny = index.code.shape[1:]
+    res = index.frame.resolution
+    ox, oy = index.frame.origin
+    q = np.round(t[:, 2] / RANK_ROTATION_STEP).astype(np.int64)
+    groups, inverse = np.unique(q, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    bounds = np.searchsorted(inverse[order], np.arange(len(groups) + 1))
+    step = max(1, CHUNK // len(s.points))
+    for g, qg in enumerate(groups):
+        members = order[bounds[g] : bounds[g + 1]]
+        th = float(qg) * RANK_ROTATION_STEP
+        c, sn = math.cos(th), math.sin(th)
+        # Cell coordinates (in cells, shifted by the padding) of the turned points, and their layer.
+        px = (c * s.points[:, 0] - sn * s.points[:, 1] - ox) / res + 1.0
+        py = (sn * s.points[:, 0] + c * s.points[:, 1] - oy) / res + 1.0
+        layer = _channel(s.direction + th, index.period) * (nx * ny)
+        for c0 in range(0, len(members), step):
+            mem = members[c0 : c0 + step]
+            i = np.clip(np.floor(px[None, :] + t[mem, 0, None] / res), 0, nx - 1).astype(np.int64)
+            j = np.clip(np.floor(py[None, :] + t[mem, 1, None] / res), 0, ny - 1).astype(np.int64)
+            out[mem] = code[layer[None, :] + i * ny + j].astype(np.float64) @ s.weight
+    return 0.5 * out
+
+
+def _lookups(index: MapIndex, s: Samples, t: Array) -> tuple[Array, Array]:
+    """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and in its free space."""
+    hit_out = np.zeros(len(t))
+    free_out = np.zeros(len(t))
+    if len(s.points) == 0 or len(t) == 0:
+        return hit_out, free_out
+    step = max(1, CHUNK // len(s.points))
+    px, py = s.points[:, 0], s.points[:, 1]
+    for c0 in range(0, len(t), step):
+        tt = t[c0 : c0 + step]
+        c = np.cos(tt[:, 2])[:, None]
+        sn = np.sin(tt[:, 2])[:, None]
+        i, j, on = index.frame.cells(c * px - sn * py + tt[:, 0, None], sn * px + c * py + tt[:, 1, None])
+        ch = _channel(s.direction[None, :] + tt[:, 2, None], index.period)
+        near = index.hits[ch, i, j] & on
+        hit_out[c0 : c0 + step] = near @ s.weight
+        if index.has_free:
+            seen_free = index.free[i, j] & on & ~near
+            free_out[c0 : c0 + step] = seen_free @ s.weight
+    return hit_out, free_out
+
+
+def ranking_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False) -> Array:
+    """The grid score of transformations ``t`` of B on A (rotations rounded to RANK_ROTATION_STEP):
+    matched wall length (mean of both directions) less wall length in the other's free space."""
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    sa, sb = (a.fine, b.fine) if fine else (a.coarse, b.coarse)
+    ab = _ranking_lookups(a, sb, t)
+    ba = _ranking_lookups(b, sa, inverse_transforms(t))
+    return ab + ba
+
+
+def inverse_transforms(t: Array) -> Array:
+    c, s = np.cos(t[:, 2]), np.sin(t[:, 2])
+    return np.column_stack([-(c * t[:, 0] + s * t[:, 1]), s * t[:, 0] - c * t[:, 1], -t[:, 2]])
+
+
+def grid_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False) -> tuple[Array, Array]:
+    """Grid score parts of transformations ``t`` of B on A: matched wall length (mean of both
+    directions) and wall length in the other's free space (sum of both)."""
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    sa, sb = (a.fine, b.fine) if fine else (a.coarse, b.coarse)
+    hit_ab, free_ab = _lookups(a, sb, t)
+    hit_ba, free_ba = _lookups(b, sa, inverse_transforms(t))
+    return 0.5 * (hit_ab + hit_ba), free_ab + free_ba
