@@ -37,6 +37,7 @@ from fleetmap.shared.extraction import extract_segments
 from fleetmap.shared.geometry import Array, Transform2D, lengths
 from fleetmap.shared.keys import check_name
 from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH, SegmentMap
+from fleetmap.shared.mapgrid import viewpoints_of
 from fleetmap.shared.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan
 from fleetmap.shared.scans import RangeScan
 
@@ -210,15 +211,17 @@ class Agent:
     def _local_map(self, stamp: float) -> LocalMap:
         epoch = self._epoch
         epoch.version += 1
+        built = epoch.builder.map
         message = LocalMap(
             self.robot,
             epoch.number,
             epoch.version,
             stamp,
-            _wire_segments(epoch.builder.map.segments),
+            _wire_segments(built.segments),
             epoch.placed,
             epoch.pose,
             epoch.link,
+            viewpoints_of(built),
         )
         epoch.published_placed, epoch.published_pose, epoch.latest = epoch.placed, epoch.pose, message
         self._local_maps += 1

@@ -47,6 +47,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import viewpoints_of, with_viewpoints
 from fleetmap.shared.messages import (
     BadMessage,
     Component,
@@ -212,6 +213,8 @@ class Merger:
         if m.previous_epoch_link is not None:
             self.links[m.key] = f"{m.robot}/{m.previous_epoch_link.epoch}"
         segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
+        if m.viewpoints is not None:
+            segment_map = with_viewpoints(segment_map, m.viewpoints)
         return self.graph.add_map(m.key, segment_map, m.version)
 
     def _global_map(self, result: MergeResult) -> GlobalMap:
@@ -273,6 +276,7 @@ class Merger:
                 "key": k,
                 "version": self.graph.version_of(k),
                 "segments": np.ascontiguousarray(self.graph.map_of(k).segments, dtype="<f8").tobytes(),
+                "viewpoints": np.ascontiguousarray(viewpoints_of(self.graph.map_of(k)), dtype="<f8").tobytes(),
             }
             for k in self.graph.keys
         ]
@@ -286,6 +290,7 @@ class Merger:
                 "runner_up": e.runner_up,
                 "seconds": e.seconds,
                 "versions": list(e.versions),
+                "violation": e.violation,
             }
             for e in self.graph.edges
         ]
@@ -325,7 +330,9 @@ class Merger:
             graph = MapGraph(self.config.integration, self.config.merge, anchor="first")
             for n in state["nodes"]:
                 seg = np.frombuffer(n["segments"], dtype="<f8").reshape(-1, 4).copy()
-                graph.put_map(n["key"], SegmentMap(seg, ordered=False, oriented=True), int(n["version"]))
+                vp = np.frombuffer(n.get("viewpoints", b""), dtype="<f8").reshape(-1, 5)
+                restored = SegmentMap(seg, ordered=False, oriented=True)
+                graph.put_map(n["key"], with_viewpoints(restored, vp) if len(vp) else restored, int(n["version"]))
             for e in state["edges"]:
                 graph.add_edge(
                     Edge(
@@ -337,6 +344,7 @@ class Merger:
                         float(e["runner_up"]),
                         float(e["seconds"]),
                         (int(e["versions"][0]), int(e["versions"][1])),
+                        float(e.get("violation", 0.0)),
                     )
                 )
             robots = {}

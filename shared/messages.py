@@ -163,39 +163,53 @@ def _readonly(array: Array) -> Array:
     return view
 
 
-def _segments(schema: str, name: str, value: Any, limit: int = MAX_SEGMENTS) -> Array:
-    """Segments as an (n, 4) float64 array, from an array-like or the wire's packed float64 bytes."""
+def _float_rows(schema: str, name: str, value: Any, row: str, noun: str, limit: int) -> Array:
+    """Rows of float64 (``row`` names the columns, e.g. "x1, y1, x2, y2"), from an array-like or
+    the wire's packed little-endian bytes; at most ``limit`` rows, every value finite."""
+    width = len(row.split(","))
     if isinstance(value, (bytes, bytearray, memoryview)):
         raw = bytes(value)
         if len(raw) % 8:
             raise BadMessage(schema, name, f"{len(raw)} bytes is not a whole number of float64")
-        if len(raw) // 8 % 4:
-            raise BadMessage(schema, name, f"{len(raw) // 8} floats is not a multiple of 4")
-        if len(raw) // 32 > limit:
-            raise BadMessage(schema, name, f"{len(raw) // 32} segments is more than {limit}")
-        array = np.frombuffer(raw, dtype="<f8").reshape(-1, 4)
+        if len(raw) // 8 % width:
+            raise BadMessage(schema, name, f"{len(raw) // 8} floats is not a multiple of {width}")
+        if len(raw) // (8 * width) > limit:
+            raise BadMessage(schema, name, f"{len(raw) // (8 * width)} {noun}s is more than {limit}")
+        array = np.frombuffer(raw, dtype="<f8").reshape(-1, width)
     elif isinstance(value, (np.ndarray, list, tuple)):
         try:
             array = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
-            raise BadMessage(schema, name, "expected rows of 4 numbers [x1, y1, x2, y2]") from None
+            raise BadMessage(schema, name, f"expected rows of {width} numbers [{row}]") from None
         if array.size == 0:
-            array = array.reshape(0, 4)
-        if array.ndim != 2 or array.shape[1] != 4:
-            raise BadMessage(schema, name, f"expected shape (n, 4), got {array.shape}")
+            array = array.reshape(0, width)
+        if array.ndim != 2 or array.shape[1] != width:
+            raise BadMessage(schema, name, f"expected shape (n, {width}), got {array.shape}")
         if array.shape[0] > limit:
-            raise BadMessage(schema, name, f"{array.shape[0]} segments is more than {limit}")
+            raise BadMessage(schema, name, f"{array.shape[0]} {noun}s is more than {limit}")
     else:
-        raise BadMessage(schema, name, f"expected packed float64 segments, got {type(value).__name__}")
+        raise BadMessage(schema, name, f"expected packed float64 {noun}s, got {type(value).__name__}")
     finite = np.isfinite(array).all(axis=1)
     if not finite.all():
         i = int(np.flatnonzero(~finite)[0])
-        raise BadMessage(schema, name, f"segment {i} has a NaN or infinite coordinate")
+        raise BadMessage(schema, name, f"{noun} {i} has a NaN or infinite coordinate")
+    return array
+
+
+def _segments(schema: str, name: str, value: Any, limit: int = MAX_SEGMENTS) -> Array:
+    """Segments as an (n, 4) float64 array, from an array-like or the wire's packed float64 bytes."""
+    array = _float_rows(schema, name, value, "x1, y1, x2, y2", "segment", limit)
     short = lengths(array) < MIN_SEGMENT_LENGTH
     if short.any():
         i = int(np.flatnonzero(short)[0])
         raise BadMessage(schema, name, f"segment {i} has zero length")
     return _readonly(array)
+
+
+def _viewpoints(schema: str, name: str, value: Any, limit: int = MAX_SEGMENTS) -> Array:
+    """Viewpoints as a (v, 5) float64 array ``[x, y, theta, bearing_min, bearing_max]`` (the pose of
+    each scan in a local map and the bearings its laser covers), from an array-like or packed bytes."""
+    return _readonly(_float_rows(schema, name, value, "x, y, theta, bearing_min, bearing_max", "viewpoint", limit))
 
 
 def _ranges_array(schema: str, name: str, value: Any) -> Array:
@@ -449,6 +463,10 @@ class LocalMap(WireMessage):
     """The robot's current pose in this local map's frame; None when the robot is lost."""
     previous_epoch_link: EpochLink | None = None
     """Set on the first versions of an epoch that follows another one of the same robot."""
+    viewpoints: Array | None = None
+    """Where each placed scan was taken, in the map's frame, and the bearings its laser covers:
+    rows ``[x, y, theta, bearing_min, bearing_max]`` (fleetmap.shared.mapgrid). With them the
+    merger knows the free space the robot saw and refuses a match that puts walls in it."""
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
@@ -459,6 +477,8 @@ class LocalMap(WireMessage):
         _set(self, "segments", _segments(s, "segments", self.segments))
         _set(self, "scans", _count(s, "scans", self.scans))
         _set(self, "pose", _optional_transform(s, "pose", self.pose))
+        if self.viewpoints is not None:
+            _set(self, "viewpoints", _viewpoints(s, "viewpoints", self.viewpoints))
         if self.previous_epoch_link is not None:
             link = _part(EpochLink, s, "previous_epoch_link", self.previous_epoch_link)
             if link.epoch >= self.epoch:

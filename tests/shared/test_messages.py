@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import struct
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -91,6 +92,13 @@ def test_local_map_round_trip():
     assert back.pose == Transform2D(0.5, -1.0, 0.25)
     assert back.previous_epoch_link == EpochLink(1, "kidnap", None)
     np.testing.assert_array_equal(back.segments, SEGMENTS)
+
+
+def test_local_map_viewpoints_round_trip_and_are_optional():
+    vp = np.array([[0.0, 0.0, 0.0, -2.0, 2.0], [1.5, -0.5, 0.3, -math.pi, math.pi]])
+    back = LocalMap.from_msgpack(replace(local_map(), viewpoints=vp).to_msgpack())
+    np.testing.assert_array_equal(back.viewpoints, vp)
+    assert LocalMap.from_msgpack(local_map().to_msgpack()).viewpoints is None
 
 
 def test_a_lost_robot_has_no_pose_in_its_local_map():
@@ -189,6 +197,10 @@ def test_too_many_segments_are_refused_before_decoding_them():
         ("scans", None, "expected a non-negative integer, got NoneType"),
         ("pose", {"x": 1.0, "y": 2.0}, "missing theta"),
         ("pose", [1.0, 2.0, 3.0], "expected a transform {x, y, theta}, got list"),
+        ("viewpoints", b"\x00" * 48, "6 floats is not a multiple of 5"),
+        ("viewpoints", [[0.0, 0.0, 0.0, -1.0]], "expected shape (n, 5), got (1, 4)"),
+        ("viewpoints", [[0.0, math.nan, 0.0, -1.0, 1.0]], "viewpoint 0 has a NaN or infinite coordinate"),
+        ("viewpoints", "here", "expected packed float64 viewpoints, got str"),
     ],
 )
 def test_bad_local_map_fields_are_named(field, value, reason):
