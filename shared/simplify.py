@@ -93,9 +93,9 @@ def simplify(
             continue
         ta, tb = (seg[group, 0:2] - c) @ u, (seg[group, 2:4] - c) @ u
         lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
-        for a, b in _union(lo, hi, gap):
-            if b - a > 1e-6:
-                out.append(np.array([[*(c + a * u), *(c + b * u)]]))
+        for start, end in _union(lo, hi, gap):
+            if end - start > 1e-6:
+                out.append(np.array([[*(c + start * u), *(c + end * u)]]))
     return SegmentMap(np.vstack(out), ordered=False, oriented=m.oriented, extras=dict(m.extras))
 
 
