@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 
+from fleetmap.cli import COMMANDS, build_parser, main
 from tests.helpers import ROOM
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "src" / "fleetmap" / "examples"
@@ -131,3 +132,16 @@ def test_extract_reads_carmen_and_rejects_garbage(tmp_path: Path) -> None:
     junk.write_text("hello\n")
     r = fleetmap("extract", str(junk), "--format", "carmen", "--out", str(out))
     assert r.returncode == 2 and "junk.clf" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_every_command_is_listed_and_a_misspelt_one_is_refused_naming_them() -> None:
+    listed = build_parser().format_help()
+    misspelt = fleetmap("integrat", "a.json")
+    assert misspelt.returncode == 2
+    for name in COMMANDS:
+        assert name in listed, f"{name} missing from --help"
+        assert f"'{name}'" in misspelt.stderr, f"{name} missing from the choices"
+    # A command given after -v still parses as that command (the global options take no value).
+    with pytest.raises(SystemExit) as done:
+        main(["-v", "integrate", "--help"])
+    assert done.value.code == 0

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
-from fleetmap.merger.sequence import PivotMapBuilder, pivot, sequential, tree
+from fleetmap.merger.sequence import PivotMapBuilder, SequenceResult, pivot, sequential, tree
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Transform2D
@@ -27,13 +29,24 @@ def _assert_trajectory(poses: list[Transform2D | None]) -> None:
         assert dt < 0.05 and dr < math.radians(1.0), f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
-@pytest.mark.parametrize(
-    "method",
-    [sequential, tree, lambda m: tree(m, shortcut_from_level=None), pivot, lambda m: pivot(m, variant="pairs")],
-    ids=["sequential", "tree", "tree-no-shortcut", "pivot", "pivot-pairs"],
-)
-def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method) -> None:  # type: ignore[no-untyped-def]
-    result = method(SCANS)
+METHODS: dict[str, Callable[[list[SegmentMap]], SequenceResult]] = {
+    "sequential": sequential,
+    "tree": tree,
+    "tree-no-shortcut": lambda m: tree(m, shortcut_from_level=None),
+    "pivot": pivot,
+    "pivot-pairs": lambda m: pivot(m, variant="pairs"),
+}
+
+
+@functools.cache
+def merged(method: str) -> SequenceResult:
+    """Each method's run on SCANS, once for the module (several tests check different things of it)."""
+    return METHODS[method](SCANS)
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method: str) -> None:
+    result = merged(method)
     _assert_trajectory(result.poses)
     # The merged map is in the first scan's frame and has fused the overlapping walls.
     assert len(result.map) < sum(len(s) for s in SCANS) / 2
@@ -41,12 +54,12 @@ def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method) -> No
 
 def test_integration_counts_are_the_papers() -> None:
     n = len(SCANS)
-    assert sequential(SCANS).integrations == n - 1
+    assert merged("sequential").integrations == n - 1
     # The paper's pivot method (no second witness): n - 1; fleetmap's witness adds one per map after the second.
     assert pivot(SCANS, IntegrationParams(pivot_witnesses=False)).integrations == n - 1
-    assert pivot(SCANS).integrations == 2 * (n - 1) - 1
+    assert merged("pivot").integrations == 2 * (n - 1) - 1
     # The tree method needs n(n - 1)/2 when every integration is valid (its fallback adds calls otherwise).
-    assert tree(SCANS, shortcut_from_level=None).integrations >= n * (n - 1) // 2
+    assert merged("tree-no-shortcut").integrations >= n * (n - 1) // 2
 
 
 def test_the_pivot_builder_leaves_a_scan_from_elsewhere_unplaced_and_goes_on() -> None:
