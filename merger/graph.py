@@ -35,9 +35,9 @@ from fleetmap.shared.config import IntegrationParams, MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
-from fleetmap.shared.integration import index_for, integrate
+from fleetmap.shared.integration import index_for, integrate, takes_large_path
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex
+from fleetmap.shared.mapgrid import MapIndex
 from fleetmap.shared.simplify import simplify
 from scipy.optimize import least_squares
 
@@ -225,7 +225,7 @@ class MapGraph:
         if known is not None and known.versions == (va, vb):
             return known
         na, nb = self._nodes[a], self._nodes[b]
-        large = any(len(n.work) > self.integration.max_search_segments or VIEWPOINTS in n.work.extras for n in (na, nb))
+        large = takes_large_path(na.work, nb.work, self.integration)
         r = integrate(
             na.work,
             nb.work,

@@ -184,15 +184,16 @@ class PivotMapBuilder:
         self.integrations = 0
         self._last: SegmentMap | None = None
         self._last_pose = Transform2D.identity()
-        self._max_motion: float | None = None
         self._before: tuple[SegmentMap, Transform2D] | None = None
         """The placed map before the last one, and its pose (a second witness)."""
 
     @property
     def map(self) -> SegmentMap:
         """The map built so far (the first map's frame), carrying the placed maps' viewpoints."""
-        vp = np.vstack(self._viewpoints) if self._viewpoints else np.zeros((0, 5))
-        return with_viewpoints(self._map, vp)
+        return with_viewpoints(self._map, self._all_viewpoints())
+
+    def _all_viewpoints(self) -> Array:
+        return np.vstack(self._viewpoints) if self._viewpoints else np.zeros((0, 5))
 
     def add(self, m: SegmentMap, max_motion: float | None = None) -> PivotStep:
         """Integrate and fuse one map; ``max_motion`` (m), when given, is the farthest the new map
@@ -212,13 +213,20 @@ class PivotMapBuilder:
             r2 = integrate(self._before[0], m, self.params)
             self.integrations += 1
             witnesses.append(_Witness(self._before[1].compose(r2.transform), r2))
-        self._max_motion = max_motion
-        placed = self._corroborated(witnesses) if len(witnesses) > 1 else self._if_possible(witnesses[0])
+        placed = (
+            self._corroborated(witnesses, max_motion)
+            if len(witnesses) > 1
+            else self._if_possible(witnesses[0], max_motion)
+        )
         if placed is None and self.use_map and self._before is not None:
             rm = integrate(self._near(self._last_pose), m, self.params)
             self.integrations += 1
             witnesses.append(_Witness(rm.transform, rm))
-            placed = self._corroborated(witnesses) if self.params.pivot_witnesses else self._if_possible(witnesses[-1])
+            placed = (
+                self._corroborated(witnesses, max_motion)
+                if self.params.pivot_witnesses
+                else self._if_possible(witnesses[-1], max_motion)
+            )
         if placed is None:
             self.poses.append(None)
             return PivotStep(None, witnesses[-1].integration)
@@ -240,11 +248,11 @@ class PivotMapBuilder:
         self.poses.append(pose)
         return PivotStep(pose, placed.integration)
 
-    def _corroborated(self, witnesses: list[_Witness]) -> _Witness | None:
-        """The first valid witness that another one agrees with (within the witness tolerances)."""
+    def _corroborated(self, witnesses: list[_Witness], max_motion: float | None) -> _Witness | None:
+        """The first possible witness that another one agrees with (within the witness tolerances)."""
         tt, tr = self.params.witness_translation, self.params.witness_rotation
         for w in witnesses:
-            if self._if_possible(w) is None:
+            if self._if_possible(w, max_motion) is None:
                 continue
             for other in witnesses:
                 if other is not w:
@@ -253,29 +261,25 @@ class PivotMapBuilder:
                         return w
         return None
 
-    def _if_possible(self, w: _Witness) -> _Witness | None:
-        """``w`` if its integration is valid and within the motion bound of :meth:`add`."""
+    def _if_possible(self, w: _Witness, max_motion: float | None) -> _Witness | None:
+        """``w`` if its integration is valid and within ``max_motion`` of the last placed pose."""
         if not w.integration.valid:
             return None
-        if self._max_motion is not None and w.pose.distance(self._last_pose)[0] > self._max_motion:
+        if max_motion is not None and w.pose.distance(self._last_pose)[0] > max_motion:
             return None
         return w
 
     def _near(self, pose: Transform2D) -> SegmentMap:
         """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
-        built = self.map
         radius = self.params.local_map_radius
-        if radius <= 0:
-            return built
-        seg = built.segments
+        seg, vp = self._map.segments, self._all_viewpoints()
         near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
             axis=1
         )
-        vp = viewpoints_of(built)
+        if radius <= 0 or not near.any():
+            return with_viewpoints(self._map, vp)
         vp = vp[(np.abs(vp[:, 0] - pose.x) <= radius) & (np.abs(vp[:, 1] - pose.y) <= radius)]
-        if not near.any():
-            return built
-        return with_viewpoints(SegmentMap(seg[near], ordered=False, oriented=built.oriented), vp)
+        return with_viewpoints(SegmentMap(seg[near], ordered=False, oriented=self._map.oriented), vp)
 
 
 @dataclass(frozen=True)

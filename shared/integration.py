@@ -234,14 +234,13 @@ def integrate(
     check_map(m1, "S1")
     check_map(m2, "S2")
     start = time.perf_counter()
-    # Large partial maps are searched on their longest segments; the choice is made on the full maps.
-    search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
-    if search1 is not m1 or search2 is not m2 or VIEWPOINTS in m1.extras or VIEWPOINTS in m2.extras:
+    large = takes_large_path(m1, m2, p)
+    if large:
+        # Large partial maps are searched on their longest segments; the choice is made on the full maps.
+        search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
         best, runner_up, count, prep = _integrate_large(m1, m2, search1, search2, h, p, index1, index2)
-        large = True
     else:
         best, runner_up, count, prep = _integrate_small(m1, m2, h, p)
-        large = False
     matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
     seconds = time.perf_counter() - start
     violation = best.value - best.score
@@ -256,6 +255,13 @@ def integrate(
         runner_up=max(runner_up, 0.0),
         matches=matches,
     )
+
+
+def takes_large_path(m1: SegmentMap, m2: SegmentMap, p: IntegrationParams) -> bool:
+    """Whether :func:`integrate` takes the large-map path: a map has more than
+    ``max_search_segments`` segments, or carries viewpoints (then it is judged by its free space)."""
+    limit = p.max_search_segments
+    return any((limit > 0 and len(m) > limit) or VIEWPOINTS in m.extras for m in (m1, m2))
 
 
 def _integrate_small(

@@ -15,7 +15,7 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.evaluation import prepare, refused, transformation_values
 from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import integrate
+from fleetmap.shared.integration import integrate, is_valid
 from fleetmap.shared.mapfile import SegmentMap
 
 from tests.helpers import OMNI, ROOM, pose_pair, scan_map
@@ -156,3 +156,21 @@ def test_bad_maps_are_refused_with_a_clear_error(segments: np.ndarray, message: 
     good = PAIRS[0][0]
     with pytest.raises(BadInput, match=message):
         integrate(good, SegmentMap(segments))
+
+
+def test_two_partial_maps_need_the_map_rule_a_scan_the_scan_rule() -> None:
+    wall = np.array([[0.0, 0.0, 30.0, 0.0], [0.0, 3.0, 30.0, 3.0]])
+    map1, map2 = SegmentMap(wall, ordered=False), SegmentMap(wall + 0.5, ordered=False)
+    scan = SegmentMap(wall * [0.2, 1, 0.2, 1], ordered=True)  # 12 m of wall
+    p = IntegrationParams()
+
+    def valid(value: float, violation: float, runner_up: float, a: SegmentMap, large: bool = True) -> bool:
+        return is_valid(value, violation, runner_up, a, map2, p, large)
+
+    # Between maps: 8 m at least (the paper's right merges ~10 m, wrong ~5 m) ...
+    assert valid(12.0, 0.0, 0.0, map1) and not valid(6.0, 0.0, 0.0, map1)
+    # ... at most 10 % in the other's seen free space, and no rival within 50 % on the large path
+    assert not valid(12.0, 2.0, 0.0, map1)
+    assert not valid(12.0, 0.0, 7.0, map1) and valid(12.0, 0.0, 7.0, map1, large=False)
+    # A scan on a map is judged by the scan rule: 6 m is half of what the scan saw.
+    assert valid(6.0, 0.0, 0.0, scan)
