@@ -11,7 +11,9 @@ previous scan nor with the local map), the agent closes the local map and starts
 whose frame is the first of those scans; the others are integrated into it. A scan is placed
 only where the robot can have gone since its last placed scan (``max_speed`` times the time
 between their stamps): a look-alike corridor 9 m away matches well, but a robot carried off in
-half a second did not drive there. One unplaced scan
+half a second did not drive there. Where a scan matches two places almost equally (a hallway
+one door further, or turned round), the robot's own recent motion decides, if it points at one
+of them (the builder's motion prior, ``motion_prior_radius``). One unplaced scan
 followed by a placed one (a person walking by the laser) changes nothing. Scans without any
 segment (nothing within reach) are not placed, and count neither for nor against a kidnap: they
 say nothing about where the robot is.
@@ -74,10 +76,6 @@ class _Epoch:
         self.number = number
         self.link = link
         self.builder = PivotMapBuilder(config.integration)
-        self.max_speed = config.integration.max_speed
-        self.slack = config.integration.witness_translation
-        self.placed_stamp: float | None = None
-        """Stamp of the last placed scan (the motion bound counts from it)."""
         self.placed = 0
         self.pose: Transform2D | None = None
         self.version = -1
@@ -94,16 +92,12 @@ class _Epoch:
         return self.placed != self.published_placed or self.pose != self.published_pose
 
     def add(self, scan: SegmentMap, stamp: float) -> bool:
-        """Integrate one scan (Algorithm 6, steps 3-6) within the motion bound; whether it was placed."""
-        speed = self.max_speed
-        bound = None
-        if speed > 0 and self.placed_stamp is not None:
-            bound = speed * max(stamp - self.placed_stamp, 0.0) + self.slack
-        step = self.builder.add(scan, max_motion=bound)
+        """Integrate one scan (Algorithm 6, steps 3-6) with its stamp (the motion bound and prior);
+        whether it was placed."""
+        step = self.builder.add(scan, stamp)
         self.pose = step.pose
         if step.pose is not None:
             self.placed += 1
-            self.placed_stamp = stamp
         return step.pose is not None
 
 

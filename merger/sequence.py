@@ -15,6 +15,7 @@ method online, as a robot agent grows its local map scan by scan.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +23,7 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.integration import Integration, integrate
+from fleetmap.shared.integration import Integration, Window, integrate
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
 from fleetmap.shared.simplify import simplify
@@ -168,6 +169,12 @@ class PivotMapBuilder:
       (:mod:`fleetmap.shared.mapgrid`), so the fallback, and any later integration of the map
       with another, judges transformations by the free space those scans saw: a scan placed one
       door further down a corridor puts walls where the map's scans saw none.
+    - **Motion prior** (maps with stamps): where an integration is ambiguous (a hallway matches
+      one door further as well, or turned round) and one of its matches lies where the robot's
+      recent motion puts the new map (:meth:`predict`), the integration is done again within
+      ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
+      scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
+      near-equal matches; it never overrides a clearly better one.
     - **Simplification**: whenever the map has grown by half since, it is simplified
       (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
@@ -186,6 +193,8 @@ class PivotMapBuilder:
         self._last_pose = Transform2D.identity()
         self._before: tuple[SegmentMap, Transform2D] | None = None
         """The placed map before the last one, and its pose (a second witness)."""
+        self._stamps: list[float] = []
+        """Stamps of the one-before-last and last placed maps, where given (the motion prior)."""
 
     @property
     def map(self) -> SegmentMap:
@@ -195,35 +204,52 @@ class PivotMapBuilder:
     def _all_viewpoints(self) -> Array:
         return np.vstack(self._viewpoints) if self._viewpoints else np.zeros((0, 5))
 
-    def add(self, m: SegmentMap, max_motion: float | None = None) -> PivotStep:
-        """Integrate and fuse one map; ``max_motion`` (m), when given, is the farthest the new map
-        can be from the last placed one (a robot's speed times the time since): an integration
-        that puts it farther does not count (the agent's motion bound, ``max_speed``)."""
+    def predict(self, stamp: float) -> Transform2D | None:
+        """Where constant velocity puts a map taken at ``stamp``: the motion from the one-before-last
+        placed map to the last, scaled to the time since the last, continued from the last. None
+        until two maps with increasing stamps are placed."""
+        if self._before is None or len(self._stamps) < 2:
+            return None
+        t0, t1 = self._stamps
+        if not t1 > t0 or not stamp >= t1:
+            return None
+        ratio = (stamp - t1) / (t1 - t0)
+        step = self._before[1].inverse().compose(self._last_pose)
+        return self._last_pose.compose(Transform2D(step.x * ratio, step.y * ratio, step.theta * ratio))
+
+    def add(self, m: SegmentMap, stamp: float | None = None) -> PivotStep:
+        """Integrate and fuse one map. With its ``stamp`` (seconds; a robot agent's scans), the
+        robot's motion counts: an integration that puts the map farther from the last placed one
+        than ``max_speed`` times the time since (plus ``witness_translation``) does not count (the
+        agent's motion bound), and ambiguous integrations are settled by the motion prior (see the
+        class docstring)."""
+        max_motion: float | None = None
+        predicted: Transform2D | None = None
+        p = self.params
+        if stamp is not None and self._stamps:
+            if p.max_speed > 0:
+                max_motion = p.max_speed * max(stamp - self._stamps[-1], 0.0) + p.witness_translation
+            predicted = self.predict(stamp)
         if self._last is None:
             self._last = m
+            self._stamps = [] if stamp is None else [stamp]
             self._map = SegmentMap(m.segments.copy(), ordered=False, oriented=m.oriented)
             self._viewpoints.append(viewpoints_of(m))
             self.poses.append(Transform2D.identity())
             return PivotStep(Transform2D.identity(), None)
-        r = integrate(self._last, m, self.params)
-        self.integrations += 1
         # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
-        witnesses = [_Witness(self._last_pose.compose(r.transform), r)]
+        witnesses = [self._witness(self._last, self._last_pose, m, predicted)]
         if self.params.pivot_witnesses and self._before is not None:
-            r2 = integrate(self._before[0], m, self.params)
-            self.integrations += 1
-            witnesses.append(_Witness(self._before[1].compose(r2.transform), r2))
+            witnesses.append(self._witness(self._before[0], self._before[1], m, predicted))
         placed = (
-            self._corroborated(witnesses, max_motion)
+            self._corroborated(witnesses, max_motion, predicted)
             if len(witnesses) > 1
             else self._if_possible(witnesses[0], max_motion)
         )
         if placed is None and self.use_map and self._before is not None:
-            rm = integrate(self._near(self._last_pose), m, self.params)
-            self.integrations += 1
-            witnesses.append(_Witness(rm.transform, rm))
+            witnesses.append(self._witness(self._near(self._last_pose), Transform2D.identity(), m, predicted))
             placed = (
-                self._corroborated(witnesses, max_motion)
+                self._corroborated(witnesses, max_motion, predicted)
                 if self.params.pivot_witnesses
                 else self._if_possible(witnesses[-1], max_motion)
             )
@@ -245,17 +271,46 @@ class PivotMapBuilder:
             self._simplified_size = len(self._map)
         self._before = (self._last, self._last_pose)
         self._last, self._last_pose = m, pose
+        self._stamps = [] if stamp is None else [*self._stamps[-1:], stamp]
         self.poses.append(pose)
         return PivotStep(pose, placed.integration)
 
-    def _corroborated(self, witnesses: list[_Witness], max_motion: float | None) -> _Witness | None:
-        """The first possible witness that another one agrees with (within the witness tolerances)."""
+    def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, predicted: Transform2D | None) -> _Witness:
+        """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled by the motion
+        prior where it can be (see the class docstring)."""
+        r = integrate(base, m, self.params)
+        self.integrations += 1
+        p = self.params
+        if predicted is None or p.motion_prior_radius <= 0 or r.valid:
+            return _Witness(pose.compose(r.transform), r)
+        window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
+        inside = window.contains(np.array([t.as_array() for t in (r.transform, *(t for t, _ in r.rivals))]))
+        if inside[0] or not inside.any():
+            return _Witness(pose.compose(r.transform), r)  # the best is where motion says, or nothing is
+        near = integrate(base, m, p, window=window)
+        self.integrations += 1
+        if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):
+            return _Witness(pose.compose(near.transform), near)
+        return _Witness(pose.compose(r.transform), r)
+
+    def _corroborated(
+        self, witnesses: list[_Witness], max_motion: float | None, predicted: Transform2D | None
+    ) -> _Witness | None:
+        """The first possible witness that another one agrees with (within the witness tolerances).
+
+        Where the robot's recent motion (``predicted``) puts the map elsewhere, the agreeing witness
+        must be valid too: against the motion, only two valid integrations place a map (a kidnapped
+        robot's first view can match one integration well enough, and the other almost)."""
         tt, tr = self.params.witness_translation, self.params.witness_rotation
+        window = None
+        if predicted is not None and self.params.motion_prior_radius > 0:
+            window = Window(predicted, self.params.motion_prior_radius, math.pi)
         for w in witnesses:
             if self._if_possible(w, max_motion) is None:
                 continue
+            against = window is not None and not window.contains(w.pose.as_array()[None])[0]
             for other in witnesses:
-                if other is not w:
+                if other is not w and (other.integration.valid or not against):
                     dt, dr = w.pose.distance(other.pose)
                     if dt <= tt and dr <= tr:
                         return w

@@ -152,6 +152,13 @@ class IntegrationParams:
     ``witness_translation``) is not placed: a robot cannot be there, so the match is wrong (a
     look-alike corridor) or the robot was carried off. 0: no bound. This is a physical limit, not
     a pose: the robot still knows nothing of where it is."""
+    motion_prior_radius: float = 0.5
+    """Robot agents (fleetmap): a scan whose integration is ambiguous (a hallway matches one door
+    further, or turned round) is integrated again within this (m) of where the robot's own recent
+    motion puts it (constant velocity since its last two placed scans) ... 0: never."""
+    motion_prior_rotation: float = 0.26
+    """... and this (rad, 15 degrees); the match found there is taken only if it is valid there and
+    scores at least ``valid_max_ambiguity`` of the best match anywhere."""
 
 
 @dataclass(frozen=True)

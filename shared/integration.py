@@ -86,6 +86,13 @@ class Integration:
     AMBIGUITY_TRANSLATION or AMBIGUITY_ROTATION away): close to the best's in a repetitive world."""
     matches: tuple[IntArray, IntArray] = field(repr=False, default=(np.zeros(0, np.int64), np.zeros(0, np.int64)))
     """Matched segment pairs (index in S1, index in S2) under ``transform``."""
+    rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
+    """The best few transformations clearly different from ``transform`` (as for ``runner_up``),
+    with their scores, best first: where a repetitive world puts S2 too."""
+    valid_if_unambiguous: bool = False
+    """Whether the integration would be valid were it not for ``runner_up`` (only the ambiguity
+    rule fails, or none does): a caller with other evidence (a robot's recent motion) may choose
+    among the rivals."""
 
     def to_json_dict(self) -> dict[str, float | bool]:
         return {
@@ -181,6 +188,13 @@ def distinct_candidates(t: Array, labels: IntArray, params: IntegrationParams) -
     return t[chosen], labels[chosen]
 
 
+def _in_window(t: Array, labels: IntArray, window: Window | None) -> tuple[Array, IntArray]:
+    if window is None or len(t) == 0:
+        return t, labels
+    keep = window.contains(t)
+    return t[keep], labels[keep]
+
+
 def _pick_distinct(t: Array, values: Array, k: int) -> list[int]:
     """Indices of the k best candidates that differ by more than DISTINCT_TRANSLATION or DISTINCT_ROTATION."""
     picked: list[int] = []
@@ -199,6 +213,23 @@ def _pick_distinct(t: Array, values: Array, k: int) -> list[int]:
     return picked
 
 
+@dataclass(frozen=True)
+class Window:
+    """Where S2 is expected on S1 (fleetmap: a robot's recent motion predicts its next scan's pose):
+    only transformations within ``radius`` (m) and ``rotation`` (rad) of ``centre`` are considered."""
+
+    centre: Transform2D
+    radius: float
+    rotation: float
+
+    def contains(self, t: Array) -> Array:
+        """Which of the ``(n, 3)`` transformations ``t`` lie in the window."""
+        c = self.centre
+        near = np.hypot(t[:, 0] - c.x, t[:, 1] - c.y) <= self.radius
+        turn = np.abs(np.remainder(t[:, 2] - c.theta + np.pi, 2 * np.pi) - np.pi)
+        return np.asarray(near & (turn <= self.rotation))
+
+
 def check_map(m: SegmentMap, name: str) -> None:
     if len(m) == 0:
         raise BadInput(name, "the map is empty (no segments)")
@@ -215,6 +246,7 @@ def integrate(
     heuristic: str | None = None,
     index1: MapIndex | None = None,
     index2: MapIndex | None = None,
+    window: Window | None = None,
 ) -> Integration:
     """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity.
 
@@ -225,7 +257,8 @@ def integrate(
 
     Large maps (more than ``max_search_segments`` segments) take fleetmap's large-map path (see
     :func:`_integrate_large`); ``index1``/``index2`` are their :func:`index_for` indexes when the
-    caller keeps them (built here otherwise).
+    caller keeps them (built here otherwise). With a ``window``, only the candidates inside it are
+    valued (the best and its rivals alike).
     """
     p = params or IntegrationParams()
     h = heuristic or p.heuristic
@@ -238,9 +271,10 @@ def integrate(
     if large:
         # Large partial maps are searched on their longest segments; the choice is made on the full maps.
         search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
-        best, runner_up, count, prep = _integrate_large(m1, m2, search1, search2, h, p, index1, index2)
+        best, rivals, count, prep = _integrate_large(m1, m2, search1, search2, h, p, index1, index2, window)
     else:
-        best, runner_up, count, prep = _integrate_small(m1, m2, h, p)
+        best, rivals, count, prep = _integrate_small(m1, m2, h, p, window)
+    runner_up = max((score for _, score in rivals), default=0.0)
     matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
     seconds = time.perf_counter() - start
     violation = best.value - best.score
@@ -254,6 +288,8 @@ def integrate(
         violation=violation,
         runner_up=max(runner_up, 0.0),
         matches=matches,
+        rivals=tuple(rivals),
+        valid_if_unambiguous=is_valid(best.value, violation, 0.0, m1, m2, p, large),
     )
 
 
@@ -265,18 +301,18 @@ def takes_large_path(m1: SegmentMap, m2: SegmentMap, p: IntegrationParams) -> bo
 
 
 def _integrate_small(
-    m1: SegmentMap, m2: SegmentMap, h: str, p: IntegrationParams
-) -> tuple[_Choice, float, int, PreparedPairs]:
+    m1: SegmentMap, m2: SegmentMap, h: str, p: IntegrationParams, window: Window | None = None
+) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs]:
     """Scans and small maps: every candidate valued by Algorithm 4 (with the early stop)."""
     oriented = m1.oriented and m2.oriented
     prep = prepare(m1.segments, m2.segments, oriented, p)
     free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.free_space_margin)
     raw, labels = gather_candidates(m1, m2, h, p)
-    cand, labels = distinct_candidates(raw, labels, p)
+    cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
     if 0 < p.max_evaluated < len(cand):
         cand, labels = cand[: p.max_evaluated], labels[: p.max_evaluated]  # the most supported
     best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
-    runner_up = 0.0
+    rivals: list[tuple[Transform2D, float]] = []
     if len(cand):
         values = np.full(len(cand), -1.0)
         head = slice(0, min(FIRST_CHUNK, len(cand)))
@@ -298,12 +334,11 @@ def _integrate_small(
             )
             for j in picked
         ]
-        best, runner_up = _choose(prep, free, finals, p, True)
-        # The best clearly different candidate that was not refined counts too.
+        best, rivals = _choose(prep, free, finals, p, True)
+        # The clearly different candidates that were not refined count too.
         others = [j for j in range(len(shortlist)) if _far(cand[shortlist[j]], best.transform)]
-        if others:
-            runner_up = max(runner_up, max(float(scores[j]) for j in others))
-    return best, runner_up, len(cand), prep
+        rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
+    return best, _best_rivals(rivals), len(cand), prep
 
 
 GRID_FINE = 1024
@@ -319,7 +354,8 @@ def _integrate_large(
     p: IntegrationParams,
     index1: MapIndex | None,
     index2: MapIndex | None,
-) -> tuple[_Choice, float, int, PreparedPairs]:
+    window: Window | None = None,
+) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs]:
     """Large partial maps (fleetmap): the paper's candidates ranked by the grid score, the best
     few valued exactly (Algorithm 4) and refined.
 
@@ -338,9 +374,9 @@ def _integrate_large(
     i2 = index2 if index2 is not None else index_for(m2, p)
     free = GridFreeSpace(i1, i2)
     raw, labels = gather_candidates(search1, search2, h, p)
-    cand, labels = distinct_candidates(raw, labels, p)
+    cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
     best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
-    runner_up = 0.0
+    rivals: list[tuple[Transform2D, float]] = []
     if len(cand):
         first = np.argsort(-ranking_scores(i1, i2, cand), kind="stable")[:GRID_FINE]
         fine = ranking_scores(i1, i2, cand[first], fine=True)
@@ -351,14 +387,14 @@ def _integrate_large(
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
             for j in picked
         ]
-        best, runner_up = _choose(prep, free, finals, p, not free.active, large=True)
+        best, rivals = _choose(prep, free, finals, p, not free.active, large=True)
         far = _far_at(prep, best.transform, p)
         others = [j for j in range(len(shortlist)) if far(cand[shortlist[j]], best.transform)]
         if others:
             j = max(others, key=lambda j: fine[order[j]])
             other = _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), 0, p)
-            runner_up = max(runner_up, other.score)
-    return best, runner_up, len(cand), prep
+            rivals.append((other.transform, other.score))
+    return best, _best_rivals(rivals), len(cand), prep
 
 
 def _choose(
@@ -368,8 +404,8 @@ def _choose(
     p: IntegrationParams,
     refuse: bool,
     large: bool = False,
-) -> tuple[_Choice, float]:
-    """Refine the picks, and return the best and the best clearly different one's score.
+) -> tuple[_Choice, list[tuple[Transform2D, float]]]:
+    """Refine the picks, and return the best and the clearly different ones (the rivals).
 
     For large maps, "clearly different" is measured where the maps overlap (the centroid of S2's
     matched segments under the best), not at S2's origin: far from the overlap, a turn of a
@@ -387,8 +423,17 @@ def _choose(
     if best.score <= 0:
         best = _Choice(Transform2D.identity(), 0.0, 0.0, best.label)
     far = _far_at(prep, best.transform, p) if large else _far
-    runner_up = max((c.score for c in finals if far(c.transform.as_array(), best.transform)), default=0.0)
-    return best, runner_up
+    return best, [(c.transform, c.score) for c in finals if far(c.transform.as_array(), best.transform)]
+
+
+RIVALS = 8
+"""Rivals an Integration keeps (the best-scoring ones)."""
+
+
+def _best_rivals(rivals: list[tuple[Transform2D, float]]) -> list[tuple[Transform2D, float]]:
+    """The RIVALS best-scoring rivals with a positive score, best first."""
+    kept = sorted((r for r in rivals if r[1] > 0), key=lambda r: -r[1])
+    return kept[:RIVALS]
 
 
 def _far_at(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Callable[[Array, Transform2D], bool]:

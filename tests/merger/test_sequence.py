@@ -76,13 +76,15 @@ def test_the_pivot_builder_leaves_a_scan_from_elsewhere_unplaced_and_goes_on() -
 
 
 def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
-    builder = PivotMapBuilder()
-    for m in SCANS[:3]:
-        assert builder.add(m, max_motion=2.0).pose is not None
+    params = IntegrationParams(max_speed=1.0)
+    builder = PivotMapBuilder(params)
+    for k, m in enumerate(SCANS[:3]):
+        assert builder.add(m, stamp=float(k)).pose is not None
     step = TRUTH[2].distance(TRUTH[3])[0]  # the true motion from scan 2 to scan 3 (about 0.7 m)
-    assert builder.add(SCANS[3], max_motion=0.5 * step).pose is None, "placed beyond the bound"
-    # The bound does not move the estimate: with room to spare, the scan is placed right.
-    pose = builder.add(SCANS[3], max_motion=2.0).pose
+    # At 1 m/s for a tenth of the time it took, the robot is within 0.07 m (+ 0.3 m of slack): not there.
+    assert builder.add(SCANS[3], stamp=2.0 + 0.1 * step).pose is None, "placed beyond the bound"
+    # The bound does not move the estimate: with time to spare, the scan is placed right.
+    pose = builder.add(SCANS[3], stamp=2.0 + 2.0 * step).pose
     assert pose is not None
     dt, dr = pose.distance(TRUTH[3])
     assert dt < 0.05 and dr < math.radians(1.0)
