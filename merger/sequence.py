@@ -174,7 +174,9 @@ class PivotMapBuilder:
       recent motion puts the new map (:meth:`predict`), the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
       scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
-      near-equal matches; it never overrides a clearly better one.
+      near-equal matches; it never overrides a clearly better one. Against the motion (farther
+      than ``motion_prior_radius`` from the prediction), a map is placed only where two valid
+      integrations agree.
     - **Simplification**: whenever the map has grown by half since, it is simplified
       (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
@@ -281,12 +283,12 @@ class PivotMapBuilder:
         r = integrate(base, m, self.params)
         self.integrations += 1
         p = self.params
-        if predicted is None or p.motion_prior_radius <= 0 or r.valid:
+        if predicted is None or p.motion_prior_radius <= 0:
             return _Witness(pose.compose(r.transform), r)
         window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
         inside = window.contains(np.array([t.as_array() for t in (r.transform, *(t for t, _ in r.rivals))]))
-        if inside[0] or not inside.any():
-            return _Witness(pose.compose(r.transform), r)  # the best is where motion says, or nothing is
+        if (r.valid and inside[0]) or not inside.any():
+            return _Witness(pose.compose(r.transform), r)  # motion agrees, or nothing lies where it says
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):

@@ -158,7 +158,9 @@ class IntegrationParams:
     motion puts it (constant velocity since its last two placed scans) ... 0: never."""
     motion_prior_rotation: float = 0.26
     """... and this (rad, 15 degrees); the match found there is taken only if it is valid there and
-    scores at least ``valid_max_ambiguity`` of the best match anywhere."""
+    scores at least ``valid_max_ambiguity`` of the best match anywhere. A scan placed farther than
+    ``motion_prior_radius`` from the prediction needs two valid integrations that agree (a
+    kidnapped robot's first view can match one well enough, and the other almost)."""
 
 
 @dataclass(frozen=True)

@@ -90,6 +90,47 @@ def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
     assert dt < 0.05 and dr < math.radians(1.0)
 
 
+@functools.cache
+def scenario_scans(name: str, robot: str) -> list[tuple[float, SegmentMap, Transform2D]]:
+    """(stamp, scan, true pose) of every scan of one robot of a bundled scenario."""
+    from fleetmap.scenarios import load_scenario, robot_stream
+    from fleetmap.shared.config import ExtractionParams
+    from fleetmap.shared.extraction import extract_segments
+
+    out = []
+    for s in robot_stream(load_scenario(name), robot):
+        m = SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True)
+        out.append((s.stamp, m, s.pose))
+    return out
+
+
+def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drove() -> None:
+    # The department hallway, r1's scans 10-15: scans 14 and 15 match the previous one elsewhere
+    # along the hallway almost as well (0.83 and 0.92 of the best score) as where they were taken.
+    scans = scenario_scans("department", "r1")[10:16]
+    with_prior, without = PivotMapBuilder(), PivotMapBuilder()
+    origin = scans[0][2]
+    for stamp, m, true in scans:
+        placed = with_prior.add(m, stamp).pose
+        without.add(m)
+        assert placed is not None, f"scan at {stamp:.1f} s not placed"
+        dt, dr = placed.distance(origin.inverse().compose(true))
+        assert dt < 0.05 and dr < math.radians(1.0), f"scan at {stamp:.1f} s: {dt:.3f} m {math.degrees(dr):.2f} deg"
+    assert None in without.poses, "without stamps (no motion prior) every scan was placed: the test shows nothing"
+
+
+def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> None:
+    # warehouse-events: r1 drives east along the dock lane and is carried at 8 s to the north lane,
+    # facing west. Its first view there matches the dock lane one aisle on, turned 90 degrees.
+    scans = scenario_scans("warehouse-events", "r1")
+    builder = PivotMapBuilder()
+    for stamp, m, _ in scans:
+        if stamp < 8.0:
+            assert builder.add(m, stamp).pose is not None
+    kidnapped = [m for stamp, m, _ in scans if stamp >= 8.0]
+    assert builder.add(kidnapped[0], 8.0).pose is None
+
+
 def test_bad_input_is_refused() -> None:
     from fleetmap.shared.errors import BadInput
 
