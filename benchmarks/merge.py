@@ -6,7 +6,8 @@ never given to the algorithms):
 
 1. cut the tour into K consecutive pieces overlapping by a few scans (K robots);
 2. build each piece's local maps from its scans alone, as a robot agent does: the pivot method
-   (:class:`fleetmap.merger.sequence.PivotMapBuilder`, no poses), and a new local map (epoch) when
+   (:class:`fleetmap.merger.sequence.PivotMapBuilder`, no poses; the scans' times give the motion
+   bound and prior, as a live agent's stamps do), and a new local map (epoch) when
    ``--kidnap-after`` scans in a row cannot be placed, starting from the first of them;
 3. shuffle the local maps and merge them with the map graph (``--order unknown``);
 4. compare each placed map's pose (its first scan's frame, in the anchor's frame) with the
@@ -66,6 +67,8 @@ def data_dir() -> Path:
 @dataclass
 class Piece:
     scans: list[SegmentMap]
+    stamps: list[float]
+    """Each scan's time (s): the agent's motion bound and prior use it, as a live agent does."""
     truth: list[Transform2D]
     """The corrected pose of each scan (never given to the algorithms)."""
 
@@ -81,7 +84,13 @@ def load_pieces(name: str, k: int, overlap: int, max_scans: int, config: Fleetma
         if keep:
             poses = [scans[j].odom for j in keep]
             assert all(p is not None for p in poses)  # corrected logs carry the SLAM pose on every laser line
-            pieces.append(Piece([maps[j] for j in keep], [Transform2D(*p) for p in poses if p is not None]))
+            pieces.append(
+                Piece(
+                    [maps[j] for j in keep],
+                    [scans[j].stamp for j in keep],
+                    [Transform2D(*p) for p in poses if p is not None],
+                )
+            )
     return pieces
 
 
@@ -96,9 +105,9 @@ class LocalMap:
     """One of its scans is placed more than 1 m or 10 deg from where the corrected poses put it."""
 
 
-def build_local_maps(job: tuple[Piece, FleetmapConfig, int]) -> tuple[list[LocalMap], float]:
+def build_local_maps(job: tuple[Piece, FleetmapConfig, int, bool]) -> tuple[list[LocalMap], float]:
     """A piece's local maps, as an agent builds them (see the module docstring)."""
-    piece, config, kidnap_after = job
+    piece, config, kidnap_after, stamps = job
     start = time.perf_counter()
     out: list[LocalMap] = []
     queue = list(range(len(piece.scans)))
@@ -110,7 +119,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int]) -> tuple[list[Local
         unplaced: list[int] = []
         rest: list[int] = []
         for n, j in enumerate(queue):
-            pose = builder.add(piece.scans[j]).pose
+            pose = builder.add(piece.scans[j], piece.stamps[j] if stamps else None).pose
             if pose is None:
                 unplaced.append(j)
                 if len(unplaced) >= kidnap_after:
@@ -128,7 +137,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int]) -> tuple[list[Local
 
 def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, pool: multiprocessing.pool.Pool) -> dict:
     pieces = load_pieces(name, k, args.overlap, args.max_scans, config)
-    built = pool.map(build_local_maps, [(p, config, args.kidnap_after) for p in pieces])
+    built = pool.map(build_local_maps, [(p, config, args.kidnap_after, not args.no_stamps) for p in pieces])
     local = [
         (f"{name}/{i}.{e}", i, lm)
         for i, (maps, _) in enumerate(built)
@@ -221,6 +230,9 @@ def main() -> int:
     ap.add_argument("--shuffle-seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2, help="processes building local maps")
     ap.add_argument("--kidnap-after", type=int, default=2, help="unplaced scans in a row that start a new local map")
+    ap.add_argument(
+        "--no-stamps", action="store_true", help="build local maps without the scans' times (no motion bound or prior)"
+    )
     ap.add_argument("--min-scans", type=int, default=5, help="local maps of fewer scans are not merged")
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
