@@ -228,7 +228,8 @@ class PivotMapBuilder:
         max_motion: float | None = None
         predicted: Transform2D | None = None
         p = self.params
-        if stamp is not None and self._stamps:
+        if stamp is not None and self._stamps and stamp > self._stamps[-1]:
+            # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
             if p.max_speed > 0:
                 max_motion = p.max_speed * max(stamp - self._stamps[-1], 0.0) + p.witness_translation
             predicted = self.predict(stamp)

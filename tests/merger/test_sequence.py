@@ -90,6 +90,12 @@ def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
     assert dt < 0.05 and dr < math.radians(1.0)
 
 
+def test_stamps_that_do_not_advance_bound_nothing() -> None:
+    # A log whose stamps lost their precision (MIT CSAIL's corrected log: every stamp the same).
+    builder = PivotMapBuilder()
+    _assert_trajectory([builder.add(m, stamp=1134860000.0).pose for m in SCANS])
+
+
 @functools.cache
 def scenario_scans(name: str, robot: str) -> list[tuple[float, SegmentMap, Transform2D]]:
     """(stamp, scan, true pose) of every scan of one robot of a bundled scenario."""
