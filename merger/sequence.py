@@ -21,11 +21,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.evaluation import prepare, transformation_value
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.integration import Integration, Window, integrate
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
+from fleetmap.shared.refine import refine_transform
 from fleetmap.shared.simplify import simplify
 
 METHODS = ("sequential", "tree", "pivot")
@@ -177,6 +179,9 @@ class PivotMapBuilder:
       near-equal matches; it never overrides a clearly better one. Against the motion (farther
       than ``motion_prior_radius`` from the prediction), a map is placed only where two valid
       integrations agree.
+    - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
+      the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
+      scan-to-scan integrations do not add up along a hallway.
     - **Simplification**: whenever the map has grown by half since, it is simplified
       (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
@@ -260,6 +265,8 @@ class PivotMapBuilder:
             self.poses.append(None)
             return PivotStep(None, witnesses[-1].integration)
         pose = placed.pose
+        if self.params.pivot_refine:
+            pose = self._refined_on_map(m, pose)
         if self.fuse_pairs:
             # Fig. 13a: fuse S_{i-1,i} (in S_{i-1}'s frame) placed by t_{1,i-1}.
             pair = fuse(self._last, m, self._last_pose.inverse().compose(pose), self.params)
@@ -295,6 +302,15 @@ class PivotMapBuilder:
         if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):
             return _Witness(pose.compose(near.transform), near)
         return _Witness(pose.compose(r.transform), r)
+
+    def _refined_on_map(self, m: SegmentMap, pose: Transform2D) -> Transform2D:
+        """``pose`` refined by least squares on the built map near it, if that raises the value."""
+        near = self._near(pose)
+        prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
+        before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
+        t = refine_transform(prep, pose, self.params, iterations=12)
+        after = transformation_value(prep, t.as_array(), self.params, refuse=False)
+        return t if after >= before else pose
 
     def _corroborated(
         self, witnesses: list[_Witness], max_motion: float | None, predicted: Transform2D | None

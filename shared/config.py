@@ -132,6 +132,9 @@ class IntegrationParams:
     """The pivot builder places a scan only when two integrations agree on its pose (fleetmap: one
     valid integration with the last or the one-before-last placed scan, or the built map, and
     another of them within the witness tolerances), so one wrong integration cannot place it."""
+    pivot_refine: bool = True
+    """The pivot builder refines each placed map's pose by least squares on the built map near it
+    (fleetmap: scan-to-map; the paper's pivot method composes scan-to-scan transforms only)."""
     witness_translation: float = 0.30
     """Two integrations agree when they put the new scan within this (m) ..."""
     witness_rotation: float = 0.0524
