@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -183,7 +184,7 @@ def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -
     from fleetmap.shared.config import ExtractionParams
     from fleetmap.shared.extraction import extract_segments
 
-    stream = list(robot_stream(load_scenario("department"), "r1"))[17:19]
+    stream = list(itertools.islice(robot_stream(load_scenario("department"), "r1"), 17, 19))
     a, b = (SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True) for s in stream)
     true = stream[0].pose.inverse().compose(stream[1].pose)
     r = integrate(a, b)
