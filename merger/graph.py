@@ -241,11 +241,13 @@ class MapGraph:
         """Add (or update) a map and integrate it with the existing maps, most similar first."""
         if not self.put_map(key, segment_map, version):
             return []
-        # The older map is S1: integration results then do not depend on arrival order of others.
         return [self._oriented_pair(other, key) for other in self.candidates_for(key)]
 
     def _oriented_pair(self, x: str, y: str) -> Edge:
-        a, b = (x, y) if self._nodes[x].order < self._nodes[y].order else (y, x)
+        # The first key (in sorted order) is S1: INTEGRATE(a, b) is not exactly the inverse of
+        # INTEGRATE(b, a), so the pair is always integrated one way, whatever order the maps
+        # arrived in (a restarted merger, or another run of the same session, gets the same edge).
+        a, b = (x, y) if x < y else (y, x)
         return self.integrate_pair(a, b)
 
     # -- solving ---------------------------------------------------------------------------
@@ -330,7 +332,11 @@ class MapGraph:
             group_set = set(group)
             cycle_edges = [e for e in loops if e.a in group_set]
             if cycle_edges:
-                poses = self._least_squares(anchor, poses, [via[k] for k in order if k in via] + cycle_edges)
+                # Each edge as it was integrated, not as the walk from the anchor met it: the residual
+                # of an edge is not that of its reverse, and the anchor (the first map to arrive)
+                # must not change the relative poses (a restarted merger gets the same map).
+                tree_edges = [self._edges[via[k].key()] for k in order if k in via]
+                poses = self._least_squares(anchor, poses, tree_edges + cycle_edges)
             segments = self._fuse(order, poses) if fuse_maps else np.zeros((0, 4))
             out.append(Component(anchor, tuple(order), poses, segments))
         out.sort(key=lambda c: (-len(c.members), -sum(self._nodes[k].map.total_length for k in c.members)))

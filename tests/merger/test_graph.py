@@ -50,6 +50,44 @@ def test_the_same_maps_in_any_order_give_the_same_poses() -> None:
             assert dt < 0.01 and dr < math.radians(0.1)
 
 
+def test_the_anchor_a_merger_happens_to_get_does_not_move_the_maps_relative_to_each_other() -> None:
+    # The same maps and integrations; the anchor is the first map to arrive (a restarted merger
+    # may get another). Refined over the cycles (the edges disagree a little, as measured ones do),
+    # the maps' poses relative to each other must not depend on it.
+    true = {
+        "a": Transform2D(0, 0, 0),
+        "b": Transform2D(10, 0, 0.5),
+        "c": Transform2D(6, 11, -0.7),
+        "d": Transform2D(12, 15, 1.3),
+    }
+    noise = {
+        "ab": (0.03, -0.02, 0.01),
+        "bc": (-0.04, 0.03, -0.008),
+        "ac": (0.05, 0.02, 0.006),
+        "cd": (0.0, -0.05, 0.01),
+    }
+    noise["bd"] = (0.04, 0.04, -0.012)
+    edges = [
+        Edge(x, y, true[x].inverse().compose(true[y]).compose(Transform2D(*n)), 30.0, True)
+        for (x, y), n in ((tuple(k), n) for k, n in noise.items())
+    ]
+    relative = []
+    for order in (["a", "b", "c", "d"], ["d", "c", "b", "a"], ["c", "a", "d", "b"]):
+        g = MapGraph()
+        for key in order:
+            g.put_map(key, MAPS["m0"])
+        for e in edges:
+            g.add_edge(e)
+        comp = g.solve(fuse_maps=False).components[0]
+        assert comp.anchor == order[0]
+        base = comp.poses["a"].inverse()
+        relative.append({k: base.compose(p) for k, p in comp.poses.items()})
+    for other in relative[1:]:
+        for key in "bcd":
+            dt, dr = other[key].distance(relative[0][key])
+            assert dt < 1e-6 and dr < 1e-6, f"{key}: {dt:.2e} m {dr:.2e} rad"
+
+
 def test_an_injected_wrong_edge_is_rejected_by_the_cycle_check() -> None:
     g, _ = _solve(list(MAPS))
     true_edge = g.edge("m0", "m2")
