@@ -131,6 +131,11 @@ class Agent:
         return self._epoch.number
 
     @property
+    def epoch_pose(self) -> Transform2D | None:
+        """The robot's pose in its current epoch's local map after the last scan (None: unplaced)."""
+        return self._epoch.pose
+
+    @property
     def counts(self) -> AgentCounts:
         return AgentCounts(self._scans, self._placed, self.epoch + int(self._epoch.started), self._local_maps)
 
