@@ -178,7 +178,9 @@ class PivotMapBuilder:
       scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
       near-equal matches; it never overrides a clearly better one. Against the motion (farther
       than ``motion_prior_radius`` from the prediction), a map is placed only where two valid
-      integrations agree.
+      integrations agree, and not at all if one of them also matches where the motion says.
+      Before the robot has moved (two placed maps), the motion bound settles an ambiguous
+      integration the same way: a rival the robot cannot have reached is no rival.
     - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
       the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
       scan-to-scan integrations do not add up along a hallway.
@@ -246,16 +248,18 @@ class PivotMapBuilder:
             self.poses.append(Transform2D.identity())
             return PivotStep(Transform2D.identity(), None)
         # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
-        witnesses = [self._witness(self._last, self._last_pose, m, predicted)]
+        witnesses = [self._witness(self._last, self._last_pose, m, predicted, max_motion)]
         if self.params.pivot_witnesses and self._before is not None:
-            witnesses.append(self._witness(self._before[0], self._before[1], m, predicted))
+            witnesses.append(self._witness(self._before[0], self._before[1], m, predicted, max_motion))
         placed = (
             self._corroborated(witnesses, max_motion, predicted)
             if len(witnesses) > 1
             else self._if_possible(witnesses[0], max_motion)
         )
         if placed is None and self.use_map and self._before is not None:
-            witnesses.append(self._witness(self._near(self._last_pose), Transform2D.identity(), m, predicted))
+            witnesses.append(
+                self._witness(self._near(self._last_pose), Transform2D.identity(), m, predicted, max_motion)
+            )
             placed = (
                 self._corroborated(witnesses, max_motion, predicted)
                 if self.params.pivot_witnesses
@@ -285,23 +289,36 @@ class PivotMapBuilder:
         self.poses.append(pose)
         return PivotStep(pose, placed.integration)
 
-    def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, predicted: Transform2D | None) -> _Witness:
-        """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled by the motion
-        prior where it can be (see the class docstring)."""
+    def _witness(
+        self,
+        base: SegmentMap,
+        pose: Transform2D,
+        m: SegmentMap,
+        predicted: Transform2D | None,
+        max_motion: float | None,
+    ) -> _Witness:
+        """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled where it can be
+        by the motion prior, or, before the robot has moved, by the motion bound (see the class
+        docstring)."""
         r = integrate(base, m, self.params)
         self.integrations += 1
         p = self.params
-        if predicted is None or p.motion_prior_radius <= 0:
+        if predicted is not None and p.motion_prior_radius > 0:
+            window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
+        elif predicted is None and max_motion is not None:
+            window = Window(pose.inverse().compose(self._last_pose), max_motion, math.pi)
+        else:
             return _Witness(pose.compose(r.transform), r)
-        window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
         inside = window.contains(np.array([t.as_array() for t in (r.transform, *(t for t, _ in r.rivals))]))
-        if (r.valid and inside[0]) or not inside.any():
-            return _Witness(pose.compose(r.transform), r)  # motion agrees, or nothing lies where it says
+        if r.valid and inside[0]:
+            return _Witness(pose.compose(r.transform), r, at_prediction=predicted is not None)
+        if not inside.any():
+            return _Witness(pose.compose(r.transform), r)  # nothing lies where the motion says
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):
-            return _Witness(pose.compose(near.transform), near)
-        return _Witness(pose.compose(r.transform), r)
+            return _Witness(pose.compose(near.transform), near, at_prediction=predicted is not None)
+        return _Witness(pose.compose(r.transform), r, at_prediction=near.valid and predicted is not None)
 
     def _refined_on_map(self, m: SegmentMap, pose: Transform2D) -> Transform2D:
         """``pose`` refined by least squares on the built map near it, if that raises the value."""
@@ -319,7 +336,10 @@ class PivotMapBuilder:
 
         Where the robot's recent motion (``predicted``) puts the map elsewhere, the agreeing witness
         must be valid too: against the motion, only two valid integrations place a map (a kidnapped
-        robot's first view can match one integration well enough, and the other almost)."""
+        robot's first view can match one integration well enough, and the other almost). And where
+        a witness also matches validly where the motion says, geometry and motion disagree: the map
+        is not placed (in a warehouse whose racks repeat, two scans 2.4 m apart match one rack
+        off with confidence, while the scan between them matches where the robot drove)."""
         tt, tr = self.params.witness_translation, self.params.witness_rotation
         window = None
         if predicted is not None and self.params.motion_prior_radius > 0:
@@ -328,6 +348,8 @@ class PivotMapBuilder:
             if self._if_possible(w, max_motion) is None:
                 continue
             against = window is not None and not window.contains(w.pose.as_array()[None])[0]
+            if against and any(o.at_prediction for o in witnesses):
+                continue  # the geometry matches where the motion says too: leave it unplaced
             for other in witnesses:
                 if other is not w and (other.integration.valid or not against):
                     dt, dr = w.pose.distance(other.pose)
@@ -362,6 +384,8 @@ class _Witness:
 
     pose: Transform2D
     integration: Integration
+    at_prediction: bool = False
+    """The integration has a valid match where the robot's motion puts the map."""
 
 
 SIMPLIFY_FROM = 200

@@ -144,6 +144,9 @@ class IntegrationParams:
     last placed pose (0: all of it)."""
     valid_min_map_value: float = 8.0
     """Two large partial maps: an integration is valid only if its value is at least this (m) ..."""
+    valid_min_map_scans: int = 5
+    """... and each map that carries its scans' viewpoints has at least this many (a local map of
+    two or three scans in a symmetric building matches turned round as well as where it is) ..."""
     valid_max_map_violation: float = 0.1
     """... and it puts at most this fraction of its value in the maps' seen free space ..."""
     valid_max_map_ambiguity: float = 0.5

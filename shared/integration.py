@@ -126,9 +126,13 @@ def is_valid(
             and runner_up <= params.valid_max_ambiguity * score
         )
     if not scans:
-        # Two partial maps: the paper's right ~10 m / wrong ~5 m, with free space and ambiguity.
+        # Two partial maps: the paper's right ~10 m / wrong ~5 m, with free space and ambiguity;
+        # and each seen from enough places (a map of two scans in a symmetric building matches
+        # turned round as well as it matches where it is).
+        seen = [len(x.extras[VIEWPOINTS]) for x in (m1, m2) if VIEWPOINTS in x.extras]
         return (
-            value >= params.valid_min_map_value
+            min(seen, default=params.valid_min_map_scans) >= params.valid_min_map_scans
+            and value >= params.valid_min_map_value
             and violation <= params.valid_max_map_violation * value
             and runner_up <= (params.valid_max_map_ambiguity if large else params.valid_max_ambiguity) * score
         )
@@ -389,10 +393,11 @@ def _integrate_large(
         ]
         best, rivals = _choose(prep, free, finals, p, not free.active, large=True)
         far = _far_at(prep, best.transform, p)
-        others = [j for j in range(len(shortlist)) if far(cand[shortlist[j]], best.transform)]
-        if others:
-            j = max(others, key=lambda j: fine[order[j]])
-            other = _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), 0, p)
+        # The best clearly different candidate by the fine grid score, among all that got one (a
+        # small map in a symmetric building can fill the shortlist with one alignment).
+        other_j = next((int(j) for j in first[np.argsort(-fine, kind="stable")] if far(cand[j], best.transform)), None)
+        if other_j is not None:
+            other = _evaluated(prep, free, Transform2D.from_array(cand[other_j]), 0, p)
             rivals.append((other.transform, other.score))
     return best, _best_rivals(rivals), len(cand), prep
 

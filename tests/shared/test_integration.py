@@ -175,6 +175,15 @@ def test_two_partial_maps_need_the_map_rule_a_scan_the_scan_rule() -> None:
     assert not valid(12.0, 0.0, 7.0, map1) and valid(12.0, 0.0, 7.0, map1, large=False)
     # A scan on a map is judged by the scan rule: 6 m is half of what the scan saw.
     assert valid(6.0, 0.0, 0.0, scan)
+    # Maps that carry their scans' viewpoints must each have been seen from 5 places at least.
+    from fleetmap.shared.mapgrid import with_viewpoints
+
+    def seen_from(m: SegmentMap, n: int) -> SegmentMap:
+        return with_viewpoints(
+            m, np.column_stack([np.arange(n, dtype=float), np.zeros((n, 2)), -np.ones(n), np.ones(n)])
+        )
+
+    assert valid(12.0, 0.0, 0.0, seen_from(map1, 5)) and not valid(12.0, 0.0, 0.0, seen_from(map1, 4))
 
 
 def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -> None:
