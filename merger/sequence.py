@@ -238,7 +238,7 @@ class PivotMapBuilder:
         if stamp is not None and self._stamps and stamp > self._stamps[-1]:
             # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
             if p.max_speed > 0:
-                max_motion = p.max_speed * max(stamp - self._stamps[-1], 0.0) + p.witness_translation
+                max_motion = p.max_speed * (stamp - self._stamps[-1]) + p.witness_translation
             predicted = self.predict(stamp)
         if self._last is None:
             self._last = m
@@ -249,7 +249,7 @@ class PivotMapBuilder:
             return PivotStep(Transform2D.identity(), None)
         # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
         witnesses = [self._witness(self._last, self._last_pose, m, predicted, max_motion)]
-        if self.params.pivot_witnesses and self._before is not None:
+        if p.pivot_witnesses and self._before is not None:
             witnesses.append(self._witness(self._before[0], self._before[1], m, predicted, max_motion))
         placed = (
             self._corroborated(witnesses, max_motion, predicted)
@@ -262,7 +262,7 @@ class PivotMapBuilder:
             )
             placed = (
                 self._corroborated(witnesses, max_motion, predicted)
-                if self.params.pivot_witnesses
+                if p.pivot_witnesses
                 else self._if_possible(witnesses[-1], max_motion)
             )
         if placed is None:

@@ -166,7 +166,8 @@ class IntegrationParams:
     """... and this (rad, 15 degrees); the match found there is taken only if it is valid there and
     scores at least ``valid_max_ambiguity`` of the best match anywhere. A scan placed farther than
     ``motion_prior_radius`` from the prediction needs two valid integrations that agree (a
-    kidnapped robot's first view can match one well enough, and the other almost)."""
+    kidnapped robot's first view can match one well enough, and the other almost), and is not
+    placed at all if one of them also matches validly where the motion says."""
 
 
 @dataclass(frozen=True)

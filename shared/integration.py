@@ -92,10 +92,6 @@ class Integration:
     rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
     """The best few transformations clearly different from ``transform`` (as for ``runner_up``),
     with their scores, best first: where a repetitive world puts S2 too."""
-    valid_if_unambiguous: bool = False
-    """Whether the integration would be valid were it not for ``runner_up`` (only the ambiguity
-    rule fails, or none does): a caller with other evidence (a robot's recent motion) may choose
-    among the rivals."""
 
     def to_json_dict(self) -> dict[str, float | bool]:
         return {
@@ -296,7 +292,6 @@ def integrate(
         runner_up=max(runner_up, 0.0),
         matches=matches,
         rivals=tuple(rivals),
-        valid_if_unambiguous=is_valid(best.value, violation, 0.0, m1, m2, p, large),
     )
 
 
@@ -343,7 +338,7 @@ def _integrate_small(
         ]
         best, rivals = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = [j for j in range(len(shortlist)) if _far(cand[shortlist[j]], best.transform)]
+        others = np.flatnonzero(_far_from(best.transform)(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -387,20 +382,22 @@ def _integrate_large(
     if len(cand):
         first = np.argsort(-ranking_scores(i1, i2, cand), kind="stable")[:GRID_FINE]
         fine = ranking_scores(i1, i2, cand[first], fine=True)
-        order = np.argsort(-fine, kind="stable")[:SHORTLIST]
-        shortlist = first[order]
-        picked = _pick_distinct(cand[shortlist], fine[order], max(1, p.refine_candidates) if p.refine else 1)
+        order = np.argsort(-fine, kind="stable")
+        ranked = first[order]
+        shortlist = ranked[:SHORTLIST]
+        picked = _pick_distinct(
+            cand[shortlist], fine[order[:SHORTLIST]], max(1, p.refine_candidates) if p.refine else 1
+        )
         finals = [
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
             for j in picked
         ]
         best, rivals = _choose(prep, free, finals, p, not free.active, large=True)
-        far = _far_at(prep, best.transform, p)
         # The best clearly different candidate by the fine grid score, among all that got one (a
         # small map in a symmetric building can fill the shortlist with one alignment).
-        other_j = next((int(j) for j in first[np.argsort(-fine, kind="stable")] if far(cand[j], best.transform)), None)
-        if other_j is not None:
-            other = _evaluated(prep, free, Transform2D.from_array(cand[other_j]), 0, p)
+        far = _far_at(prep, best.transform, p)(cand[ranked])
+        if far.any():
+            other = _evaluated(prep, free, Transform2D.from_array(cand[ranked[int(np.argmax(far))]]), 0, p)
             rivals.append((other.transform, other.score))
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -430,8 +427,11 @@ def _choose(
             best = choice
     if best.score <= 0:
         best = _Choice(Transform2D.identity(), 0.0, 0.0, best.label)
-    far = _far_at(prep, best.transform, p) if large else _far
-    return best, [(c.transform, c.score) for c in finals if far(c.transform.as_array(), best.transform)]
+    if not finals:
+        return best, []
+    far = _far_at(prep, best.transform, p) if large else _far_from(best.transform)
+    mask = far(np.array([c.transform.as_array() for c in finals]))
+    return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f]
 
 
 RIVALS = 8
@@ -444,34 +444,34 @@ def _best_rivals(rivals: list[tuple[Transform2D, float]]) -> list[tuple[Transfor
     return kept[:RIVALS]
 
 
-def _far_at(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Callable[[Array, Transform2D], bool]:
-    """``_far`` measured at the centroid of S2's segments matched under ``best``."""
-    _, k, mv = matched_pairs(prep, best.as_array(), p)
-    if len(k) == 0:
-        return _far
-    mid = 0.5 * (prep.s2[k, 0:2] + prep.s2[k, 2:4])
-    centre = (mid * mv[:, None]).sum(axis=0) / mv.sum()
-    at_best = best.apply_points(centre[None])[0]
+def _far_from(best: Transform2D, centre: Array | None = None) -> Callable[[Array], Array]:
+    """Which of ``(n, 3)`` transformations are clearly different from ``best``: they move ``centre``
+    (S2's origin by default) more than AMBIGUITY_TRANSLATION from where ``best`` puts it, or turn
+    more than AMBIGUITY_ROTATION from it."""
+    c = np.zeros(2) if centre is None else centre
+    at_best = best.apply_points(c[None])[0]
 
-    def far(t: Array, ref: Transform2D) -> bool:
-        moved = Transform2D.from_array(t).apply_points(centre[None])[0]
-        return (
-            math.hypot(*(moved - at_best)) > AMBIGUITY_TRANSLATION
-            or abs(math.remainder(t[2] - ref.theta, 2 * math.pi)) > AMBIGUITY_ROTATION
-        )
+    def far(t: Array) -> Array:
+        t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+        cos, sin = np.cos(t[:, 2]), np.sin(t[:, 2])
+        moved = np.column_stack([cos * c[0] - sin * c[1] + t[:, 0], sin * c[0] + cos * c[1] + t[:, 1]])
+        turn = np.abs(np.remainder(t[:, 2] - best.theta + np.pi, 2 * np.pi) - np.pi)
+        return np.asarray((np.hypot(*(moved - at_best).T) > AMBIGUITY_TRANSLATION) | (turn > AMBIGUITY_ROTATION))
 
     return far
 
 
+def _far_at(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Callable[[Array], Array]:
+    """:func:`_far_from` measured at the centroid of S2's segments matched under ``best``."""
+    _, k, mv = matched_pairs(prep, best.as_array(), p)
+    if len(k) == 0:
+        return _far_from(best)
+    mid = 0.5 * (prep.s2[k, 0:2] + prep.s2[k, 2:4])
+    return _far_from(best, (mid * mv[:, None]).sum(axis=0) / mv.sum())
+
+
 AMBIGUITY_TRANSLATION = 0.5
 AMBIGUITY_ROTATION = 0.17
-
-
-def _far(t: Array, ref: Transform2D) -> bool:
-    return (
-        math.hypot(t[0] - ref.x, t[1] - ref.y) > AMBIGUITY_TRANSLATION
-        or abs(math.remainder(t[2] - ref.theta, 2 * math.pi)) > AMBIGUITY_ROTATION
-    )
 
 
 @dataclass(frozen=True)

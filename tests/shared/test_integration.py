@@ -197,7 +197,8 @@ def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -
     a, b = (SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True) for s in stream)
     true = stream[0].pose.inverse().compose(stream[1].pose)
     r = integrate(a, b)
-    assert not r.valid and r.valid_if_unambiguous, "the pair should be valid but for its ambiguity"
+    assert not r.valid, "the pair is ambiguous"
+    assert is_valid(r.value, r.violation, 0.0, a, b, IntegrationParams()), "... and valid but for that"
     assert r.transform.distance(true)[0] < 0.05
     rival, score = r.rivals[0]
     assert rival.distance(true)[0] > 0.5 and score == r.runner_up
