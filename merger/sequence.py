@@ -27,7 +27,7 @@ from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.integration import Integration, Window, integrate
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
-from fleetmap.shared.refine import refine_transform
+from fleetmap.shared.refine import refine_transform, refinement_kept
 from fleetmap.shared.simplify import simplify
 
 METHODS = ("sequential", "tree", "pivot")
@@ -176,11 +176,19 @@ class PivotMapBuilder:
       recent motion puts the new map (:meth:`predict`), the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
       scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
-      near-equal matches; it never overrides a clearly better one. Against the motion (farther
+      near-equal matches; against a clearly better one it needs two valid matches where it
+      says (below). Against the motion (farther
       than ``motion_prior_radius`` from the prediction), a map is placed only where two valid
-      integrations agree, and not at all if one of them also matches where the motion says.
-      Before the robot has moved (two placed maps), the motion bound settles an ambiguous
-      integration the same way: a rival the robot cannot have reached is no rival.
+      integrations agree, and not there if one of them also matches validly where the motion
+      says. Where two integrations match validly, and agree, where the motion says, the map is
+      placed there even if a better match lies elsewhere: a forward-looking laser in racks that
+      repeat sees more of the known map one rack back than where the robot drove (the part of
+      its view beyond the map matches nothing yet). Before the robot has moved (two placed
+      maps), the motion bound settles an ambiguous integration the same way: a rival the robot
+      cannot have reached is no rival.
+    - **Motion bounds** (``max_speed``, ``max_acceleration``): a map is never placed where the
+      robot cannot have driven since the last placed one, nor, while it moves, farther from the
+      prediction along its direction of motion than it can speed up or brake.
     - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
       the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
       scan-to-scan integrations do not add up along a hallway.
@@ -232,14 +240,8 @@ class PivotMapBuilder:
         than ``max_speed`` times the time since (plus ``witness_translation``) does not count (the
         agent's motion bound), and ambiguous integrations are settled by the motion prior (see the
         class docstring)."""
-        max_motion: float | None = None
-        predicted: Transform2D | None = None
         p = self.params
-        if stamp is not None and self._stamps and stamp > self._stamps[-1]:
-            # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
-            if p.max_speed > 0:
-                max_motion = p.max_speed * (stamp - self._stamps[-1]) + p.witness_translation
-            predicted = self.predict(stamp)
+        motion = self._motion(stamp)
         if self._last is None:
             self._last = m
             self._stamps = [] if stamp is None else [stamp]
@@ -248,22 +250,16 @@ class PivotMapBuilder:
             self.poses.append(Transform2D.identity())
             return PivotStep(Transform2D.identity(), None)
         # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
-        witnesses = [self._witness(self._last, self._last_pose, m, predicted, max_motion)]
+        witnesses = [self._witness(self._last, self._last_pose, m, motion)]
         if p.pivot_witnesses and self._before is not None:
-            witnesses.append(self._witness(self._before[0], self._before[1], m, predicted, max_motion))
+            witnesses.append(self._witness(self._before[0], self._before[1], m, motion))
         placed = (
-            self._corroborated(witnesses, max_motion, predicted)
-            if len(witnesses) > 1
-            else self._if_possible(witnesses[0], max_motion)
+            self._corroborated(witnesses, motion) if len(witnesses) > 1 else self._if_possible(witnesses[0], motion)
         )
         if placed is None and self.use_map and self._before is not None:
-            witnesses.append(
-                self._witness(self._near(self._last_pose), Transform2D.identity(), m, predicted, max_motion)
-            )
+            witnesses.append(self._witness(self._near(self._last_pose), Transform2D.identity(), m, motion))
             placed = (
-                self._corroborated(witnesses, max_motion, predicted)
-                if p.pivot_witnesses
-                else self._if_possible(witnesses[-1], max_motion)
+                self._corroborated(witnesses, motion) if p.pivot_witnesses else self._if_possible(witnesses[-1], motion)
             )
         if placed is None:
             self.poses.append(None)
@@ -289,20 +285,28 @@ class PivotMapBuilder:
         self.poses.append(pose)
         return PivotStep(pose, placed.integration)
 
-    def _witness(
-        self,
-        base: SegmentMap,
-        pose: Transform2D,
-        m: SegmentMap,
-        predicted: Transform2D | None,
-        max_motion: float | None,
-    ) -> _Witness:
+    def _motion(self, stamp: float | None) -> _Motion:
+        """What the robot's motion says of a map taken at ``stamp`` (nothing without stamps)."""
+        p = self.params
+        if stamp is None or not self._stamps or not stamp > self._stamps[-1]:
+            # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
+            return _Motion(self._last_pose)
+        dt = stamp - self._stamps[-1]
+        max_motion = p.max_speed * dt + p.witness_translation if p.max_speed > 0 else None
+        predicted = self.predict(stamp)
+        slack = None
+        if predicted is not None and p.max_acceleration > 0:
+            slack = 0.5 * p.max_acceleration * dt * dt + p.witness_translation
+        return _Motion(self._last_pose, max_motion, predicted, slack, p.motion_prior_rotation)
+
+    def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, motion: _Motion) -> _Witness:
         """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled where it can be
         by the motion prior, or, before the robot has moved, by the motion bound (see the class
         docstring)."""
         r = integrate(base, m, self.params)
         self.integrations += 1
         p = self.params
+        predicted, max_motion = motion.predicted, motion.max_motion
         if predicted is not None and p.motion_prior_radius > 0:
             window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
         elif predicted is None and max_motion is not None:
@@ -316,54 +320,75 @@ class PivotMapBuilder:
             return _Witness(pose.compose(r.transform), r)  # nothing lies where the motion says
         near = integrate(base, m, p, window=window)
         self.integrations += 1
+        near_pose = pose.compose(near.transform)
         if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):
-            return _Witness(pose.compose(near.transform), near, at_prediction=predicted is not None)
-        return _Witness(pose.compose(r.transform), r, at_prediction=near.valid and predicted is not None)
+            return _Witness(near_pose, near, at_prediction=predicted is not None)
+        if predicted is None or near.value <= 0:
+            return _Witness(pose.compose(r.transform), r)
+        return _Witness(pose.compose(r.transform), r, at_prediction=near.valid, predicted_pose=near_pose)
 
     def _refined_on_map(self, m: SegmentMap, pose: Transform2D) -> Transform2D:
-        """``pose`` refined by least squares on the built map near it, if that raises the value."""
+        """``pose`` refined by least squares on the built map near it, if that raises the value or
+        lowers it a little after a small move (:func:`~fleetmap.shared.refine.refinement_kept`)."""
         near = self._near(pose)
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
         after = transformation_value(prep, t.as_array(), self.params, refuse=False)
-        return t if after >= before else pose
+        return t if refinement_kept(pose, t, before, after, self.params) else pose
 
-    def _corroborated(
-        self, witnesses: list[_Witness], max_motion: float | None, predicted: Transform2D | None
-    ) -> _Witness | None:
+    def _corroborated(self, witnesses: list[_Witness], motion: _Motion) -> _Witness | None:
         """The first possible witness that another one agrees with (within the witness tolerances).
 
         Where the robot's recent motion (``predicted``) puts the map elsewhere, the agreeing witness
         must be valid too: against the motion, only two valid integrations place a map (a kidnapped
         robot's first view can match one integration well enough, and the other almost). And where
         a witness also matches validly where the motion says, geometry and motion disagree: the map
-        is not placed (in a warehouse whose racks repeat, two scans 2.4 m apart match one rack
-        off with confidence, while the scan between them matches where the robot drove)."""
+        is not placed there (in a warehouse whose racks repeat, two scans 2.4 m apart match one rack
+        off with confidence, while the scan between them matches where the robot drove). Where the
+        motion says, the agreeing witness may be invalid, and may agree by its best match inside
+        the motion prior's window. Failing all that, :meth:`_with_motion`."""
         tt, tr = self.params.witness_translation, self.params.witness_rotation
         window = None
-        if predicted is not None and self.params.motion_prior_radius > 0:
-            window = Window(predicted, self.params.motion_prior_radius, math.pi)
+        if motion.predicted is not None and self.params.motion_prior_radius > 0:
+            window = Window(motion.predicted, self.params.motion_prior_radius, math.pi)
         for w in witnesses:
-            if self._if_possible(w, max_motion) is None:
+            if self._if_possible(w, motion) is None:
                 continue
             against = window is not None and not window.contains(w.pose.as_array()[None])[0]
             if against and any(o.at_prediction for o in witnesses):
                 continue  # the geometry matches where the motion says too: leave it unplaced
             for other in witnesses:
-                if other is not w and (other.integration.valid or not against):
+                if other is w:
+                    continue
+                if against and other.integration.valid:
                     dt, dr = w.pose.distance(other.pose)
                     if dt <= tt and dr <= tr:
                         return w
+                elif not against and other.agrees(w.pose, tt, tr):
+                    return w
+        return self._with_motion(witnesses, motion)
+
+    def _with_motion(self, witnesses: list[_Witness], motion: _Motion) -> _Witness | None:
+        """Two witnesses that match validly, and agree, where the robot's motion puts the map.
+
+        Where a better match lies elsewhere, geometry alone is ambiguous and motion decides: a
+        forward-looking laser in racks that repeat sees more of the known map one rack back than
+        where the robot drove, since the part of its view beyond the map matches nothing yet."""
+        tt, tr = self.params.witness_translation, self.params.witness_rotation
+        at = [(w, w.motion_pose) for w in witnesses if w.motion_pose is not None]
+        for k, (w, pose) in enumerate(at):
+            if not motion.possible(pose):
+                continue
+            for _, other in at[k + 1 :]:
+                dt, dr = pose.distance(other)
+                if dt <= tt and dr <= tr:
+                    return _Witness(pose, w.integration, at_prediction=True)
         return None
 
-    def _if_possible(self, w: _Witness, max_motion: float | None) -> _Witness | None:
-        """``w`` if its integration is valid and within ``max_motion`` of the last placed pose."""
-        if not w.integration.valid:
-            return None
-        if max_motion is not None and w.pose.distance(self._last_pose)[0] > max_motion:
-            return None
-        return w
+    def _if_possible(self, w: _Witness, motion: _Motion) -> _Witness | None:
+        """``w`` if its integration is valid and the robot can have moved there."""
+        return w if w.integration.valid and motion.possible(w.pose) else None
 
     def _near(self, pose: Transform2D) -> SegmentMap:
         """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
@@ -379,6 +404,42 @@ class PivotMapBuilder:
 
 
 @dataclass(frozen=True)
+class _Motion:
+    """What the robot's motion says of the next map: where it can be, and where it should be."""
+
+    last: Transform2D
+    """The last placed map's pose."""
+    max_motion: float | None = None
+    """The farthest it can be from ``last`` (``max_speed``; None: no stamps, no bound)."""
+    predicted: Transform2D | None = None
+    """Where constant velocity puts it (None: not two placed maps with stamps yet)."""
+    along_slack: float | None = None
+    """How far from ``predicted``, along the direction of motion, it can be (``max_acceleration``)."""
+    turn: float = math.pi
+    """... unless it turned more than this from the predicted heading (rad)."""
+
+    def possible(self, pose: Transform2D) -> bool:
+        """Whether the robot can have moved to ``pose``: within ``max_motion`` of the last pose and,
+        while it moves on without turning, within ``along_slack`` of the prediction along its
+        direction of motion. (A robot that turns may have slowed down to do so: the scenarios'
+        robots turn corners on the spot.) A forward-looking laser in racks or a hallway that
+        repeat aliases along the motion: the match one rack back would make a robot driving
+        straight on at 2.4 m/s reverse within a second."""
+        if self.max_motion is not None and pose.distance(self.last)[0] > self.max_motion:
+            return False
+        if self.predicted is None or self.along_slack is None:
+            return True
+        if abs(math.remainder(pose.theta - self.predicted.theta, 2 * math.pi)) > self.turn:
+            return True
+        step = np.array([self.predicted.x - self.last.x, self.predicted.y - self.last.y])
+        length = float(np.hypot(*step))
+        if length <= self.along_slack:
+            return True  # (nearly) still: the direction of motion is not known well enough
+        moved = np.array([pose.x - self.last.x, pose.y - self.last.y])
+        return abs(float(moved @ step) / length - length) <= self.along_slack
+
+
+@dataclass(frozen=True)
 class _Witness:
     """Where one integration puts the new map in the built map's frame."""
 
@@ -386,6 +447,26 @@ class _Witness:
     integration: Integration
     at_prediction: bool = False
     """The integration has a valid match where the robot's motion puts the map."""
+    predicted_pose: Transform2D | None = None
+    """The pose of its best match where the robot's motion puts the map, where that is not
+    ``pose`` (the best match lies elsewhere): valid if ``at_prediction``."""
+
+    def agrees(self, pose: Transform2D, translation: float, rotation: float) -> bool:
+        """Whether this integration puts the map within the tolerances of ``pose``, at its best
+        match or at its match where the motion says."""
+        for own in (self.pose, self.predicted_pose):
+            if own is not None:
+                dt, dr = own.distance(pose)
+                if dt <= translation and dr <= rotation:
+                    return True
+        return False
+
+    @property
+    def motion_pose(self) -> Transform2D | None:
+        """Where this integration validly places the map as the robot's motion says (None: nowhere)."""
+        if not self.at_prediction:
+            return None
+        return self.pose if self.predicted_pose is None else self.predicted_pose
 
 
 SIMPLIFY_FROM = 200

@@ -80,3 +80,15 @@ def refine_transform(
         if abs(step[0]) + abs(step[1]) < 1e-6 and abs(step[2]) < 1e-7:
             break
     return Transform2D.from_array(t)
+
+
+def refinement_kept(
+    start: Transform2D, refined: Transform2D, before: float, after: float, params: IntegrationParams
+) -> bool:
+    """Whether a refined transformation replaces its start: it scores more, or a little less
+    (``refine_slack``) after a small move (see :class:`~fleetmap.shared.config.IntegrationParams`)."""
+    if after >= before:
+        return True
+    dt, dr = start.distance(refined)
+    small = dt <= params.refine_slack_translation and dr <= params.refine_slack_rotation
+    return small and after >= before - params.refine_slack * abs(before)

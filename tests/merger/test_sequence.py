@@ -126,18 +126,30 @@ def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drov
     assert None in without.poses, "without stamps (no motion prior) every scan was placed: the test shows nothing"
 
 
-def test_refining_on_the_built_map_keeps_a_hallway_within_2cm() -> None:
-    # The department, r3's scans 0-13: scan 8 integrates with scan 7 0.7 degrees off, and scan to
-    # scan (the paper's pivot method, pivot_refine false) that error stays: 6 cm and 0.9 degrees
-    # by scan 13. Refined on the built map, every scan stays within 2 cm and 0.3 degrees.
-    scans = scenario_scans("department", "r3", 14)
+@pytest.mark.parametrize(
+    "name, robot, stop, metres, degrees",
+    [
+        # The department, r3's scans 0-13: scan 8 integrates with scan 7 0.7 degrees off, and scan
+        # to scan (the paper's pivot method, pivot_refine false) that error stays: 6 cm and 0.9
+        # degrees by scan 13. Refined on the built map, every scan stays within 2 cm and 0.3 degrees.
+        ("department", "r3", 14, 0.02, 0.3),
+        # The warehouse, r2 along the north lane (the outer wall 1 m to its right). Scan 4 matches
+        # scan 3 best turned 0.5 degrees (the transformation value counts overlap within tolerances
+        # and is flat there); least squares puts it within 0.01 degrees, for 1 % less value.
+        # Keeping only refinements that raise the value, the lane turned 2 degrees and drifted
+        # 0.36 m in 17 scans (refine_slack).
+        ("warehouse", "r2", 18, 0.10, 0.5),
+    ],
+)
+def test_refining_keeps_a_hallway_straight(name: str, robot: str, stop: int, metres: float, degrees: float) -> None:
+    scans = scenario_scans(name, robot, stop)
     origin = scans[0][2]
     builder = PivotMapBuilder()
     for k, (stamp, m, true) in enumerate(scans):
         pose = builder.add(m, stamp).pose
         assert pose is not None, f"scan {k} not placed"
         dt, dr = pose.distance(origin.inverse().compose(true))
-        assert dt < 0.02 and math.degrees(dr) < 0.3, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
+        assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
 def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> None:
@@ -150,6 +162,21 @@ def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> Non
             assert builder.add(m, stamp).pose is not None
     kidnapped = [m for stamp, m, _ in scans if stamp >= 8.0]
     assert builder.add(kidnapped[0], 8.0).pose is None
+
+
+def test_a_kidnapped_robot_maps_the_north_lane_in_one_epoch() -> None:
+    # warehouse-events, r1 after its kidnap: west along the north lane, racks every 3.5 m to the
+    # south, scans 1.2 m apart. From scan 20 on, the view matches the built map better one rack
+    # back (14.6 against 9.2: the part of the view beyond the map matches nothing yet), while the
+    # last scan and the map both match validly where the robot drove: motion decides.
+    scans = scenario_scans("warehouse-events", "r1", 28)[16:]
+    builder = PivotMapBuilder()
+    origin = scans[0][2]
+    for stamp, m, true in scans:
+        pose = builder.add(m, stamp).pose
+        assert pose is not None, f"scan at {stamp:.1f} s not placed"
+        dt, dr = pose.distance(origin.inverse().compose(true))
+        assert dt < 0.1 and math.degrees(dr) < 1.5, f"scan at {stamp:.1f} s: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
 def test_bad_input_is_refused() -> None:
