@@ -176,19 +176,19 @@ class PivotMapBuilder:
       recent motion puts the new map (:meth:`predict`), the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
       scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
-      near-equal matches; against a clearly better one it needs two valid matches where it
-      says (below). Against the motion (farther
-      than ``motion_prior_radius`` from the prediction), a map is placed only where two valid
-      integrations agree, and not there if one of them also matches validly where the motion
-      says. Where two integrations match validly, and agree, where the motion says, the map is
-      placed there even if a better match lies elsewhere: a forward-looking laser in racks that
-      repeat sees more of the known map one rack back than where the robot drove (the part of
-      its view beyond the map matches nothing yet). Before the robot has moved (two placed
-      maps), the motion bound settles an ambiguous integration the same way: a rival the robot
-      cannot have reached is no rival.
+      near-equal matches; against a clearly better one it needs two valid matches where it says
+      (below). Against the motion (farther than ``motion_prior_radius`` from the prediction), a
+      map is placed only where two valid integrations agree, and not there if one of them also
+      matches validly where the motion says. Where two integrations match validly, and agree,
+      where the motion says, the map is placed there even if a better match lies elsewhere: a
+      forward-looking laser in racks that repeat sees more of the known map one rack back than
+      where the robot drove (the part of its view beyond the map matches nothing yet). Before
+      the robot has moved (two placed maps), the motion bound settles an ambiguous integration
+      the same way: a rival the robot cannot have reached is no rival.
     - **Motion bounds** (``max_speed``, ``max_acceleration``): a map is never placed where the
-      robot cannot have driven since the last placed one, nor, while it moves, farther from the
-      prediction along its direction of motion than it can speed up or brake.
+      robot cannot have driven since the last placed one, nor, while it moves on in the
+      predicted heading, farther from the prediction along its direction of motion than it can
+      speed up or brake.
     - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
       the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
       scan-to-scan integrations do not add up along a hallway.
@@ -237,9 +237,10 @@ class PivotMapBuilder:
     def add(self, m: SegmentMap, stamp: float | None = None) -> PivotStep:
         """Integrate and fuse one map. With its ``stamp`` (seconds; a robot agent's scans), the
         robot's motion counts: an integration that puts the map farther from the last placed one
-        than ``max_speed`` times the time since (plus ``witness_translation``) does not count (the
-        agent's motion bound), and ambiguous integrations are settled by the motion prior (see the
-        class docstring)."""
+        than ``max_speed`` times the time since (plus ``witness_translation``), or farther along
+        the way from the prediction than ``max_acceleration`` allows, does not count (the motion
+        bounds), and ambiguous integrations are settled by the motion prior (see the class
+        docstring)."""
         p = self.params
         motion = self._motion(stamp)
         if self._last is None:
@@ -290,14 +291,14 @@ class PivotMapBuilder:
         p = self.params
         if stamp is None or not self._stamps or not stamp > self._stamps[-1]:
             # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
-            return _Motion(self._last_pose)
+            return _Motion(self._last_pose, p.motion_prior_rotation)
         dt = stamp - self._stamps[-1]
         max_motion = p.max_speed * dt + p.witness_translation if p.max_speed > 0 else None
         predicted = self.predict(stamp)
         slack = None
         if predicted is not None and p.max_acceleration > 0:
             slack = 0.5 * p.max_acceleration * dt * dt + p.witness_translation
-        return _Motion(self._last_pose, max_motion, predicted, slack, p.motion_prior_rotation)
+        return _Motion(self._last_pose, p.motion_prior_rotation, max_motion, predicted, slack)
 
     def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, motion: _Motion) -> _Witness:
         """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled where it can be
@@ -325,7 +326,7 @@ class PivotMapBuilder:
             return _Witness(near_pose, near, at_prediction=predicted is not None)
         if predicted is None or near.value <= 0:
             return _Witness(pose.compose(r.transform), r)
-        return _Witness(pose.compose(r.transform), r, at_prediction=near.valid, predicted_pose=near_pose)
+        return _Witness(pose.compose(r.transform), r, near.valid, near_pose, near)
 
     def _refined_on_map(self, m: SegmentMap, pose: Transform2D) -> Transform2D:
         """``pose`` refined by least squares on the built map near it, if that raises the value or
@@ -376,14 +377,16 @@ class PivotMapBuilder:
         forward-looking laser in racks that repeat sees more of the known map one rack back than
         where the robot drove, since the part of its view beyond the map matches nothing yet."""
         tt, tr = self.params.witness_translation, self.params.witness_rotation
-        at = [(w, w.motion_pose) for w in witnesses if w.motion_pose is not None]
-        for k, (w, pose) in enumerate(at):
+        at = [w for w in witnesses if w.at_prediction]
+        for w in at:
+            pose = w.motion_pose
             if not motion.possible(pose):
                 continue
-            for _, other in at[k + 1 :]:
-                dt, dr = pose.distance(other)
-                if dt <= tt and dr <= tr:
-                    return _Witness(pose, w.integration, at_prediction=True)
+            for other in at:
+                if other is not w:
+                    dt, dr = pose.distance(other.motion_pose)
+                    if dt <= tt and dr <= tr:
+                        return _Witness(pose, w.motion_integration, at_prediction=True)
         return None
 
     def _if_possible(self, w: _Witness, motion: _Motion) -> _Witness | None:
@@ -409,34 +412,38 @@ class _Motion:
 
     last: Transform2D
     """The last placed map's pose."""
+    straight_rotation: float
+    """A placement within this (rad) of the predicted heading is one where the robot drove on
+    straight: only there does ``along_slack`` bound it."""
     max_motion: float | None = None
     """The farthest it can be from ``last`` (``max_speed``; None: no stamps, no bound)."""
     predicted: Transform2D | None = None
     """Where constant velocity puts it (None: not two placed maps with stamps yet)."""
     along_slack: float | None = None
     """How far from ``predicted``, along the direction of motion, it can be (``max_acceleration``)."""
-    turn: float = math.pi
-    """... unless it turned more than this from the predicted heading (rad)."""
 
     def possible(self, pose: Transform2D) -> bool:
         """Whether the robot can have moved to ``pose``: within ``max_motion`` of the last pose and,
-        while it moves on without turning, within ``along_slack`` of the prediction along its
-        direction of motion. (A robot that turns may have slowed down to do so: the scenarios'
-        robots turn corners on the spot.) A forward-looking laser in racks or a hallway that
-        repeat aliases along the motion: the match one rack back would make a robot driving
-        straight on at 2.4 m/s reverse within a second."""
+        if the robot moves and ``pose`` lies within ``straight_rotation`` of the predicted heading,
+        within ``along_slack`` of the prediction along its direction of motion. A placement turned
+        more than that is not bounded (a robot that turns may have slowed down to do so: the
+        scenarios' robots turn corners on the spot), nor is one while the predicted step is no
+        longer than ``along_slack`` (the direction of motion is not known well enough). A
+        forward-looking laser in racks or a hallway that repeat aliases along the motion: the
+        match one rack back would make a robot driving straight on at 2.4 m/s reverse within a
+        second."""
         if self.max_motion is not None and pose.distance(self.last)[0] > self.max_motion:
             return False
         if self.predicted is None or self.along_slack is None:
             return True
-        if abs(math.remainder(pose.theta - self.predicted.theta, 2 * math.pi)) > self.turn:
+        if pose.distance(self.predicted)[1] > self.straight_rotation:
             return True
-        step = np.array([self.predicted.x - self.last.x, self.predicted.y - self.last.y])
-        length = float(np.hypot(*step))
+        sx, sy = self.predicted.x - self.last.x, self.predicted.y - self.last.y
+        length = math.hypot(sx, sy)
         if length <= self.along_slack:
-            return True  # (nearly) still: the direction of motion is not known well enough
-        moved = np.array([pose.x - self.last.x, pose.y - self.last.y])
-        return abs(float(moved @ step) / length - length) <= self.along_slack
+            return True
+        along = ((pose.x - self.last.x) * sx + (pose.y - self.last.y) * sy) / length
+        return abs(along - length) <= self.along_slack
 
 
 @dataclass(frozen=True)
@@ -450,6 +457,8 @@ class _Witness:
     predicted_pose: Transform2D | None = None
     """The pose of its best match where the robot's motion puts the map, where that is not
     ``pose`` (the best match lies elsewhere): valid if ``at_prediction``."""
+    predicted_integration: Integration | None = None
+    """That match (the integration within the motion prior's window)."""
 
     def agrees(self, pose: Transform2D, translation: float, rotation: float) -> bool:
         """Whether this integration puts the map within the tolerances of ``pose``, at its best
@@ -462,11 +471,14 @@ class _Witness:
         return False
 
     @property
-    def motion_pose(self) -> Transform2D | None:
-        """Where this integration validly places the map as the robot's motion says (None: nowhere)."""
-        if not self.at_prediction:
-            return None
+    def motion_pose(self) -> Transform2D:
+        """Where this witness validly places the map as the robot's motion says (``at_prediction``)."""
         return self.pose if self.predicted_pose is None else self.predicted_pose
+
+    @property
+    def motion_integration(self) -> Integration:
+        """The integration that places it there."""
+        return self.integration if self.predicted_integration is None else self.predicted_integration
 
 
 SIMPLIFY_FROM = 200

@@ -101,16 +101,6 @@ class IntegrationParams:
     """Two segments closer to parallel than this (rad) form no angle: their vertex is ill defined."""
     refine: bool = True
     """Refine the best transformation by least squares on the matched segment pairs."""
-    refine_slack: float = 0.01
-    """The pivot builder's scan-to-map refinement (``pivot_refine``) is kept if it lowers the value
-    by at most this fraction, after a move of at most ``refine_slack_translation`` and
-    ``refine_slack_rotation`` (fleetmap): the transformation value, which counts overlap within
-    tolerances, is flat near the true pose, and a scan turned half a degree can score a little
-    more than the least-squares pose (a warehouse lane turned 2 degrees in 17 scans). Farther, or
-    for more, only a higher value keeps it: in racks or a corridor it may have slid a bay along.
-    (Measured on the corrected logs, 2 % lost a fifth of the maps placed right; 1 % none.)"""
-    refine_slack_translation: float = 0.10
-    refine_slack_rotation: float = 0.035
     refine_candidates: int = 12
     """How many of the best distinct transformations are refined before the best is chosen."""
     auto_max_all_candidates: int = 4000
@@ -145,6 +135,18 @@ class IntegrationParams:
     pivot_refine: bool = True
     """The pivot builder refines each placed map's pose by least squares on the built map near it
     (fleetmap: scan-to-map; the paper's pivot method composes scan-to-scan transforms only)."""
+    pivot_refine_slack: float = 0.01
+    """The scan-to-map refinement (``pivot_refine``) is kept if it lowers the value by at most
+    this fraction, after a move of at most ``pivot_refine_slack_translation`` and
+    ``pivot_refine_slack_rotation`` (fleetmap): the transformation value, which counts overlap
+    within tolerances, is flat near the true pose, and a scan turned half a degree can score a
+    little more than the least-squares pose (a warehouse lane turned 2 degrees in 17 scans).
+    Farther, or for more, only a higher value keeps it: in racks or a corridor it may have slid a
+    bay along. (On the corrected logs, 2 % lost a fifth of the maps placed right; 1 % none.)"""
+    pivot_refine_slack_translation: float = 0.10
+    """The largest move (m) of a refinement kept for less value (``pivot_refine_slack``) ..."""
+    pivot_refine_slack_rotation: float = 0.035
+    """... and the largest turn (rad, 2 degrees)."""
     witness_translation: float = 0.30
     """Two integrations agree when they put the new scan within this (m) ..."""
     witness_rotation: float = 0.0524
@@ -169,10 +171,12 @@ class IntegrationParams:
     look-alike corridor) or the robot was carried off. 0: no bound. This is a physical limit, not
     a pose: the robot still knows nothing of where it is."""
     max_acceleration: float = 3.0
-    """Robot agents (fleetmap): the hardest a robot speeds up or brakes (m/s^2). While it moves on
-    without turning (within ``motion_prior_rotation`` of the predicted heading), a scan is not
-    placed farther from where constant velocity puts it, along its direction of motion, than half
-    this times the time squared (plus ``witness_translation``). 0: no bound."""
+    """Robot agents (fleetmap): the hardest a robot speeds up or brakes (m/s^2). While it moves (its
+    predicted step is longer than the bound below), a scan placed within ``motion_prior_rotation``
+    of the predicted heading is not placed farther from where constant velocity puts it, along its
+    direction of motion, than half this times the time squared (plus ``witness_translation``). A
+    placement turned more than that is not bounded: a robot that turns may have slowed down to do
+    so (the scenarios' robots turn corners on the spot). 0: no bound."""
     motion_prior_radius: float = 0.5
     """Robot agents (fleetmap): a scan whose integration is ambiguous (a hallway matches one door
     further, or turned round) is integrated again within this (m) of where the robot's own recent

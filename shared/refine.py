@@ -86,9 +86,9 @@ def refinement_kept(
     start: Transform2D, refined: Transform2D, before: float, after: float, params: IntegrationParams
 ) -> bool:
     """Whether a refined transformation replaces its start: it scores more, or a little less
-    (``refine_slack``) after a small move (see :class:`~fleetmap.shared.config.IntegrationParams`)."""
+    (``pivot_refine_slack``) after a small move (see :class:`~fleetmap.shared.config.IntegrationParams`)."""
     if after >= before:
         return True
     dt, dr = start.distance(refined)
-    small = dt <= params.refine_slack_translation and dr <= params.refine_slack_rotation
-    return small and after >= before - params.refine_slack * abs(before)
+    small = dt <= params.pivot_refine_slack_translation and dr <= params.pivot_refine_slack_rotation
+    return small and after >= before - params.pivot_refine_slack * abs(before)

@@ -137,7 +137,7 @@ def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drov
         # scan 3 best turned 0.5 degrees (the transformation value counts overlap within tolerances
         # and is flat there); least squares puts it within 0.01 degrees, for 1 % less value.
         # Keeping only refinements that raise the value, the lane turned 2 degrees and drifted
-        # 0.36 m in 17 scans (refine_slack).
+        # 0.36 m in 17 scans (pivot_refine_slack).
         ("warehouse", "r2", 18, 0.10, 0.5),
     ],
 )
@@ -164,12 +164,26 @@ def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> Non
     assert builder.add(kidnapped[0], 8.0).pose is None
 
 
-def test_a_kidnapped_robot_maps_the_north_lane_in_one_epoch() -> None:
-    # warehouse-events, r1 after its kidnap: west along the north lane, racks every 3.5 m to the
-    # south, scans 1.2 m apart. From scan 20 on, the view matches the built map better one rack
-    # back (14.6 against 9.2: the part of the view beyond the map matches nothing yet), while the
-    # last scan and the map both match validly where the robot drove: motion decides.
-    scans = scenario_scans("warehouse-events", "r1", 28)[16:]
+@pytest.mark.parametrize(
+    "name, robot, start, stop",
+    [
+        # warehouse-events, r1 after its kidnap: west along the north lane, racks every 3.5 m to
+        # the south, scans 1.2 m apart. From scan 20 on, the view matches the built map better one
+        # rack back (14.6 against 9.2: the part of the view beyond the map matches nothing yet),
+        # while the last scan matches it validly where the robot drove, and the map's best match
+        # there (inside the motion prior's window) agrees: placed there, not left unplaced.
+        ("warehouse-events", "r1", 16, 28),
+        # warehouse, r3 along the cross aisle from scan 10 (where its agent starts epoch 2): it
+        # sees only the next rack row ahead. At scan 13 every integration matches best one rack
+        # back, and the last two scans match validly, and agree, where the robot drove: placed
+        # there. Without that rule scans 13 and 14 stay unplaced.
+        ("warehouse", "r3", 10, 15),
+    ],
+)
+def test_valid_matches_where_the_robot_drove_outweigh_a_better_one_a_rack_back(
+    name: str, robot: str, start: int, stop: int
+) -> None:
+    scans = scenario_scans(name, robot, stop)[start:]
     builder = PivotMapBuilder()
     origin = scans[0][2]
     for stamp, m, true in scans:
