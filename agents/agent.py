@@ -11,9 +11,12 @@ previous scan nor with the local map), the agent closes the local map and starts
 whose frame is the first of those scans; the others are integrated into it. A scan is placed
 only where the robot can have gone since its last placed scan (``max_speed`` times the time
 between their stamps): a look-alike corridor 9 m away matches well, but a robot carried off in
-half a second did not drive there. Where a scan matches two places almost equally (a hallway
-one door further, or turned round), the robot's own recent motion decides, if it points at one
-of them (the builder's motion prior, ``motion_prior_radius``). One unplaced scan
+half a second did not drive there; nor, while it drives on straight, farther along its way than
+it can brake or speed up (``max_acceleration``). Where a scan matches two places almost equally
+(a hallway one door further, or turned round), or matches better one rack back of where it
+validly matches as the robot drove, the robot's own recent motion decides (the builder's motion
+prior, ``motion_prior_radius``; see :class:`~fleetmap.merger.sequence.PivotMapBuilder`). One
+unplaced scan
 followed by a placed one (a person walking by the laser) changes nothing. Scans without any
 segment (nothing within reach) are not placed, and count neither for nor against a kidnap: they
 say nothing about where the robot is.

@@ -362,11 +362,9 @@ class PivotMapBuilder:
             for other in witnesses:
                 if other is w:
                     continue
-                if against and other.integration.valid:
-                    dt, dr = w.pose.distance(other.pose)
-                    if dt <= tt and dr <= tr:
-                        return w
-                elif not against and other.agrees(w.pose, tt, tr):
+                if against and other.integration.valid and _close(w.pose, other.pose, tt, tr):
+                    return w
+                if not against and other.agrees(w.pose, tt, tr):
                     return w
         return self._with_motion(witnesses, motion)
 
@@ -382,11 +380,8 @@ class PivotMapBuilder:
             pose = w.motion_pose
             if not motion.possible(pose):
                 continue
-            for other in at:
-                if other is not w:
-                    dt, dr = pose.distance(other.motion_pose)
-                    if dt <= tt and dr <= tr:
-                        return _Witness(pose, w.motion_integration, at_prediction=True)
+            if any(other is not w and _close(pose, other.motion_pose, tt, tr) for other in at):
+                return _Witness(pose, w.motion_integration, at_prediction=True)
         return None
 
     def _if_possible(self, w: _Witness, motion: _Motion) -> _Witness | None:
@@ -463,12 +458,9 @@ class _Witness:
     def agrees(self, pose: Transform2D, translation: float, rotation: float) -> bool:
         """Whether this integration puts the map within the tolerances of ``pose``, at its best
         match or at its match where the motion says."""
-        for own in (self.pose, self.predicted_pose):
-            if own is not None:
-                dt, dr = own.distance(pose)
-                if dt <= translation and dr <= rotation:
-                    return True
-        return False
+        return any(
+            own is not None and _close(own, pose, translation, rotation) for own in (self.pose, self.predicted_pose)
+        )
 
     @property
     def motion_pose(self) -> Transform2D:
@@ -479,6 +471,12 @@ class _Witness:
     def motion_integration(self) -> Integration:
         """The integration that places it there."""
         return self.integration if self.predicted_integration is None else self.predicted_integration
+
+
+def _close(a: Transform2D, b: Transform2D, translation: float, rotation: float) -> bool:
+    """Whether two poses agree within ``translation`` (m) and ``rotation`` (rad)."""
+    dt, dr = a.distance(b)
+    return dt <= translation and dr <= rotation
 
 
 SIMPLIFY_FROM = 200

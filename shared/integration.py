@@ -49,7 +49,7 @@ from fleetmap.shared.evaluation import (
     transformation_value,
     transformation_values,
 )
-from fleetmap.shared.geometry import Array, Transform2D, lengths
+from fleetmap.shared.geometry import Array, Transform2D, lengths, wrap_angle
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
 from fleetmap.shared.refine import refine_transform
@@ -229,8 +229,7 @@ class Window:
         """Which of the ``(n, 3)`` transformations ``t`` lie in the window."""
         c = self.centre
         near = np.hypot(t[:, 0] - c.x, t[:, 1] - c.y) <= self.radius
-        turn = np.abs(np.remainder(t[:, 2] - c.theta + np.pi, 2 * np.pi) - np.pi)
-        return np.asarray(near & (turn <= self.rotation))
+        return np.asarray(near & (np.abs(wrap_angle(t[:, 2] - c.theta)) <= self.rotation))
 
 
 def check_map(m: SegmentMap, name: str) -> None:
@@ -336,9 +335,9 @@ def _integrate_small(
             )
             for j in picked
         ]
-        best, rivals = _choose(prep, free, finals, p, True)
+        best, rivals, far = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = np.flatnonzero(_far_from(best.transform)(cand[shortlist]))
+        others = np.flatnonzero(far(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -392,12 +391,12 @@ def _integrate_large(
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
             for j in picked
         ]
-        best, rivals = _choose(prep, free, finals, p, not free.active, large=True)
+        best, rivals, far = _choose(prep, free, finals, p, not free.active, large=True)
         # The best clearly different candidate by the fine grid score, among all that got one (a
         # small map in a symmetric building can fill the shortlist with one alignment).
-        far = _far_at(prep, best.transform, p)(cand[ranked])
-        if far.any():
-            other = _evaluated(prep, free, Transform2D.from_array(cand[ranked[int(np.argmax(far))]]), 0, p)
+        different = far(cand[ranked])
+        if different.any():
+            other = _evaluated(prep, free, Transform2D.from_array(cand[ranked[int(np.argmax(different))]]), 0, p)
             rivals.append((other.transform, other.score))
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -409,8 +408,9 @@ def _choose(
     p: IntegrationParams,
     refuse: bool,
     large: bool = False,
-) -> tuple[_Choice, list[tuple[Transform2D, float]]]:
-    """Refine the picks, and return the best and the clearly different ones (the rivals).
+) -> tuple[_Choice, list[tuple[Transform2D, float]], Callable[[Array], Array]]:
+    """Refine the picks, and return the best, the clearly different ones (the rivals), and the
+    test of "clearly different" (:func:`_far_from` or :func:`_far_at`) for other candidates.
 
     For large maps, "clearly different" is measured where the maps overlap (the centroid of S2's
     matched segments under the best), not at S2's origin: far from the overlap, a turn of a
@@ -427,11 +427,11 @@ def _choose(
             best = choice
     if best.score <= 0:
         best = _Choice(Transform2D.identity(), 0.0, 0.0, best.label)
-    if not finals:
-        return best, []
     far = _far_at(prep, best.transform, p) if large else _far_from(best.transform)
+    if not finals:
+        return best, [], far
     mask = far(np.array([c.transform.as_array() for c in finals]))
-    return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f]
+    return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], far
 
 
 RIVALS = 8
@@ -455,7 +455,7 @@ def _far_from(best: Transform2D, centre: Array | None = None) -> Callable[[Array
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
         cos, sin = np.cos(t[:, 2]), np.sin(t[:, 2])
         moved = np.column_stack([cos * c[0] - sin * c[1] + t[:, 0], sin * c[0] + cos * c[1] + t[:, 1]])
-        turn = np.abs(np.remainder(t[:, 2] - best.theta + np.pi, 2 * np.pi) - np.pi)
+        turn = np.abs(wrap_angle(t[:, 2] - best.theta))
         return np.asarray((np.hypot(*(moved - at_best).T) > AMBIGUITY_TRANSLATION) | (turn > AMBIGUITY_ROTATION))
 
     return far

@@ -3,6 +3,9 @@ it starts a new epoch."""
 
 from __future__ import annotations
 
+import itertools
+import json
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -151,10 +154,6 @@ def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
     # one only one rack back (11 m against 1.7 m where it is), which would make the robot reverse
     # at 2.4 m/s within a second (max_acceleration). Geometry against motion: a scan may stay
     # unplaced or start an epoch, but none is placed off in its local map.
-    import itertools
-    import json
-    import math
-
     stream = list(itertools.islice(robot_stream(load_scenario("warehouse"), robot), scans))
     agent = Agent(robot)
     frames, placed = {}, 0

@@ -111,18 +111,26 @@ def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, Segmen
     return out
 
 
+def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float, degrees: float) -> None:
+    """Every scan placed by one builder, with its stamp, within the tolerances of where the truth
+    puts it relative to the first."""
+    builder = PivotMapBuilder()
+    origin = scans[0][2]
+    for k, (stamp, m, true) in enumerate(scans):
+        pose = builder.add(m, stamp).pose
+        assert pose is not None, f"scan {k} (at {stamp:.1f} s) not placed"
+        dt, dr = pose.distance(origin.inverse().compose(true))
+        assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
+
+
 def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drove() -> None:
     # The department hallway, r1's scans 10-15: scans 14 and 15 match the previous one elsewhere
     # along the hallway almost as well (0.83 and 0.92 of the best score) as where they were taken.
     scans = scenario_scans("department", "r1", 16)[10:]
-    with_prior, without = PivotMapBuilder(), PivotMapBuilder()
-    origin = scans[0][2]
-    for stamp, m, true in scans:
-        placed = with_prior.add(m, stamp).pose
+    place_all(scans, 0.05, 1.0)
+    without = PivotMapBuilder()
+    for _, m, _ in scans:
         without.add(m)
-        assert placed is not None, f"scan at {stamp:.1f} s not placed"
-        dt, dr = placed.distance(origin.inverse().compose(true))
-        assert dt < 0.05 and dr < math.radians(1.0), f"scan at {stamp:.1f} s: {dt:.3f} m {math.degrees(dr):.2f} deg"
     assert None in without.poses, "without stamps (no motion prior) every scan was placed: the test shows nothing"
 
 
@@ -142,14 +150,7 @@ def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drov
     ],
 )
 def test_refining_keeps_a_hallway_straight(name: str, robot: str, stop: int, metres: float, degrees: float) -> None:
-    scans = scenario_scans(name, robot, stop)
-    origin = scans[0][2]
-    builder = PivotMapBuilder()
-    for k, (stamp, m, true) in enumerate(scans):
-        pose = builder.add(m, stamp).pose
-        assert pose is not None, f"scan {k} not placed"
-        dt, dr = pose.distance(origin.inverse().compose(true))
-        assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
+    place_all(scenario_scans(name, robot, stop), metres, degrees)
 
 
 def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> None:
@@ -183,14 +184,7 @@ def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> Non
 def test_valid_matches_where_the_robot_drove_outweigh_a_better_one_a_rack_back(
     name: str, robot: str, start: int, stop: int
 ) -> None:
-    scans = scenario_scans(name, robot, stop)[start:]
-    builder = PivotMapBuilder()
-    origin = scans[0][2]
-    for stamp, m, true in scans:
-        pose = builder.add(m, stamp).pose
-        assert pose is not None, f"scan at {stamp:.1f} s not placed"
-        dt, dr = pose.distance(origin.inverse().compose(true))
-        assert dt < 0.1 and math.degrees(dr) < 1.5, f"scan at {stamp:.1f} s: {dt:.3f} m {math.degrees(dr):.2f} deg"
+    place_all(scenario_scans(name, robot, stop)[start:], 0.1, 1.5)
 
 
 def test_bad_input_is_refused() -> None:
