@@ -164,6 +164,14 @@ class IntegrationParams:
     valid_max_map_ambiguity: float = 0.5
     """... and no clearly different transformation scores more than this fraction of its score
     (on the large-map path; see fleetmap.shared.integration for how these were measured)."""
+    valid_refute_violation: float = 3.0
+    """Two large partial maps (fleetmap): a clearly different transformation that puts at least
+    this much wall (m), and more than ``valid_max_map_violation`` of its value, in the maps' seen
+    free space is refuted and does not count against the best (0: never) ..."""
+    valid_refute_clean: float = 0.025
+    """... provided the best puts at most this fraction of its value there (the seen free space
+    then tells them apart: in a warehouse lane the alignments a rack off match more wall than the
+    right one, but put rack ends where a laser saw through the forklift's bay)."""
     max_speed: float = 3.0
     """Robot agents (fleetmap): the fastest a robot moves (m/s). A scan whose integrations put it
     farther from the last placed scan than this times the time between them (plus

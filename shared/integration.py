@@ -20,7 +20,9 @@ Two partial maps (neither a scan: ``ordered`` false) have their own rule: value 
 about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space,
 and no clearly different transformation within ``valid_max_map_ambiguity`` (50 %) of its score
 on the large-map path, where the rival is judged by the free space too (``valid_max_ambiguity``,
-80 %, on the small path, where nothing refutes the mirror image of a rectangular room); and a
+80 %, on the small path, where nothing refutes the mirror image of a rectangular room). A rival
+that puts metres of wall where a laser saw through, while the best puts next to none there, is
+refuted and does not count (``valid_refute_violation``, :func:`_unrefuted`). And a
 map that carries its scans' viewpoints must have at least ``valid_min_map_scans`` (5) of them
 (in the simulated warehouse, local maps of two or three scans matched others turned round, 13 to
 24 m off, with values of 16-17 m).
@@ -91,7 +93,8 @@ class Integration:
     """Matched segment pairs (index in S1, index in S2) under ``transform``."""
     rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
     """The best few transformations clearly different from ``transform`` (as for ``runner_up``),
-    with their scores, best first: where a repetitive world puts S2 too."""
+    with their scores, best first: where a repetitive world puts S2 too. Between two partial
+    maps, only those the seen free space does not refute (:func:`_unrefuted`)."""
 
     def to_json_dict(self) -> dict[str, float | bool]:
         return {
@@ -335,9 +338,9 @@ def _integrate_small(
             )
             for j in picked
         ]
-        best, rivals, far = _choose(prep, free, finals, p, True)
+        best, rivals, centre = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = np.flatnonzero(far(cand[shortlist]))
+        others = np.flatnonzero(_far_from(best.transform, centre)(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -391,13 +394,25 @@ def _integrate_large(
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
             for j in picked
         ]
-        best, rivals, far = _choose(prep, free, finals, p, not free.active, large=True)
-        # The best clearly different candidate by the fine grid score, among all that got one (a
-        # small map in a symmetric building can fill the shortlist with one alignment).
-        different = far(cand[ranked])
-        if different.any():
-            other = _evaluated(prep, free, Transform2D.from_array(cand[ranked[int(np.argmax(different))]]), 0, p)
+        best, rivals, centre = _choose(prep, free, finals, p, not free.active, large=True)
+        # More alignments clearly different from the best, best fine grid score first, among all
+        # that got one (a small map in a symmetric building can fill the shortlist with one
+        # alignment): the first, and between two partial maps up to RIVALS, each clearly different
+        # from the others, since the free space refutes some aliases and not others in racks
+        # (:func:`_unrefuted`), and one left out could be the clean one.
+        maps = not (m1.ordered or m2.ordered)
+        ranked_t = cand[ranked]
+        open_ = _far_from(best.transform, centre)(ranked_t)
+        for t, _ in rivals if maps else ():
+            open_ &= _far_from(t, centre)(ranked_t)
+        for _ in range(RIVALS if maps else 1):
+            if not open_.any():
+                break
+            other = _evaluated(prep, free, Transform2D.from_array(ranked_t[int(np.argmax(open_))]), 0, p)
             rivals.append((other.transform, other.score))
+            open_ &= _far_from(other.transform, centre)(ranked_t)
+        if maps:
+            rivals = _unrefuted(rivals, best, free, p)
     return best, _best_rivals(rivals), len(cand), prep
 
 
@@ -408,9 +423,9 @@ def _choose(
     p: IntegrationParams,
     refuse: bool,
     large: bool = False,
-) -> tuple[_Choice, list[tuple[Transform2D, float]], Callable[[Array], Array]]:
+) -> tuple[_Choice, list[tuple[Transform2D, float]], Array | None]:
     """Refine the picks, and return the best, the clearly different ones (the rivals), and the
-    test of "clearly different" (:func:`_far_from` or :func:`_far_at`) for other candidates.
+    point of S2 at which "clearly different" is measured (:func:`_far_from`; None: S2's origin).
 
     For large maps, "clearly different" is measured where the maps overlap (the centroid of S2's
     matched segments under the best), not at S2's origin: far from the overlap, a turn of a
@@ -427,11 +442,34 @@ def _choose(
             best = choice
     if best.score <= 0:
         best = _Choice(Transform2D.identity(), 0.0, 0.0, best.label)
-    far = _far_at(prep, best.transform, p) if large else _far_from(best.transform)
+    centre = _overlap_centre(prep, best.transform, p) if large else None
     if not finals:
-        return best, [], far
-    mask = far(np.array([c.transform.as_array() for c in finals]))
-    return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], far
+        return best, [], centre
+    mask = _far_from(best.transform, centre)(np.array([c.transform.as_array() for c in finals]))
+    return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], centre
+
+
+def _unrefuted(
+    rivals: list[tuple[Transform2D, float]], best: _Choice, free: GridFreeSpace, p: IntegrationParams
+) -> list[tuple[Transform2D, float]]:
+    """Two partial maps: the rivals that the maps' seen free space does not refute (fleetmap).
+
+    A rival is refuted when it puts at least ``valid_refute_violation`` metres of wall, and more
+    than ``valid_max_map_violation`` of its value, where the other robot's laser saw through, while
+    the best puts at most ``valid_refute_clean`` of its value there. Wall where a laser saw free
+    space is evidence against a transformation; a smaller overlap is only the absence of evidence
+    for it. In a warehouse lane, the alignments a rack or two off match more wall than the right
+    one (they slide the map over more of the other) but put rack ends in the forklift's bay; the
+    score (value less violation) still ranks them within a tenth of the right one.
+    """
+    limit = p.valid_refute_violation
+    if limit <= 0 or not rivals or not free.active or best.value - best.score > p.valid_refute_clean * best.value:
+        return rivals
+    t = np.array([r.as_array() for r, _ in rivals])
+    violation = free.violation(t)
+    scores = np.array([s for _, s in rivals])
+    refuted = (violation >= limit) & (violation > p.valid_max_map_violation * (scores + violation))
+    return [r for r, out in zip(rivals, refuted, strict=True) if not out]
 
 
 RIVALS = 8
@@ -461,13 +499,13 @@ def _far_from(best: Transform2D, centre: Array | None = None) -> Callable[[Array
     return far
 
 
-def _far_at(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Callable[[Array], Array]:
-    """:func:`_far_from` measured at the centroid of S2's segments matched under ``best``."""
+def _overlap_centre(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Array | None:
+    """The centroid of S2's segments matched under ``best`` (None if none is)."""
     _, k, mv = matched_pairs(prep, best.as_array(), p)
     if len(k) == 0:
-        return _far_from(best)
+        return None
     mid = 0.5 * (prep.s2[k, 0:2] + prep.s2[k, 2:4])
-    return _far_from(best, (mid * mv[:, None]).sum(axis=0) / mv.sum())
+    return np.asarray((mid * mv[:, None]).sum(axis=0) / mv.sum())
 
 
 AMBIGUITY_TRANSLATION = 0.5

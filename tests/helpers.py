@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 
 import numpy as np
@@ -85,3 +87,16 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
     last = frame.inverse().compose(scans[-1].pose)
     message = LocalMap(robot, epoch, version, scans[-1].stamp, merged.segments, len(scans), last)
     return message, frame
+
+
+@functools.cache
+def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, SegmentMap, Transform2D]]:
+    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario (once per
+    test process: several tests cut their cases from the same scans)."""
+    from fleetmap.scenarios import load_scenario, robot_stream
+
+    out = []
+    for s in itertools.islice(robot_stream(load_scenario(name), robot), stop):
+        m = SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True)
+        out.append((s.stamp, m, s.pose))
+    return out

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import itertools
 import math
 from collections.abc import Callable
 
@@ -15,7 +14,7 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
 
-from tests.helpers import ROOM, scan_map
+from tests.helpers import ROOM, scan_map, scenario_scans
 
 # A robot crossing the room and turning: steps of 0.5-0.9 m and up to 0.5 rad between scans.
 TRAJECTORY = [(2.0 + 0.65 * k, 4.5 + 0.4 * math.sin(k / 2), 0.28 * k) for k in range(11)]
@@ -95,20 +94,6 @@ def test_stamps_that_do_not_advance_bound_nothing() -> None:
     # A log whose stamps lost their precision (MIT CSAIL's corrected log: every stamp the same).
     builder = PivotMapBuilder()
     _assert_trajectory([builder.add(m, stamp=1134860000.0).pose for m in SCANS])
-
-
-@functools.cache
-def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, SegmentMap, Transform2D]]:
-    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario."""
-    from fleetmap.scenarios import load_scenario, robot_stream
-    from fleetmap.shared.config import ExtractionParams
-    from fleetmap.shared.extraction import extract_segments
-
-    out = []
-    for s in itertools.islice(robot_stream(load_scenario(name), robot), stop):
-        m = SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True)
-        out.append((s.stamp, m, s.pose))
-    return out
 
 
 def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float, degrees: float) -> None:
