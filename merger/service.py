@@ -84,6 +84,8 @@ class MergerStats:
     stale: int = 0
     """Local maps older than (or as old as) the version already held."""
     steps: int = 0
+    lost_first: int = 0
+    """Steps that integrated only lost robots' local maps while others waited."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -94,6 +96,7 @@ class MergerStats:
             "ignored": self.ignored,
             "stale": self.stale,
             "steps": self.steps,
+            "lost_first": self.lost_first,
             "integrations": self.integrations,
         }
 
@@ -124,6 +127,8 @@ class Merger:
         self._robots: dict[str, _Robot] = {}
         self._result: MergeResult | None = None
         self._global: GlobalMap | None = None
+        self._lost_first = False
+        """Whether the last step integrated lost robots' maps only (the next one takes all)."""
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -179,11 +184,11 @@ class Merger:
 
     # -- one step --------------------------------------------------------------------------
     def step(self) -> list[Outgoing]:
-        """Integrate every local map received since the last step; the messages to publish."""
+        """Integrate the local maps received since the last step (lost robots' first, see
+        :meth:`_next_batch`); the messages to publish."""
         if not self._pending:
             return []
-        batch = list(self._pending.values())
-        self._pending.clear()
+        batch = self._next_batch()
         out: list[Outgoing] = []
         new_edges: list[Edge] = []
         for m in batch:
@@ -204,6 +209,33 @@ class Merger:
         step = MergerStep(self.seq, self.stamp, tuple(m.key for m in batch), tuple(m.version for m in batch))
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         return out
+
+    def _next_batch(self) -> list[LocalMap]:
+        """The pending maps this step integrates, taken off the queue: all of them, or only the
+        lost robots' ones when others wait too and the last step did not already put those first.
+
+        A robot is lost while its current epoch (after the first) is merged with nothing: its pose
+        is unknown (a closed epoch's map waits like any other). A merger that falls behind
+        integrates every new map version with every map, which takes seconds in a warehouse;
+        putting the lost robots' maps first publishes a kidnapped robot's pose a step sooner. The
+        others wait one step at most. The choice depends only on what is pending and on the graph,
+        so a replay of the recorded steps makes it again.
+        """
+        pending = list(self._pending.values())
+        lost = [m for m in pending if self._is_lost(m)]
+        batch = lost if lost and len(lost) < len(pending) and not self._lost_first else pending
+        self._lost_first = all(self._is_lost(m) for m in batch)
+        if batch is lost and len(lost) < len(pending):
+            self.stats.lost_first += 1
+        for m in batch:
+            del self._pending[m.key]
+        return batch
+
+    def _is_lost(self, m: LocalMap) -> bool:
+        """Whether ``m`` is the current epoch (after the first) of a robot whose pose is unknown."""
+        r = self._robots.get(m.robot)
+        current = r is None or m.epoch >= r.epoch
+        return current and m.epoch > 0 and (self._result is None or self._result.poses.get(m.key) is None)
 
     def _integrate(self, m: LocalMap) -> list[Edge]:
         r = self._robot(m.robot)
@@ -311,6 +343,7 @@ class Merger:
             "edges": edges,
             "robots": robots,
             "links": self.links,
+            "lost_first": self._lost_first,
         }
         p = Path(path)
         tmp = p.with_name(p.name + ".tmp")
@@ -358,6 +391,7 @@ class Merger:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
+        self._lost_first = bool(state.get("lost_first", False))
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)

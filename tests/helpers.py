@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
@@ -89,10 +90,15 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
     return message, frame
 
 
+NORTH_LANE = str(Path(__file__).parent / "data" / "warehouse-north-lane.toml")
+"""warehouse-events as bundled until 2026-11-21: r1 carried to the north lane facing west (its
+scans 16 on), driving away from the forklift's bay; the lane cases of the tests are cut from it."""
+
+
 @functools.cache
 def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, SegmentMap, Transform2D]]:
-    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario (once per
-    test process: several tests cut their cases from the same scans)."""
+    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario or a
+    scenario file (once per test process: several tests cut their cases from the same scans)."""
     from fleetmap.scenarios import load_scenario, robot_stream
 
     out = []

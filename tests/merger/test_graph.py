@@ -13,7 +13,7 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
 
-from tests.helpers import OMNI, ROOM, scan_map, scenario_scans
+from tests.helpers import NORTH_LANE, OMNI, ROOM, scan_map, scenario_scans
 
 POSES = [(3.0, 4.5, 0.3), (5.0, 5.0, 2.0), (7.0, 4.0, -1.0), (9.0, 4.0, 2.8), (4.5, 7.0, -2.2)]
 MAPS = {f"m{k}": scan_map(ROOM, p, OMNI, seed=40 + k) for k, p in enumerate(POSES)}
@@ -168,13 +168,14 @@ def _local_map(scans: list[tuple[float, SegmentMap, Transform2D]]) -> SegmentMap
 
 @pytest.mark.slow  # builds two local maps from 20 simulated scans (about 5 s)
 def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_aliases() -> None:
-    # warehouse-events: r2 maps the north lane westward from x = 34 m (scans 0-13); r1, carried
-    # there, maps it from x = 20 m on (scans 21-26), past the forklift's bay. A rack (3.5 m) off,
-    # r1's map matches more wall than where it belongs (it slides over more of r2's), and puts
-    # none where r2 saw through; the aliases 10 and 14 m off are refuted by the free space. The
-    # right alignment, clean but matching less, must still count as a rival: the lane is ambiguous.
-    lane_scans = scenario_scans("warehouse-events", "r2", 14)
-    r1_scans = scenario_scans("warehouse-events", "r1", 28)[21:27]
+    # NORTH_LANE (warehouse-events until 2026-11-21): r2 maps the north lane westward from
+    # x = 34 m (scans 0-13); r1, carried there, maps it from x = 20 m on (scans 21-26), past the
+    # forklift's bay. A rack (3.5 m) off, r1's map matches more wall than where it belongs (it
+    # slides over more of r2's) and puts none where r2 saw through; the aliases 10 and 14 m off
+    # are refuted by the free space. The right alignment, clean but matching less, must still
+    # count as a rival: the lane is ambiguous.
+    lane_scans = scenario_scans(NORTH_LANE, "r2", 14)
+    r1_scans = scenario_scans(NORTH_LANE, "r1", 28)[21:27]
     lane, part = _local_map(lane_scans), _local_map(r1_scans)
     truth = lane_scans[0][2].inverse().compose(r1_scans[0][2])
     edges = {}

@@ -14,7 +14,7 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
 
-from tests.helpers import ROOM, scan_map, scenario_scans
+from tests.helpers import NORTH_LANE, ROOM, scan_map, scenario_scans
 
 # A robot crossing the room and turning: steps of 0.5-0.9 m and up to 0.5 rad between scans.
 TRAJECTORY = [(2.0 + 0.65 * k, 4.5 + 0.4 * math.sin(k / 2), 0.28 * k) for k in range(11)]
@@ -139,9 +139,9 @@ def test_refining_keeps_a_hallway_straight(name: str, robot: str, stop: int, met
 
 
 def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> None:
-    # warehouse-events: r1 drives east along the dock lane and is carried at 8 s to the north lane,
+    # NORTH_LANE: r1 drives east along the dock lane and is carried at 8 s to the north lane,
     # facing west. Its first view there matches the dock lane one aisle on, turned 90 degrees.
-    scans = scenario_scans("warehouse-events", "r1", 28)[:17]  # (the cached scans of the next test)
+    scans = scenario_scans(NORTH_LANE, "r1", 28)[:17]  # (the cached scans of the next test)
     builder = PivotMapBuilder()
     for stamp, m, _ in scans:
         if 6.0 <= stamp < 8.0:  # its last four scans before the kidnap
@@ -153,12 +153,12 @@ def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> Non
 @pytest.mark.parametrize(
     "name, robot, start, stop",
     [
-        # warehouse-events, r1 after its kidnap: west along the north lane, racks every 3.5 m to
+        # NORTH_LANE, r1 after its kidnap: west along the north lane, racks every 3.5 m to
         # the south, scans 1.2 m apart. From scan 20 on, the view matches the built map better one
         # rack back (14.6 against 9.2: the part of the view beyond the map matches nothing yet),
         # while the last scan matches it validly where the robot drove, and the map's best match
         # there (inside the motion prior's window) agrees: placed there, not left unplaced.
-        ("warehouse-events", "r1", 16, 28),
+        (NORTH_LANE, "r1", 16, 28),
         # warehouse, r3 along the cross aisle from scan 10 (where its agent starts epoch 2): it
         # sees only the next rack row ahead. At scan 13 every integration matches best one rack
         # back, and the last two scans match validly, and agree, where the robot drove: placed

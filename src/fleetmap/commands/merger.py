@@ -44,8 +44,9 @@ def run(args: argparse.Namespace) -> int:
             service.close()
     s = merger.stats
     log.warning(
-        "merger stopped: %d steps, %d integrations, %d maps; %d malformed messages dropped",
+        "merger stopped: %d steps (%d for lost robots first), %d integrations, %d maps; %d malformed messages dropped",
         s.steps,
+        s.lost_first,
         s.integrations,
         len(merger.graph),
         s.malformed,
