@@ -37,7 +37,7 @@ from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
 from fleetmap.shared.integration import index_for, integrate, takes_large_path
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import MapIndex
+from fleetmap.shared.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.simplify import simplify
 from scipy.optimize import least_squares
 
@@ -120,6 +120,16 @@ def similarity(h1: Array, h2: Array) -> float:
     return float(spectrum.max())
 
 
+def _same_geometry(a: SegmentMap, b: SegmentMap) -> bool:
+    """Whether two versions of a map hold the same segments, seen from the same viewpoints."""
+    return (
+        a.ordered == b.ordered
+        and a.oriented == b.oriented
+        and np.array_equal(a.segments, b.segments)
+        and np.array_equal(viewpoints_of(a), viewpoints_of(b))
+    )
+
+
 def _disagreement(a: Transform2D, b: Transform2D) -> tuple[float, float]:
     return a.distance(b)
 
@@ -172,13 +182,23 @@ class MapGraph:
         return ranked[:limit] if limit > 0 else ranked
 
     def put_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> bool:
-        """Add a map or replace it with a newer version (its old edges go). False if not newer."""
+        """Add a map or replace it with a newer version (its old edges go, unless the new version
+        holds the same segments and viewpoints: then they stand). False if not newer."""
         if len(segment_map) == 0:
             raise BadInput(key, "the map is empty (no segments)")
         node = self._nodes.get(key)
         if node is not None:
             if version <= node.version:
                 return False
+            if _same_geometry(node.map, segment_map):
+                # The same walls seen from the same places (an epoch's last version, which only
+                # says that the robot has left it): its integrations stand, their versions move on.
+                node.version = version
+                for k, e in list(self._edges.items()):
+                    if key in k:
+                        va, vb = e.versions
+                        self._edges[k] = replace(e, versions=(version, vb) if e.a == key else (va, version))
+                return True
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)
             node.work, node.index = self._work(segment_map), None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import random
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -210,3 +211,23 @@ def test_an_office_map_is_merged_when_free_space_refutes_its_look_alike_alignmen
         assert edge is not None and edge.valid == merged, f"refuting at {refute} m: merged {edge and edge.valid}"
         dt, dr = edge.transform.distance(truth)
         assert dt < 0.05 and math.degrees(dr) < 0.5, f"{dt:.3f} m {math.degrees(dr):.2f} deg"
+
+
+def test_a_new_version_with_the_same_geometry_keeps_its_integrations() -> None:
+    # An agent closing an epoch publishes its map once more, only to say the robot left it: the
+    # same segments from the same places. Integrating it again would give the same edges.
+    g, _ = _solve(["m0", "m1", "m2"])
+    before = {e.key(): e for e in g.edges}
+    edges = g.add_map("m1", MAPS["m1"], version=1)
+    assert {e.key() for e in edges} == {("m0", "m1"), ("m1", "m2")}
+    for e in edges:
+        kept = before[e.key()]
+        versions = (1, kept.versions[1]) if kept.a == "m1" else (kept.versions[0], 1)
+        # Not integrated again: the very same edge (its integration time too), at the new version.
+        assert g.edge(kept.a, kept.b) == replace(kept, versions=versions)
+    # A version whose walls changed is integrated again.
+    moved = SegmentMap(MAPS["m1"].segments[:-1], ordered=MAPS["m1"].ordered, oriented=MAPS["m1"].oriented)
+    g.add_map("m1", moved, version=2)
+    again = [e for e in g.edges if "m1" in e.key()]
+    assert len(again) == 2
+    assert all(e.versions == ((2, 0) if e.a == "m1" else (0, 2)) and e != before[e.key()] for e in again)
