@@ -86,6 +86,8 @@ class MergerStats:
     steps: int = 0
     lost_first: int = 0
     """Steps that integrated only lost robots' local maps while others waited."""
+    held: int = 0
+    """Local map versions held without integrating them: seen from too few places to merge."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -97,6 +99,7 @@ class MergerStats:
             "stale": self.stale,
             "steps": self.steps,
             "lost_first": self.lost_first,
+            "held": self.held,
             "integrations": self.integrations,
         }
 
@@ -247,6 +250,12 @@ class Merger:
         segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
         if m.viewpoints is not None:
             segment_map = with_viewpoints(segment_map, m.viewpoints)
+            if len(m.viewpoints) < self.config.integration.valid_min_map_scans:
+                # Seen from too few places to merge with any map (fleetmap.shared.integration's
+                # rule): held, and integrated once a version seen from enough of them arrives.
+                self.graph.put_map(m.key, segment_map, m.version)
+                self.stats.held += 1
+                return []
         return self.graph.add_map(m.key, segment_map, m.version)
 
     def _global_map(self, result: MergeResult) -> GlobalMap:

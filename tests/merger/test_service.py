@@ -140,6 +140,24 @@ def test_a_lost_robots_map_goes_first_and_the_others_wait_one_step() -> None:
     assert [m.to_msgpack() for m in again] == [m.to_msgpack() for m in first + second]
 
 
+def test_a_map_seen_from_too_few_places_is_held_until_it_can_merge() -> None:
+    r1, _ = true_local_map("department", "r1", 0, 15)
+    merger = Merger(KEYS)
+    _feed(merger, [r1])
+    r2, _ = true_local_map("department", "r2", 0, 15)
+    views = np.array([[0.5 * k, 0.0, 0.0, -1.5, 1.5] for k in range(5)])
+    # Two viewpoints: no map may merge with it (valid_min_map_scans), so it is not integrated.
+    young = LocalMap("r2", 0, 0, r2.stamp, r2.segments, 2, r2.pose, viewpoints=views[:2])
+    out = _feed(merger, [young])
+    assert next(m for m in out if isinstance(m, MergerStep)).maps == ("r2/0",)
+    assert not any(isinstance(m, MergeEdge) for m in out) and merger.stats.held == 1
+    assert "r2/0" in merger.graph
+    # Seen from five places: integrated with every map.
+    grown = LocalMap("r2", 0, 1, r2.stamp, r2.segments, 5, r2.pose, viewpoints=views)
+    out = _feed(merger, [grown])
+    assert [(e.a, e.b) for e in out if isinstance(e, MergeEdge)] == [("r1/0", "r2/0")]
+
+
 def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     join = _decoded(merger.presence("r1", True, 1.0))
