@@ -86,8 +86,6 @@ class MergerStats:
     steps: int = 0
     lost_first: int = 0
     """Steps that integrated only lost robots' local maps while others waited."""
-    held: int = 0
-    """Local map versions held without integrating them: seen from too few places to merge."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -99,7 +97,6 @@ class MergerStats:
             "stale": self.stale,
             "steps": self.steps,
             "lost_first": self.lost_first,
-            "held": self.held,
             "integrations": self.integrations,
         }
 
@@ -235,10 +232,12 @@ class Merger:
         return batch
 
     def _is_lost(self, m: LocalMap) -> bool:
-        """Whether ``m`` is the current epoch (after the first) of a robot whose pose is unknown."""
+        """Whether ``m`` is the current epoch (after the first) of a robot whose pose is unknown,
+        seen from enough places to be merged (an earlier version is only held: not worth a step)."""
         r = self._robots.get(m.robot)
         current = r is None or m.epoch >= r.epoch
-        return current and m.epoch > 0 and (self._result is None or self._result.poses.get(m.key) is None)
+        few = m.viewpoints is not None and len(m.viewpoints) < self.config.integration.valid_min_map_scans
+        return current and not few and m.epoch > 0 and (self._result is None or self._result.poses.get(m.key) is None)
 
     def _integrate(self, m: LocalMap) -> list[Edge]:
         r = self._robot(m.robot)
@@ -250,12 +249,6 @@ class Merger:
         segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
         if m.viewpoints is not None:
             segment_map = with_viewpoints(segment_map, m.viewpoints)
-            if len(m.viewpoints) < self.config.integration.valid_min_map_scans:
-                # Seen from too few places to merge with any map (fleetmap.shared.integration's
-                # rule): held, and integrated once a version seen from enough of them arrives.
-                self.graph.put_map(m.key, segment_map, m.version)
-                self.stats.held += 1
-                return []
         return self.graph.add_map(m.key, segment_map, m.version)
 
     def _global_map(self, result: MergeResult) -> GlobalMap:
@@ -492,7 +485,10 @@ class MergerService:
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
-        self.run_once()
+        # What is pending at the stop, in two steps at most (lost robots' maps may go first).
+        for _ in range(2):
+            if not self.run_once():
+                break
 
     def close(self) -> None:
         try:

@@ -167,7 +167,8 @@ class IntegrationParams:
     valid_refute_violation: float = 3.0
     """Two large partial maps (fleetmap): a clearly different transformation that puts at least
     this much wall (m), and more than ``valid_max_map_violation`` of its value, in the maps' seen
-    free space is refuted and does not count against the best (0: never) ..."""
+    free space is refuted and does not count against the best (0: never; every clearly different
+    alignment, up to 8, is still judged a rival) ..."""
     valid_refute_clean: float = 0.025
     """... provided the best puts at most this fraction of its value there (the seen free space
     then tells them apart: in a warehouse lane the alignments a rack off match more wall than the

@@ -141,6 +141,30 @@ def _world_global(log: SessionLog, truth: Truth, gmap: GlobalMap, component: int
     return world_from_global(true, gmap.components[component].poses[anchor])
 
 
+WRONG_M, WRONG_DEG = 1.0, 10.0
+"""A map placed farther than this from where the truth puts it, in its component, is merged wrongly."""
+
+
+def _merged_wrongly(log: SessionLog, truth: Truth, final: GlobalMap) -> list[str]:
+    """The maps of every component (not only the largest, which the map error scores) placed more
+    than WRONG_M or WRONG_DEG from where the truth puts them relative to the component's anchor."""
+    wrong = []
+    for index, component in enumerate(final.components):
+        world = _world_global(log, truth, final, index)
+        if world is None or len(component.members) < 2:
+            continue
+        for key in component.members:
+            robot, epoch = key.rsplit("/", 1)
+            first = log.epoch_first_scan.get((robot, int(epoch)))
+            true = truth.scan_pose(robot, first) if first is not None else None
+            if true is None:
+                continue
+            e = pose_error(component.poses[key], true, world)
+            if e.translation_m > WRONG_M or e.rotation_deg > WRONG_DEG:
+                wrong.append(key)
+    return sorted(wrong)
+
+
 def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
     """report.json: the contract's fields, and per map, per robot and per kidnap details."""
     final = log.final
@@ -164,6 +188,7 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
         "components": [] if final is None else [list(c.members) for c in final.components],
         "global_map_seq": None if final is None else final.seq,
         "malformed_messages": log.malformed,
+        "maps_merged_wrongly": None if truth is None else [],
     }
     if final is None or not final.components:
         return report
@@ -176,6 +201,8 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
         report["map_error_mean_m"] = err.mean
         report["map_error_p95_m"] = err.p95
         report["coverage"] = coverage(segments_world, truth.truth.visible)
+    if truth is not None:
+        report["maps_merged_wrongly"] = _merged_wrongly(log, truth, final)
     for key in sorted(log.local_maps):
         entry: dict[str, Any] = {"placed": key in main.poses, "component": final.component_of(key)}
         robot, epoch = key.rsplit("/", 1)
@@ -384,6 +411,9 @@ def summary_table(report: dict[str, Any]) -> str:
         f"coverage           {fmt(report['coverage'], ' %', 100.0, 1)}",
         f"components         {len(report['components'])}",
     ]
+    wrong = report.get("maps_merged_wrongly")
+    if wrong is not None:
+        lines.append(f"maps merged wrongly {len(wrong)}" + (f" ({', '.join(wrong)})" if wrong else ""))
     for name, r in report["robots"].items():
         err = "" if "error_m" not in r else f"  error {r['error_m']:.3f} m {r['error_deg']:.2f} deg"
         lines.append(f"  {name:10s} epoch {r['epoch']}  {'placed' if r['placed'] else 'NOT placed'}{err}")

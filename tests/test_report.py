@@ -1,0 +1,45 @@
+"""The session report: what it scores, against the scenario's ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from fleetmap.scenarios import load_scenario
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.messages import Component, FleetEvent, GlobalMap
+
+from fleetmap.report import SessionLog, build_report, make_truth, summary_table
+
+
+def test_a_map_merged_wrongly_outside_the_largest_component_is_reported() -> None:
+    truth = make_truth(load_scenario("department"))
+    assert truth is not None
+    log = SessionLog()
+    firsts = {("r1", 0): 0, ("r2", 0): 0, ("r3", 0): 0, ("r3", 1): 12}
+    for (robot, epoch), first in firsts.items():
+        log.add(FleetEvent("epoch", robot, 0.0, json.dumps({"epoch": epoch, "first_scan": first})))
+
+    def frame(robot: str, epoch: int) -> Transform2D:
+        pose = truth.scan_pose(robot, firsts[(robot, epoch)])
+        assert pose is not None
+        return pose
+
+    walls = np.asarray(truth.scenario.world.walls)[:5]
+    right = Component(
+        "r1/0",
+        ("r1/0", "r2/0"),
+        {"r1/0": Transform2D(), "r2/0": frame("r1", 0).inverse().compose(frame("r2", 0))},
+        frame("r1", 0).inverse().apply(walls),
+    )
+    # r3's two epochs merged 3.5 m off, in a smaller component: the map error, which scores the
+    # largest component only, cannot see it.
+    off = frame("r3", 0).inverse().compose(frame("r3", 1)).compose(Transform2D(3.5, 0.0, 0.0))
+    wrong = Component("r3/0", ("r3/0", "r3/1"), {"r3/0": Transform2D(), "r3/1": off}, walls)
+    log.add(GlobalMap(1, 1.0, (right, wrong)))
+    report = build_report(log, truth)
+    assert report["maps_merged_wrongly"] == ["r3/1"]
+    assert "maps merged wrongly 1 (r3/1)" in summary_table(report)
+    # Merged right, it is not listed.
+    log.add(GlobalMap(2, 2.0, (right,)))
+    assert build_report(log, truth)["maps_merged_wrongly"] == []
