@@ -116,7 +116,7 @@ def test_a_lost_robot_is_unknown_until_relocalized(maps) -> None:  # type: ignor
 
 
 def test_a_lost_robots_map_goes_first_and_the_others_wait_one_step(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    small = {r: true_local_map("department", r, 0, 15)[0] for r in ("r1", "r2")}
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
     merger = Merger(KEYS)
     _feed(merger, [small["r1"], small["r2"]])
     # While the merger is busy, r2's map grows and r1, carried off, starts epoch 1 where r2 has
