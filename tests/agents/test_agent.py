@@ -145,6 +145,7 @@ def test_bad_parameters_are_refused_by_name(kwargs, named):
         Agent(**{"robot": "r1", **kwargs})
 
 
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 @pytest.mark.parametrize("robot, scans", [("r2", 10), ("r3", 7)])
 def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
     # warehouse, r2 along the north lane: racks every 3.5 m, scans 1.2 m apart, the laser looking

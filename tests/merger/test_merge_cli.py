@@ -6,11 +6,14 @@ import json
 import math
 from pathlib import Path
 
+import pytest
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import write_map
 
 from tests.merger.test_graph import MAPS, TRUE
 from tests.test_cli import fleetmap
+
+pytestmark = pytest.mark.slow  # every test runs the command line in a process of its own
 
 
 def _files(tmp_path: Path, keys: list[str]) -> list[str]:

@@ -108,6 +108,7 @@ def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float,
         assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drove() -> None:
     # The department hallway, r1's scans 10-15: scans 14 and 15 match the previous one elsewhere
     # along the hallway almost as well (0.83 and 0.92 of the best score) as where they were taken.
@@ -119,6 +120,7 @@ def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drov
     assert None in without.poses, "without stamps (no motion prior) every scan was placed: the test shows nothing"
 
 
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 @pytest.mark.parametrize(
     "name, robot, stop, metres, degrees",
     [
@@ -138,6 +140,7 @@ def test_refining_keeps_a_hallway_straight(name: str, robot: str, stop: int, met
     place_all(scenario_scans(name, robot, stop), metres, degrees)
 
 
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> None:
     # NORTH_LANE: r1 drives east along the dock lane and is carried at 8 s to the north lane,
     # facing west. Its first view there matches the dock lane one aisle on, turned 90 degrees.
@@ -150,6 +153,7 @@ def test_a_kidnapped_robots_first_view_is_not_placed_against_its_motion() -> Non
     assert builder.add(kidnapped[0], 8.0).pose is None
 
 
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 @pytest.mark.parametrize(
     "name, robot, start, stop",
     [

@@ -33,6 +33,7 @@ def _feed(merger: Merger, messages: list[LocalMap]) -> list:  # type: ignore[typ
     return _decoded(merger.step())
 
 
+@pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
 def test_three_robots_are_merged_and_placed(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     out = _feed(merger, [maps[r][0] for r in ("r1", "r2", "r3")])
@@ -67,6 +68,7 @@ def test_a_flood_of_malformed_messages_is_counted_and_changes_nothing(maps) -> N
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
 
 
+@pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
 def test_the_same_messages_in_the_same_order_give_identical_outputs(maps) -> None:  # type: ignore[no-untyped-def]
     runs = []
     for _ in range(2):
@@ -76,6 +78,7 @@ def test_the_same_messages_in_the_same_order_give_identical_outputs(maps) -> Non
     assert runs[0] == runs[1]
 
 
+@pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
 def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) -> None:  # type: ignore[no-untyped-def]
     original = Merger(KEYS)
     _feed(original, [maps["r1"][0], maps["r2"][0]])

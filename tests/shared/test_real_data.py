@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 from fleetmap.shared.extraction import extract_segments
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.integration import integrate
@@ -13,6 +14,7 @@ from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.scans import read_carmen
 
 
+@pytest.mark.slow  # 50 scans of a real log, 25 relations
 def test_mit_csail_relations_are_recovered_with_default_parameters(datasets: Path) -> None:
     scans = list(read_carmen(datasets / "mit-csail" / "mit-csail.clf.gz", range_max=81.9))
     stamps = np.array([s.stamp for s in scans])
