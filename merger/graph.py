@@ -35,9 +35,9 @@ from fleetmap.shared.config import IntegrationParams, MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
-from fleetmap.shared.integration import index_for, integrate, takes_large_path
+from fleetmap.shared.integration import index_for, integrate, seen_from_enough_places, takes_large_path
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex, viewpoints_of
+from fleetmap.shared.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.simplify import simplify
 from scipy.optimize import least_squares
 
@@ -272,10 +272,7 @@ class MapGraph:
         """Whether two partial maps cannot merge whatever their geometry: one was seen from fewer
         than ``valid_min_map_scans`` places (fleetmap.shared.integration's rule). Such a pair is
         not integrated (a new epoch's first versions, a robot that saw its map from one place)."""
-        if a.ordered or b.ordered:
-            return False
-        seen = [len(viewpoints_of(m)) for m in (a, b) if VIEWPOINTS in m.extras]
-        return min(seen, default=self.integration.valid_min_map_scans) < self.integration.valid_min_map_scans
+        return not (a.ordered or b.ordered or seen_from_enough_places(a, b, self.integration))
 
     def _oriented_pair(self, x: str, y: str) -> Edge:
         # The first key (in sorted order) is S1: INTEGRATE(a, b) is not exactly the inverse of

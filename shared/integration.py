@@ -131,9 +131,8 @@ def is_valid(
         # Two partial maps: the paper's right ~10 m / wrong ~5 m, with free space and ambiguity;
         # and each seen from enough places (a map of two scans in a symmetric building matches
         # turned round as well as it matches where it is).
-        seen = [len(x.extras[VIEWPOINTS]) for x in (m1, m2) if VIEWPOINTS in x.extras]
         return (
-            min(seen, default=params.valid_min_map_scans) >= params.valid_min_map_scans
+            seen_from_enough_places(m1, m2, params)
             and value >= params.valid_min_map_value
             and violation <= params.valid_max_map_violation * value
             and runner_up <= (params.valid_max_map_ambiguity if large else params.valid_max_ambiguity) * score
@@ -145,6 +144,13 @@ def is_valid(
         and violation <= params.valid_max_violation * value
         and runner_up <= params.valid_max_ambiguity * score
     )
+
+
+def seen_from_enough_places(m1: SegmentMap, m2: SegmentMap, params: IntegrationParams) -> bool:
+    """Whether each of two partial maps that carries its scans' viewpoints has at least
+    ``valid_min_map_scans`` of them: otherwise they cannot merge, whatever their geometry."""
+    seen = [len(x.extras[VIEWPOINTS]) for x in (m1, m2) if VIEWPOINTS in x.extras]
+    return min(seen, default=params.valid_min_map_scans) >= params.valid_min_map_scans
 
 
 def gather_candidates(
