@@ -25,8 +25,16 @@ What :meth:`Agent.add_scan` returns, in this order:
 
 - on a new epoch: the closed epoch's final LocalMap (when it changed since its last version), the
   FleetEvent ``epoch``, the Scan (in the new epoch) and the new epoch's LocalMap version 0;
-- otherwise: the Scan, then the LocalMap when it is due (the epoch's first scan, then every
-  ``publish_every`` placed scans).
+- otherwise: the Scan, then the LocalMap when it is due: the epoch's first scan, then every
+  ``publish_every`` placed scans; in an epoch after the first, after each of its first
+  ``lost_scans`` placed scans.
+
+Why every scan then: a robot that started a new epoch has lost its place (it was carried off, or
+its view changed completely), and it stays lost until the merger places the new local map against
+the others. Each scan can be the one that makes that map unambiguous (in a warehouse, the first
+view of a lane matches every lane; the forklift's bay, two scans later, matches one), and the
+merger integrates the latest version it has: publishing every third scan would hold back the
+decisive one by up to two scans.
 """
 
 from __future__ import annotations
@@ -50,6 +58,10 @@ log = logging.getLogger(__name__)
 
 KIDNAP_REASON = "{n} consecutive scans did not integrate with the local map"
 """The reason of an epoch started by the kidnap check (EpochLink.reason and the event's detail)."""
+
+LOST_SCANS = 20
+"""An epoch after the first publishes its local map after each of its first this many placed scans
+(the robot is lost until the merger places that map; see the module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -110,14 +122,24 @@ class Agent:
     Deterministic: the same scans give the same messages, byte for byte.
     """
 
-    def __init__(self, robot: str, config: FleetmapConfig | None = None, publish_every: int = 3, kidnap_after: int = 2):
+    def __init__(
+        self,
+        robot: str,
+        config: FleetmapConfig | None = None,
+        publish_every: int = 3,
+        kidnap_after: int = 2,
+        lost_scans: int = LOST_SCANS,
+    ):
         self.robot = check_name(robot, "robot")
         for name, value in (("publish_every", publish_every), ("kidnap_after", kidnap_after)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise BadInput(name, f"must be a positive integer, got {value!r}")
+        if isinstance(lost_scans, bool) or not isinstance(lost_scans, int) or lost_scans < 0:
+            raise BadInput("lost_scans", f"must be a non-negative integer, got {lost_scans!r}")
         self.config = config or FleetmapConfig()
         self.publish_every = publish_every
         self.kidnap_after = kidnap_after
+        self.lost_scans = lost_scans
         self._epoch = _Epoch(0, self.config, None)
         self._closed: list[LocalMap] = []
         """The latest version of every closed epoch, in epoch order."""
@@ -163,7 +185,8 @@ class Agent:
                 out += self._new_epoch(stamp)
         out.append(Scan(self.robot, self.epoch, index, stamp, segments, ranges))
         current = self._epoch
-        due = current.version < 0 or current.placed - current.published_placed >= self.publish_every
+        every = 1 if current.number > 0 and current.placed <= self.lost_scans else self.publish_every
+        due = current.version < 0 or current.placed - current.published_placed >= every
         if current.started and due:
             out.append(self._local_map(stamp))
         return out

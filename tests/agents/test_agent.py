@@ -77,6 +77,19 @@ def test_a_kidnap_starts_a_new_epoch_from_the_first_scan_after_it(kidnapped, kid
     assert world_error(old[-1], kidnapped_stream[0].pose, kidnapped.world.walls).mean < 0.03
 
 
+def test_a_lost_robot_publishes_its_new_local_map_after_every_scan(kidnapped, kidnapped_stream):
+    # Epoch 0 every publish_every (3) placed scans; the epoch after the kidnap after each of its
+    # first lost_scans placed scans, then every 3 again.
+    after = kidnap_index(kidnapped_stream) + 1
+    stream = list(robot_stream(kidnapped, "r1"))[: after + 8]
+    eager = [m.scans for m in local_maps(run(Agent("r1"), source_scans(stream)), 1)]
+    assert eager[:5] == list(range(eager[0], eager[0] + 5)), eager
+    # (epoch 0: at scans 1 and 4, then closed at the kidnap with its 6 placed scans)
+    assert [m.scans for m in local_maps(run(Agent("r1"), source_scans(stream)), 0)] == [1, 4, 6]
+    briefly = [m.scans for m in local_maps(run(Agent("r1", lost_scans=2), source_scans(stream)), 1)]
+    assert briefly[:2] == [2, 5], briefly
+
+
 def test_the_kidnap_of_the_bundled_department_events_scenario_starts_an_epoch():
     # The hallway scan before the kidnap and the hall scan after it match validly 9 m apart (look-alike
     # walls); the motion bound (max_speed) is what refuses it: the robot cannot move 9 m in 0.5 s.
@@ -138,7 +151,12 @@ def test_scans_that_see_nothing_are_published_but_place_nothing(r2_stream):
 
 @pytest.mark.parametrize(
     ("kwargs", "named"),
-    [({"robot": "R1"}, "robot"), ({"publish_every": 0}, "publish_every"), ({"kidnap_after": 0}, "kidnap_after")],
+    [
+        ({"robot": "R1"}, "robot"),
+        ({"publish_every": 0}, "publish_every"),
+        ({"kidnap_after": 0}, "kidnap_after"),
+        ({"lost_scans": -1}, "lost_scans"),
+    ],
 )
 def test_bad_parameters_are_refused_by_name(kwargs, named):
     with pytest.raises(BadInput, match=named):

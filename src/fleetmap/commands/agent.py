@@ -7,7 +7,7 @@ import logging
 import math
 import sys
 
-from fleetmap.agents.agent import Agent
+from fleetmap.agents.agent import LOST_SCANS, Agent
 from fleetmap.agents.process import run_agent
 from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
 from fleetmap.shared.bus import ZenohBus
@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run one robot: extract segments, grow its local map, publish scans and local maps",
         description="One robot agent on the fleet's bus. For each scan of its source it extracts segments "
         "(paper III-D), grows its local map with the pivot method (paper IV-C, Algorithm 6) and publishes the "
-        "scan; every --publish-every placed scans it publishes the local map. After --kidnap-after scans in a "
+        "scan; every --publish-every placed scans it publishes the local map (after every scan for the first "
+        "--lost-scans of a later epoch). After --kidnap-after scans in a "
         "row that do not integrate, it starts a new local map (a new epoch) and says so on the events key. "
         "It holds the liveliness token fleet/<fleet>/alive/<robot> while it runs, republishes its latest local "
         "maps when a merger asks, and stops cleanly on SIGINT or SIGTERM (final local map, then leave).",
@@ -59,6 +60,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument(
         "--publish-every", type=int, default=3, metavar="N", help="publish the local map every N placed scans"
+    )
+    p.add_argument(
+        "--lost-scans",
+        type=int,
+        default=LOST_SCANS,
+        metavar="N",
+        help="in an epoch after the first (the robot is lost until the merger places it), publish the local "
+        f"map after each of its first N placed scans (default {LOST_SCANS})",
     )
     p.add_argument(
         "--kidnap-after",
@@ -96,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     robot = check_name(args.robot, "--robot")
     if not args.speed >= 0 or math.isinf(args.speed):
         raise BadInput("--speed", f"must be 0 (as fast as possible) or a positive number, got {args.speed}")
-    agent = Agent(robot, config_from_args(args), args.publish_every, args.kidnap_after)
+    agent = Agent(robot, config_from_args(args), args.publish_every, args.kidnap_after, args.lost_scans)
     source = make_source(args)
     options = zenoh_options_from_args(args)
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
