@@ -181,9 +181,14 @@ class MapGraph:
         limit = self.merge.max_candidates
         return ranked[:limit] if limit > 0 else ranked
 
-    def put_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> bool:
+    def put_map(self, key: str, segment_map: SegmentMap, version: int = 0, keep_edges: bool = False) -> bool:
         """Add a map or replace it with a newer version (its old edges go, unless the new version
-        holds the same segments and viewpoints: then they stand). False if not newer."""
+        holds the same segments and viewpoints: then they stand). False if not newer.
+
+        With ``keep_edges`` the old version's edges stand until :meth:`integrate_pair` replaces
+        them (the live merger integrates a new version over several steps; a local map's frame is
+        its first scan's whatever the version, so they stay about right, and the map does not drop
+        out of the global map meanwhile)."""
         if len(segment_map) == 0:
             raise BadInput(key, "the map is empty (no segments)")
         node = self._nodes.get(key)
@@ -202,8 +207,9 @@ class MapGraph:
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)
             node.work, node.index = self._work(segment_map), None
-            for k in [k for k in self._edges if key in k]:
-                del self._edges[k]
+            if not keep_edges:
+                for k in [k for k in self._edges if key in k]:
+                    del self._edges[k]
             return True
         self._nodes[key] = _Node(
             segment_map, self._counter, version, orientation_histogram(segment_map.segments), self._work(segment_map)
@@ -261,12 +267,25 @@ class MapGraph:
         """Add (or update) a map and integrate it with the existing maps, most similar first."""
         if not self.put_map(key, segment_map, version):
             return []
+        return [self._oriented_pair(other, key) for other in self.pairs_for(key)]
+
+    def pairs_for(self, key: str) -> list[str]:
+        """The maps to integrate ``key`` with, most similar first: :meth:`candidates_for` less
+        those it cannot merge with (:meth:`_too_few_places`)."""
         mine = self._nodes[key].map
-        return [
-            self._oriented_pair(other, key)
-            for other in self.candidates_for(key)
-            if not self._too_few_places(self._nodes[other].map, mine)
-        ]
+        return [other for other in self.candidates_for(key) if not self._too_few_places(self._nodes[other].map, mine)]
+
+    def is_current(self, a: str, b: str) -> bool:
+        """Whether the pair's edge is known at both maps' current versions."""
+        known = self.edge(a, b)
+        return known is not None and known.versions == (self._nodes[a].version, self._nodes[b].version)
+
+    def integrate_pair_once(self, x: str, y: str) -> Edge | None:
+        """INTEGRATE the pair, always one way (see :meth:`_oriented_pair`); None if its edge is
+        already known at these versions."""
+        if self.is_current(x, y):
+            return None
+        return self._oriented_pair(x, y)
 
     def _too_few_places(self, a: SegmentMap, b: SegmentMap) -> bool:
         """Whether two partial maps cannot merge whatever their geometry: one was seen from fewer

@@ -5,7 +5,11 @@ of a bus message, ``step`` integrates what arrived since the last step into the 
 (:mod:`fleetmap.merger.graph`) and returns the messages to publish. It is deterministic given the
 same messages in the same order, which is what lets a recorded session replay to the same map:
 every step is published as a :class:`~fleetmap.shared.messages.MergerStep` naming the local map
-versions it integrated, in order, and a replay follows those steps.
+versions it took, in order, and how many pairs of maps it integrated, and a replay follows those
+steps. New versions enter the graph at once; their integrations with the other maps wait in a
+queue, lost robots' first, and the live service gives each step a time budget (a step that
+integrated every new version with every map took seconds in a warehouse, while a kidnapped
+robot's next map waited).
 
 What it publishes after a step:
 
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import queue
 import threading
@@ -65,6 +70,14 @@ log = logging.getLogger(__name__)
 
 STATE_VERSION = 1
 
+STALE_VERSIONS = 2
+"""A lost robot's pair integrated this many versions of its map ago is worth another try (a robot
+that starts an epoch publishes its map after every scan: two more scans)."""
+
+STEP_SECONDS = 0.5
+"""The live service's time budget for one step's integrations (at least one is done): a
+kidnapped robot's newest map waits no longer than this for its turn."""
+
 
 @dataclass(frozen=True)
 class Outgoing:
@@ -85,7 +98,7 @@ class MergerStats:
     """Local maps older than (or as old as) the version already held."""
     steps: int = 0
     lost_first: int = 0
-    """Steps that integrated only lost robots' local maps while others waited."""
+    """Steps that began with a lost robot's pair while other pairs waited."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -127,8 +140,9 @@ class Merger:
         self._robots: dict[str, _Robot] = {}
         self._result: MergeResult | None = None
         self._global: GlobalMap | None = None
-        self._lost_first = False
-        """Whether the last step integrated lost robots' maps only (the next one takes all)."""
+        self._queue: dict[tuple[str, str], None] = {}
+        """Pairs of maps to integrate (an ordered set: the oldest first), each as (S1, S2)."""
+        self._lost_pairs: set[tuple[str, str]] = set()
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -183,20 +197,51 @@ class Merger:
         return len(self._pending)
 
     # -- one step --------------------------------------------------------------------------
-    def step(self) -> list[Outgoing]:
-        """Integrate the local maps received since the last step (lost robots' first, see
-        :meth:`_next_batch`); the messages to publish."""
-        if not self._pending:
+    @property
+    def has_work(self) -> bool:
+        """Whether a step has something to do: local maps pending, or pairs still to integrate."""
+        return bool(self._pending) or bool(self._queue)
+
+    @property
+    def queued(self) -> int:
+        """Pairs of maps still to integrate."""
+        return len(self._queue)
+
+    def step(self, limit: int | None = None, enough: Callable[[], bool] | None = None) -> list[Outgoing]:
+        """Take the local maps received since the last step into the graph, integrate queued pairs,
+        and return the messages to publish.
+
+        Every new map version enters the graph at once (its old version's integrations stand
+        until replaced) and queues its pairs with the other maps, most similar first. The step
+        then integrates queued pairs in :meth:`_work_order` (lost robots' first): all of them, or
+        ``limit`` of them (a replay repeats the live steps), or until ``enough()`` says the step
+        has taken long enough (the live service's time budget: a step that integrated every new
+        version with every map took seconds in a warehouse, while a kidnapped robot's next map
+        version waited). The step's MergerStep says how many pairs it took, and how many wait.
+        """
+        if not self.has_work:
             return []
-        batch = self._next_batch()
-        out: list[Outgoing] = []
-        new_edges: list[Edge] = []
+        batch = list(self._pending.values())
+        self._pending.clear()
         for m in batch:
-            new_edges += self._integrate(m)
+            self._enter(m)
+        order = self._work_order()
+        self.stats.lost_first += bool(order) and order[0] in self._lost_pairs and len(order) > len(self._lost_pairs)
+        new_edges: list[Edge] = []
+        taken = 0
+        for pair in order:
+            if (limit is not None and taken >= limit) or (limit is None and enough is not None and taken and enough()):
+                break
+            del self._queue[pair]
+            taken += 1
+            edge = self.graph.integrate_pair_once(*pair)
+            if edge is not None:
+                new_edges.append(edge)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
         self.stamp = max([self.stamp] + [m.stamp for m in batch])
+        out: list[Outgoing] = []
         for e in new_edges:
             t = e.transform
             edge = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
@@ -206,40 +251,81 @@ class Merger:
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += self._robot_poses()
         # Last: whoever sees the step has seen everything it produced (fleetmap run waits on it).
-        step = MergerStep(self.seq, self.stamp, tuple(m.key for m in batch), tuple(m.version for m in batch))
+        step = MergerStep(
+            self.seq,
+            self.stamp,
+            tuple(m.key for m in batch),
+            tuple(m.version for m in batch),
+            integrations=taken,
+            queued=len(self._queue),
+        )
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         return out
 
-    def _next_batch(self) -> list[LocalMap]:
-        """The pending maps this step integrates, taken off the queue: all of them, or only the
-        lost robots' ones when others wait too and the last step did not already put those first.
+    def _work_order(self) -> list[tuple[str, str]]:
+        """The queued pairs in the order a step integrates them: two of a lost robot's promising
+        pairs, then the pair that waited longest, and so on (a robot lost for long cannot starve
+        the others); then the rest, oldest first.
 
-        A robot is lost while its current epoch (after the first) is merged with nothing: its pose
-        is unknown (a closed epoch's map waits like any other). A merger that falls behind
-        integrates every new map version with every map, which takes seconds in a warehouse;
-        putting the lost robots' maps first publishes a kidnapped robot's pose a step sooner. The
-        others wait one step at most. The choice depends only on what is pending and on the graph,
-        so a replay of the recorded steps makes it again.
+        A robot is lost while its current epoch (after the first) is merged with nothing: its
+        pose is unknown. Its promising pairs are those whose last integration was nearly valid
+        (only ambiguous: a few more scans may be all it lacks), least ambiguous first; then those
+        never integrated; then those last integrated with a version of its map ``STALE_VERSIONS``
+        or more older, the oldest first (in a warehouse, r1's map after its kidnap matched r4's
+        from 5 to 7 scans ambiguously, 0.86-0.95 as well elsewhere; at 8 scans 0.78; at 10 it
+        was valid). The issue asks for the best candidates first; the last versions'
+        integrations are the best guide there is. A pair tried with the last version or the one
+        before and far from valid waits its turn like any other, and every third pair of a step
+        goes to the others: a robot exploring where no one has been keeps publishing, and its
+        pairs must not crowd out the fleet's. The order depends only on the queue and the graph,
+        so a replay of the recorded steps repeats it.
         """
-        pending = list(self._pending.values())
-        lost = [m for m in pending if self._is_lost(m)]
-        batch = lost if lost and len(lost) < len(pending) and not self._lost_first else pending
-        self._lost_first = all(self._is_lost(m) for m in batch)
-        if batch is lost and len(lost) < len(pending):
-            self.stats.lost_first += 1
-        for m in batch:
-            del self._pending[m.key]
-        return batch
+        lost_maps = {k for k in self.graph.keys if self._is_lost(k)}
+        urgent: list[tuple[tuple[int, float], tuple[str, str]]] = []
+        rest: list[tuple[str, str]] = []
+        for pair in self._queue:
+            promise = self._promise(pair, lost_maps) if pair[0] in lost_maps or pair[1] in lost_maps else None
+            if promise is not None and promise[0] < 2:
+                urgent.append((promise, pair))
+            else:
+                rest.append(pair)
+        urgent.sort(key=lambda x: x[0])  # stable: the oldest first among equals
+        first = [pair for _, pair in urgent]
+        self._lost_pairs = set(first)
+        order: list[tuple[str, str]] = []
+        while first or rest:
+            order += first[:2] + rest[:1]
+            first, rest = first[2:], rest[1:]
+        return order
 
-    def _is_lost(self, m: LocalMap) -> bool:
-        """Whether ``m`` is the current epoch (after the first) of a robot whose pose is unknown,
-        seen from enough places to be merged (an earlier version is only held: not worth a step)."""
-        r = self._robots.get(m.robot)
-        current = r is None or m.epoch >= r.epoch
-        few = m.viewpoints is not None and len(m.viewpoints) < self.config.integration.valid_min_map_scans
-        return current and not few and m.epoch > 0 and (self._result is None or self._result.poses.get(m.key) is None)
+    def _promise(self, pair: tuple[str, str], lost_maps: set[str]) -> tuple[int, float]:
+        """How promising a lost robot's pair is (see :meth:`_work_order`): (0, ambiguity) if its
+        last integration was nearly valid; (1, -age) if it was never integrated, or only with a
+        version of the lost map STALE_VERSIONS or more older (the map has grown since); (2, 0)
+        otherwise."""
+        e = self.graph.edge(*pair)
+        if e is None:
+            return (1, -math.inf)
+        p = self.config.integration
+        score = e.value - e.violation
+        if score > 0 and e.violation <= p.valid_max_map_violation * e.value:
+            ambiguity = e.runner_up / score
+            if ambiguity <= p.valid_max_ambiguity:
+                return (0, ambiguity)
+        ends = zip((e.a, e.b), e.versions, strict=True)
+        age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)
+        return (1, -float(age)) if age >= STALE_VERSIONS else (2, 0.0)
 
-    def _integrate(self, m: LocalMap) -> list[Edge]:
+    def _is_lost(self, key: str) -> bool:
+        """Whether ``key`` is the current epoch (after the first) of a robot whose pose is unknown."""
+        robot, epoch = key.rsplit("/", 1)
+        r = self._robots.get(robot)
+        current = r is None or int(epoch) >= r.epoch
+        placed = self._result is not None and self._result.poses.get(key) is not None
+        return current and int(epoch) > 0 and not placed
+
+    def _enter(self, m: LocalMap) -> None:
+        """Put a local map version into the graph and queue its pairs."""
         r = self._robot(m.robot)
         if m.epoch >= r.epoch:
             r.epoch, r.stamp = m.epoch, m.stamp
@@ -249,7 +335,12 @@ class Merger:
         segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
         if m.viewpoints is not None:
             segment_map = with_viewpoints(segment_map, m.viewpoints)
-        return self.graph.add_map(m.key, segment_map, m.version)
+        if not self.graph.put_map(m.key, segment_map, m.version, keep_edges=True):
+            return
+        for other in self.graph.pairs_for(m.key):
+            pair = (other, m.key) if other < m.key else (m.key, other)
+            if pair not in self._queue and not self.graph.is_current(*pair):
+                self._queue[pair] = None
 
     def _global_map(self, result: MergeResult) -> GlobalMap:
         components = tuple(
@@ -345,7 +436,7 @@ class Merger:
             "edges": edges,
             "robots": robots,
             "links": self.links,
-            "lost_first": self._lost_first,
+            "queue": [list(pair) for pair in self._queue],
         }
         p = Path(path)
         tmp = p.with_name(p.name + ".tmp")
@@ -393,7 +484,7 @@ class Merger:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
-        self._lost_first = bool(state.get("lost_first", False))
+        self._queue = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)
@@ -415,12 +506,16 @@ class MergerService:
         state_file: str | Path | None = None,
         tick: float = 0.05,
         clock: Callable[[], float] = time.time,
+        step_seconds: float = STEP_SECONDS,
     ) -> None:
+        if not step_seconds >= 0 or math.isinf(step_seconds):
+            raise BadInput("step_seconds", f"must be 0 (no budget) or a positive number, got {step_seconds}")
         self.bus = bus
         self.merger = merger
         self.keys = merger.keys
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
+        self.step_seconds = step_seconds
         self.clock = clock
         self._inbox: queue.SimpleQueue[tuple[str, bytes | bool]] = queue.SimpleQueue()
         self._handles: list[Handle] = []
@@ -470,11 +565,18 @@ class MergerService:
                 self._publish(self.merger.receive(key, item))
 
     def run_once(self) -> bool:
-        """Take what arrived and step if a local map is pending; True if it stepped."""
+        """Take what arrived and step if there is work (a local map pending, or pairs of maps to
+        integrate), for about ``step_seconds`` at most (one integration at least); True if it
+        stepped."""
         self._drain()
-        if not self.merger.pending:
+        if not self.merger.has_work:
             return False
-        out = self.merger.step()
+        deadline = time.monotonic() + self.step_seconds
+
+        def past_deadline() -> bool:
+            return time.monotonic() >= deadline
+
+        out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
         if self.state_file is not None:
             self.merger.save_state(self.state_file)
         self._snapshot = self.merger.global_map.to_msgpack()
@@ -485,10 +587,9 @@ class MergerService:
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
-        # What is pending at the stop, in two steps at most (lost robots' maps may go first).
-        for _ in range(2):
-            if not self.run_once():
-                break
+        # What is pending at the stop, and every pair still queued: nothing is left unintegrated.
+        while self.run_once():
+            pass
 
     def close(self) -> None:
         try:

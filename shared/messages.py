@@ -613,7 +613,8 @@ class FleetEvent(WireMessage):
 
 @dataclass(frozen=True, eq=False)
 class MergerStep(WireMessage):
-    """The local map versions the merger integrated in one step, in the order it took them.
+    """The local map versions the merger took into its graph in one step, in the order it took
+    them, and how many pairs of maps it integrated.
 
     The merger is deterministic given its inputs in order; a replay feeds the recorded local
     maps in the order these steps give, so it rebuilds exactly the live global map even where the
@@ -626,9 +627,15 @@ class MergerStep(WireMessage):
     stamp: float
     maps: tuple[str, ...]
     versions: tuple[int, ...]
+    integrations: int | None = None
+    """Pairs of maps the step took off its queue (a replay takes as many; None: all of them)."""
+    queued: int | None = None
+    """Pairs still waiting after the step (0: the merger has caught up)."""
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
+        _set(self, "integrations", _optional_count(s, "integrations", self.integrations))
+        _set(self, "queued", _optional_count(s, "queued", self.queued))
         _set(self, "seq", _count(s, "seq", self.seq))
         _set(self, "stamp", _stamp(s, "stamp", self.stamp))
         maps = _sequence(s, "maps", self.maps, MAX_MAPS)

@@ -162,9 +162,11 @@ def replay(
                 robot = key.rsplit("/", 1)[0]
                 merger.receive(keys.localmap(robot), found[0].payload)
                 inputs.append(f"{key}@{version}")
-            take(merger.step())
+            take(merger.step(limit=step.integrations))
             if progress:
                 progress(n + 1, len(steps))
+        while merger.has_work:  # a recording that ends before the live merger caught up
+            take(merger.step())
     else:
         maps = [(m, msg) for m, msg in decoded if isinstance(msg, LocalMap) and wanted(msg) and selected(m)]
         for n, (m, msg) in enumerate(maps):

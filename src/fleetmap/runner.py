@@ -92,6 +92,9 @@ class _Watch:
     counts: Counter[str] = field(default_factory=Counter)
     published: dict[str, int] = field(default_factory=dict)
     integrated: dict[str, int] = field(default_factory=dict)
+    last_step: int = -1
+    queued: int = 0
+    """Pairs of maps the merger still had to integrate after its last step."""
     services: set[str] = field(default_factory=set)
     lock: threading.Lock = field(default_factory=threading.Lock)
     changed: threading.Event = field(default_factory=threading.Event)
@@ -109,11 +112,15 @@ class _Watch:
             elif isinstance(message, MergerStep):
                 for k, v in zip(message.maps, message.versions, strict=True):
                     self.integrated[k] = max(self.integrated.get(k, -1), v)
+                if message.seq >= self.last_step:
+                    self.last_step, self.queued = message.seq, message.queued or 0
         self.changed.set()
 
     def caught_up(self) -> bool:
+        """Every local map version published is in the merger's graph, and integrated with the
+        others (no pairs queued after its last step)."""
         with self.lock:
-            return all(self.integrated.get(k, -1) >= v for k, v in self.published.items())
+            return self.queued == 0 and all(self.integrated.get(k, -1) >= v for k, v in self.published.items())
 
 
 def _wait(predicate: Callable[[], bool], timeout: float, what: str, event: threading.Event | None = None) -> None:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from fleetmap.merger.graph import Edge
 from fleetmap.merger.service import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.geometry import Transform2D
@@ -118,37 +119,70 @@ def test_a_lost_robot_is_unknown_until_relocalized(maps) -> None:  # type: ignor
     assert event.kind == "relocalized" and event.robot == "r1"
 
 
-def test_a_lost_robots_map_goes_first_and_the_others_wait_one_step(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_a_lost_robots_pair_goes_first_and_a_step_can_stop_short(tmp_path) -> None:  # type: ignore[no-untyped-def]
     small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
     merger = Merger(KEYS)
     _feed(merger, [small["r1"], small["r2"]])
     # While the merger is busy, r2's map grows and r1, carried off, starts epoch 1 where r2 has
-    # been: its pose is unknown until its map is merged, so that map goes first.
-    r1, r2 = small["r1"], small["r2"]
-    grown = LocalMap("r2", 0, 1, r2.stamp, r2.segments, 16, r2.pose)
-    lost = LocalMap("r1", 1, 0, 99.0, r2.segments, 15, r2.pose)
+    # been: its pose is unknown until its map is merged, so its pair with r2's map goes first.
+    grown = true_local_map("department", "r2", 0, 16, version=1)[0]
+    lost = LocalMap("r1", 1, 0, 99.0, grown.segments, 15, grown.pose)
     for m in (grown, lost):
         merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
-    first = _decoded(merger.step())
-    assert next(m for m in first if isinstance(m, MergerStep)).maps == ("r1/1",)
+    first = _decoded(merger.step(limit=2))
+    step = next(m for m in first if isinstance(m, MergerStep))
+    assert step.maps == ("r2/0", "r1/1") and step.integrations == 2 and step.queued == 1
+    # The lost robot's pairs first (never integrated: the most similar map first); r2's grown map
+    # waits, although it came first.
+    assert [(e.a, e.b) for e in first if isinstance(e, MergeEdge)] == [("r1/1", "r2/0"), ("r1/0", "r1/1")]
     pose = next(m for m in first if isinstance(m, RobotPose) and m.robot == "r1")
     assert pose.epoch == 1 and pose.pose is not None, "not relocalized against r2's map"
+    assert merger.stats.lost_first == 1 and merger.has_work
     merger.save_state(tmp_path / "merger.state")
-    # Then r2 is lost too; but the others have waited a step: this one takes everything.
-    also_lost = LocalMap("r2", 1, 0, 100.0, r1.segments, 15, r1.pose)
-    second = _feed(merger, [also_lost])
-    assert next(m for m in second if isinstance(m, MergerStep)).maps == ("r2/0", "r2/1")
-    assert merger.step() == [] and merger.stats.lost_first == 1
-    # A restarted merger carries on the same way (what the last step did is in its state) ...
+    second = _decoded(merger.step(limit=1))
+    assert [(e.a, e.b) for e in second if isinstance(e, MergeEdge)] == [("r1/0", "r2/0")]
+    assert next(m for m in second if isinstance(m, MergerStep)).queued == 0 and not merger.has_work
+    assert merger.step() == []
+    # A restarted merger carries on the same way (the queue is in its state) ...
     restored = Merger(KEYS)
     restored.load_state(tmp_path / "merger.state")
-    restored.receive(KEYS.localmap("r2"), grown.to_msgpack())
-    assert [m.to_msgpack() for m in _feed(restored, [also_lost])] == [m.to_msgpack() for m in second]
-    # ... and a replay, which feeds each recorded step's maps and steps, makes the same choices.
+    assert [m.to_msgpack() for m in _decoded(restored.step(limit=1))] == [m.to_msgpack() for m in second]
+    # ... and a replay, which feeds each recorded step's maps and takes as many pairs, too.
     replay = Merger(KEYS)
-    _feed(replay, [r1, r2])
-    again = _feed(replay, [lost]) + _feed(replay, [grown, also_lost])
+    _feed(replay, [small["r1"], small["r2"]])
+    for m in (grown, lost):
+        replay.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    again = _decoded(replay.step(limit=2)) + _decoded(replay.step(limit=1))
     assert [m.to_msgpack() for m in again] == [m.to_msgpack() for m in first + second]
+
+
+def test_a_lost_robots_promising_pairs_go_first_and_the_others_still_get_their_turn() -> None:
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2", "r3")}
+    merger = Merger(KEYS)
+    _feed(merger, list(small.values()))
+    # r1's map grows (its pairs wait); then r4's, a robot carried off and lost, at its third version.
+    grown = true_local_map("department", "r1", 0, 12, version=1)[0]
+    lost = LocalMap("r4", 1, 2, 99.0, small["r2"].segments, 8, small["r2"].pose)
+    for m in (grown, lost):
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    assert not any(isinstance(m, MergeEdge) for m in _decoded(merger.step(limit=0))) and merger.queued == 5
+    # What its earlier versions did: nearly valid with r2's map (only ambiguous), far from valid
+    # with r1's; never integrated with r3's.
+    merger.graph.add_edge(Edge("r2/0", "r4/1", Transform2D(), 12.0, False, runner_up=6.0, versions=(0, 1)))
+    merger.graph.add_edge(Edge("r1/0", "r4/1", Transform2D(), 9.0, False, runner_up=8.9, versions=(1, 1)))
+    out = _decoded(merger.step(limit=3))
+    # Two promising pairs of the lost robot (the nearly valid one first), then the pair that
+    # waited longest; its pair far from valid waits its turn behind r1's.
+    assert [(e.a, e.b) for e in out if isinstance(e, MergeEdge)] == [
+        ("r2/0", "r4/1"),
+        ("r3/0", "r4/1"),
+        ("r1/0", "r2/0"),
+    ]
+    pose = next(m for m in out if isinstance(m, RobotPose) and m.robot == "r4")
+    assert pose.pose is not None, "not relocalized against r2's map"
+    out = _decoded(merger.step())
+    assert [(e.a, e.b) for e in out if isinstance(e, MergeEdge)] == [("r1/0", "r3/0"), ("r1/0", "r4/1")]
+    assert not merger.has_work
 
 
 def test_a_map_seen_from_too_few_places_is_not_integrated_until_it_can_merge() -> None:

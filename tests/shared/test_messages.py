@@ -22,6 +22,7 @@ from fleetmap.shared.messages import (
     LaserRanges,
     LocalMap,
     MergeEdge,
+    MergerStep,
     RobotPose,
     Scan,
     decode,
@@ -125,6 +126,20 @@ def test_value_messages_round_trip_equal():
         FleetEvent("merger_start", None, 2.0),
     ):
         assert type(message).from_msgpack(message.to_msgpack()) == message
+    for step in (MergerStep(7, 9.5, ("r1/0", "r2/3"), (4, 0), integrations=3, queued=12), MergerStep(8, 9.5, (), ())):
+        back = MergerStep.from_msgpack(step.to_msgpack())
+        fields = ("seq", "stamp", "maps", "versions", "integrations", "queued")
+        assert [getattr(back, f) for f in fields] == [getattr(step, f) for f in fields]
+
+
+def test_a_merger_step_without_its_integration_counts_reads_as_one_that_did_all():
+    # Recorded before steps had a budget: no integrations or queued field (a replay does all).
+    data = wire(MergerStep(7, 9.5, ("r1/0",), (4,)))
+    del data["integrations"], data["queued"]
+    step = decode(msgpack.packb(data))
+    assert isinstance(step, MergerStep) and step.integrations is None and step.queued is None
+    with pytest.raises(BadMessage, match="integrations"):
+        MergerStep(7, 9.5, ("r1/0",), (4,), integrations=-1)
 
 
 def test_payload_is_a_msgpack_map_with_schema_version_and_packed_float64_segments():

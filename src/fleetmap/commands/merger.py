@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from fleetmap.merger.service import Merger, MergerService
+from fleetmap.merger.service import STEP_SECONDS, Merger, MergerService
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
@@ -23,6 +23,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "graph in a file and resumes from it when restarted.",
     )
     p.add_argument("--state", metavar="FILE", help="state file: written after every step, loaded at start")
+    p.add_argument(
+        "--step-seconds",
+        type=float,
+        default=STEP_SECONDS,
+        metavar="S",
+        help="time budget of one step's integrations: the rest wait for the next step, lost robots' maps "
+        f"first (0: every pending integration in one step; default {STEP_SECONDS:g})",
+    )
     add_zenoh_arguments(p)
     add_config_arguments(p, ["integration", "merge"])
     p.set_defaults(func=run)
@@ -36,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         merger.load_state(args.state)
         log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
-        service = MergerService(bus, merger, state_file=args.state)
+        service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
         service.start()
         try:
             service.run(stop)
@@ -44,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
             service.close()
     s = merger.stats
     log.warning(
-        "merger stopped: %d steps (%d for lost robots first), %d integrations, %d maps; %d malformed messages dropped",
+        "merger stopped: %d steps (%d began with a lost robot's map), %d integrations, %d maps; "
+        "%d malformed messages dropped",
         s.steps,
         s.lost_first,
         s.integrations,
