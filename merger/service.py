@@ -234,9 +234,9 @@ class Merger:
                 break
             del self._queue[pair]
             taken += 1
-            edge = self.graph.integrate_pair_once(*pair)
-            if edge is not None:
-                new_edges.append(edge)
+            computed = self.graph.integrate_pair_once(*pair)
+            if computed is not None:
+                new_edges.append(computed)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
