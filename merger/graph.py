@@ -197,12 +197,15 @@ class MapGraph:
                 return False
             if _same_geometry(node.map, segment_map):
                 # The same walls seen from the same places (an epoch's last version, which only
-                # says that the robot has left it): its integrations stand, their versions move on.
+                # says that the robot has left it): its integrations with the version it repeats
+                # stand, their versions move on (one kept from an older version stays old).
+                old = node.version
                 node.version = version
                 for k, e in list(self._edges.items()):
                     if key in k:
                         va, vb = e.versions
-                        self._edges[k] = replace(e, versions=(version, vb) if e.a == key else (va, version))
+                        if (va if e.a == key else vb) == old:
+                            self._edges[k] = replace(e, versions=(version, vb) if e.a == key else (va, version))
                 return True
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)

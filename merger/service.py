@@ -74,6 +74,9 @@ STALE_VERSIONS = 2
 """A lost robot's pair integrated this many versions of its map ago is worth another try (a robot
 that starts an epoch publishes its map after every scan: two more scans)."""
 
+URGENT_RUN = 2
+"""Lost robots' promising pairs a merger integrates for one of the others' (when both wait)."""
+
 STEP_SECONDS = 0.5
 """The live service's time budget for one step's integrations (at least one is done): a
 kidnapped robot's newest map waits no longer than this for its turn."""
@@ -98,7 +101,7 @@ class MergerStats:
     """Local maps older than (or as old as) the version already held."""
     steps: int = 0
     lost_first: int = 0
-    """Steps that began with a lost robot's pair while other pairs waited."""
+    """Steps that began with a lost robot's pair while other pairs waited behind it."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -142,7 +145,8 @@ class Merger:
         self._global: GlobalMap | None = None
         self._queue: dict[tuple[str, str], None] = {}
         """Pairs of maps to integrate (an ordered set: the oldest first), each as (S1, S2)."""
-        self._lost_pairs: set[tuple[str, str]] = set()
+        self._urgent_run = 0
+        """Promising pairs of lost robots taken since the last of the rest (see :meth:`_work_lists`)."""
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -213,7 +217,7 @@ class Merger:
 
         Every new map version enters the graph at once (its old version's integrations stand
         until replaced) and queues its pairs with the other maps, most similar first. The step
-        then integrates queued pairs in :meth:`_work_order` (lost robots' first): all of them, or
+        then integrates queued pairs in the order of :meth:`_work_lists` (lost robots' first): all of them, or
         ``limit`` of them (a replay repeats the live steps), or until ``enough()`` says the step
         has taken long enough (the live service's time budget: a step that integrated every new
         version with every map took seconds in a warehouse, while a kidnapped robot's next map
@@ -225,13 +229,19 @@ class Merger:
         self._pending.clear()
         for m in batch:
             self._enter(m)
-        order = self._work_order()
-        self.stats.lost_first += bool(order) and order[0] in self._lost_pairs and len(order) > len(self._lost_pairs)
+        urgent, rest = self._work_lists()
+        self.stats.lost_first += bool(urgent) and bool(rest) and self._urgent_run < URGENT_RUN
         new_edges: list[Edge] = []
         taken = 0
-        for pair in order:
+        while urgent or rest:
             if (limit is not None and taken >= limit) or (limit is None and enough is not None and taken and enough()):
                 break
+            if urgent and (self._urgent_run < URGENT_RUN or not rest):
+                pair = urgent.pop(0)
+                self._urgent_run += 1
+            else:
+                pair = rest.pop(0)
+                self._urgent_run = 0
             del self._queue[pair]
             taken += 1
             computed = self.graph.integrate_pair_once(*pair)
@@ -262,23 +272,23 @@ class Merger:
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         return out
 
-    def _work_order(self) -> list[tuple[str, str]]:
-        """The queued pairs in the order a step integrates them: two of a lost robot's promising
-        pairs, then the pair that waited longest, and so on (a robot lost for long cannot starve
-        the others); then the rest, oldest first.
+    def _work_lists(self) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+        """The queued pairs a step integrates: lost robots' promising pairs, best first, and the
+        rest, oldest first. The step takes ``URGENT_RUN`` promising pairs for one of the rest,
+        counted across steps (a robot lost for long cannot starve the others).
 
         A robot is lost while its current epoch (after the first) is merged with nothing: its
         pose is unknown. Its promising pairs are those whose last integration was nearly valid
-        (only ambiguous: a few more scans may be all it lacks), least ambiguous first; then those
-        never integrated; then those last integrated with a version of its map ``STALE_VERSIONS``
-        or more older, the oldest first (in a warehouse, r1's map after its kidnap matched r4's
+        (only ambiguous: a few more scans may be all it lacks), least ambiguous first, in turn
+        with those never integrated and then those last integrated with a version of its map
+        ``STALE_VERSIONS`` or more older, the oldest first (in a warehouse, r1's map after its kidnap matched r4's
         from 5 to 7 scans ambiguously, 0.86-0.95 as well elsewhere; at 8 scans 0.78; at 10 it
         was valid). The issue asks for the best candidates first; the last versions'
         integrations are the best guide there is. A pair tried with the last version or the one
-        before and far from valid waits its turn like any other, and every third pair of a step
-        goes to the others: a robot exploring where no one has been keeps publishing, and its
-        pairs must not crowd out the fleet's. The order depends only on the queue and the graph,
-        so a replay of the recorded steps repeats it.
+        before and far from valid waits its turn with the rest: a robot exploring where no one
+        has been keeps publishing, and its pairs must not crowd out the fleet's. Lost robots take
+        turns. The lists depend only on the queue and the graph, so a replay of the recorded steps
+        repeats them.
         """
         lost_maps = {k for k in self.graph.keys if self._is_lost(k)}
         urgent: list[tuple[tuple[int, float], tuple[str, str]]] = []
@@ -290,16 +300,19 @@ class Merger:
             else:
                 rest.append(pair)
         urgent.sort(key=lambda x: x[0])  # stable: the oldest first among equals
-        first = [pair for _, pair in urgent]
-        self._lost_pairs = set(first)
-        order: list[tuple[str, str]] = []
-        while first or rest:
-            order += first[:2] + rest[:1]
-            first, rest = first[2:], rest[1:]
-        return order
+        # In turn between lost robots, each one's best first (one robot's pair that stays nearly
+        # valid version after version must not hold back another's).
+        # Within one robot's, a nearly valid pair and an untried one in turn: racks that repeat
+        # leave many pairs nearly valid, and the one that becomes valid may not be among them yet.
+        by_map: dict[str, tuple[list[tuple[str, str]], list[tuple[str, str]]]] = {}
+        for promise, pair in urgent:
+            near, untried = by_map.setdefault(pair[0] if pair[0] in lost_maps else pair[1], ([], []))
+            (near if promise[0] == 0 else untried).append(pair)
+        turns = [_alternate(near, untried) for near, untried in by_map.values()]
+        return [own[k] for k in range(max(map(len, turns), default=0)) for own in turns if k < len(own)], rest
 
     def _promise(self, pair: tuple[str, str], lost_maps: set[str]) -> tuple[int, float]:
-        """How promising a lost robot's pair is (see :meth:`_work_order`): (0, ambiguity) if its
+        """How promising a lost robot's pair is (see :meth:`_work_lists`): (0, ambiguity) if its
         last integration was nearly valid; (1, -age) if it was never integrated, or only with a
         version of the lost map STALE_VERSIONS or more older (the map has grown since); (2, 0)
         otherwise."""
@@ -437,6 +450,7 @@ class Merger:
             "robots": robots,
             "links": self.links,
             "queue": [list(pair) for pair in self._queue],
+            "urgent_run": self._urgent_run,
         }
         p = Path(path)
         tmp = p.with_name(p.name + ".tmp")
@@ -480,14 +494,21 @@ class Merger:
                     int(ep): None if p is None else Transform2D(*p) for ep, p in r["pose_in_map"].items()
                 }
                 robots[name] = robot
+            pairs = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
+            urgent_run = int(state.get("urgent_run", 0))
         except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
-        self._queue = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
+        self._queue, self._urgent_run = pairs, urgent_run
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)
+
+
+def _alternate(a: list[tuple[str, str]], b: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """a[0], b[0], a[1], b[1], ... and the rest of the longer."""
+    return [x for k in range(max(len(a), len(b))) for x in (a[k : k + 1] + b[k : k + 1])]
 
 
 class MergerService:
@@ -569,6 +590,9 @@ class MergerService:
         integrate), for about ``step_seconds`` at most (one integration at least); True if it
         stepped."""
         self._drain()
+        return self._step()
+
+    def _step(self) -> bool:
         if not self.merger.has_work:
             return False
         deadline = time.monotonic() + self.step_seconds
@@ -587,8 +611,10 @@ class MergerService:
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
-        # What is pending at the stop, and every pair still queued: nothing is left unintegrated.
-        while self.run_once():
+        # At the stop: what arrived, then every pair still queued (what arrives from now on is
+        # not taken, so this ends): nothing is left unintegrated.
+        self._drain()
+        while self._step():
             pass
 
     def close(self) -> None:

@@ -8,7 +8,7 @@ conventions)::
     fleet/<fleet>/robots/<robot>/pose        RobotPose
     fleet/<fleet>/merger/globalmap           GlobalMap
     fleet/<fleet>/merger/edges               MergeEdge
-    fleet/<fleet>/merger/steps               MergerStep (what the merger integrated, in order)
+    fleet/<fleet>/merger/steps               MergerStep (the versions the merger took in, and the pairs it integrated)
     fleet/<fleet>/merger/state               queryable: the current global state
     fleet/<fleet>/events                     FleetEvent
     fleet/<fleet>/recorder/stats             queryable: what the recorder has recorded so far
@@ -127,7 +127,8 @@ class FleetKeys:
 
     @property
     def steps(self) -> str:
-        """MergerStep: the local maps the merger integrated, in its order (what replay follows)."""
+        """MergerStep: the local map versions the merger took in, in its order, and how many pairs it
+        integrated (what replay follows)."""
         return f"{self.prefix}/merger/steps"
 
     @property

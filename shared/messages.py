@@ -617,8 +617,9 @@ class MergerStep(WireMessage):
     them, and how many pairs of maps it integrated.
 
     The merger is deterministic given its inputs in order; a replay feeds the recorded local
-    maps in the order these steps give, so it rebuilds exactly the live global map even where the
-    recorder heard two robots in the other order.
+    maps in the order these steps give and integrates as many pairs per step, so it rebuilds
+    exactly the live global map even where the recorder heard two robots in the other order, or
+    the live merger's time budget cut a step short.
     """
 
     SCHEMA: ClassVar[str] = "fleetmap.MergerStep"

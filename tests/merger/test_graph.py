@@ -232,3 +232,20 @@ def test_a_new_version_with_the_same_geometry_keeps_its_integrations() -> None:
     assert len(again) == 2
     assert all(e.versions == ((2, 0) if e.a == "m1" else (0, 2)) for e in again)
     assert all(e.seconds != before[e.key()].seconds for e in again), "not integrated again"
+
+
+def test_kept_edges_stand_until_integrated_again_and_only_the_repeated_version_moves_on() -> None:
+    # The live merger puts a new version in and integrates its pairs over later steps: the old
+    # version's edges stand meanwhile (the map stays placed), marked as old.
+    g, _ = _solve(["m0", "m1", "m2"])
+    before = {e.key(): e for e in g.edges}
+    moved = SegmentMap(MAPS["m1"].segments[:-1], ordered=MAPS["m1"].ordered, oriented=MAPS["m1"].oriented)
+    assert g.put_map("m1", moved, version=1, keep_edges=True)
+    assert {e.key(): e for e in g.edges} == before and not g.is_current("m0", "m1")
+    assert g.solve().poses["m1"] is not None
+    # Its pair with m0 is integrated again; then a version that repeats the last one's walls
+    # moves that edge on, while the edge with m2, still from version 0, stays old.
+    assert g.integrate_pair_once("m0", "m1") is not None and g.integrate_pair_once("m0", "m1") is None
+    assert g.put_map("m1", moved, version=2, keep_edges=True)
+    assert g.is_current("m0", "m1") and not g.is_current("m1", "m2")
+    assert g.integrate_pair_once("m1", "m2") is not None and g.is_current("m1", "m2")

@@ -185,6 +185,22 @@ def test_a_lost_robots_promising_pairs_go_first_and_the_others_still_get_their_t
     assert not merger.has_work
 
 
+def test_a_lost_robot_cannot_starve_the_others_across_steps() -> None:
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2", "r3")}
+    merger = Merger(KEYS)
+    _feed(merger, list(small.values()))
+    # r1's map grows; r4, carried off, sees next to nothing (a box in an open space): lost for good.
+    grown = true_local_map("department", "r1", 0, 12, version=1)[0]
+    box = LocalMap("r4", 1, 0, 50.0, np.array([[1.0, -0.3, 1.0, 0.3], [1.0, 0.3, 1.4, 0.3]]), 8, Transform2D())
+    for m in (grown, box):
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    lost = []
+    for _ in range(5):  # one pair a step, as a live merger far behind takes them
+        out = _decoded(merger.step(limit=1))
+        lost += ["r4/1" in (e.a, e.b) for e in out if isinstance(e, MergeEdge)]
+    assert lost == [True, True, False, True, False] and not merger.has_work
+
+
 def test_a_map_seen_from_too_few_places_is_not_integrated_until_it_can_merge() -> None:
     r1, _ = true_local_map("department", "r1", 0, 15)
     r2, _ = true_local_map("department", "r2", 0, 15)

@@ -28,8 +28,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=STEP_SECONDS,
         metavar="S",
-        help="time budget of one step's integrations: the rest wait for the next step, lost robots' maps "
-        f"first (0: every pending integration in one step; default {STEP_SECONDS:g})",
+        help="time budget of one step's integrations (at least one): the other pairs of maps wait for the next "
+        f"step, lost robots' promising ones first (0: every pending integration in one step; default {STEP_SECONDS:g})",
     )
     add_zenoh_arguments(p)
     add_config_arguments(p, ["integration", "merge"])
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
             service.close()
     s = merger.stats
     log.warning(
-        "merger stopped: %d steps (%d began with a lost robot's map), %d integrations, %d maps; "
+        "merger stopped: %d steps (%d began with a lost robot's pair), %d integrations, %d maps; "
         "%d malformed messages dropped",
         s.steps,
         s.lost_first,
