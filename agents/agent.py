@@ -27,7 +27,7 @@ What :meth:`Agent.add_scan` returns, in this order:
   FleetEvent ``epoch``, the Scan (in the new epoch) and the new epoch's LocalMap version 0;
 - otherwise: the Scan, then the LocalMap when it is due: the epoch's first scan, then every
   ``publish_every`` placed scans; in an epoch after the first, after each of its first
-  ``lost_scans`` placed scans.
+  ``lost_scans`` placed scans, until the merger says it has placed it (:meth:`Agent.relocalized`).
 
 Why every scan then: a robot that started a new epoch has lost its place (it was carried off, or
 its view changed completely), and it stays lost until the merger places the new local map against
@@ -97,6 +97,8 @@ class _Epoch:
         self.published_placed = 0
         self.published_pose: Transform2D | None = None
         self.latest: LocalMap | None = None
+        self.found = False
+        """The merger said it placed this epoch (relocalized the robot)."""
 
     @property
     def started(self) -> bool:
@@ -119,7 +121,8 @@ class _Epoch:
 class Agent:
     """One robot's local mapping: ``add_scan`` for each scan, ``finish`` at the end.
 
-    Deterministic: the same scans give the same messages, byte for byte.
+    Deterministic: the same scans (and calls of :meth:`relocalized`) give the same messages, byte
+    for byte.
     """
 
     def __init__(
@@ -185,11 +188,18 @@ class Agent:
                 out += self._new_epoch(stamp)
         out.append(Scan(self.robot, self.epoch, index, stamp, segments, ranges))
         current = self._epoch
-        every = 1 if current.number > 0 and current.placed <= self.lost_scans else self.publish_every
+        lost = current.number > 0 and current.placed <= self.lost_scans and not current.found
+        every = 1 if lost else self.publish_every
         due = current.version < 0 or current.placed - current.published_placed >= every
         if current.started and due:
             out.append(self._local_map(stamp))
         return out
+
+    def relocalized(self, epoch: int) -> None:
+        """The merger placed this robot's ``epoch`` (its "relocalized" event): if that is the current
+        epoch, the robot is no longer lost, and its map goes back to every ``publish_every`` scans."""
+        if epoch == self._epoch.number:
+            self._epoch.found = True
 
     def finish(self) -> list[Message]:
         """The current epoch's final LocalMap, unless its latest version already says it all."""

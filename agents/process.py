@@ -4,7 +4,9 @@
 
 1. declare the robot's liveliness token (``fleet/<fleet>/alive/<robot>``: the robot is up);
 2. listen on the fleet's events for ``republish_request`` (robot None or this robot), and answer
-   with the latest LocalMap of every epoch, so a merger that (re)started loses nothing;
+   with the latest LocalMap of every epoch, so a merger that (re)started loses nothing; and for
+   ``relocalized`` (this robot), which tells the agent its new epoch is placed
+   (:meth:`~fleetmap.agents.agent.Agent.relocalized`: it stops publishing after every scan);
 3. feed the scans to the agent at their stamps' pace (divided by ``speed``; 0: as fast as
    possible; the first scan at once) and publish each message on its key as it comes;
 4. when the source ends or ``stop`` is set: the final LocalMap, flush the bus, undeclare.
@@ -16,6 +18,7 @@ FleetEvent is counted and ignored.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -70,6 +73,8 @@ class _RepublishRequests:
         self.pending = threading.Event()
         self._lock = threading.Lock()
         self.bad = 0
+        self.relocalized: list[int] = []
+        """Epochs of this robot the merger said it placed, not yet told to the agent."""
 
     def on_event(self, key: str, payload: bytes) -> None:
         try:
@@ -81,12 +86,25 @@ class _RepublishRequests:
             self._count_bad(f"{key}: a {message.SCHEMA} is not a fleet event")
         elif message.kind == "republish_request" and message.robot in (None, self.robot):
             self.pending.set()
+        elif message.kind == "relocalized" and message.robot == self.robot:
+            try:
+                epoch = int(json.loads(message.detail)["epoch"])
+            except (ValueError, TypeError, KeyError) as exc:
+                self._count_bad(f"{key}: a relocalized event without an epoch ({exc!r})")
+                return
+            with self._lock:
+                self.relocalized.append(epoch)
 
     def _count_bad(self, why: str) -> None:
         with self._lock:
             self.bad += 1
             n = self.bad
         log.warning("ignored on the events key (%d so far): %s", n, why)
+
+    def take_relocalized(self) -> list[int]:
+        with self._lock:
+            epochs, self.relocalized = self.relocalized, []
+        return epochs
 
     def take(self) -> bool:
         """Whether a request came since the last call."""
@@ -165,6 +183,8 @@ def run_agent(
             if stop.is_set():
                 stopped = True
                 break
+            for epoch in requests.take_relocalized():
+                agent.relocalized(epoch)
             publish(agent.add_scan(index, stamp, scan))
         publish(agent.finish())
         answer_requests()

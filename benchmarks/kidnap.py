@@ -7,12 +7,16 @@ error afterwards; false relocalizations (> 1 m off) are counted. Issue 6's targe
 relocalized within (0.1 m, 2 deg) in at most 10 scans after the overlap, none false in the
 warehouse.
 
-    python benchmarks/kidnap.py [--scenarios department-events,office-events,warehouse-events]
+    python benchmarks/kidnap.py [--scenarios department-events,office-events,warehouse-events] [--runs 5]
+
+A live run depends on how the machine shares its cores between the agents and the merger: with
+``--runs N`` each scenario runs N times and the median and range of the scans are printed too.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import tempfile
 from pathlib import Path
 
@@ -26,16 +30,17 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenarios", default="department-events,office-events,warehouse-events")
     ap.add_argument("--speed", type=float, default=3.0)
+    ap.add_argument("--runs", type=int, default=1, help="live sessions per scenario")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenarios.split(","):
-            report = Session(
-                load_scenario(name), Path(tmp) / name, FleetmapConfig(), speed=args.speed, progress=False
-            ).run()
-            for k in report["kidnaps"]:
-                rows.append((name, k))
-                print(name, k, flush=True)
+            for run in range(args.runs):
+                out = Path(tmp) / f"{name}-{run}"
+                report = Session(load_scenario(name), out, FleetmapConfig(), speed=args.speed, progress=False).run()
+                for k in report["kidnaps"]:
+                    rows.append((name, k))
+                    print(name, k, flush=True)
     print()
     print("| scenario | robot | relocalized | scans after kidnap | scans after overlap | seconds | error | false |")
     print("|---|---|---|---|---|---|---|---|")
@@ -46,6 +51,15 @@ def main() -> int:
             f"| {name} | {k['robot']} | {k['relocalized']} | {k['scans_to_relocalize']} | {k['scans_after_overlap']} "
             f"| {secs} | {err} | {k['false_relocalization']} |"
         )
+    if args.runs > 1:
+        print()
+        for name in args.scenarios.split(","):
+            scans = [k["scans_after_overlap"] for n, k in rows if n == name and k["scans_after_overlap"] is not None]
+            if scans:
+                print(
+                    f"{name}: scans after overlap median {statistics.median(scans):g}, "
+                    f"{min(scans)}-{max(scans)} over {len(scans)} kidnaps relocalized"
+                )
     return 0
 
 

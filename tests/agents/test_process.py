@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -15,12 +16,13 @@ import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.process import run_agent
 from fleetmap.agents.sources import SourceScan
+from fleetmap.scenarios import robot_stream
 from fleetmap.shared.bus import InMemoryBus
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
 from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
 
-from tests.agents.conftest import source_scans
+from tests.agents.conftest import kidnap_index, source_scans
 from tests.bus_helpers import WAIT, Inbox, open_zenoh
 
 KEYS = FleetKeys("t")
@@ -103,6 +105,26 @@ def test_a_republish_request_gets_the_latest_map_of_every_epoch_and_bad_events_a
     assert [m.version for m in maps] == [0, 0, 1]
     assert maps[1].to_msgpack() == maps[0].to_msgpack()
     assert (summary.republished, summary.bad_events) == (1, 2)
+
+
+def test_a_relocalized_event_ends_the_lost_robots_every_scan_publishing(buses, kidnapped):
+    bus, seen = buses
+    stream = list(robot_stream(kidnapped, "r1"))
+    kidnap = kidnap_index(stream)
+
+    def source() -> Iterator[SourceScan]:
+        for s in source_scans(stream[: kidnap + 9]):
+            if s.index == kidnap + 3:  # the merger places the new epoch
+                for robot, detail in (("r7", {"epoch": 1}), ("r1", {}), ("r1", {"epoch": 1, "component": 0})):
+                    event = FleetEvent("relocalized", robot, 1.0, json.dumps(detail))
+                    seen.bus.publish(KEYS.events, event.to_msgpack())
+            yield s
+
+    summary = run_agent(source(), Agent("r1"), bus, KEYS, speed=0, stop=threading.Event())
+    counts = [m.scans for m in seen.messages(LocalMap) if m.epoch == 1]
+    # After every scan while lost (2 and 3 placed scans), then every 3: not at 4 and 5.
+    assert counts[:3] == [2, 3, 6], counts
+    assert summary.bad_events == 1, "the event without an epoch is counted and ignored"
 
 
 def test_a_stop_ends_the_run_with_the_final_local_map_and_a_leave(buses, scans):
