@@ -286,9 +286,12 @@ class Merger:
         was valid). The issue asks for the best candidates first; the last versions'
         integrations are the best guide there is. A pair tried with the last version or the one
         before and far from valid waits its turn with the rest: a robot exploring where no one
-        has been keeps publishing, and its pairs must not crowd out the fleet's. Lost robots take
-        turns. The lists depend only on the queue and the graph, so a replay of the recorded steps
-        repeats them.
+        has been keeps publishing, and its pairs must not crowd out the fleet's. A robot whose
+        previous epoch was placed (the fleet knew where it was: a kidnap) goes before those never
+        placed, which take turns (in the warehouse, three robots whose epochs broke at corners
+        were lost along with the kidnapped one: median 11 scans to relocalize it live, 10 with it
+        first). The lists depend only on the queue and the graph, so a replay of the recorded
+        steps repeats them.
         """
         lost_maps = {k for k in self.graph.keys if self._is_lost(k)}
         urgent: list[tuple[tuple[int, float], tuple[str, str]]] = []
@@ -308,8 +311,15 @@ class Merger:
         for promise, pair in urgent:
             near, untried = by_map.setdefault(pair[0] if pair[0] in lost_maps else pair[1], ([], []))
             (near if promise[0] == 0 else untried).append(pair)
-        turns = [_alternate(near, untried) for near, untried in by_map.values()]
-        return [own[k] for k in range(max(map(len, turns), default=0)) for own in turns if k < len(own)], rest
+        # Robots whose previous epoch was placed first: the fleet knew where they were (a kidnap);
+        # the others take turns after them.
+        known = [k for k in by_map if self._was_placed(self.links.get(k))]
+        first = [pair for k in known for pair in _alternate(*by_map[k])]
+        turns = [_alternate(*own) for k, own in by_map.items() if k not in known]
+        return first + [own[k] for k in range(max(map(len, turns), default=0)) for own in turns if k < len(own)], rest
+
+    def _was_placed(self, key: str | None) -> bool:
+        return key is not None and self._result is not None and self._result.poses.get(key) is not None
 
     def _promise(self, pair: tuple[str, str], lost_maps: set[str]) -> tuple[int, float]:
         """How promising a lost robot's pair is (see :meth:`_work_lists`): (0, ambiguity) if its

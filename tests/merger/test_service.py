@@ -11,7 +11,16 @@ from fleetmap.merger.service import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, MergeEdge, MergerStep, RobotPose, decode
+from fleetmap.shared.messages import (
+    EpochLink,
+    FleetEvent,
+    GlobalMap,
+    LocalMap,
+    MergeEdge,
+    MergerStep,
+    RobotPose,
+    decode,
+)
 
 from tests.helpers import true_local_map
 
@@ -199,6 +208,23 @@ def test_a_lost_robot_cannot_starve_the_others_across_steps() -> None:
         out = _decoded(merger.step(limit=1))
         lost += ["r4/1" in (e.a, e.b) for e in out if isinstance(e, MergeEdge)]
     assert lost == [True, True, False, True, False] and not merger.has_work
+
+
+def test_a_robot_the_fleet_knew_and_lost_goes_before_one_never_placed() -> None:
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
+    twin = LocalMap("r4", 0, 0, 1.0, small["r2"].segments, 8, small["r2"].pose)  # r4 starts where r2 did
+    merger = Merger(KEYS)
+    _feed(merger, [small["r1"], small["r2"], twin])
+    assert merger.result is not None and merger.result.poses["r4/0"] is not None
+    # r5, never placed, and then r4, placed until carried off, each start an epoch seeing next to
+    # nothing: both are lost, and r4's pairs go first although r5's waited longer.
+    box = np.array([[1.0, -0.3, 1.0, 0.3], [1.0, 0.3, 1.4, 0.3]])
+    link = EpochLink(0, "2 consecutive scans did not integrate with the local map")
+    for robot, segments in (("r5", box), ("r4", box[:1])):
+        lost = LocalMap(robot, 1, 0, 50.0, segments, 8, Transform2D(), link)
+        merger.receive(KEYS.localmap(robot), lost.to_msgpack())
+    out = _decoded(merger.step(limit=3))
+    assert [("r4/1" in (e.a, e.b)) for e in out if isinstance(e, MergeEdge)] == [True, True, True]
 
 
 def test_a_map_seen_from_too_few_places_is_not_integrated_until_it_can_merge() -> None:
