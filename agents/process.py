@@ -65,8 +65,9 @@ class AgentSummary:
         )
 
 
-class _RepublishRequests:
-    """Republish requests for one robot, from the bus's threads to the agent's loop."""
+class _FleetEvents:
+    """What the fleet's events ask of one robot (republish requests, and the epochs the merger
+    relocalized), from the bus's threads to the agent's loop."""
 
     def __init__(self, robot: str) -> None:
         self.robot = robot
@@ -102,6 +103,7 @@ class _RepublishRequests:
         log.warning("ignored on the events key (%d so far): %s", n, why)
 
     def take_relocalized(self) -> list[int]:
+        """The epochs relocalized since the last call."""
         with self._lock:
             epochs, self.relocalized = self.relocalized, []
         return epochs
@@ -146,7 +148,7 @@ def run_agent(
     if not speed >= 0:
         raise BadInput("speed", f"must be 0 (as fast as possible) or positive, got {speed}")
     wait = sleep if sleep is not None else stop.wait
-    requests = _RepublishRequests(agent.robot)
+    requests = _FleetEvents(agent.robot)
     started = clock()
     published = republished = 0
 

@@ -250,9 +250,9 @@ class MapGraph:
     def integrate_pair(self, a: str, b: str) -> Edge:
         """INTEGRATE(a, b) unless this pair (at these versions) is already known."""
         known = self.edge(a, b)
-        va, vb = self._nodes[a].version, self._nodes[b].version
-        if known is not None and known.versions == (va, vb):
+        if known is not None and self.is_current(a, b):
             return known
+        va, vb = self._nodes[a].version, self._nodes[b].version
         na, nb = self._nodes[a], self._nodes[b]
         large = takes_large_path(na.work, nb.work, self.integration)
         r = integrate(

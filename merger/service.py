@@ -217,9 +217,9 @@ class Merger:
 
         Every new map version enters the graph at once (its old version's integrations stand
         until replaced) and queues its pairs with the other maps, most similar first. The step
-        then integrates queued pairs in the order of :meth:`_work_lists` (lost robots' first): all of them, or
-        ``limit`` of them (a replay repeats the live steps), or until ``enough()`` says the step
-        has taken long enough (the live service's time budget: a step that integrated every new
+        then integrates queued pairs in the order of :meth:`_work_lists` (lost robots' first):
+        all of them, or ``limit`` of them (a replay repeats the live steps), or until ``enough()``
+        says the step has taken long enough (the live service's time budget: a step that integrated every new
         version with every map took seconds in a warehouse, while a kidnapped robot's next map
         version waited). The step's MergerStep says how many pairs it took, and how many wait.
         """
@@ -281,9 +281,9 @@ class Merger:
         pose is unknown. Its promising pairs are those whose last integration was nearly valid
         (only ambiguous: a few more scans may be all it lacks), least ambiguous first, in turn
         with those never integrated and then those last integrated with a version of its map
-        ``STALE_VERSIONS`` or more older, the oldest first (in a warehouse, r1's map after its kidnap matched r4's
-        from 5 to 7 scans ambiguously, 0.86-0.95 as well elsewhere; at 8 scans 0.78; at 10 it
-        was valid). The issue asks for the best candidates first; the last versions'
+        ``STALE_VERSIONS`` or more older, the oldest first (in a warehouse, r1's map after its
+        kidnap matched r4's from 5 to 7 scans ambiguously, 0.86-0.95 as well elsewhere; at 8
+        scans 0.78; at 10 it was valid). The issue asks for the best candidates first; the last versions'
         integrations are the best guide there is. A pair tried with the last version or the one
         before and far from valid waits its turn with the rest: a robot exploring where no one
         has been keeps publishing, and its pairs must not crowd out the fleet's. A robot whose
@@ -303,23 +303,23 @@ class Merger:
             else:
                 rest.append(pair)
         urgent.sort(key=lambda x: x[0])  # stable: the oldest first among equals
-        # In turn between lost robots, each one's best first (one robot's pair that stays nearly
-        # valid version after version must not hold back another's).
         # Within one robot's, a nearly valid pair and an untried one in turn: racks that repeat
         # leave many pairs nearly valid, and the one that becomes valid may not be among them yet.
         by_map: dict[str, tuple[list[tuple[str, str]], list[tuple[str, str]]]] = {}
         for promise, pair in urgent:
             near, untried = by_map.setdefault(pair[0] if pair[0] in lost_maps else pair[1], ([], []))
             (near if promise[0] == 0 else untried).append(pair)
-        # Robots whose previous epoch was placed first: the fleet knew where they were (a kidnap);
-        # the others take turns after them.
-        known = [k for k in by_map if self._was_placed(self.links.get(k))]
+        # Robots whose previous epoch was placed first: the fleet knew where they were (a kidnap).
+        # The others after them, in turn, each one's best first (one robot's pair that stays
+        # nearly valid version after version must not hold back another's).
+        known = [k for k in by_map if k in self.links and self._placed(self.links[k])]
         first = [pair for k in known for pair in _alternate(*by_map[k])]
         turns = [_alternate(*own) for k, own in by_map.items() if k not in known]
         return first + [own[k] for k in range(max(map(len, turns), default=0)) for own in turns if k < len(own)], rest
 
-    def _was_placed(self, key: str | None) -> bool:
-        return key is not None and self._result is not None and self._result.poses.get(key) is not None
+    def _placed(self, key: str) -> bool:
+        """Whether the last solve placed map ``key`` (merged it with another)."""
+        return self._result is not None and self._result.poses.get(key) is not None
 
     def _promise(self, pair: tuple[str, str], lost_maps: set[str]) -> tuple[int, float]:
         """How promising a lost robot's pair is (see :meth:`_work_lists`): (0, ambiguity) if its
@@ -344,8 +344,7 @@ class Merger:
         robot, epoch = key.rsplit("/", 1)
         r = self._robots.get(robot)
         current = r is None or int(epoch) >= r.epoch
-        placed = self._result is not None and self._result.poses.get(key) is not None
-        return current and int(epoch) > 0 and not placed
+        return current and int(epoch) > 0 and not self._placed(key)
 
     def _enter(self, m: LocalMap) -> None:
         """Put a local map version into the graph and queue its pairs."""
