@@ -257,7 +257,14 @@ turned once."""
 
 
 def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
-    """Grid score contributions of ``s`` moved by each transformation (rotations rounded, for ranking)."""
+    """Grid score contributions of ``s`` moved by each transformation (rotations rounded, for ranking).
+
+    All candidates at once: each rotation group's points are turned once, then every candidate
+    takes its group's row (a rotation group holds a handful of candidates, so looping over the
+    groups cost more in numpy calls than in lookups). The codes are summed as integers and scaled
+    by the samples' spacing: the score is then exact, so equal scores tie exactly (the stable
+    sort keeps the candidates' order) and do not depend on how a BLAS sums floats.
+    """
     out = np.zeros(len(t))
     if len(s.points) == 0 or len(t) == 0:
         return out
@@ -268,22 +275,33 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     q = np.round(t[:, 2] / RANK_ROTATION_STEP).astype(np.int64)
     groups, inverse = np.unique(q, return_inverse=True)
     inverse = inverse.ravel()
-    order = np.argsort(inverse, kind="stable")
-    bounds = np.searchsorted(inverse[order], np.arange(len(groups) + 1))
+    th = groups.astype(np.float64) * RANK_ROTATION_STEP
+    c, sn = np.cos(th)[:, None], np.sin(th)[:, None]
+    x, y = s.points[None, :, 0], s.points[None, :, 1]
+    # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
+    px = (c * x - sn * y - ox) / res + 1.0
+    py = (sn * x + c * y - oy) / res + 1.0
+    layer = _channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)
+    spacing = float(s.weight[0])
+    uniform = bool(np.all(s.weight == spacing))
     step = max(1, CHUNK // len(s.points))
-    for g, qg in enumerate(groups):
-        members = order[bounds[g] : bounds[g + 1]]
-        th = float(qg) * RANK_ROTATION_STEP
-        c, sn = math.cos(th), math.sin(th)
-        # Cell coordinates (in cells, shifted by the padding) of the turned points, and their layer.
-        px = (c * s.points[:, 0] - sn * s.points[:, 1] - ox) / res + 1.0
-        py = (sn * s.points[:, 0] + c * s.points[:, 1] - oy) / res + 1.0
-        layer = _channel(s.direction + th, index.period) * (nx * ny)
-        for c0 in range(0, len(members), step):
-            mem = members[c0 : c0 + step]
-            i = np.clip(np.floor(px[None, :] + t[mem, 0, None] / res), 0, nx - 1).astype(np.int64)
-            j = np.clip(np.floor(py[None, :] + t[mem, 1, None] / res), 0, ny - 1).astype(np.int64)
-            out[mem] = code[layer[None, :] + i * ny + j].astype(np.float64) @ s.weight
+    for c0 in range(0, len(t), step):
+        g = inverse[c0 : c0 + step]
+        ci = px[g] + (t[c0 : c0 + step, 0] / res)[:, None]
+        np.floor(ci, out=ci)
+        np.clip(ci, 0, nx - 1, out=ci)
+        cj = py[g] + (t[c0 : c0 + step, 1] / res)[:, None]
+        np.floor(cj, out=cj)
+        np.clip(cj, 0, ny - 1, out=cj)
+        ci *= ny
+        ci += cj
+        cell = ci.astype(np.int64)
+        cell += layer[g]
+        codes = code[cell]
+        if uniform:
+            out[c0 : c0 + step] = codes.sum(axis=1, dtype=np.int64) * spacing
+        else:
+            out[c0 : c0 + step] = codes.astype(np.float64) @ s.weight
     return 0.5 * out
 
 
