@@ -127,7 +127,14 @@ def replay(
             decoded.append((m, decode(m.payload)))
         except BadMessage:
             session.malformed += 1
-    steps = [msg for _, msg in decoded if isinstance(msg, MergerStep)]
+    # A merger restored from its state publishes its last step again (Merger.where_it_stands):
+    # the same bytes, fed once.
+    steps: list[MergerStep] = []
+    fed: set[bytes] = set()
+    for m, msg in decoded:
+        if isinstance(msg, MergerStep) and m.payload not in fed:
+            fed.add(m.payload)
+            steps.append(msg)
     live = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap)), None)
     exact = bool(steps) and not partial
 

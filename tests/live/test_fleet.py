@@ -86,16 +86,7 @@ def fleet(tmp_path: Path) -> Iterator[tuple[ZenohBus, str, list[subprocess.Popen
     with processes() as procs:
         start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
         options = ZenohOptions(mode="client", connect=(endpoint,), fleet="t")
-        deadline = time.monotonic() + WAIT
-        bus = None
-        while bus is None:
-            try:
-                bus = ZenohBus.open(options)
-            except Exception:
-                if time.monotonic() > deadline:
-                    raise
-                threading.Event().wait(0.2)
-        with bus:
+        with _open(options) as bus:
             services = Inbox()
             bus.subscribe_liveliness(options.keys.all_services, services, lambda k: None)
             start(procs, "merger", *common, log=tmp_path / "merger.log")
@@ -149,6 +140,50 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     merger.wait(WAIT)
     log = (tmp / "merger.log").read_text()
     assert merger.returncode == 0 and "2000 malformed messages dropped" in log
+
+
+def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path: Path) -> None:
+    # The state of a merger killed after saving a step and before publishing it: fleetmap run
+    # waits for that step, and the robots' republished maps bring nothing new to start another.
+    from fleetmap.merger.service import Merger
+    from fleetmap.shared.messages import MergerStep
+
+    keys = bus_keys()
+    killed = Merger(keys)
+    for robot in ("r1", "r2"):
+        m = true_local_map("department", robot, 0, 8)[0]
+        killed.receive(keys.localmap(robot), m.to_msgpack())
+    unpublished = next(o.payload for o in killed.step() if o.key == keys.steps)
+    killed.save_state(tmp_path / "merger.state")
+    endpoint = free_loopback_endpoint()
+    common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
+    with processes() as procs:
+        start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
+        options = ZenohOptions(mode="client", connect=(endpoint,), fleet="t")
+        with _open(options) as bus:
+            steps, maps = Inbox(), Inbox()
+            bus.subscribe(keys.steps, steps)
+            bus.subscribe(keys.globalmap, maps)
+            state = str(tmp_path / "merger.state")
+            start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
+            assert steps.wait_for(1, WAIT), "the restored merger did not say where it stands"
+            assert steps.items[0][1] == unpublished
+            step = MergerStep.from_msgpack(unpublished)
+            assert step.maps == ("r1/0", "r2/0")
+            assert maps.wait_for(1, WAIT)
+            assert maps.items[0][1] == killed.global_map.to_msgpack()
+
+
+def _open(options: ZenohOptions) -> ZenohBus:
+    """A session to the router just started (it may take a moment to listen)."""
+    deadline = time.monotonic() + WAIT
+    while True:
+        try:
+            return ZenohBus.open(options)
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            threading.Event().wait(0.2)
 
 
 def bus_keys():  # type: ignore[no-untyped-def]

@@ -101,6 +101,31 @@ def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) ->
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
 
 
+def test_a_merger_killed_before_publishing_its_step_says_where_it_stands_when_restored(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
+    assert Merger(KEYS).where_it_stands() == []  # a fresh merger has nothing to say yet
+    killed = Merger(KEYS)
+    for m in small.values():
+        killed.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    lost = _decoded(killed.step())  # saved, then killed before any of this was published
+    killed.save_state(tmp_path / "merger.state")
+    restored = Merger(KEYS)
+    restored.load_state(tmp_path / "merger.state")
+    said = _decoded(restored.where_it_stands())
+    # The step everyone waits on, exactly as it would have been published, and where it left
+    # the fleet: the global map and the robots' poses.
+    step = next(m for m in lost if isinstance(m, MergerStep))
+    repeated = [m.to_msgpack() for m in said if isinstance(m, MergerStep)]
+    assert repeated == [step.to_msgpack()] and step.maps == ("r1/0", "r2/0")
+    assert next(m for m in said if isinstance(m, GlobalMap)).to_msgpack() == killed.global_map.to_msgpack()
+    poses = [m.to_msgpack() for m in said if isinstance(m, RobotPose)]
+    assert len(poses) == 2 and poses == [m.to_msgpack() for m in lost if isinstance(m, RobotPose)]
+    # The robots' republished maps are the versions it holds: no step follows, nothing else to say.
+    for m in small.values():
+        restored.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    assert restored.step() == [] and restored.stats.stale == 2
+
+
 def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     first, _ = true_local_map("department", "r1", 0, 6, version=0)
