@@ -39,7 +39,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +77,10 @@ that starts an epoch publishes its map after every scan: two more scans)."""
 URGENT_RUN = 2
 """Lost robots' promising pairs a merger integrates for one of the others' (when both wait)."""
 
+CARRIED_STEPS = 3
+"""How many of its last steps a robot may drive between its previous epoch's last placed scan and
+its new epoch's first before an integration of the two says it was carried (:meth:`Merger._carried`)."""
+
 STEP_SECONDS = 0.5
 """The live service's time budget for one step's integrations (at least one is done): a
 kidnapped robot's newest map waits no longer than this for its turn."""
@@ -102,6 +106,9 @@ class MergerStats:
     steps: int = 0
     lost_first: int = 0
     """Steps that began with a lost robot's pair while other pairs waited behind it."""
+    carried_refused: int = 0
+    """Integrations of a robot's consecutive epochs taken as invalid: they said the robot was
+    carried, on too little evidence (``MergeParams.carried_max_ambiguity``)."""
     integrations: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -248,6 +255,14 @@ class Merger:
             taken += 1
             computed = self.graph.integrate_pair_once(*pair)
             if computed is not None:
+                if (
+                    computed.valid
+                    and self._carried(computed)
+                    and self._ambiguity(computed) > self.config.merge.carried_max_ambiguity
+                ):
+                    computed = replace(computed, valid=False)
+                    self.graph.add_edge(computed)
+                    self.stats.carried_refused += 1
                 new_edges.append(computed)
         self.seq += 1
         self.stats.steps += 1
@@ -358,6 +373,32 @@ class Merger:
         ends = zip((e.a, e.b), e.versions, strict=True)
         age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)
         return (1, -float(age)) if age >= STALE_VERSIONS else (2, 0.0)
+
+    @staticmethod
+    def _ambiguity(e: Edge) -> float:
+        """The best clearly different transformation's score over the edge's (inf: no score)."""
+        score = e.value - e.violation
+        return e.runner_up / score if score > 0 else math.inf
+
+    def _carried(self, e: Edge) -> bool:
+        """Whether ``e`` links a robot's previous epoch to the next one (the agent's link) and puts
+        the new epoch's first scan farther from the previous epoch's last placed scan than the
+        robot drives in ``CARRIED_STEPS`` of its last steps there, plus ``witness_translation``:
+        the agent starts an epoch two scans after its last placed one, the robot driving on (the
+        maps carry their scans' poses in order, not their times). Such an edge says the robot was
+        carried; see ``MergeParams.carried_max_ambiguity``."""
+        if self.links.get(e.b) == e.a:
+            previous, pose = e.a, e.transform
+        elif self.links.get(e.a) == e.b:
+            previous, pose = e.b, e.transform.inverse()
+        else:
+            return False
+        views = viewpoints_of(self.graph.map_of(previous))[-(CARRIED_STEPS + 1) :, 0:2]
+        if len(views) < 2:
+            return False
+        step = float(np.max(np.hypot(*np.diff(views, axis=0).T)))
+        reach = CARRIED_STEPS * step + self.config.integration.witness_translation
+        return math.hypot(pose.x - views[-1, 0], pose.y - views[-1, 1]) > reach
 
     def _is_lost(self, key: str) -> bool:
         """Whether ``key`` is the current epoch (after the first) of a robot whose pose is unknown."""

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
+from fleetmap.agents.agent import Agent
 from fleetmap.merger.graph import Edge
 from fleetmap.merger.service import Merger
+from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.metrics import pose_error, world_from_global
+from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import (
@@ -271,6 +275,48 @@ def test_a_map_seen_from_too_few_places_is_not_integrated_until_it_can_merge() -
     grown = LocalMap("r2", 0, 1, r2.stamp, r2.segments, 5, r2.pose, viewpoints=views)
     out = _feed(merger, [grown])
     assert sorted((e.a, e.b) for e in out if isinstance(e, MergeEdge)) == [("r1/0", "r2/0"), ("r2/0", "r3/0")]
+
+
+@pytest.mark.slow  # the agent builds r3's local maps of the warehouse (a few seconds)
+def test_an_epoch_that_broke_mid_lane_is_not_merged_racks_back_onto_the_one_before() -> None:
+    # In the warehouse, r3's agent starts epoch 2 mid-lane (scan 10). Its map matches epoch 1's
+    # two racks back, 7 m behind where the robot was a scan before, at 0.39 ambiguity: valid
+    # between two robots' maps, but between one robot's consecutive epochs it says the robot
+    # was carried, and that needs clearer evidence.
+    scenario = load_scenario("warehouse")
+    agent = Agent("r3", FleetmapConfig(), 3)
+    truth: dict[int, Transform2D] = {}
+    first = {0: 0}  # each epoch's first scan: its frame
+    maps: list[LocalMap] = []
+    for s in robot_stream(scenario, "r3"):
+        truth[s.index] = s.pose
+        for m in agent.add_scan(s.index, s.stamp, s.scan):
+            if isinstance(m, FleetEvent) and m.kind == "epoch":
+                detail = json.loads(m.detail)
+                first[detail["epoch"]] = detail["first_scan"]
+            elif isinstance(m, LocalMap):
+                maps.append(m)
+    maps += [m for m in agent.finish() if isinstance(m, LocalMap)]
+    assert first[2] == 10
+
+    def merged(carried_max_ambiguity: float) -> tuple[Merger, list[float]]:
+        config = FleetmapConfig(merge=MergeParams(carried_max_ambiguity=carried_max_ambiguity))
+        merger = Merger(KEYS, config)
+        for m in maps:
+            merger.receive(KEYS.localmap("r3"), m.to_msgpack())
+            merger.step()
+        assert merger.result is not None
+        errors = []
+        for e in merger.result.tree:
+            a, b = (truth[first[int(k.rsplit("/", 1)[1])]] for k in (e.a, e.b))
+            errors.append(e.transform.distance(a.inverse().compose(b))[0])
+        return merger, errors
+
+    merger, errors = merged(MergeParams().carried_max_ambiguity)
+    assert all(err < 0.3 for err in errors) and merger.stats.carried_refused >= 1
+    # The same maps, the rule off: the wrong merge the rule refused.
+    _, errors = merged(1.0)
+    assert any(err > 5.0 for err in errors)
 
 
 def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # type: ignore[no-untyped-def]
