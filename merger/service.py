@@ -78,7 +78,7 @@ URGENT_RUN = 2
 """Lost robots' promising pairs a merger integrates for one of the others' (when both wait)."""
 
 CARRIED_STEPS = 3
-"""How many of its last steps a robot may drive between its previous epoch's last placed scan and
+"""How many of its longest steps a robot may drive between its previous epoch's last placed scan and
 its new epoch's first before an integration of the two says it was carried (:meth:`Merger._carried`)."""
 
 STEP_SECONDS = 0.5
@@ -383,17 +383,18 @@ class Merger:
     def _carried(self, e: Edge) -> bool:
         """Whether ``e`` links a robot's previous epoch to the next one (the agent's link) and puts
         the new epoch's first scan farther from the previous epoch's last placed scan than the
-        robot drives in ``CARRIED_STEPS`` of its last steps there, plus ``witness_translation``:
-        the agent starts an epoch two scans after its last placed one, the robot driving on (the
-        maps carry their scans' poses in order, not their times). Such an edge says the robot was
-        carried; see ``MergeParams.carried_max_ambiguity``."""
+        robot can drive in ``CARRIED_STEPS`` of its longest steps in that epoch, plus
+        ``witness_translation``: the agent starts an epoch two scans after its last placed one, and
+        the robot may have driven on at its full speed (the maps carry their scans' poses in order,
+        not their times; a robot that had stopped may start again). Such an edge says the robot
+        was carried; see ``MergeParams.carried_max_ambiguity``."""
         if self.links.get(e.b) == e.a:
             previous, pose = e.a, e.transform
         elif self.links.get(e.a) == e.b:
             previous, pose = e.b, e.transform.inverse()
         else:
             return False
-        views = viewpoints_of(self.graph.map_of(previous))[-(CARRIED_STEPS + 1) :, 0:2]
+        views = viewpoints_of(self.graph.map_of(previous))[:, 0:2]
         if len(views) < 2:
             return False
         step = float(np.max(np.hypot(*np.diff(views, axis=0).T)))

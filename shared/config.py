@@ -212,7 +212,7 @@ class MergeParams:
     carried_max_ambiguity: float = 0.25
     """An integration of a robot's new epoch with its previous one that puts the new epoch's first
     scan farther from the previous epoch's last placed scan than the robot drives in three of its
-    last steps (plus ``witness_translation``) says the robot was carried (a kidnap). The live
+    longest steps there (plus ``witness_translation``) says the robot was carried (a kidnap). The live
     merger takes that as valid only if no clearly different transformation scores more than this
     fraction of its score (fleetmap; 1: no stricter than any other pair). An epoch that broke
     mid-lane in a warehouse matches its own previous epoch two racks back at 0.39, 7 m behind

@@ -319,6 +319,29 @@ def test_an_epoch_that_broke_mid_lane_is_not_merged_racks_back_onto_the_one_befo
     assert any(err > 5.0 for err in errors)
 
 
+def test_a_robot_carried_is_told_from_one_that_drove_on_at_its_full_speed() -> None:
+    # r1 drove east in 1 m steps, stopped for its last three scans, then its epoch broke. Its new
+    # epoch starting 2.5 m on is a robot that drove off again (within three of its longest
+    # steps); 6 m on, or 4 m back, it was carried.
+    walls = np.array([[0.0, -2.0, 10.0, -2.0], [0.0, 2.0, 10.0, 2.0]])
+    views = np.array([[x, 0.0, 0.0, -1.5, 1.5] for x in (0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 3.0)])
+    before = LocalMap("r1", 0, 0, 1.0, walls, 7, Transform2D(3.0, 0.0, 0.0), viewpoints=views)
+    link = EpochLink(0, "2 consecutive scans did not integrate with the local map")
+    after = LocalMap("r1", 1, 0, 2.0, walls, 5, Transform2D(), link, viewpoints=views[:5])
+    merger = Merger(KEYS)
+    for m in (before, after):
+        merger.receive(KEYS.localmap("r1"), m.to_msgpack())
+    merger.step(limit=0)
+
+    def carried(x: float) -> bool:
+        return merger._carried(Edge("r1/0", "r1/1", Transform2D(x, 0.0, 0.0), 20.0, True))
+
+    assert not carried(5.5) and not carried(3.0)
+    assert carried(9.0) and carried(-1.0)
+    # The same edge stated the other way round (a is the new epoch) is judged the same.
+    assert merger._carried(Edge("r1/1", "r1/0", Transform2D(-9.0, 0.0, 0.0), 20.0, True))
+
+
 def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     join = _decoded(merger.presence("r1", True, 1.0))
