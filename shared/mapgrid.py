@@ -249,7 +249,7 @@ def _channel(direction: Array, period: float) -> Array:
 
 
 CHUNK = 1_000_000
-"""Candidate-point lookups done at once."""
+"""Candidate-point lookups done at once (the arrays of a chunk hold at most this many points)."""
 
 RANK_ROTATION_STEP = math.radians(0.25)
 """For ranking, candidates are grouped by rotation rounded to this (rad); each group's points are
@@ -275,18 +275,23 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     q = np.round(t[:, 2] / RANK_ROTATION_STEP).astype(np.int64)
     groups, inverse = np.unique(q, return_inverse=True)
     inverse = inverse.ravel()
-    th = groups.astype(np.float64) * RANK_ROTATION_STEP
-    c, sn = np.cos(th)[:, None], np.sin(th)[:, None]
+    th_all = groups.astype(np.float64) * RANK_ROTATION_STEP
+    cos_all, sin_all = np.cos(th_all), np.sin(th_all)
     x, y = s.points[None, :, 0], s.points[None, :, 1]
-    # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
-    px = (c * x - sn * y - ox) / res + 1.0
-    py = (sn * x + c * y - oy) / res + 1.0
-    layer = _channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)
     spacing = float(s.weight[0])
     uniform = bool(np.all(s.weight == spacing))
     step = max(1, CHUNK // len(s.points))
     for c0 in range(0, len(t), step):
-        g = inverse[c0 : c0 + step]
+        # The chunk's rotation groups, each turned once (at most ``step`` of them: memory stays
+        # within CHUNK points per array, whatever the number of groups in all).
+        used, g = np.unique(inverse[c0 : c0 + step], return_inverse=True)
+        g = g.ravel()
+        th = th_all[used]
+        c, sn = cos_all[used, None], sin_all[used, None]
+        # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
+        px = (c * x - sn * y - ox) / res + 1.0
+        py = (sn * x + c * y - oy) / res + 1.0
+        layer = _channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)
         ci = px[g] + (t[c0 : c0 + step, 0] / res)[:, None]
         np.floor(ci, out=ci)
         np.clip(ci, 0, nx - 1, out=ci)

@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from fleetmap.shared import mapgrid
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import RANK_ROTATION_STEP, _ranking_lookups, grid_scores, map_index, ranking_scores
+from fleetmap.shared.mapgrid import RANK_ROTATION_STEP, grid_scores, map_index, ranking_scores
 
 # An L-shaped room with a pillar: walls facing every way, no symmetry.
 WALLS = np.array(
@@ -47,11 +48,12 @@ def test_ranking_puts_the_true_transformation_first_and_scores_it_as_the_grid_sc
     assert ranked[100] > 0.9 * total
 
 
-def test_ranking_scores_are_whole_samples_so_ties_are_exact() -> None:
+def test_ranking_scores_are_whole_samples_and_do_not_depend_on_how_candidates_are_chunked(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     # Each sample that lands on a wall counts its spacing, one in free space twice that against:
     # a score is a whole number of half spacings, summed exactly, so equal alignments tie exactly
     # (the stable sort keeps the candidates' order) whatever a BLAS does with float sums, and a
-    # replay on another machine ranks the same.
+    # replay on another machine ranks the same. Large rankings go in chunks, each with its own
+    # rotation groups: the scores must not depend on where the chunks fall.
     a = _index(WALLS)
     b = _index(Transform2D(0.4, 0.2, 0.3).apply(WALLS))
     rng = np.random.default_rng(9)
@@ -59,9 +61,11 @@ def test_ranking_scores_are_whole_samples_so_ties_are_exact() -> None:
     t = np.column_stack([rng.uniform(-2, 2, 600), rng.uniform(-2, 2, 600), turn])
     samples = b.coarse
     half = 0.5 * float(samples.weight[0])
-    scores = _ranking_lookups(a, samples, t)
+    scores = mapgrid._ranking_lookups(a, samples, t)
     counts = np.round(scores / half)
     assert np.array_equal(scores, counts * half)
     assert len(set(scores.tolist())) < len(scores)  # there are ties to break
-    alone = _ranking_lookups(a, samples, t[:9])
-    assert np.array_equal(alone, scores[:9])
+    assert np.array_equal(mapgrid._ranking_lookups(a, samples, t[:9]), scores[:9])
+    for points_per_chunk in (7 * len(samples.points), 50 * len(samples.points) + 3):
+        monkeypatch.setattr(mapgrid, "CHUNK", points_per_chunk)
+        assert np.array_equal(mapgrid._ranking_lookups(a, samples, t), scores)
