@@ -211,7 +211,7 @@ class MergeParams:
     """Integrate a new map against at most this many existing maps, most similar first (0: all)."""
     carried_max_ambiguity: float = 0.25
     """An integration of a robot's new epoch with its previous one that puts the new epoch's first
-    scan farther from the previous epoch's last placed scan than the robot drives in three of its
+    scan farther from the previous epoch's last placed scan than the robot drives in four of its
     longest steps there (plus ``witness_translation``) says the robot was carried (a kidnap). The live
     merger takes that as valid only if no clearly different transformation scores more than this
     fraction of its score (fleetmap; 1: no stricter than any other pair). An epoch that broke

@@ -321,8 +321,8 @@ def test_an_epoch_that_broke_mid_lane_is_not_merged_racks_back_onto_the_one_befo
 
 def test_a_robot_carried_is_told_from_one_that_drove_on_at_its_full_speed() -> None:
     # r1 drove east in 1 m steps, stopped for its last three scans, then its epoch broke. Its new
-    # epoch starting 2.5 m on is a robot that drove off again (within three of its longest
-    # steps); 6 m on, or 4 m back, it was carried.
+    # epoch starting 2.5 m on is a robot that drove off again (within four of its longest steps);
+    # 6 m on, or 5 m back, it was carried. An edge between two robots' maps is never a carry.
     walls = np.array([[0.0, -2.0, 10.0, -2.0], [0.0, 2.0, 10.0, 2.0]])
     views = np.array([[x, 0.0, 0.0, -1.5, 1.5] for x in (0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 3.0)])
     before = LocalMap("r1", 0, 0, 1.0, walls, 7, Transform2D(3.0, 0.0, 0.0), viewpoints=views)
@@ -337,9 +337,14 @@ def test_a_robot_carried_is_told_from_one_that_drove_on_at_its_full_speed() -> N
         return merger._carried(Edge("r1/0", "r1/1", Transform2D(x, 0.0, 0.0), 20.0, True))
 
     assert not carried(5.5) and not carried(3.0)
-    assert carried(9.0) and carried(-1.0)
-    # The same edge stated the other way round (a is the new epoch) is judged the same.
-    assert merger._carried(Edge("r1/1", "r1/0", Transform2D(-9.0, 0.0, 0.0), 20.0, True))
+    assert carried(9.0) and carried(-2.0)
+    # The same edges stated the other way round (a is the new epoch) are judged the same.
+    for x, expected in ((9.0, True), (5.5, False)):
+        assert merger._carried(Edge("r1/1", "r1/0", Transform2D(x, 0.0, 0.0).inverse(), 20.0, True)) is expected
+    other = LocalMap("r2", 0, 0, 2.0, walls, 5, Transform2D(), viewpoints=views[:5])
+    merger.receive(KEYS.localmap("r2"), other.to_msgpack())
+    merger.step(limit=0)
+    assert not merger._carried(Edge("r1/0", "r2/0", Transform2D(9.0, 0.0, 0.0), 20.0, True))
 
 
 def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # type: ignore[no-untyped-def]
