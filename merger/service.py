@@ -157,8 +157,8 @@ class Merger:
         """Pairs of maps to integrate (an ordered set: the oldest first), each as (S1, S2)."""
         self._urgent_run = 0
         """Promising pairs of lost robots taken since the last of the rest (see :meth:`_work_lists`)."""
-        self._last_step: bytes | None = None
-        """The last step's MergerStep as published (kept in the state: see :meth:`where_it_stands`)."""
+        self._last_out: list[Outgoing] = []
+        """The last step's messages as published (kept in the state: see :meth:`where_it_stands`)."""
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -289,26 +289,22 @@ class Merger:
             integrations=taken,
             queued=len(self._queue),
         )
-        self._last_step = step.to_msgpack()
-        out.append(Outgoing(self.keys.steps, self._last_step))
+        out.append(Outgoing(self.keys.steps, step.to_msgpack()))
+        self._last_out = out
         return out
 
     def where_it_stands(self) -> list[Outgoing]:
-        """What a merger restored from its state publishes first: its global map, the robots'
-        poses and its last step's MergerStep again (nothing before its first step).
+        """What a merger restored from its state publishes first: its last step's messages again,
+        byte for byte (its edges, global map, the robots' poses and events, the MergerStep last;
+        nothing before its first step, nothing meant for another fleet).
 
         A merger killed after saving its state and before publishing that step's messages would
         otherwise never publish them: the robots' republished maps are the versions it already
-        holds, so no step follows, and whoever waits for those maps to be integrated (``fleetmap
-        run``) would wait for ever. The repeated MergerStep is the same message, byte for byte,
-        so a replay knows it for a repeat (:func:`fleetmap.replay.replay`).
+        holds, so no step follows; whoever waits for those maps to be integrated (``fleetmap
+        run``) would wait for ever, and a robot relocalized in that step would never hear it. A
+        replay knows the repeated MergerStep for a repeat (:func:`fleetmap.replay.replay`).
         """
-        if self._last_step is None or self._global is None:
-            return []
-        out = [Outgoing(self.keys.globalmap, self._global.to_msgpack())]
-        out += self._robot_poses()
-        out.append(Outgoing(self.keys.steps, self._last_step))
-        return out
+        return [o for o in self._last_out if o.key.startswith(self.keys.prefix + "/")]
 
     def _work_lists(self) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
         """The queued pairs a step integrates: lost robots' promising pairs, best first, and the
@@ -526,7 +522,7 @@ class Merger:
             "links": self.links,
             "queue": [list(pair) for pair in self._queue],
             "urgent_run": self._urgent_run,
-            "last_step": self._last_step,
+            "last_out": [[o.key, o.payload] for o in self._last_out],
         }
         p = Path(path)
         tmp = p.with_name(p.name + ".tmp")
@@ -572,14 +568,12 @@ class Merger:
                 robots[name] = robot
             pairs = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
             urgent_run = int(state.get("urgent_run", 0))
-            last_step = state.get("last_step")
-            if last_step is not None and not isinstance(last_step, bytes):
-                raise TypeError("last_step is not a message")
+            last_out = [Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])]
         except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
-        self._queue, self._urgent_run, self._last_step = pairs, urgent_run, last_step
+        self._queue, self._urgent_run, self._last_out = pairs, urgent_run, last_out
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)
