@@ -61,6 +61,13 @@ class Edge:
     violation: float = 0.0
     """Wall length the transform puts in the other map's seen free space (m)."""
 
+    @property
+    def ambiguity(self) -> float:
+        """The best clearly different transformation's score over this one's (value less
+        violation; inf when that is not positive)."""
+        score = self.value - self.violation
+        return self.runner_up / score if score > 0 else math.inf
+
     def reversed(self) -> Edge:
         return replace(self, a=self.b, b=self.a, transform=self.transform.inverse(), versions=self.versions[::-1])
 

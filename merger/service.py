@@ -261,7 +261,7 @@ class Merger:
                 if (
                     computed.valid
                     and self._carried(computed)
-                    and self._ambiguity(computed) > self.config.merge.carried_max_ambiguity
+                    and computed.ambiguity > self.config.merge.carried_max_ambiguity
                 ):
                     computed = replace(computed, valid=False)
                     self.graph.add_edge(computed)
@@ -364,20 +364,11 @@ class Merger:
         if e is None:
             return (1, -math.inf)
         p = self.config.integration
-        score = e.value - e.violation
-        if score > 0 and e.violation <= p.valid_max_map_violation * e.value:
-            ambiguity = e.runner_up / score
-            if ambiguity <= p.valid_max_ambiguity:
-                return (0, ambiguity)
+        if e.violation <= p.valid_max_map_violation * e.value and e.ambiguity <= p.valid_max_ambiguity:
+            return (0, e.ambiguity)
         ends = zip((e.a, e.b), e.versions, strict=True)
         age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)
         return (1, -float(age)) if age >= STALE_VERSIONS else (2, 0.0)
-
-    @staticmethod
-    def _ambiguity(e: Edge) -> float:
-        """The best clearly different transformation's score over the edge's (inf: no score)."""
-        score = e.value - e.violation
-        return e.runner_up / score if score > 0 else math.inf
 
     def _carried(self, e: Edge) -> bool:
         """Whether ``e`` links a robot's previous epoch to the next one (the agent's link) and puts

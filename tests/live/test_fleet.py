@@ -78,20 +78,37 @@ def test_a_live_run_of_the_department_loop_places_every_robot_within_5cm(tmp_pat
     assert counts["fleet/run/merger/globalmap"] >= 1 and counts["fleet/run/robots/r1/localmap"] >= 3
 
 
-@pytest.fixture
-def fleet(tmp_path: Path) -> Iterator[tuple[ZenohBus, str, list[subprocess.Popen[bytes]], Path]]:
-    """A router and a merger on a free port, and a test session connected to them."""
+@contextmanager
+def router_session(tmp_path: Path) -> Iterator[tuple[ZenohBus, str, list[str], list[subprocess.Popen[bytes]]]]:
+    """A router on a free loopback port and a test session connected to it: (bus, endpoint, the
+    zenoh flags for the programs, the processes, stopped at the end)."""
     endpoint = free_loopback_endpoint()
     common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
     with processes() as procs:
         start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
         options = ZenohOptions(mode="client", connect=(endpoint,), fleet="t")
-        with _open(options) as bus:
-            services = Inbox()
-            bus.subscribe_liveliness(options.keys.all_services, services, lambda k: None)
-            start(procs, "merger", *common, log=tmp_path / "merger.log")
-            assert services.wait_until(lambda got: any("merger" in str(g) for g in got), WAIT)
-            yield bus, endpoint, procs, tmp_path
+        deadline = time.monotonic() + WAIT
+        while True:  # the router may take a moment to listen
+            try:
+                bus = ZenohBus.open(options)
+                break
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+                threading.Event().wait(0.2)
+        with bus:
+            yield bus, endpoint, common, procs
+
+
+@pytest.fixture
+def fleet(tmp_path: Path) -> Iterator[tuple[ZenohBus, str, list[subprocess.Popen[bytes]], Path]]:
+    """A router and a merger on a free port, and a test session connected to them."""
+    with router_session(tmp_path) as (bus, endpoint, common, procs):
+        services = Inbox()
+        bus.subscribe_liveliness(bus_keys().all_services, services, lambda k: None)
+        start(procs, "merger", *common, log=tmp_path / "merger.log")
+        assert services.wait_until(lambda got: any("merger" in str(g) for g in got), WAIT)
+        yield bus, endpoint, procs, tmp_path
 
 
 def test_a_killed_agent_is_seen_leaving_within_2s_and_its_maps_stay(fleet) -> None:  # type: ignore[no-untyped-def]
@@ -155,35 +172,17 @@ def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path
         killed.receive(keys.localmap(robot), m.to_msgpack())
     unpublished = next(o.payload for o in killed.step() if o.key == keys.steps)
     killed.save_state(tmp_path / "merger.state")
-    endpoint = free_loopback_endpoint()
-    common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
-    with processes() as procs:
-        start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
-        options = ZenohOptions(mode="client", connect=(endpoint,), fleet="t")
-        with _open(options) as bus:
-            steps, maps = Inbox(), Inbox()
-            bus.subscribe(keys.steps, steps)
-            bus.subscribe(keys.globalmap, maps)
-            state = str(tmp_path / "merger.state")
-            start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
-            assert steps.wait_for(1, WAIT), "the restored merger did not say where it stands"
-            assert steps.items[0][1] == unpublished
-            step = MergerStep.from_msgpack(unpublished)
-            assert step.maps == ("r1/0", "r2/0")
-            assert maps.wait_for(1, WAIT)
-            assert maps.items[0][1] == killed.global_map.to_msgpack()
-
-
-def _open(options: ZenohOptions) -> ZenohBus:
-    """A session to the router just started (it may take a moment to listen)."""
-    deadline = time.monotonic() + WAIT
-    while True:
-        try:
-            return ZenohBus.open(options)
-        except Exception:
-            if time.monotonic() > deadline:
-                raise
-            threading.Event().wait(0.2)
+    with router_session(tmp_path) as (bus, _, common, procs):
+        steps, maps = Inbox(), Inbox()
+        bus.subscribe(keys.steps, steps)
+        bus.subscribe(keys.globalmap, maps)
+        state = str(tmp_path / "merger.state")
+        start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
+        assert steps.wait_for(1, WAIT), "the restored merger did not say where it stands"
+        assert steps.items[0][1] == unpublished
+        assert MergerStep.from_msgpack(unpublished).maps == ("r1/0", "r2/0")
+        assert maps.wait_for(1, WAIT)
+        assert maps.items[0][1] == killed.global_map.to_msgpack()
 
 
 def bus_keys():  # type: ignore[no-untyped-def]
