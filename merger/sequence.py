@@ -171,9 +171,10 @@ class PivotMapBuilder:
       (:mod:`fleetmap.shared.mapgrid`), so the fallback, and any later integration of the map
       with another, judges transformations by the free space those scans saw: a scan placed one
       door further down a corridor puts walls where the map's scans saw none.
-    - **Motion prior** (maps with stamps): where an integration is ambiguous (a hallway matches
-      one door further as well, or turned round) and one of its matches lies where the robot's
-      recent motion puts the new map (:meth:`predict`), the integration is done again within
+    - **Motion prior** (maps with stamps): where an integration does not validly place the new
+      map where the robot's recent motion puts it (:meth:`predict`; after a corner, straight
+      ahead in the new heading), because it is ambiguous (a hallway matches one door further as
+      well, or turned round) or matches best elsewhere, the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
       scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
       near-equal matches; against a clearly better one it needs two valid matches where it says
@@ -191,7 +192,8 @@ class PivotMapBuilder:
       speed up or brake.
     - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
       the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
-      scan-to-scan integrations do not add up along a hallway.
+      scan-to-scan integrations do not add up along a hallway; never farther than the witness
+      tolerances, within which the integrations that placed it agree.
     - **Simplification**: whenever the map has grown by half since, it is simplified
       (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
@@ -224,7 +226,13 @@ class PivotMapBuilder:
     def predict(self, stamp: float) -> Transform2D | None:
         """Where constant velocity puts a map taken at ``stamp``: the motion from the one-before-last
         placed map to the last, scaled to the time since the last, continued from the last. None
-        until two maps with increasing stamps are placed."""
+        until two maps with increasing stamps are placed.
+
+        After a corner (a step turned more than ``CORNER_TURN``), the robot drives on straight
+        ahead in its new heading, as far as that step took it in the same time: continuing the
+        turn would put it facing back the way it came (a robot that turned 90 degrees in one step
+        does not turn another 180 in the next two), and a window there would hold no match, so
+        a forward-looking laser's alias one rack back would go unchallenged."""
         if self._before is None or len(self._stamps) < 2:
             return None
         t0, t1 = self._stamps
@@ -232,6 +240,8 @@ class PivotMapBuilder:
             return None
         ratio = (stamp - t1) / (t1 - t0)
         step = self._before[1].inverse().compose(self._last_pose)
+        if abs(step.theta) > CORNER_TURN:
+            return self._last_pose.compose(Transform2D(math.hypot(step.x, step.y) * ratio, 0.0, 0.0))
         return self._last_pose.compose(Transform2D(step.x * ratio, step.y * ratio, step.theta * ratio))
 
     def add(self, m: SegmentMap, stamp: float | None = None) -> PivotStep:
@@ -317,8 +327,12 @@ class PivotMapBuilder:
         inside = window.contains(np.array([t.as_array() for t in (r.transform, *(t for t, _ in r.rivals))]))
         if r.valid and inside[0]:
             return _Witness(pose.compose(r.transform), r, at_prediction=predicted is not None)
-        if not inside.any():
-            return _Witness(pose.compose(r.transform), r)  # nothing lies where the motion says
+        if not inside.any() and predicted is None:
+            return _Witness(pose.compose(r.transform), r)  # nothing the robot can have reached matched
+        # The window is searched even where neither the best match nor its rivals lie in it: against
+        # a map, a forward-looking laser's view matches more wall one rack back than where the
+        # robot drove (its view beyond the map matches nothing), so the right placement may rank
+        # below the few rivals an integration keeps.
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         near_pose = pose.compose(near.transform)
@@ -330,12 +344,16 @@ class PivotMapBuilder:
 
     def _refined_on_map(self, m: SegmentMap, pose: Transform2D) -> Transform2D:
         """``pose`` refined by least squares on the built map near it, if that raises the value or
-        lowers it a little after a small move (:func:`~fleetmap.shared.refine.refinement_kept`)."""
+        lowers it a little after a small move (:func:`~fleetmap.shared.refine.refinement_kept`),
+        and never farther than the witness tolerances: a small scan at a corner slides along the
+        corridor it turns into, to a pose that scores more and that no integration put it at."""
         near = self._near(pose)
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
         after = transformation_value(prep, t.as_array(), self.params, refuse=False)
+        if not _close(t, pose, self.params.witness_translation, self.params.witness_rotation):
+            return pose  # not a refinement: the integrations that placed it agree within these
         return t if refinement_kept(pose, t, before, after, self.params) else pose
 
     def _corroborated(self, witnesses: list[_Witness], motion: _Motion) -> _Witness | None:
@@ -478,6 +496,10 @@ def _close(a: Transform2D, b: Transform2D, translation: float, rotation: float) 
     dt, dr = a.distance(b)
     return dt <= translation and dr <= rotation
 
+
+CORNER_TURN = math.radians(45)
+"""A step that turned more than this (rad) took a corner: the motion prior then has the robot drive on
+straight ahead in its new heading (see :meth:`PivotMapBuilder.predict`)."""
 
 SIMPLIFY_FROM = 200
 """The built map is simplified once it holds more segments than this (and half again each time)."""

@@ -188,8 +188,9 @@ class IntegrationParams:
     so (the scenarios' robots turn corners on the spot). 0: no bound."""
     motion_prior_radius: float = 0.5
     """Robot agents (fleetmap): a scan whose integration is ambiguous (a hallway matches one door
-    further, or turned round) is integrated again within this (m) of where the robot's own recent
-    motion puts it (constant velocity since its last two placed scans) ... 0: never."""
+    further, or turned round), or matches best elsewhere, is integrated again within this (m) of
+    where the robot's own recent motion puts it (constant velocity since its last two placed scans;
+    after a corner, straight ahead in the new heading) ... 0: never."""
     motion_prior_rotation: float = 0.26
     """... and this (rad, 15 degrees); the match found there is taken only if it is valid there and
     scores at least ``valid_max_ambiguity`` of the best match anywhere. A scan placed farther than

@@ -163,6 +163,46 @@ def test_bad_parameters_are_refused_by_name(kwargs, named):
 
 
 @pytest.mark.slow  # builds local maps from simulated scenario scans
+@pytest.mark.parametrize(
+    "name, robot, epochs",
+    [
+        # warehouse, r1: its agent loses its place once, at the first corner of the cross aisle
+        # (scans 20-21). It used to lose it three times more: after the next corner (scan 27),
+        # constant velocity turned the robot round, so nothing challenged the scans' best match one
+        # rack back, and two scans were placed 3.5 m off before a new epoch; and along lanes, where
+        # the right placement ranked below the rivals an integration keeps.
+        ("warehouse", "r1", 2),
+        # office-events, r3: at the corner of scan 21 (a quarter turn, four segments in view) the
+        # refinement on the map slid the scan 0.7 m along the corridor, away from where its two
+        # integrations agreed, and the next scan started an epoch.
+        ("office-events", "r3", 1),
+    ],
+)
+def test_a_robot_keeps_its_place_round_corners(name, robot, epochs):
+    stream = list(robot_stream(load_scenario(name), robot))
+    agent = _run_placing_none_off(robot, stream)
+    assert agent.counts.epochs <= epochs
+    assert agent.counts.placed >= len(stream) - epochs
+
+
+def _run_placing_none_off(robot, stream):
+    """The robot's agent after ``stream``, asserting that no scan was placed off in its local map
+    (0.3 m, 3 deg from where the true poses put it relative to its epoch's first scan)."""
+    agent = Agent(robot)
+    frames = {}
+    for s in stream:
+        for m in agent.add_scan(s.index, s.stamp, s.scan):
+            if isinstance(m, FleetEvent) and m.kind == "epoch":
+                frames[json.loads(m.detail)["epoch"]] = stream[json.loads(m.detail)["first_scan"]].pose
+        pose = agent.epoch_pose
+        if pose is None:
+            continue
+        dt, dr = pose.distance(frames.setdefault(agent.epoch, s.pose).inverse().compose(s.pose))
+        assert dt < 0.3 and math.degrees(dr) < 3.0, f"scan {s.index}: {dt:.2f} m {math.degrees(dr):.1f} deg"
+    return agent
+
+
+@pytest.mark.slow  # builds local maps from simulated scenario scans
 @pytest.mark.parametrize("robot, scans", [("r2", 10), ("r3", 7)])
 def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
     # warehouse, r2 along the north lane: racks every 3.5 m, scans 1.2 m apart, the laser looking
@@ -173,16 +213,4 @@ def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
     # at 2.4 m/s within a second (max_acceleration). Geometry against motion: a scan may stay
     # unplaced or start an epoch, but none is placed off in its local map.
     stream = list(itertools.islice(robot_stream(load_scenario("warehouse"), robot), scans))
-    agent = Agent(robot)
-    frames, placed = {}, 0
-    for s in stream:
-        for m in agent.add_scan(s.index, s.stamp, s.scan):
-            if isinstance(m, FleetEvent) and m.kind == "epoch":
-                frames[json.loads(m.detail)["epoch"]] = stream[json.loads(m.detail)["first_scan"]].pose
-        pose = agent.epoch_pose
-        if pose is None:
-            continue
-        placed += 1
-        dt, dr = pose.distance(frames.setdefault(agent.epoch, s.pose).inverse().compose(s.pose))
-        assert dt < 0.3 and math.degrees(dr) < 3.0, f"scan {s.index}: {dt:.2f} m {math.degrees(dr):.1f} deg"
-    assert placed >= 6
+    assert _run_placing_none_off(robot, stream).counts.placed >= 6

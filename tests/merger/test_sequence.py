@@ -108,6 +108,21 @@ def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float,
         assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
+def test_after_a_corner_the_motion_prior_has_the_robot_drive_on_straight_ahead() -> None:
+    # Two steps along the room, then a corner: 0.5 m and a quarter turn in half a second. Constant
+    # velocity would turn it another half turn in the next second, facing back the way it came.
+    builder = PivotMapBuilder()
+    for k, pose in enumerate([(2.0, 4.5, 0.0), (2.6, 4.5, 0.0), (3.0, 4.8, math.pi / 2)]):
+        assert builder.add(scan_map(ROOM, pose, LaserParams(), seed=5 + k), 0.5 * k).pose is not None
+    last = builder.poses[-1]
+    assert last is not None
+    predicted = builder.predict(2.0)
+    assert predicted is not None
+    ahead = last.inverse().compose(predicted)
+    assert ahead.x == pytest.approx(1.0, abs=0.05) and abs(ahead.y) < 0.05, ahead
+    assert abs(ahead.theta) < math.radians(1.0), ahead
+
+
 @pytest.mark.slow  # builds local maps from simulated scenario scans
 def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drove() -> None:
     # The department hallway, r1's scans 10-15: scans 14 and 15 match the previous one elsewhere
