@@ -86,11 +86,11 @@ merged two racks back, put its first scan 5.8 m from epoch 1's last, four steps 
 
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations (at least one is done): a
-kidnapped robot's newest map waits no longer than this, and the pair being integrated, for its
-turn. A robot's pose is stamped with its latest scan the step took in, so a map version that waits
-for a step to end while the robot scans again costs a scan: in the live warehouse kidnap, steps
-of 0.5 s (3-4 pairs) relocalized the robot after 10 scans in just over half of 14 runs, and 11
-or 12 in the others; steps of 0.25 s (1-2 pairs) after 10 in 10 of 10, the best its maps allow."""
+kidnapped robot's newest map waits no longer than this, and the pair being integrated, for the
+next step, where lost robots' pairs come first. In the live warehouse kidnap, steps of 0.5 s
+(3-4 pairs, one or two of them the kidnapped robot's) relocalized it after 10 scans in just over
+half of 14 runs, and 11 or 12 in the others (its version of 10 scans got its turn with another
+map); steps of 0.25 s after 10 in 10 of 10, the best its maps allow."""
 
 
 @dataclass(frozen=True)
