@@ -193,7 +193,7 @@ class PivotMapBuilder:
     - **Map refinement** (``pivot_refine``): a placed map's pose is refined by least squares on
       the built map near it (scan-to-map, as SLAM front ends do), so the small errors of
       scan-to-scan integrations do not add up along a hallway; never farther than the witness
-      tolerances, within which the integrations that placed it agree.
+      tolerances from the pose its integrations placed it at.
     - **Simplification**: whenever the map has grown by half since, it is simplified
       (:func:`fleetmap.shared.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
@@ -229,10 +229,13 @@ class PivotMapBuilder:
         until two maps with increasing stamps are placed.
 
         After a corner (a step turned more than ``CORNER_TURN``), the robot drives on straight
-        ahead in its new heading, as far as that step took it in the same time: continuing the
+        ahead in its new heading, as far as that step took it in the same time (the chord across
+        the corner, a little short of the way driven): continuing the
         turn would put it facing back the way it came (a robot that turned 90 degrees in one step
         does not turn another 180 in the next two), and a window there would hold no match, so
-        a forward-looking laser's alias one rack back would go unchallenged."""
+        a forward-looking laser's alias one rack back would go unchallenged. (A robot reversing
+        round a corner is predicted forward: the sign of a corner step's way is no guide, since
+        the robot drives it partly in the old heading and partly in the new.)"""
         if self._before is None or len(self._stamps) < 2:
             return None
         t0, t1 = self._stamps

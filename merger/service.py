@@ -85,12 +85,12 @@ sure (in the warehouse, r1's last scan of epoch 2 had slid 2.4 m along its lane;
 merged two racks back, put its first scan 5.8 m from epoch 1's last, four steps 4.8 m)."""
 
 STEP_SECONDS = 0.25
-"""The live service's time budget for one step's integrations (at least one is done): a
-kidnapped robot's newest map waits no longer than this, and the pair being integrated, for the
-next step, where lost robots' pairs come first. In the live warehouse kidnap, steps of 0.5 s
-(3-4 pairs, one or two of them the kidnapped robot's) relocalized it after 10 scans in just over
-half of 14 runs, and 11 or 12 in the others (its version of 10 scans got its turn with another
-map); steps of 0.25 s after 10 in 10 of 10, the best its maps allow."""
+"""The live service's time budget for one step's integrations: a step ends after the first
+integration that finds this much time gone. A lost robot's newest map waits for the step under
+way to end, then goes first in the next (its promising pairs do); shorter steps give lost robots
+their turns more often, for a little more per-step work (solve, global map, state file). Half a
+second cost the live warehouse kidnap a scan or two in about half the runs (README, "Kidnapped
+robots")."""
 
 
 @dataclass(frozen=True)

@@ -134,7 +134,9 @@ class IntegrationParams:
     another of them within the witness tolerances), so one wrong integration cannot place it."""
     pivot_refine: bool = True
     """The pivot builder refines each placed map's pose by least squares on the built map near it
-    (fleetmap: scan-to-map; the paper's pivot method composes scan-to-scan transforms only)."""
+    (fleetmap: scan-to-map; the paper's pivot method composes scan-to-scan transforms only), never
+    moving it farther than ``witness_translation`` and ``witness_rotation`` from where its
+    integrations placed it (a small scan at a corner slides along the corridor it turns into)."""
     pivot_refine_slack: float = 0.01
     """The scan-to-map refinement (``pivot_refine``) is kept if it lowers the value by at most
     this fraction, after a move of at most ``pivot_refine_slack_translation`` and

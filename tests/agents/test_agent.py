@@ -166,8 +166,9 @@ def test_bad_parameters_are_refused_by_name(kwargs, named):
 @pytest.mark.parametrize(
     "name, robot, epochs",
     [
-        # warehouse, r1: its agent loses its place once, at the first corner of the cross aisle
-        # (scans 20-21). It used to lose it three times more: after the next corner (scan 27),
+        # warehouse, r1: its agent loses its place once, after the first corner (scan 19): scans
+        # 21 and 22 do not integrate, and epoch 1 starts at 21. It used to lose it three times
+        # more: after the next corner (scan 27),
         # constant velocity turned the robot round, so nothing challenged the scans' best match one
         # rack back, and two scans were placed 3.5 m off before a new epoch; and along lanes, where
         # the right placement ranked below the rivals an integration keeps.

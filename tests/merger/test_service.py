@@ -351,36 +351,38 @@ def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # typ
 
 
 def _epochs_cut_at(name: str, robot: str, firsts: list[int]) -> tuple[dict[int, Transform2D], list[LocalMap]]:
-    """A robot's true poses, and the LocalMap versions of its epochs cut at scans ``firsts``, each
-    built as an agent builds it (the pivot builder with the scans' stamps), published every
-    third placed scan and at its end."""
+    """A robot's true poses, and the LocalMap versions of its epochs cut at scans ``firsts`` (each
+    an epoch's first), built and published as its agent would had it broken them there: the pivot
+    builder with the scans' stamps; a version every third placed scan in the first epoch, every
+    placed scan in the later ones (the robot is lost), and an epoch's last at the cut."""
     truth: dict[int, Transform2D] = {}
     maps: list[LocalMap] = []
-    builder: PivotMapBuilder | None = None
-    epoch, placed, version = -1, 0, 0
+    builder = PivotMapBuilder()
+    epoch, placed, published = 0, 0, 0
 
     def publish(stamp: float) -> None:
-        assert builder is not None
+        nonlocal published
         built = builder.map
         segments = built.segments[lengths(built.segments) >= MIN_SEGMENT_LENGTH]
         link = EpochLink(epoch - 1, "cut by the test") if epoch else None
+        version = sum(m.epoch == epoch for m in maps)
         maps.append(
             LocalMap(robot, epoch, version, stamp, segments, placed, builder.poses[-1], link, viewpoints_of(built))
         )
+        published = placed
 
-    stamp = 0.0
     for s in robot_stream(load_scenario(name), robot):
         truth[s.index] = s.pose
-        if s.index in firsts:
-            if builder is not None and (placed - 1) % 3:
-                publish(stamp)
-            builder, epoch, placed, version = PivotMapBuilder(), epoch + 1, 0, 0
-        assert builder is not None
-        stamp = s.stamp
-        placed += builder.add(SegmentMap(extract_segments(s.scan), ordered=True, oriented=True), stamp).pose is not None
-        if placed and (placed - 1) % 3 == 0 and (not maps or maps[-1].scans != placed or maps[-1].epoch != epoch):
-            publish(stamp)
-            version += 1
-    if builder is not None and maps[-1].scans != placed:
-        publish(stamp)
+        segments = extract_segments(s.scan)
+        if len(segments) == 0:
+            continue  # nothing in reach: an agent does not place it either
+        if s.index in firsts[1:]:
+            if placed != published:
+                publish(s.stamp)
+            builder, epoch, placed, published = PivotMapBuilder(), epoch + 1, 0, 0
+        placed += builder.add(SegmentMap(segments, ordered=True, oriented=True), s.stamp).pose is not None
+        if placed - published >= (3 if epoch == 0 else 1) or (placed == 1 and not published):
+            publish(s.stamp)
+    if placed != published:
+        publish(s.stamp)
     return truth, maps
