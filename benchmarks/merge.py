@@ -21,6 +21,7 @@ place it right everywhere.
 
     python benchmarks/merge.py                         # every dataset, K = 4 and 8
     python benchmarks/merge.py --datasets aces,csail --k 8
+    python benchmarks/merge.py --stamps index          # a scan a second, for logs without usable times
 """
 
 from __future__ import annotations
@@ -105,9 +106,14 @@ class LocalMap:
     """One of its scans is placed more than 1 m or 10 deg from where the corrected poses put it."""
 
 
-def build_local_maps(job: tuple[Piece, FleetmapConfig, int, bool]) -> tuple[list[LocalMap], float]:
+def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str]) -> tuple[list[LocalMap], float]:
     """A piece's local maps, as an agent builds them (see the module docstring)."""
     piece, config, kidnap_after, stamps = job
+    clock = {
+        "log": lambda j: piece.stamps[j],
+        "index": lambda j: float(j),
+        "none": lambda j: None,
+    }[stamps]
     start = time.perf_counter()
     out: list[LocalMap] = []
     queue = list(range(len(piece.scans)))
@@ -119,7 +125,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, bool]) -> tuple[list
         unplaced: list[int] = []
         rest: list[int] = []
         for n, j in enumerate(queue):
-            pose = builder.add(piece.scans[j], piece.stamps[j] if stamps else None).pose
+            pose = builder.add(piece.scans[j], clock(j)).pose
             if pose is None:
                 unplaced.append(j)
                 if len(unplaced) >= kidnap_after:
@@ -137,7 +143,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, bool]) -> tuple[list
 
 def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, pool: multiprocessing.pool.Pool) -> dict:
     pieces = load_pieces(name, k, args.overlap, args.max_scans, config)
-    built = pool.map(build_local_maps, [(p, config, args.kidnap_after, not args.no_stamps) for p in pieces])
+    built = pool.map(build_local_maps, [(p, config, args.kidnap_after, args.stamps) for p in pieces])
     local = [
         (f"{name}/{i}.{e}", i, lm)
         for i, (maps, _) in enumerate(built)
@@ -231,7 +237,11 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2, help="processes building local maps")
     ap.add_argument("--kidnap-after", type=int, default=2, help="unplaced scans in a row that start a new local map")
     ap.add_argument(
-        "--no-stamps", action="store_true", help="build local maps without the scans' times (no motion bound or prior)"
+        "--stamps",
+        choices=["log", "index", "none"],
+        default="log",
+        help="the scans' times for the motion bound and prior: the log's, the scan's index in seconds "
+        "(the corrected logs hold a scan about every metre), or none",
     )
     ap.add_argument("--min-scans", type=int, default=5, help="local maps of fewer scans are not merged")
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
