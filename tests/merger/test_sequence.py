@@ -108,19 +108,30 @@ def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float,
         assert dt < metres and math.degrees(dr) < degrees, f"scan {k}: {dt:.3f} m {math.degrees(dr):.2f} deg"
 
 
-def test_after_a_corner_the_motion_prior_has_the_robot_drive_on_straight_ahead() -> None:
-    # Two steps along the room, then a corner: 0.5 m and a quarter turn in half a second. Constant
-    # velocity would turn it another half turn in the next second, facing back the way it came.
+@pytest.mark.parametrize(
+    "turn, turned_on",
+    [
+        # A corner: 0.5 m and a quarter turn in half a second. Constant velocity would turn it
+        # another half turn in the next second, facing back the way it came: it drives on
+        # straight ahead in its new heading instead.
+        (90.0, 0.0),
+        # An arc (under CORNER_TURN a step): constant velocity, still turning as it did.
+        (30.0, 60.0),
+    ],
+)
+def test_after_a_corner_the_motion_prior_has_the_robot_drive_on_straight_ahead(turn: float, turned_on: float) -> None:
     builder = PivotMapBuilder()
-    for k, pose in enumerate([(2.0, 4.5, 0.0), (2.6, 4.5, 0.0), (3.0, 4.8, math.pi / 2)]):
+    for k, pose in enumerate([(2.0, 4.5, 0.0), (2.6, 4.5, 0.0), (3.0, 4.8, math.radians(turn))]):
         assert builder.add(scan_map(ROOM, pose, LaserParams(), seed=5 + k), 0.5 * k).pose is not None
     last = builder.poses[-1]
     assert last is not None
     predicted = builder.predict(2.0)
     assert predicted is not None
     ahead = last.inverse().compose(predicted)
-    assert ahead.x == pytest.approx(1.0, abs=0.05) and abs(ahead.y) < 0.05, ahead
-    assert abs(ahead.theta) < math.radians(1.0), ahead
+    assert math.hypot(ahead.x, ahead.y) == pytest.approx(1.0, abs=0.05), ahead
+    assert math.degrees(ahead.theta) == pytest.approx(turned_on, abs=1.0), ahead
+    if turned_on == 0.0:
+        assert abs(ahead.y) < 0.05, ahead
 
 
 @pytest.mark.slow  # builds local maps from simulated scenario scans
