@@ -354,9 +354,9 @@ class PivotMapBuilder:
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
-        after = transformation_value(prep, t.as_array(), self.params, refuse=False)
         if not _close(t, pose, self.params.witness_translation, self.params.witness_rotation):
             return pose  # not a refinement: the integrations that placed it agree within these
+        after = transformation_value(prep, t.as_array(), self.params, refuse=False)
         return t if refinement_kept(pose, t, before, after, self.params) else pose
 
     def _corroborated(self, witnesses: list[_Witness], motion: _Motion) -> _Witness | None:

@@ -168,10 +168,10 @@ def test_bad_parameters_are_refused_by_name(kwargs, named):
     [
         # warehouse, r1: its agent loses its place once, after the first corner (scan 19): scans
         # 21 and 22 do not integrate, and epoch 1 starts at 21. It used to lose it three times
-        # more: after the next corner (scan 27),
-        # constant velocity turned the robot round, so nothing challenged the scans' best match one
-        # rack back, and two scans were placed 3.5 m off before a new epoch; and along lanes, where
-        # the right placement ranked below the rivals an integration keeps.
+        # more: after the next corner (scan 27), constant velocity turned the robot round, so
+        # nothing challenged the scans' best match one rack back, and two scans were placed 3.5 m
+        # off before a new epoch; and along lanes, where the right placement ranked below the
+        # rivals an integration keeps.
         ("warehouse", "r1", 2),
         # office-events, r3: at the corner of scan 21 (a quarter turn, four segments in view) the
         # refinement on the map slid the scan 0.7 m along the corridor, away from where its two

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from fleetmap.agents.agent import _wire_segments
 from fleetmap.merger.graph import Edge
 from fleetmap.merger.sequence import PivotMapBuilder
 from fleetmap.merger.service import Merger
@@ -13,9 +14,9 @@ from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D, lengths
+from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH, SegmentMap
+from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import viewpoints_of
 from fleetmap.shared.messages import (
     EpochLink,
@@ -363,7 +364,7 @@ def _epochs_cut_at(name: str, robot: str, firsts: list[int]) -> tuple[dict[int, 
     def publish(stamp: float) -> None:
         nonlocal published
         built = builder.map
-        segments = built.segments[lengths(built.segments) >= MIN_SEGMENT_LENGTH]
+        segments = _wire_segments(built.segments)
         link = EpochLink(epoch - 1, "cut by the test") if epoch else None
         version = sum(m.epoch == epoch for m in maps)
         maps.append(
