@@ -579,6 +579,7 @@ def index_for(m: SegmentMap, p: IntegrationParams) -> MapIndex:
         p.segment_distance_threshold * p.point_distance_tolerance,
         p.map_free_space_margin,
         p.map_free_space_slope,
+        p.map_free_space_min_length,
     )
 
 

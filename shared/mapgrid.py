@@ -26,6 +26,10 @@ map's walls in the other's free space; the right one does not.
   wall of the other facing the same way (averaged over the two directions) minus the wall length
   of each that lands in the other's free space. It ranks the candidates of the paper's heuristics;
   the best few are then valued exactly (Algorithm 4) and refined.
+- **Solid walls.** The free-space violation of those few (:func:`grid_scores`) may count only the
+  walls of long segments (``min_length``, ``map_free_space_min_length``; every wall by default):
+  short ones are mostly clutter that moves between visits or that one viewpoint sees and another
+  sees past. The ranking counts every wall: it only orders the candidates.
 """
 
 from __future__ import annotations
@@ -180,13 +184,16 @@ class Samples:
     points: Array
     direction: Array
     weight: Array
+    solid: Array
+    """The wall length each stands for where it lies in seen free space: its weight if its segment
+    is at least the index's ``min_length`` long, else 0 (clutter is no evidence against)."""
 
     @staticmethod
-    def along(segments: Array, spacing: float) -> Samples:
+    def along(segments: Array, spacing: float, min_length: float = 0.0) -> Samples:
         """One point every ``spacing`` metres of wall, the walls taken end to end (a segment
         shorter than the spacing may get none), each standing for ``spacing`` metres."""
         if len(segments) == 0:
-            return Samples(np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+            return Samples(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))
         ln = lengths(segments)
         cum = np.cumsum(ln)
         at = np.arange(0.5 * spacing, float(cum[-1]), spacing)
@@ -194,7 +201,8 @@ class Samples:
         frac = np.clip((at - (cum[owner] - ln[owner])) / np.maximum(ln[owner], 1e-12), 0.0, 1.0)
         s = segments[owner]
         pts = s[:, 0:2] + (s[:, 2:4] - s[:, 0:2]) * frac[:, None]
-        return Samples(pts, orientations(segments)[owner], np.full(len(at), spacing))
+        weight = np.full(len(at), spacing)
+        return Samples(pts, orientations(segments)[owner], weight, np.where(ln[owner] >= min_length, weight, 0.0))
 
 
 @dataclass(frozen=True)
@@ -217,8 +225,11 @@ class MapIndex:
     mean over the two directions)."""
 
 
-def map_index(m: SegmentMap, resolution: float, reach: float, margin: float, slope: float) -> MapIndex:
-    """Index ``m`` for the grid score: hit grid within ``reach`` of its walls, free grid from its viewpoints."""
+def map_index(
+    m: SegmentMap, resolution: float, reach: float, margin: float, slope: float, min_length: float = 0.0
+) -> MapIndex:
+    """Index ``m`` for the grid score: hit grid within ``reach`` of its walls, free grid from its
+    viewpoints; only its segments at least ``min_length`` long count in another map's free space."""
     seg = np.asarray(m.segments, dtype=np.float64)
     vp = viewpoints_of(m)
     corners = np.vstack([seg.reshape(-1, 2), vp[:, 0:2]]) if len(vp) else seg.reshape(-1, 2)
@@ -237,8 +248,8 @@ def map_index(m: SegmentMap, resolution: float, reach: float, margin: float, slo
             hits[(ch[on] + dc) % CHANNELS, i[on], j[on]] = True
     free = free_grid(seg, vp, frame, margin, slope) if len(vp) else np.zeros(frame.shape, dtype=bool)
     total = float(lengths(seg).sum())
-    coarse = Samples.along(seg, max(FINE_SPACING, total / COARSE_POINTS))
-    fine = Samples.along(seg, FINE_SPACING)
+    coarse = Samples.along(seg, max(FINE_SPACING, total / COARSE_POINTS), min_length)
+    fine = Samples.along(seg, FINE_SPACING, min_length)
     code = np.zeros((CHANNELS, frame.shape[0] + 2, frame.shape[1] + 2), dtype=np.int8)
     code[:, 1:-1, 1:-1] = np.where(hits, np.int8(1), np.where(free[None], np.int8(-2), np.int8(0)))
     return MapIndex(frame, hits, free, coarse, fine, period, bool(len(vp)), code)
@@ -311,7 +322,8 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
 
 
 def _lookups(index: MapIndex, s: Samples, t: Array) -> tuple[Array, Array]:
-    """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and in its free space."""
+    """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and solid
+    wall length in its free space."""
     hit_out = np.zeros(len(t))
     free_out = np.zeros(len(t))
     if len(s.points) == 0 or len(t) == 0:
@@ -328,7 +340,7 @@ def _lookups(index: MapIndex, s: Samples, t: Array) -> tuple[Array, Array]:
         hit_out[c0 : c0 + step] = near @ s.weight
         if index.has_free:
             seen_free = index.free[i, j] & on & ~near
-            free_out[c0 : c0 + step] = seen_free @ s.weight
+            free_out[c0 : c0 + step] = seen_free @ s.solid
     return hit_out, free_out
 
 
@@ -349,7 +361,7 @@ def inverse_transforms(t: Array) -> Array:
 
 def grid_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False) -> tuple[Array, Array]:
     """Grid score parts of transformations ``t`` of B on A: matched wall length (mean of both
-    directions) and wall length in the other's free space (sum of both)."""
+    directions) and solid wall length in the other's free space (sum of both)."""
     t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
     sa, sb = (a.fine, b.fine) if fine else (a.coarse, b.coarse)
     hit_ab, free_ab = _lookups(a, sb, t)
