@@ -86,6 +86,10 @@ class Integration:
     """The heuristic whose transformation won (for auto: the one that found it first)."""
     violation: float = 0.0
     """Wall length (m) each map puts in the other's seen free space (scans only)."""
+    solid_violation: float = 0.0
+    """The part of ``violation`` in walls of segments at least ``map_free_space_min_length`` long,
+    between two partial maps when that is set (``violation`` otherwise): what the validity rule
+    limits (clutter in free space is no ground to refuse an alignment; it still lowers its score)."""
     runner_up: float = 0.0
     """Score of the best transformation clearly different from the chosen one (more than
     AMBIGUITY_TRANSLATION or AMBIGUITY_ROTATION away): close to the best's in a repetitive world."""
@@ -115,8 +119,10 @@ def is_valid(
     m2: SegmentMap,
     params: IntegrationParams,
     large: bool = False,
+    solid_violation: float | None = None,
 ) -> bool:
-    """The validity rule of the module docstring (``large``: the large-map path's rule)."""
+    """The validity rule of the module docstring (``large``: the large-map path's rule; between two
+    partial maps, ``solid_violation``, where given, is the violation limited)."""
     score = value - violation
     scans = [x.total_length for x in (m1, m2) if x.ordered]
     if large and scans:
@@ -134,7 +140,7 @@ def is_valid(
         return (
             seen_from_enough_places(m1, m2, params)
             and value >= params.valid_min_map_value
-            and violation <= params.valid_max_map_violation * value
+            and (violation if solid_violation is None else solid_violation) <= params.valid_max_map_violation * value
             and runner_up <= (params.valid_max_map_ambiguity if large else params.valid_max_ambiguity) * score
         )
     smaller = min(m1.total_length, m2.total_length)
@@ -279,24 +285,27 @@ def integrate(
     check_map(m2, "S2")
     start = time.perf_counter()
     large = takes_large_path(m1, m2, p)
+    solid: float | None = None
     if large:
         # Large partial maps are searched on their longest segments; the choice is made on the full maps.
         search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
-        best, rivals, count, prep = _integrate_large(m1, m2, search1, search2, h, p, index1, index2, window)
+        best, rivals, count, prep, solid = _integrate_large(m1, m2, search1, search2, h, p, index1, index2, window)
     else:
         best, rivals, count, prep = _integrate_small(m1, m2, h, p, window)
     runner_up = max((score for _, score in rivals), default=0.0)
     matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
     seconds = time.perf_counter() - start
     violation = best.value - best.score
+    solid_violation = violation if solid is None else solid
     return Integration(
         transform=best.transform,
         value=best.value,
-        valid=is_valid(best.value, violation, max(runner_up, 0.0), m1, m2, p, large),
+        valid=is_valid(best.value, violation, max(runner_up, 0.0), m1, m2, p, large, solid_violation),
         seconds=seconds,
         candidates=count,
         heuristic=AUTO_ORDER[best.label] if h == "auto" else h,
         violation=violation,
+        solid_violation=solid_violation,
         runner_up=max(runner_up, 0.0),
         matches=matches,
         rivals=tuple(rivals),
@@ -365,7 +374,7 @@ def _integrate_large(
     index1: MapIndex | None,
     index2: MapIndex | None,
     window: Window | None = None,
-) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs]:
+) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs, float | None]:
     """Large partial maps (fleetmap): the paper's candidates ranked by the grid score, the best
     few valued exactly (Algorithm 4) and refined.
 
@@ -419,7 +428,10 @@ def _integrate_large(
             open_ &= _far_from(other.transform, centre)(ranked_t)
         if maps:
             rivals = _unrefuted(rivals, best, free, p)
-    return best, _best_rivals(rivals), len(cand), prep
+    solid = None
+    if p.map_free_space_min_length > 0 and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
+        solid = float(free.violation(best.transform.as_array(), solid=True)[0])
+    return best, _best_rivals(rivals), len(cand), prep, solid
 
 
 def _choose(
@@ -567,8 +579,10 @@ class GridFreeSpace:
     def active(self) -> bool:
         return self.index1.has_free or self.index2.has_free
 
-    def violation(self, t: Array) -> Array:
-        return grid_scores(self.index1, self.index2, np.asarray(t, dtype=np.float64).reshape(-1, 3), fine=True)[1]
+    def violation(self, t: Array, solid: bool = False) -> Array:
+        """Wall length of each map in the other's free grid (only solid walls' if ``solid``)."""
+        t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+        return grid_scores(self.index1, self.index2, t, fine=True, solid=solid)[1]
 
 
 def index_for(m: SegmentMap, p: IntegrationParams) -> MapIndex:

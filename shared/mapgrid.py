@@ -26,10 +26,10 @@ map's walls in the other's free space; the right one does not.
   wall of the other facing the same way (averaged over the two directions) minus the wall length
   of each that lands in the other's free space. It ranks the candidates of the paper's heuristics;
   the best few are then valued exactly (Algorithm 4) and refined.
-- **Solid walls.** The free-space violation of those few (:func:`grid_scores`) may count only the
-  walls of long segments (``min_length``, ``map_free_space_min_length``; every wall by default):
-  short ones are mostly clutter that moves between visits or that one viewpoint sees and another
-  sees past. The ranking counts every wall: it only orders the candidates.
+- **Solid walls.** Refusing an alignment for the wall it puts in seen free space may count only
+  the walls of long segments (``solid``: at least ``min_length``, ``map_free_space_min_length``):
+  short ones are mostly clutter that moves between visits, or that one viewpoint sees and another
+  sees past. Ranking and scoring alignments count every wall.
 """
 
 from __future__ import annotations
@@ -321,9 +321,9 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     return 0.5 * out
 
 
-def _lookups(index: MapIndex, s: Samples, t: Array) -> tuple[Array, Array]:
-    """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and solid
-    wall length in its free space."""
+def _lookups(index: MapIndex, s: Samples, t: Array, solid: bool = False) -> tuple[Array, Array]:
+    """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and in its
+    free space (only the solid walls' if ``solid``)."""
     hit_out = np.zeros(len(t))
     free_out = np.zeros(len(t))
     if len(s.points) == 0 or len(t) == 0:
@@ -340,7 +340,7 @@ def _lookups(index: MapIndex, s: Samples, t: Array) -> tuple[Array, Array]:
         hit_out[c0 : c0 + step] = near @ s.weight
         if index.has_free:
             seen_free = index.free[i, j] & on & ~near
-            free_out[c0 : c0 + step] = seen_free @ s.solid
+            free_out[c0 : c0 + step] = seen_free @ (s.solid if solid else s.weight)
     return hit_out, free_out
 
 
@@ -359,11 +359,12 @@ def inverse_transforms(t: Array) -> Array:
     return np.column_stack([-(c * t[:, 0] + s * t[:, 1]), s * t[:, 0] - c * t[:, 1], -t[:, 2]])
 
 
-def grid_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False) -> tuple[Array, Array]:
+def grid_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False, solid: bool = False) -> tuple[Array, Array]:
     """Grid score parts of transformations ``t`` of B on A: matched wall length (mean of both
-    directions) and solid wall length in the other's free space (sum of both)."""
+    directions) and wall length in the other's free space (sum of both; only the walls of segments
+    at least the indexes' ``min_length`` long if ``solid``)."""
     t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
     sa, sb = (a.fine, b.fine) if fine else (a.coarse, b.coarse)
-    hit_ab, free_ab = _lookups(a, sb, t)
-    hit_ba, free_ba = _lookups(b, sa, inverse_transforms(t))
+    hit_ab, free_ab = _lookups(a, sb, t, solid)
+    hit_ba, free_ba = _lookups(b, sa, inverse_transforms(t), solid)
     return 0.5 * (hit_ab + hit_ba), free_ab + free_ba

@@ -71,10 +71,10 @@ def test_ranking_scores_are_whole_samples_and_do_not_depend_on_how_candidates_ar
         assert np.array_equal(mapgrid._ranking_lookups(a, samples, t), scores)
 
 
-def test_only_long_walls_in_seen_free_space_count_against_a_transformation() -> None:
+def test_only_long_walls_in_seen_free_space_count_as_solid() -> None:
     # A furnished room seen from one viewpoint, and the same room mapped again later: a chair (a
     # 0.3 m segment) now stands where the first visit saw the floor free. The chair moved; the room
-    # did not: it is no evidence against the alignment. A 1.6 m wall there would be.
+    # did not: it is no ground to refuse the alignment. A 1.6 m wall there would be.
     seen = mapgrid.with_viewpoints(
         SegmentMap(WALLS, ordered=False, oriented=True), np.array([[3.0, 1.0, 0.0, -math.pi, math.pi]])
     )
@@ -82,15 +82,11 @@ def test_only_long_walls_in_seen_free_space_count_against_a_transformation() -> 
     wall = np.array([[2.2, 4.0, 3.8, 4.0]])
     here = np.zeros((1, 3))
 
-    def indexes(extra: np.ndarray, min_length: float) -> tuple[mapgrid.MapIndex, mapgrid.MapIndex]:
+    def violation(extra: np.ndarray, solid: bool) -> float:
         later = SegmentMap(np.vstack([WALLS, extra]), ordered=False, oriented=True)
-        return map_index(seen, 0.1, 0.2, 0.2, 0.02, min_length), map_index(later, 0.1, 0.2, 0.2, 0.02, min_length)
+        a, b = map_index(seen, 0.1, 0.2, 0.2, 0.02, 0.8), map_index(later, 0.1, 0.2, 0.2, 0.02, 0.8)
+        return float(grid_scores(a, b, here, fine=True, solid=solid)[1][0])
 
-    def violation(extra: np.ndarray, min_length: float) -> float:
-        return float(grid_scores(*indexes(extra, min_length), here, fine=True)[1][0])
-
-    assert violation(chair, 0.0) >= 0.2  # every wall counted: the chair is against it
-    assert violation(chair, 0.8) == 0.0
-    assert violation(wall, 0.8) >= 1.4  # a long wall still is
-    # The ranking counts every wall: it only orders the candidates.
-    assert ranking_scores(*indexes(chair, 0.8), here)[0] == ranking_scores(*indexes(chair, 0.0), here)[0]
+    assert violation(chair, solid=False) >= 0.2  # every wall: the chair counts (the score)
+    assert violation(chair, solid=True) == 0.0  # solid walls only: it does not
+    assert violation(wall, solid=True) >= 1.4  # a long wall does
