@@ -15,8 +15,8 @@ never given to the algorithms):
 
 Prints per dataset and K: local maps placed within (0.2 m, 3 deg) in the largest component,
 placed wrongly (> 1 m or > 10 deg) relative to their component's anchor, in any component,
-unplaced (not wrong, and not in the largest component), the scans in maps placed right, and the
-merge time.
+unplaced (not wrong, and not in the largest component, or merged with nothing), the scans in maps
+placed right, and the merge time.
 A local map whose own scans were placed wrongly (one scan off by more than 1 m or 10 deg from
 where the corrected poses put it relative to the map's first scan) is counted too: no merge can
 place it right everywhere.

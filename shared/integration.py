@@ -17,9 +17,10 @@ from wrong integrations on real scans.
 
 Two partial maps (neither a scan: ``ordered`` false) have their own rule: value at least
 ``valid_min_map_value`` (8 m: the paper's right merges of local maps scored about 10 m, wrong ones
-about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space,
-and no clearly different transformation within ``valid_max_map_ambiguity`` (50 %) of its score
-on the large-map path, where the rival is judged by the free space too (``valid_max_ambiguity``,
+about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space
+(only solid walls counted there with ``map_free_space_min_length``: clutter), and no clearly
+different transformation within ``valid_max_map_ambiguity`` (50 %) of its score on the large-map
+path, where the rival is judged by the free space too (``valid_max_ambiguity``,
 80 %, on the small path, where nothing refutes the mirror image of a rectangular room). A rival
 that puts metres of wall where a laser saw through, while the best puts next to none there, is
 refuted and does not count (``valid_refute_violation``, :func:`_unrefuted`). And a
