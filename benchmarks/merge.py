@@ -174,8 +174,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
             continue
         # Placed in its component's anchor frame: a map merged wrongly into a smaller component
         # is as wrong as one in the largest, though only the largest's maps count as placed.
-        pose = Transform2D.identity() if key == comp.anchor else comp.poses[key]
-        dt, dr = truth[comp.anchor].compose(pose).distance(truth[key])
+        dt, dr = truth[comp.anchor].compose(comp.poses[key]).distance(truth[key])
         mark = "" if comp is largest else f"({comp.anchor})"
         if dt > 1.0 or math.degrees(dr) > 10:
             wrong += 1
