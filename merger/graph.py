@@ -60,6 +60,13 @@ class Edge:
     versions: tuple[int, int] = (0, 0)
     violation: float = 0.0
     """Wall length the transform puts in the other map's seen free space (m)."""
+    solid_violation: float | None = None
+    """The part of it the validity rule limits (:attr:`Integration.solid_violation`; None: all)."""
+
+    @property
+    def limited_violation(self) -> float:
+        """The wall in seen free space that counts against the transform's validity (m)."""
+        return self.violation if self.solid_violation is None else self.solid_violation
 
     @property
     def ambiguity(self) -> float:
@@ -269,7 +276,7 @@ class MapGraph:
             index1=self._index(a) if large else None,
             index2=self._index(b) if large else None,
         )
-        e = Edge(a, b, r.transform, r.value, r.valid, r.runner_up, r.seconds, (va, vb), r.violation)
+        e = Edge(a, b, r.transform, r.value, r.valid, r.runner_up, r.seconds, (va, vb), r.violation, r.solid_violation)
         self._edges[e.key()] = e
         return e
 

@@ -368,7 +368,7 @@ class Merger:
         if e is None:
             return (1, -math.inf)
         p = self.config.integration
-        if e.violation <= p.valid_max_map_violation * e.value and e.ambiguity <= p.valid_max_ambiguity:
+        if e.limited_violation <= p.valid_max_map_violation * e.value and e.ambiguity <= p.valid_max_ambiguity:
             return (0, e.ambiguity)
         ends = zip((e.a, e.b), e.versions, strict=True)
         age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)
@@ -495,6 +495,7 @@ class Merger:
                 "seconds": e.seconds,
                 "versions": list(e.versions),
                 "violation": e.violation,
+                "solid_violation": e.solid_violation,
             }
             for e in self.graph.edges
         ]
@@ -552,6 +553,7 @@ class Merger:
                         float(e["seconds"]),
                         (int(e["versions"][0]), int(e["versions"][1])),
                         float(e.get("violation", 0.0)),
+                        None if e.get("solid_violation") is None else float(e["solid_violation"]),
                     )
                 )
             robots = {}

@@ -18,7 +18,9 @@ from wrong integrations on real scans.
 Two partial maps (neither a scan: ``ordered`` false) have their own rule: value at least
 ``valid_min_map_value`` (8 m: the paper's right merges of local maps scored about 10 m, wrong ones
 about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space
-(only solid walls counted there with ``map_free_space_min_length``: clutter), and no clearly
+(only the walls farther than ``map_free_space_clearance``, 0.3 m, from the other map's own walls
+counted there, since two local maps place the same wall a little apart; and with
+``map_free_space_min_length``, only long walls: clutter), and no clearly
 different transformation within ``valid_max_map_ambiguity`` (50 %) of its score on the large-map
 path, where the rival is judged by the free space too (``valid_max_ambiguity``, 80 %, on the
 small path, where nothing refutes the mirror image of a rectangular room). A rival that puts
@@ -28,10 +30,11 @@ scans' viewpoints must have at least ``valid_min_map_scans`` (5) of them
 (in the simulated warehouse, local maps of two or three scans matched others turned round, 13 to
 24 m off, with values of 16-17 m).
 Measured on 843 integrations between local maps built from the corrected logs
-(``benchmarks/merge.py --max-scans 200 --edges-json``): 56 of 153 right ones (within 0.3 m, 3
-degrees) valid, 5 of 668 wrong ones (over 1 m or 10 degrees): four between small corridor maps of
-the infinite corridor (a T-junction like another, a stretch matching itself reversed), one onto
-an orebro map built 2.5 m off. Long corridors match wherever they align, so
+(``benchmarks/merge.py --max-scans 200 --edges-json``): 106 of 153 right ones (within 0.3 m, 3
+degrees) valid (56 without the wall clearance), 9 of 668 wrong ones (over 1 m or 10 degrees; 5
+without): four between small corridor maps of the infinite corridor (a T-junction like another,
+a stretch matching itself reversed), five onto an orebro map whose first scan sits 2.5 m off the
+rest of it (right by the map's walls). Long corridors match wherever they align, so
 between maps only a clear, unambiguous match is trusted; an unplaced map is better than a
 wrong one.
 """
@@ -90,9 +93,11 @@ class Integration:
     violation: float = 0.0
     """Wall length (m) each map puts in the other's seen free space (scans only)."""
     solid_violation: float = 0.0
-    """The part of ``violation`` in walls of segments at least ``map_free_space_min_length`` long,
-    between two partial maps when that is set (``violation`` otherwise): what the validity rule
-    limits (clutter in free space is no ground to refuse an alignment; it still lowers its score)."""
+    """Between two partial maps, the part of ``violation`` that is evidence against the alignment,
+    what the validity rule limits: the walls farther than ``map_free_space_clearance`` from the
+    other map's walls (nearer, they are its walls, placed a little apart), of segments at least
+    ``map_free_space_min_length`` long (clutter); ``violation`` otherwise. The rest still lowers
+    the score."""
     runner_up: float = 0.0
     """Score of the best transformation clearly different from the chosen one (more than
     AMBIGUITY_TRANSLATION or AMBIGUITY_ROTATION away): close to the best's in a repetitive world."""
@@ -432,7 +437,8 @@ def _integrate_large(
         if maps:
             rivals = _unrefuted(rivals, best, free, p)
     solid = None
-    if p.map_free_space_min_length > 0 and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
+    limited = p.map_free_space_min_length > 0 or p.map_free_space_clearance > 0
+    if limited and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
         solid = float(free.violation(best.transform.as_array(), solid=True)[0])
     return best, _best_rivals(rivals), len(cand), prep, solid
 
@@ -597,6 +603,7 @@ def index_for(m: SegmentMap, p: IntegrationParams) -> MapIndex:
         p.map_free_space_margin,
         p.map_free_space_slope,
         p.map_free_space_min_length,
+        p.map_free_space_clearance,
     )
 
 

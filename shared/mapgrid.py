@@ -26,10 +26,18 @@ map's walls in the other's free space; the right one does not.
   wall of the other facing the same way (averaged over the two directions) minus the wall length
   of each that lands in the other's free space. It ranks the candidates of the paper's heuristics;
   the best few are then valued exactly (Algorithm 4) and refined.
-- **Solid walls.** Refusing an alignment for the wall it puts in seen free space may count only
-  the walls of long segments (``solid``: at least ``min_length``, ``map_free_space_min_length``):
-  short ones are mostly clutter that moves between visits, or that one viewpoint sees and another
-  sees past. Ranking and scoring alignments count every wall.
+- **What refuses an alignment** (``solid``). Refusing an alignment for the wall it puts in seen
+  free space counts only the walls that are evidence against it:
+  - outside the ``clearance`` of the map's own walls (``map_free_space_clearance``): two local
+    maps, each built from its own scans, disagree on a wall's place by a few tenths of a metre
+    (their scan-to-scan errors add up differently), and a viewpoint that sees the wall at a
+    grazing angle puts such an offset metres along its ray, beyond any range margin. Another
+    map's wall that close to one of this map's is that wall, placed a little apart;
+  - of long segments (at least ``min_length``, ``map_free_space_min_length``): short ones are
+    mostly clutter that moves between visits, or that one viewpoint sees and another sees past.
+  Ranking and scoring alignments count every wall (the free grid, every wall), so the choice, the
+  ambiguity and the refutation of rivals are the same either way: in racks, the 8 cm posts a bay
+  off are what refute an alias.
 """
 
 from __future__ import annotations
@@ -214,6 +222,9 @@ class MapIndex:
     """``(CHANNELS, nx, ny)``: cells within reach of a wall of that direction (or a neighbouring one)."""
     free: Array
     """``(nx, ny)``: cells seen free from the map's viewpoints (all False without viewpoints)."""
+    clear: Array
+    """``(nx, ny)``: the free cells farther than the index's clearance from the map's walls (where
+    another map's solid walls count against an alignment's validity)."""
     coarse: Samples
     fine: Samples
     period: float
@@ -226,10 +237,17 @@ class MapIndex:
 
 
 def map_index(
-    m: SegmentMap, resolution: float, reach: float, margin: float, slope: float, min_length: float = 0.0
+    m: SegmentMap,
+    resolution: float,
+    reach: float,
+    margin: float,
+    slope: float,
+    min_length: float = 0.0,
+    clearance: float = 0.0,
 ) -> MapIndex:
     """Index ``m`` for the grid score: hit grid within ``reach`` of its walls, free grid from its
-    viewpoints; only its segments at least ``min_length`` long count in another map's free space."""
+    viewpoints less the cells within ``clearance`` of its walls; only its segments at least
+    ``min_length`` long count in another map's free space."""
     seg = np.asarray(m.segments, dtype=np.float64)
     vp = viewpoints_of(m)
     corners = np.vstack([seg.reshape(-1, 2), vp[:, 0:2]]) if len(vp) else seg.reshape(-1, 2)
@@ -247,12 +265,24 @@ def map_index(
         for dc in (-1, 0, 1):
             hits[(ch[on] + dc) % CHANNELS, i[on], j[on]] = True
     free = free_grid(seg, vp, frame, margin, slope) if len(vp) else np.zeros(frame.shape, dtype=bool)
+    clear = free
+    if clearance > 0 and len(vp):
+        # Clear of the map's own walls: another map's wall that close is that wall, placed apart.
+        clear = free.copy()
+        r = math.ceil(clearance / frame.resolution)
+        for di in range(-r, r + 1):
+            for dj in range(-r, r + 1):
+                if di * di + dj * dj <= r * r:
+                    i, j, on = frame.cells(
+                        wall_points[:, 0] + di * frame.resolution, wall_points[:, 1] + dj * frame.resolution
+                    )
+                    clear[i[on], j[on]] = False
     total = float(lengths(seg).sum())
     coarse = Samples.along(seg, max(FINE_SPACING, total / COARSE_POINTS), min_length)
     fine = Samples.along(seg, FINE_SPACING, min_length)
     code = np.zeros((CHANNELS, frame.shape[0] + 2, frame.shape[1] + 2), dtype=np.int8)
     code[:, 1:-1, 1:-1] = np.where(hits, np.int8(1), np.where(free[None], np.int8(-2), np.int8(0)))
-    return MapIndex(frame, hits, free, coarse, fine, period, bool(len(vp)), code)
+    return MapIndex(frame, hits, free, clear, coarse, fine, period, bool(len(vp)), code)
 
 
 def _channel(direction: Array, period: float) -> Array:
@@ -323,7 +353,7 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
 
 def _lookups(index: MapIndex, s: Samples, t: Array, solid: bool = False) -> tuple[Array, Array]:
     """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and in its
-    free space (only the solid walls' if ``solid``)."""
+    free space (if ``solid``: only the solid walls', clear of ``index``'s walls)."""
     hit_out = np.zeros(len(t))
     free_out = np.zeros(len(t))
     if len(s.points) == 0 or len(t) == 0:
@@ -339,7 +369,7 @@ def _lookups(index: MapIndex, s: Samples, t: Array, solid: bool = False) -> tupl
         near = index.hits[ch, i, j] & on
         hit_out[c0 : c0 + step] = near @ s.weight
         if index.has_free:
-            seen_free = index.free[i, j] & on & ~near
+            seen_free = (index.clear if solid else index.free)[i, j] & on & ~near
             free_out[c0 : c0 + step] = seen_free @ (s.solid if solid else s.weight)
     return hit_out, free_out
 
@@ -361,8 +391,9 @@ def inverse_transforms(t: Array) -> Array:
 
 def grid_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False, solid: bool = False) -> tuple[Array, Array]:
     """Grid score parts of transformations ``t`` of B on A: matched wall length (mean of both
-    directions) and wall length in the other's free space (sum of both; only the walls of segments
-    at least the indexes' ``min_length`` long if ``solid``)."""
+    directions) and wall length in the other's free space (sum of both; if ``solid``, only the
+    walls of segments at least the indexes' ``min_length`` long, and farther than the other's
+    ``clearance`` from its walls: what the validity rule limits)."""
     t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
     sa, sb = (a.fine, b.fine) if fine else (a.coarse, b.coarse)
     hit_ab, free_ab = _lookups(a, sb, t, solid)

@@ -90,3 +90,29 @@ def test_only_long_walls_in_seen_free_space_count_as_solid() -> None:
     assert violation(chair, solid=False) >= 0.2  # every wall: the chair counts (the score)
     assert violation(chair, solid=True) == 0.0  # solid walls only: it does not
     assert violation(wall, solid=True) >= 1.4  # a long wall does
+
+
+def test_a_wall_mapped_a_little_apart_is_not_in_seen_free_space_but_one_well_inside_is() -> None:
+    # A 20 m corridor seen from near one end: far down it, the laser meets the walls at a grazing
+    # angle. Another robot's map of the same corridor has the wall 0.25 m closer (its scan-to-scan
+    # errors added up differently): far down, that is a metre along the ray, beyond any range
+    # margin, so without clearance it lies in the seen free space. It is the same wall: it does not
+    # count against the alignment's validity (it still lowers its score). A wall 1 m inside the
+    # corridor is not, and counts.
+    corridor = np.array([[0.0, 2.0, 20.0, 2.0], [20.0, 2.0, 20.0, -2.0], [20.0, -2.0, 0.0, -2.0]])
+    seen = mapgrid.with_viewpoints(
+        SegmentMap(corridor, ordered=False, oriented=True), np.array([[1.0, 0.0, 0.0, -math.pi / 2, math.pi / 2]])
+    )
+    here = np.zeros((1, 3))
+
+    def violation(wall_y: float, clearance: float, solid: bool = True) -> float:
+        other = SegmentMap(np.array([[6.0, wall_y, 20.0, wall_y]]), ordered=False, oriented=True)
+        # The walls' reach as integration sets it (segment_distance_threshold * point_distance_tolerance).
+        a = map_index(seen, 0.1, 0.075, 0.2, 0.02, clearance=clearance)
+        b = map_index(other, 0.1, 0.075, 0.2, 0.02)
+        return float(grid_scores(a, b, here, fine=True, solid=solid)[1][0])
+
+    assert violation(1.75, clearance=0.0) >= 5.0  # metres of the same wall, "seen through"
+    assert violation(1.75, clearance=0.3) == 0.0  # what refuses an alignment: nothing
+    assert violation(1.75, clearance=0.3, solid=False) >= 5.0  # the score still counts it
+    assert violation(1.0, clearance=0.3) >= 10.0  # a wall where the corridor was seen free

@@ -34,13 +34,16 @@ def test_mit_csail_relations_are_recovered_with_default_parameters(datasets: Pat
 
 
 @pytest.mark.slow  # two local maps of 28 real scans each, built as an agent builds them
-def test_two_local_maps_of_a_furnished_lab_merge_right_when_only_long_walls_count_in_free_space(datasets: Path) -> None:
+def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_walls_a_little_apart(
+    datasets: Path,
+) -> None:
     # freiburg-079 (SLAM-corrected, a scan every 0.5 m): two consecutive stretches of the tour,
-    # 3 scans shared, each built into a local map from its scans alone. Chairs and desks are seen
-    # from one place and seen past from another, so at the right alignment either map's clutter
-    # lies in the other's seen free space: 5 m of it, against 18 m matched. Refusing only for long
-    # walls there (map_free_space_min_length) merges the maps right; for every wall (the default)
-    # refuses them.
+    # 3 scans shared, each built into a local map from its scans alone. The two maps place the
+    # same walls a little apart, and their viewpoints see many walls at grazing angles, so at the
+    # right alignment 5 m of either map's walls lie in the other's seen free space, against 18 m
+    # matched: without the wall clearance (map_free_space_clearance) the merge is refused. By
+    # default it is made, and right. Counting only long walls in the free space
+    # (map_free_space_min_length, for clutter) is enough on its own too.
     scans = list(read_carmen(datasets / "corrected" / "freiburg-079-corrected.log.gz"))[::5]
     maps, firsts = [], []
     for lo in (125, 150):
@@ -51,10 +54,14 @@ def test_two_local_maps_of_a_furnished_lab_merge_right_when_only_long_walls_coun
         maps.append(builder.map)
         firsts.append(Transform2D(*scans[lo].odom))
     truth = firsts[0].inverse().compose(firsts[1])
-    r = integrate(maps[0], maps[1], replace(IntegrationParams(), map_free_space_min_length=0.8))
+    r = integrate(maps[0], maps[1])
     dt, dr = r.transform.distance(truth)
     assert r.valid and dt <= 0.2 and math.degrees(dr) <= 3, (r, dt, math.degrees(dr))
-    assert r.solid_violation <= 0.1 * r.value < r.violation  # the clutter counted in the score only
-    every_wall = integrate(maps[0], maps[1])
-    assert every_wall.transform == r.transform  # the same choice, refused
-    assert not every_wall.valid and every_wall.solid_violation == every_wall.violation > 0.1 * every_wall.value
+    assert r.violation <= 0.02 * r.value
+    no_clearance = replace(IntegrationParams(), map_free_space_clearance=0.0)
+    refused = integrate(maps[0], maps[1], no_clearance)
+    assert refused.transform.distance(r.transform)[0] <= 0.05  # the same alignment, refused
+    assert not refused.valid and refused.violation > 0.1 * refused.value
+    long_walls = integrate(maps[0], maps[1], replace(no_clearance, map_free_space_min_length=0.8))
+    assert long_walls.valid and long_walls.transform.distance(truth)[0] <= 0.2
+    assert long_walls.solid_violation <= 0.1 * long_walls.value < long_walls.violation
