@@ -57,11 +57,12 @@ def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_w
     r = integrate(maps[0], maps[1])
     dt, dr = r.transform.distance(truth)
     assert r.valid and dt <= 0.2 and math.degrees(dr) <= 3, (r, dt, math.degrees(dr))
-    assert r.violation <= 0.02 * r.value
+    # The walls placed apart still lower the score; they no longer refuse the alignment.
+    assert r.solid_violation <= 0.02 * r.value and r.violation > 0.1 * r.value
     no_clearance = replace(IntegrationParams(), map_free_space_clearance=0.0)
     refused = integrate(maps[0], maps[1], no_clearance)
-    assert refused.transform.distance(r.transform)[0] <= 0.05  # the same alignment, refused
-    assert not refused.valid and refused.violation > 0.1 * refused.value
+    assert refused.transform == r.transform  # the same choice (the score is the same), refused
+    assert not refused.valid and refused.solid_violation == refused.violation > 0.1 * refused.value
     long_walls = integrate(maps[0], maps[1], replace(no_clearance, map_free_space_min_length=0.8))
     assert long_walls.valid and long_walls.transform.distance(truth)[0] <= 0.2
     assert long_walls.solid_violation <= 0.1 * long_walls.value < long_walls.violation
