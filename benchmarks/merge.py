@@ -222,7 +222,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
                     "valid": e.valid,
                     "runner_up": e.runner_up,
                     "violation": e.violation,
-                    "solid_violation": e.limited_violation,
+                    "limited_violation": e.limited_violation,
                     "seconds": e.seconds,
                     "error_m": dt,
                     "error_deg": math.degrees(dr),

@@ -142,8 +142,9 @@ class IntegrationParams:
     rivals, counts every wall. Short segments are mostly clutter (chairs, desks, people) that moves
     between visits, or that one viewpoint sees and another sees past: at the right alignment of two
     local maps of a furnished lab (freiburg-079) they lay 5-11 m in each other's free space, 15-30 %
-    of its value. At 0.8 (the paper's SEGMENTLENGTHREFUSE: only segments that long refuse a
-    transformation) all 13 of freiburg-079's local maps merge right, against 4
+    of its value. Measured before ``map_free_space_clearance`` (which merges those maps without
+    it): at 0.8 (the paper's SEGMENTLENGTHREFUSE: only segments that long refuse a
+    transformation) all 13 of freiburg-079's local maps merged right, against 4
     (``benchmarks/merge.py``). Off by default: on
     the seven real logs it also let an edmonton map through turned 92 degrees, and merged the
     orebro map built 2.5 m off its first scan (a log without times) with the others (14 maps

@@ -589,7 +589,8 @@ class GridFreeSpace:
         return self.index1.has_free or self.index2.has_free
 
     def violation(self, t: Array, solid: bool = False) -> Array:
-        """Wall length of each map in the other's free grid (only solid walls' if ``solid``)."""
+        """Wall length of each map in the other's free grid (if ``solid``, only what the validity
+        rule limits: solid walls, clear of the other map's walls)."""
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
         return grid_scores(self.index1, self.index2, t, fine=True, solid=solid)[1]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from fleetmap.shared.evaluation import prepare, refused, transformation_values
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.integration import Window, integrate, is_valid
 from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import with_viewpoints
 
 from tests.helpers import OMNI, ROOM, pose_pair, scan_map
 
@@ -208,3 +210,39 @@ def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -
     assert at_truth.valid, "inside the window the right match has no rival"
     dt, dr = at_truth.transform.distance(true)
     assert dt < 0.05 and dr < math.radians(1.0)
+
+
+def test_a_wall_two_maps_place_a_little_apart_does_not_refuse_their_merge_and_changes_nothing_else() -> None:
+    # Two robots' local maps of a hall with rooms off it, each seen from six places: the second
+    # robot's map has the hall's long wall 0.25 m inward (its scan-to-scan errors added up
+    # differently). Seen at a grazing angle, that wall lies metres inside the first map's seen
+    # free space; within map_free_space_clearance of the first map's own wall, it is that wall
+    # and does not refuse the merge. Only the validity changes: the choice, the value, the
+    # violation in the score and the rivals are the same.
+    walls = np.array(
+        [
+            [0, 0, 30, 0], [30, 0, 30, 3], [30, 3, 22, 3], [22, 3, 22, 8], [22, 8, 17, 8], [17, 8, 17, 3],
+            [17, 3, 9, 3], [9, 3, 9, 6], [9, 6, 4, 6], [4, 6, 4, 3], [4, 3, 0, 3], [0, 3, 0, 0],
+        ],
+        dtype=float,
+    )  # fmt: skip
+    a = with_viewpoints(
+        SegmentMap(walls, ordered=False, oriented=True),
+        np.array([[x, 1.5, 0.0, -math.pi / 2, math.pi / 2] for x in (1, 3, 5, 7, 9, 11)]),
+    )
+    apart = walls.copy()
+    apart[0, [1, 3]] = 0.25
+    t = Transform2D(2.0, -1.0, 0.4)
+    views = np.array([[x, 1.5, 0.0, -math.pi / 2, math.pi / 2] for x in (14, 16, 18, 20, 22, 24)])
+    views[:, 0:2] = t.inverse().apply_points(views[:, 0:2])
+    views[:, 2] = -t.theta
+    b = with_viewpoints(SegmentMap(t.inverse().apply(apart), ordered=False, oriented=True), views)
+    cleared = integrate(a, b)
+    every_wall = integrate(a, b, replace(IntegrationParams(), map_free_space_clearance=0.0))
+    assert cleared.valid and not every_wall.valid
+    dt, dr = cleared.transform.distance(t)
+    assert dt <= 0.3 and dr <= math.radians(1)
+    assert cleared.transform == every_wall.transform and cleared.value == every_wall.value
+    assert cleared.runner_up == every_wall.runner_up and cleared.rivals == every_wall.rivals
+    assert cleared.violation == every_wall.violation == every_wall.solid_violation > 0.1 * every_wall.value
+    assert cleared.solid_violation <= 0.1 * cleared.value
