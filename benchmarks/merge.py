@@ -118,11 +118,12 @@ class LocalMap:
 
 
 def content_frame(placed: list[Transform2D], truth: list[Transform2D]) -> Transform2D:
-    """The median over the scans of ``truth[k] * placed[k]^-1`` (x, y and heading separately)."""
+    """The median over the scans of ``truth[k] * placed[k]^-1`` (x, y and heading separately; the
+    headings as turns from the first scan's, so that none wraps)."""
     frames = np.array([t.compose(p.inverse()).as_array() for p, t in zip(placed, truth, strict=True)])
-    heading = float(np.median(np.unwrap(frames[:, 2])))
+    turn = float(np.median(np.remainder(frames[:, 2] - frames[0, 2] + math.pi, 2 * math.pi) - math.pi))
     x, y = (float(np.median(frames[:, k])) for k in (0, 1))
-    return Transform2D(x, y, math.remainder(heading, 2 * math.pi))
+    return Transform2D(x, y, math.remainder(frames[0, 2] + turn, 2 * math.pi))
 
 
 def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str]) -> tuple[list[LocalMap], float]:

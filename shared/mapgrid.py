@@ -43,6 +43,7 @@ map's walls in the other's free space; the right one does not.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -258,31 +259,33 @@ def map_index(
     wall_points, owner = segment_points(seg, frame.resolution / 2)
     ch = _channel(orientations(seg)[owner], period)
     hits = np.zeros((CHANNELS, *frame.shape), dtype=bool)
-    r = max(1, math.ceil(reach / frame.resolution))
-    offsets = [(di, dj) for di in range(-r, r + 1) for dj in range(-r, r + 1) if di * di + dj * dj <= r * r]
-    for di, dj in offsets:
-        i, j, on = frame.cells(wall_points[:, 0] + di * frame.resolution, wall_points[:, 1] + dj * frame.resolution)
+    for i, j, on in _cells_within(frame, wall_points, max(reach, frame.resolution)):
         for dc in (-1, 0, 1):
             hits[(ch[on] + dc) % CHANNELS, i[on], j[on]] = True
     free = free_grid(seg, vp, frame, margin, slope) if len(vp) else np.zeros(frame.shape, dtype=bool)
     clear = free
-    if clearance > 0 and len(vp):
+    if clearance > 0 and len(vp) and not m.ordered:
         # Clear of the map's own walls: another map's wall that close is that wall, placed apart.
+        # (Only between two partial maps does the validity rule read it: not for a scan.)
         clear = free.copy()
-        r = math.ceil(clearance / frame.resolution)
-        for di in range(-r, r + 1):
-            for dj in range(-r, r + 1):
-                if di * di + dj * dj <= r * r:
-                    i, j, on = frame.cells(
-                        wall_points[:, 0] + di * frame.resolution, wall_points[:, 1] + dj * frame.resolution
-                    )
-                    clear[i[on], j[on]] = False
+        for i, j, on in _cells_within(frame, wall_points, clearance):
+            clear[i[on], j[on]] = False
     total = float(lengths(seg).sum())
     coarse = Samples.along(seg, max(FINE_SPACING, total / COARSE_POINTS), min_length)
     fine = Samples.along(seg, FINE_SPACING, min_length)
     code = np.zeros((CHANNELS, frame.shape[0] + 2, frame.shape[1] + 2), dtype=np.int8)
     code[:, 1:-1, 1:-1] = np.where(hits, np.int8(1), np.where(free[None], np.int8(-2), np.int8(0)))
     return MapIndex(frame, hits, free, clear, coarse, fine, period, bool(len(vp)), code)
+
+
+def _cells_within(frame: Frame, points: Array, distance: float) -> Iterator[tuple[Array, Array, Array]]:
+    """The cells (as :meth:`Frame.cells`) of ``points`` moved by each whole-cell offset within
+    ``distance``: together, the cells within about that distance of the points."""
+    r = math.ceil(distance / frame.resolution)
+    for di in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            if di * di + dj * dj <= r * r:
+                yield frame.cells(points[:, 0] + di * frame.resolution, points[:, 1] + dj * frame.resolution)
 
 
 def _channel(direction: Array, period: float) -> Array:
