@@ -126,15 +126,22 @@ def content_frame(placed: list[Transform2D], truth: list[Transform2D]) -> Transf
     return Transform2D(x, y, math.remainder(frames[0, 2] + turn, 2 * math.pi))
 
 
-def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str]) -> tuple[list[LocalMap], float]:
-    """A piece's local maps, as an agent builds them (see the module docstring)."""
-    piece, config, kidnap_after, stamps = job
+def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[list[LocalMap], float]:
+    """A piece's local maps, as an agent builds them (see the module docstring), or with
+    ``local_maps="truth"`` its one map fused from its scans at their corrected poses."""
+    piece, config, kidnap_after, stamps, local_maps = job
     clock = {
         "log": lambda j: piece.stamps[j],
         "index": lambda j: float(j),
         "none": lambda j: None,
     }[stamps]
     start = time.perf_counter()
+    if local_maps == "truth":
+        builder = PivotMapBuilder(config.integration)
+        for j, scan in enumerate(piece.scans):
+            builder.add_at(scan, piece.truth[0].inverse().compose(piece.truth[j]), clock(j))
+        every = list(range(len(piece.scans)))
+        return [LocalMap(builder.map, 0, every, False, piece.truth[0])], time.perf_counter() - start
     out: list[LocalMap] = []
     queue = list(range(len(piece.scans)))
     while queue:
@@ -166,7 +173,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str]) -> tuple[list[
 
 def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, pool: multiprocessing.pool.Pool) -> dict:
     pieces = load_pieces(name, k, args.overlap, args.max_scans, config)
-    built = pool.map(build_local_maps, [(p, config, args.kidnap_after, args.stamps) for p in pieces])
+    built = pool.map(build_local_maps, [(p, config, args.kidnap_after, args.stamps, args.local_maps) for p in pieces])
     local = [
         (f"{name}/{i}.{e}", i, lm)
         for i, (maps, _) in enumerate(built)
@@ -270,6 +277,13 @@ def main() -> int:
         default="log",
         help="the scans' times for the motion bound and prior: the log's, the scan's index in seconds "
         "(the corrected logs hold a scan about every metre), or none",
+    )
+    ap.add_argument(
+        "--local-maps",
+        choices=["built", "truth"],
+        default="built",
+        help="each piece's local maps built from its scans alone (the benchmark), or its one map fused from "
+        "its scans at their corrected poses (a reference: how the merge does on right local maps)",
     )
     ap.add_argument("--min-scans", type=int, default=5, help="local maps of fewer scans are not merged")
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")

@@ -281,6 +281,22 @@ class PivotMapBuilder:
         pose = placed.pose
         if self.params.pivot_refine:
             pose = self._refined_on_map(m, pose)
+        self._fuse(m, pose, stamp)
+        return PivotStep(pose, placed.integration)
+
+    def add_at(self, m: SegmentMap, pose: Transform2D, stamp: float | None = None) -> None:
+        """Fuse one map at a ``pose`` known from elsewhere (steps 5-6 without the integration; a
+        benchmark's reference map built from ground-truth poses). The first map's pose must be the
+        identity: its frame is the built map's."""
+        if self._last is None:
+            if max(pose.distance(Transform2D.identity())) > 1e-9:
+                raise BadInput("pose", f"the first map's pose is the map's frame, so the identity, got {pose}")
+            self.add(m, stamp)
+            return
+        self._fuse(m, pose, stamp)
+
+    def _fuse(self, m: SegmentMap, pose: Transform2D, stamp: float | None) -> None:
+        """Algorithm 6, steps 5-6: fuse ``m`` placed at ``pose`` and make it the last placed map."""
         if self.fuse_pairs:
             # Fig. 13a: fuse S_{i-1,i} (in S_{i-1}'s frame) placed by t_{1,i-1}.
             pair = fuse(self._last, m, self._last_pose.inverse().compose(pose), self.params)
@@ -297,7 +313,6 @@ class PivotMapBuilder:
         self._last, self._last_pose = m, pose
         self._stamps = [] if stamp is None else [*self._stamps[-1:], stamp]
         self.poses.append(pose)
-        return PivotStep(pose, placed.integration)
 
     def _motion(self, stamp: float | None) -> _Motion:
         """What the robot's motion says of a map taken at ``stamp`` (nothing without stamps)."""

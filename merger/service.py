@@ -50,6 +50,7 @@ from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.integration import max_map_violation
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import viewpoints_of, with_viewpoints
@@ -368,7 +369,7 @@ class Merger:
         if e is None:
             return (1, -math.inf)
         p = self.config.integration
-        if e.limited_violation <= p.valid_max_map_violation * e.value and e.ambiguity <= p.valid_max_ambiguity:
+        if e.limited_violation <= max_map_violation(e.value, p) * e.value and e.ambiguity <= p.valid_max_ambiguity:
             return (0, e.ambiguity)
         ends = zip((e.a, e.b), e.versions, strict=True)
         age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)

@@ -211,3 +211,19 @@ def test_bad_input_is_refused() -> None:
         pivot(SCANS[:2], variant="diagonal")
     with pytest.raises(BadInput, match="empty"):
         sequential([SCANS[0], SegmentMap(np.zeros((0, 4)))])
+
+
+def test_a_map_fused_at_known_poses_is_the_one_the_builder_builds_and_its_frame_is_the_first_scans() -> None:
+    # The merge benchmark's reference local maps (--local-maps truth): the scans fused at their
+    # true poses, as the builder fuses them at the poses it finds.
+    from fleetmap.shared.errors import BadInput
+
+    found, given = PivotMapBuilder(), PivotMapBuilder()
+    for scan in SCANS:
+        found.add(scan)
+    for scan, pose in zip(SCANS, TRUTH, strict=True):
+        given.add_at(scan, pose)
+    assert given.poses == TRUTH
+    assert abs(given.map.total_length - found.map.total_length) < 0.05 * found.map.total_length
+    with pytest.raises(BadInput, match="first map's pose"):
+        PivotMapBuilder().add_at(SCANS[0], TRUTH[1])

@@ -174,6 +174,10 @@ def test_two_partial_maps_need_the_map_rule_a_scan_the_scan_rule() -> None:
     assert valid(12.0, 0.0, 0.0, map1) and not valid(6.0, 0.0, 0.0, map1)
     # ... at most 10 % in the other's seen free space, and no rival within 50 % on the large path
     assert not valid(12.0, 2.0, 0.0, map1)
+    # ... or, from 16 m of matched wall on (a large overlap, whose shared walls two maps place a
+    # little apart), at most 15 %
+    assert valid(20.0, 2.6, 0.0, map1) and not valid(12.0, 1.5, 0.0, map1) and not valid(20.0, 3.4, 0.0, map1)
+    assert not is_valid(20.0, 2.6, 0.0, map1, map2, replace(p, valid_strong_map_value=0.0), True)
     assert not valid(12.0, 0.0, 7.0, map1) and valid(12.0, 0.0, 7.0, map1, large=False)
     # A scan on a map is judged by the scan rule: 6 m is half of what the scan saw.
     assert valid(6.0, 0.0, 0.0, scan)
