@@ -2,7 +2,7 @@
 
 The paper's four-robot experiment (Fig. 16-17) at a larger scale. For each SLAM-corrected log of
 ``../shared/data/corrected`` (GMapping output; the corrected poses are the ground truth and are
-never given to the algorithms):
+never given to the algorithms, but for the reference ``--local-maps truth``):
 
 1. cut the tour into K consecutive pieces overlapping by a few scans (K robots);
 2. build each piece's local maps from its scans alone, as a robot agent does: the pivot method
@@ -28,6 +28,8 @@ corrected poses put its content (:func:`content_frame`), not its first scan's.
     python benchmarks/merge.py                         # every dataset, K = 4 and 8
     python benchmarks/merge.py --datasets aces,csail --k 8
     python benchmarks/merge.py --stamps index          # a scan a second, for logs without usable times
+    python benchmarks/merge.py --local-maps truth      # the merge alone: each piece's one map fused
+                                                       # from its scans at their corrected poses
 """
 
 from __future__ import annotations
@@ -78,7 +80,8 @@ class Piece:
     stamps: list[float]
     """Each scan's time (s): the agent's motion bound and prior use it, as a live agent does."""
     truth: list[Transform2D]
-    """The corrected pose of each scan (never given to the algorithms)."""
+    """The corrected pose of each scan (given to no algorithm; ``--local-maps truth`` builds the
+    reference maps with it)."""
 
 
 def load_pieces(name: str, k: int, overlap: int, max_scans: int, config: FleetmapConfig) -> list[Piece]:

@@ -281,7 +281,7 @@ class PivotMapBuilder:
         pose = placed.pose
         if self.params.pivot_refine:
             pose = self._refined_on_map(m, pose)
-        self._fuse(m, pose, stamp)
+        self._fuse(self._last, m, pose, stamp)
         return PivotStep(pose, placed.integration)
 
     def add_at(self, m: SegmentMap, pose: Transform2D, stamp: float | None = None) -> None:
@@ -293,13 +293,14 @@ class PivotMapBuilder:
                 raise BadInput("pose", f"the first map's pose is the map's frame, so the identity, got {pose}")
             self.add(m, stamp)
             return
-        self._fuse(m, pose, stamp)
+        self._fuse(self._last, m, pose, stamp)
 
-    def _fuse(self, m: SegmentMap, pose: Transform2D, stamp: float | None) -> None:
-        """Algorithm 6, steps 5-6: fuse ``m`` placed at ``pose`` and make it the last placed map."""
+    def _fuse(self, last: SegmentMap, m: SegmentMap, pose: Transform2D, stamp: float | None) -> None:
+        """Algorithm 6, steps 5-6: fuse ``m`` placed at ``pose`` and make it the last placed map
+        (``last``: the last placed one so far)."""
         if self.fuse_pairs:
             # Fig. 13a: fuse S_{i-1,i} (in S_{i-1}'s frame) placed by t_{1,i-1}.
-            pair = fuse(self._last, m, self._last_pose.inverse().compose(pose), self.params)
+            pair = fuse(last, m, self._last_pose.inverse().compose(pose), self.params)
             self._map = fuse(self._map, pair, self._last_pose, self.params)
         else:
             # Fig. 13b, steps 5-6: fuse S_i itself, placed by t_{1,i}.
@@ -309,7 +310,7 @@ class PivotMapBuilder:
         if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
             self._map = simplify(self._map, tol)
             self._simplified_size = len(self._map)
-        self._before = (self._last, self._last_pose)
+        self._before = (last, self._last_pose)
         self._last, self._last_pose = m, pose
         self._stamps = [] if stamp is None else [*self._stamps[-1:], stamp]
         self.poses.append(pose)

@@ -191,11 +191,10 @@ class IntegrationParams:
     """... and no clearly different transformation scores more than this fraction of its score
     (on the large-map path; see fleetmap.shared.integration for how these were measured)."""
     valid_strong_map_value: float = 16.0
-    """Two large partial maps (fleetmap): an integration of at least this value (m) ...
-    (0: no such tier) ..."""
+    """Two partial maps (fleetmap): an integration of at least this value (m; 0: no such tier) ..."""
     valid_max_strong_map_violation: float = 0.15
     """... may put up to this fraction of its value in the maps' seen free space (instead of
-    ``valid_max_map_violation``). Two local maps whose own scan-to-scan errors differ place their
+    ``valid_max_map_violation``, if this is more). Two local maps whose own scan-to-scan errors differ place their
     shared walls a little apart, and their lasers see the far ones at grazing angles, so a right
     merge of large overlapping maps violates in proportion to the overlap: 11-14 % for maps built
     from SLAM-corrected poses. The wrong ones that pass the other rules are small overlaps (values
