@@ -194,11 +194,11 @@ class IntegrationParams:
     """Two partial maps (fleetmap): an integration of at least this value (m; 0: no such tier) ..."""
     valid_max_strong_map_violation: float = 0.15
     """... may put up to this fraction of its value in the maps' seen free space (instead of
-    ``valid_max_map_violation``, if this is more). Two local maps whose own scan-to-scan errors differ place their
-    shared walls a little apart, and their lasers see the far ones at grazing angles, so a right
-    merge of large overlapping maps violates in proportion to the overlap: 11-14 % for maps built
-    from SLAM-corrected poses. The wrong ones that pass the other rules are small overlaps (values
-    8-13 m), which stay held to ``valid_max_map_violation``."""
+    ``valid_max_map_violation``, if this is more). Two local maps whose own scan-to-scan errors
+    differ place their shared walls a little apart, and their lasers see the far ones at grazing
+    angles, so a right merge of large overlapping maps violates in proportion to the overlap:
+    11-14 % for maps built from SLAM-corrected poses. The wrong ones that pass the other rules are
+    small overlaps (values 8-13 m), which stay held to ``valid_max_map_violation``."""
     valid_refute_violation: float = 3.0
     """Two large partial maps (fleetmap): a clearly different transformation that puts at least
     this much wall (m), and more than ``valid_max_map_violation`` of its value, in the maps' seen

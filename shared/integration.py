@@ -37,11 +37,11 @@ degrees) valid (56 without the wall clearance), 9 of 668 wrong ones (over 1 m or
 without): four between small corridor maps of the infinite corridor (a T-junction like another,
 a stretch matching itself reversed), five onto an orebro map whose first scan sits 2.5 m off the
 rest of it (right by the map's walls). With the 15 % tier for values of 16 m or more: still 106
-right ones valid, and 11 wrong ones (two more onto that orebro map); between maps built from the corrected poses
-(``--local-maps truth``, 170 pairs), 52 right ones valid instead of 44, and the 2 wrong ones the
-same (low values, 8-9 m), which the cycle check then rejects. Long corridors match wherever
-they align, so between maps only a clear, unambiguous match is trusted; an unplaced map is better than a
-wrong one.
+right ones valid, and 11 wrong ones (two more onto that orebro map); between maps built from the
+corrected poses (``--local-maps truth``, 170 pairs), 52 right ones valid instead of 44, and the
+same 2 wrong ones (low values, 8-9 m), which the cycle check then rejects. Long corridors match
+wherever they align, so between maps only a clear, unambiguous match is trusted; an unplaced map
+is better than a wrong one.
 """
 
 from __future__ import annotations
