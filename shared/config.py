@@ -41,6 +41,11 @@ class ExtractionParams:
     """Clustering threshold: consecutive points closer than this are in one cluster (m)."""
     kappa: float = 0.025
     """Polyline tolerance: every point of a cluster lies within this of its segment (m)."""
+    kappa_noise_factor: float = 3.0
+    """fleetmap: a noisy scan's polyline tolerance is this times its noise (the median distance of
+    a point from the chord of its two neighbours), where that exceeds kappa by a quarter
+    (:func:`fleetmap.shared.extraction.kappa_for`), so a noisy laser's straight wall stays one
+    segment (edmonton's laser: 2.2 cm, so kappa 6.6 cm); 0 keeps kappa always."""
     max_range: float = 20.0
     """Ranges beyond this are treated as no return (m). The paper's SICK LMS 200 was set to 8 m;
     real logs reach further, and far walls are what tells a corridor's length (the simulator's
@@ -103,6 +108,11 @@ class IntegrationParams:
     """Refine the best transformation by least squares on the matched segment pairs."""
     refine_candidates: int = 12
     """How many of the best distinct transformations are refined before the best is chosen."""
+    refine_coarse_factor: float = 8.0
+    """fleetmap: the refinement of scans and small maps first runs with POINTDISTANCETOLERANCE this
+    many times larger (the pairs matched, and the robust loss's scale), then with it as given, so a
+    candidate a few tenths of a metre or a few degrees off still finds its walls (a noisy laser's
+    short segments give such candidates); 1 refines at the given tolerance only."""
     auto_max_all_candidates: int = 4000
     """auto also tries the all heuristic when it yields at most this many transformations."""
     free_space_margin: float = 0.10

@@ -12,7 +12,7 @@ import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import ExtractionParams
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.extraction import clusters, extract_segments, split_polyline
+from fleetmap.shared.extraction import _returns, clusters, extract_segments, range_noise, split_polyline
 from fleetmap.shared.geometry import lengths, point_segment_distance
 from fleetmap.shared.scans import RangeScan, read_carmen, read_ranges_jsonl
 
@@ -61,6 +61,33 @@ def test_line_fit_keeps_a_noisy_wall_in_one_piece() -> None:
     assert len(fitted) == 1
     assert abs(fitted[0, 0] - 2.0) < 0.01 and abs(fitted[0, 2] - 2.0) < 0.01
     assert lengths(fitted)[0] > 5.8
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.01, 0.03])
+def test_range_noise_reads_the_laser_noise_off_one_scan(sigma: float) -> None:
+    # A middle point's distance from its neighbours' chord is N(0, 1.5 sigma^2) across a wall
+    # seen head-on: its median is 0.83 sigma. A room's corners do not move the median.
+    room = np.array([[3.0, -4.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, -4.0, 3.0, -4.0]])
+    noise = range_noise(*_returns(scan_of(room, noise=sigma, seed=4), 20.0))
+    assert noise == pytest.approx(0.83 * sigma, rel=0.2, abs=1e-6)
+
+
+def test_a_noisy_lasers_wall_stays_one_segment_with_kappa_from_its_noise() -> None:
+    # 3 cm of range noise (edmonton's laser shows about 2.6 cm) is beyond what line fitting at
+    # kappa = 2.5 cm merges: the wall falls into short pieces whose directions are off by degrees.
+    wall = np.array([[2.0, -3.0, 2.0, 3.0]])
+    scan = scan_of(wall, noise=0.03, seed=5)
+    fixed = extract_segments(scan, ExtractionParams(kappa_noise_factor=0.0))
+    from_noise = extract_segments(scan, ExtractionParams())  # kappa_noise_factor = 3 by default
+    assert len(fixed) > 4
+    assert len(from_noise) <= 2 and lengths(from_noise).max() > 4.0
+    # A laser of 1 cm noise (the simulator's) keeps kappa: the same segments either way.
+    room = np.array([[3.0, -4.0, 3.0, 3.0], [3.0, 3.0, -3.0, 3.0], [-3.0, -4.0, 3.0, -4.0]])
+    for seed in range(4):
+        clean = scan_of(room, noise=0.01, seed=seed)
+        np.testing.assert_array_equal(
+            extract_segments(clean, ExtractionParams()), extract_segments(clean, ExtractionParams(kappa_noise_factor=0))
+        )
 
 
 def test_segments_run_counter_clockwise_with_the_sensor_on_their_left() -> None:
