@@ -109,10 +109,11 @@ class IntegrationParams:
     refine_candidates: int = 12
     """How many of the best distinct transformations are refined before the best is chosen."""
     refine_coarse_factor: float = 8.0
-    """fleetmap: the refinement of scans and small maps first runs with POINTDISTANCETOLERANCE this
-    many times larger (the pairs matched, and the robust loss's scale), then with it as given, so a
-    candidate a few tenths of a metre or a few degrees off still finds its walls (a noisy laser's
-    short segments give such candidates); 1 refines at the given tolerance only."""
+    """fleetmap: a scan-to-scan candidate picked for its value alone is refined first with
+    POINTDISTANCETOLERANCE this many times larger (the pairs matched, and the robust loss's scale),
+    then with it as given, so a candidate a few tenths of a metre or a few degrees off still finds
+    its walls (a noisy laser's short segments give such candidates); 1 refines at the given
+    tolerance only."""
     auto_max_all_candidates: int = 4000
     """auto also tries the all heuristic when it yields at most this many transformations."""
     free_space_margin: float = 0.10

@@ -84,8 +84,9 @@ SHORTLIST = 64
 
 BY_VALUE = 4
 """Scans: candidates refined for their value alone, besides the best by score (see
-:func:`_also_by_value`). 4 of them integrate 147 of 160 consecutive pairs of real scans right
-(132 with none, 151 with 12) at 1.3 times the time (12: 1.65 times)."""
+:func:`_also_by_value`). With the coarse step on every pick, 4 of them integrated 147 of 160
+consecutive pairs of real scans right (132 with none, 151 with 12) at 1.3 times the time (12:
+1.65 times)."""
 
 
 @dataclass(frozen=True)
@@ -394,6 +395,7 @@ def _integrate_small(
         scores = values[shortlist] - free.violation(cand[shortlist]) if free.active else values[shortlist]
         k = max(1, p.refine_candidates) if p.refine else 1
         picked = _pick_distinct(cand[shortlist], scores, k)
+        by_score = len(picked)
         if p.refine and free.active:
             picked += _also_by_value(cand[shortlist], values[shortlist], picked, BY_VALUE)
         finals = [
@@ -402,8 +404,9 @@ def _integrate_small(
                 float(values[shortlist[j]]),
                 float(scores[j]),
                 int(labels[shortlist[j]]),
+                coarse=n >= by_score,
             )
-            for j in picked
+            for n, j in enumerate(picked)
         ]
         best, rivals, centre = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
@@ -504,7 +507,7 @@ def _choose(
     """
     if p.refine:
         # Two stages: a few steps for every pick, then to convergence for those still in the race.
-        finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse, coarse=not large) for c in finals]
+        finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse) for c in finals]
         top = max((c.score for c in finals), default=0.0)
         finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top else c for c in finals]
     best = finals[0] if finals else _Choice(Transform2D.identity(), 0.0, 0.0, 0)
@@ -589,6 +592,8 @@ class _Choice:
     value: float
     score: float
     label: int
+    coarse: bool = False
+    """Picked for its value alone (:func:`_also_by_value`): refined coarse first."""
 
 
 REFINE_FIRST_STEPS = 3
@@ -619,17 +624,17 @@ def _refined(
     p: IntegrationParams,
     steps: int,
     refuse: bool,
-    coarse: bool = False,
 ) -> _Choice:
-    """``c`` refined by least squares, if that raises its score: first coarse, then fine
-    (``refine_coarse_factor``). With noisy walls the candidates an angle match gives near the right
-    transformation are a few tenths of a metre or a few degrees off, beyond the pairs the
-    tolerance matches, and would stay there (edmonton's first 30 consecutive scan pairs: 25
-    integrated right, 22 without the coarse step). The first stage only, and scans and small maps
-    only (``coarse``): between large maps the grid score already ranks by walls within 10 cm, and
-    a coarse pass there made the merge of 8 local maps up to twice as slow."""
+    """``c`` refined by least squares, if that raises its score; first coarse
+    (``refine_coarse_factor``) if it was picked for its value alone (``c.coarse``). With noisy
+    walls the candidates an angle match gives near the right transformation are a few tenths of a
+    metre or a few degrees off, beyond the pairs the tolerance matches, and would stay there
+    (edmonton's first 30 consecutive scan pairs: 24 integrated right, 22 without the coarse step).
+    Not the picks by score: a coarse step on every pick cost the simulated warehouse's r1 an epoch
+    (a lane's scans slid towards a rack-off rival), and on large maps it made the merge of 8 local
+    maps up to twice as slow."""
     t = c.transform
-    if coarse and p.refine_coarse_factor > 1:
+    if c.coarse and p.refine_coarse_factor > 1:
         wide = replace(p, point_distance_tolerance=p.refine_coarse_factor * p.point_distance_tolerance)
         t = refine_transform(prep, t, wide, iterations=steps)
     t = refine_transform(prep, t, p, iterations=steps)

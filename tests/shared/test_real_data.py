@@ -74,9 +74,9 @@ def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path) -> N
     # neighbours' chord, median). At the paper's kappa its walls come out as short segments whose
     # directions are off by a degree or two, so the candidates the angle matches give near the
     # right transformation are a few tenths of a metre off. There they put walls in the other
-    # scan's seen free space (so they are refined too, not only the best scores), and the
-    # refinement reaches more of them with its coarse step: 25 of these 30 pairs are integrated
-    # right, 22 without the coarse step, 18 with neither.
+    # scan's seen free space (so the best by value are refined too, not only the best by score),
+    # and the refinement reaches more of them with a coarse step: 24 of these 30 pairs are
+    # integrated right, 22 without the coarse step, 18 with neither.
     scans = list(read_carmen(datasets / "corrected" / "edmonton-corrected.log.gz"))[:31]
     fixed = ExtractionParams(kappa_noise_factor=0.0)
     maps = [SegmentMap(extract_segments(s, fixed), ordered=True, oriented=True) for s in scans]
