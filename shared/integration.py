@@ -631,8 +631,8 @@ def _refined(
     metre or a few degrees off, beyond the pairs the tolerance matches, and would stay there
     (edmonton's first 30 consecutive scan pairs: 24 integrated right, 22 without the coarse step).
     Not the picks by score: a coarse step on every pick cost the simulated warehouse's r1 an epoch
-    (a lane's scans slid towards a rack-off rival), and on large maps it made the merge of 8 local
-    maps up to twice as slow."""
+    (3 instead of 2; not traced), and on large maps it made the merge of 8 local maps up to twice
+    as slow."""
     t = c.transform
     if c.coarse and p.refine_coarse_factor > 1:
         wide = replace(p, point_distance_tolerance=p.refine_coarse_factor * p.point_distance_tolerance)
