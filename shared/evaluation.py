@@ -149,27 +149,25 @@ def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
     margin = params.segment_distance_threshold * params.point_distance_tolerance
     ua = a[:, 2:4] - a[:, 0:2]
     na = np.column_stack([-ua[:, 1], ua[:, 0]]) / np.hypot(ua[:, 0], ua[:, 1])[:, None]
-    # a's ends and unit normals as (1, na, 1) columns, b's as (c, 1, nb) rows: plain broadcast
-    # arithmetic over (c, na, nb), about twice as fast as einsum over the same views.
-    ax1, ay1, ax2, ay2 = (a[None, :, j, None] for j in range(4))
-    nax, nay = na[None, :, 0, None], na[None, :, 1, None]
+    ca = np.einsum("ij,ij->i", na, a[:, 0:2])[None, :, None]
     ub = b[:, 2:4] - b[:, 0:2]
     nb0 = np.column_stack([-ub[:, 1], ub[:, 0]]) / np.hypot(ub[:, 0], ub[:, 1])[:, None]
     step = max(1, CHUNK_ENTRIES // (len(a) * len(b)))
     for c0 in range(0, len(t), step):
         tc = t[c0 : c0 + step]
         bt = _transform(b, tc)  # (c, nb, 4)
-        bx1, by1, bx2, by2 = (bt[:, None, :, j] for j in range(4))
         cos, sin = np.cos(tc[:, 2])[:, None], np.sin(tc[:, 2])[:, None]
-        nbx = (cos * nb0[None, :, 0] - sin * nb0[None, :, 1])[:, None, :]
-        nby = (sin * nb0[None, :, 0] + cos * nb0[None, :, 1])[:, None, :]
-        # Signed distances of b's ends from a's lines and of a's ends from b's lines: (c, na, nb).
-        db1 = (bx1 - ax1) * nax + (by1 - ay1) * nay
-        db2 = (bx2 - ax1) * nax + (by2 - ay1) * nay
-        b_crosses_a = ((db1 < -margin) & (db2 > margin)) | ((db1 > margin) & (db2 < -margin))
-        da1 = (ax1 - bx1) * nbx + (ay1 - by1) * nby
-        da2 = (ax2 - bx1) * nbx + (ay2 - by1) * nby
-        a_crosses_b = ((da1 < -margin) & (da2 > margin)) | ((da1 > margin) & (da2 < -margin))
+        nb = np.stack([cos * nb0[:, 0] - sin * nb0[:, 1], sin * nb0[:, 0] + cos * nb0[:, 1]], axis=1)  # (c, 2, nb)
+        cb = (nb[:, 0, :] * bt[:, :, 0] + nb[:, 1, :] * bt[:, :, 1])[:, None, :]
+        # Signed distances (c, na, nb) of b's ends from a's lines and of a's ends from b's lines,
+        # each a normal dotted with a point minus the line's offset: as matrix products, about
+        # twice as fast as broadcasting the coordinates one by one.
+        db1 = np.matmul(na, bt[:, :, 0:2].transpose(0, 2, 1)) - ca
+        db2 = np.matmul(na, bt[:, :, 2:4].transpose(0, 2, 1)) - ca
+        b_crosses_a = (np.minimum(db1, db2) < -margin) & (np.maximum(db1, db2) > margin)
+        da1 = np.matmul(a[:, 0:2], nb) - cb
+        da2 = np.matmul(a[:, 2:4], nb) - cb
+        a_crosses_b = (np.minimum(da1, da2) < -margin) & (np.maximum(da1, da2) > margin)
         out[c0 : c0 + step] = (b_crosses_a & a_crosses_b).any(axis=(1, 2))
     return out
 
