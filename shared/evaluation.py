@@ -291,20 +291,33 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
     if len(prep.s1) * len(prep.s2) <= DENSE_PAIRS:
-        i, k = (a.ravel() for a in np.indices((len(prep.s1), len(prep.s2))))
+        i, k, dphi = _dense_pairs(prep)
     else:
         i, k = _tree_pairs(prep, mid2, d_max)
+        dphi = prep.phi1[i] - prep.phi2[k]
+    rot = np.mod(dphi - theta + prep.period / 2, prep.period) - prep.period / 2
+    parallel = np.flatnonzero(np.abs(rot) <= PAIR_ANGLE_LIMIT)
+    i, k = i[parallel], k[parallel]
     dx = prep.mid1[i, 0] - mid2[k, 0]
     dy = prep.mid1[i, 1] - mid2[k, 1]
     reach = prep.half1[i] + prep.half2[k] + d_max
-    rot = np.mod(prep.phi1[i] - prep.phi2[k] - theta + prep.period / 2, prep.period) - prep.period / 2
-    near = (dx * dx + dy * dy <= reach * reach) & (np.abs(rot) <= PAIR_ANGLE_LIMIT)
+    near = dx * dx + dy * dy <= reach * reach
     i, k = i[near], k[near]
     mv = matching_value(
         prep.s1[i], bt[k], params.point_distance_tolerance, params.segment_distance_threshold, params.penalization_base
     )
     keep = mv > 0
     return i[keep].astype(np.int64), k[keep].astype(np.int64), mv[keep]
+
+
+def _dense_pairs(prep: PreparedPairs) -> tuple[IntArray, IntArray, Array]:
+    """All pairs (i, k) row by row and their orientation differences, built once per S1 x S2."""
+    dense = prep.cache.get("dense")
+    if dense is None:
+        i, k = (a.ravel() for a in np.indices((len(prep.s1), len(prep.s2))))
+        dense = (i, k, prep.phi1[i] - prep.phi2[k])
+        prep.cache["dense"] = dense
+    return dense  # type: ignore[return-value]
 
 
 PIECE = 1.0
