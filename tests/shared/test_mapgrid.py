@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import multiprocessing
 
 import numpy as np
 from fleetmap.shared import mapgrid
@@ -69,6 +70,34 @@ def test_ranking_scores_are_whole_samples_and_do_not_depend_on_how_candidates_ar
     for points_per_chunk in (7 * len(samples.points), 50 * len(samples.points) + 3):
         monkeypatch.setattr(mapgrid, "CHUNK", points_per_chunk)
         assert np.array_equal(mapgrid._ranking_lookups(a, samples, t), scores)
+
+
+def _forked_scores(args: tuple[object, object, np.ndarray]) -> np.ndarray:
+    a, b, t = args
+    return ranking_scores(a, b, t)  # type: ignore[arg-type]
+
+
+def test_both_directions_side_by_side_give_the_same_scores_and_a_forked_worker_gets_them_too(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # Many candidates: the two directions of a grid score run on two threads. The scores must be
+    # the serial ones to the bit, and a worker forked after the parent's thread pool started
+    # (the merge benchmark's pool) must score too, not wait forever on a thread it does not have.
+    a = _index(WALLS)
+    b = _index(Transform2D(0.4, 0.2, 0.3).apply(WALLS))
+    rng = np.random.default_rng(3)
+    n = 2 * mapgrid.PARALLEL_FROM
+    t = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-math.pi, math.pi, n)])
+    parallel = ranking_scores(a, b, t)
+    parallel_parts = grid_scores(a, b, t)
+    monkeypatch.setattr(mapgrid, "PARALLEL_FROM", 10 * n)
+    assert np.array_equal(parallel, ranking_scores(a, b, t))
+    for got, serial in zip(parallel_parts, grid_scores(a, b, t), strict=True):
+        assert np.array_equal(got, serial)
+    monkeypatch.undo()
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        forked = pool.map_async(_forked_scores, [(a, b, t)]).get(timeout=60)[0]
+    assert np.array_equal(forked, parallel)
 
 
 def test_only_long_walls_in_seen_free_space_count_as_solid() -> None:
