@@ -59,10 +59,19 @@ class World:
     def inside(self, points: Array) -> Array:
         """Whether each point ``(..., 2)`` is inside the building and outside every obstacle."""
         p = np.asarray(points, dtype=np.float64)
-        ok = in_polygon(p, self.outline)
-        for solid in self.solids:
-            ok &= ~in_polygon(p, solid)
-        return ok
+        edges, starts = self._polygon_edges
+        inside = _crossings(p, edges, starts) % 2 == 1  # (..., 1 + solids): the outline's, then each solid's
+        return np.asarray(inside[..., 0] & ~inside[..., 1:].any(axis=-1))
+
+    @functools.cached_property
+    def _polygon_edges(self) -> tuple[Array, Array]:
+        """The edges ``(e, 4)`` of the outline and of every solid, polygon after polygon, and where
+        each polygon's begin: a warehouse's racks are tens of solids, and a point is checked against
+        all of them at once."""
+        polygons = (self.outline, *self.solids)
+        edges = np.vstack([np.hstack([poly, np.roll(poly, -1, axis=0)]) for poly in polygons])
+        starts = np.cumsum([0, *(len(poly) for poly in polygons[:-1])])
+        return edges, starts
 
     def clearance(self, points: Array) -> Array:
         """Distance from each point ``(m, 2)`` to the nearest wall."""
@@ -78,14 +87,20 @@ class World:
 
 def in_polygon(points: Array, polygon: Array) -> Array:
     """Even-odd rule: whether each point ``(..., 2)`` is inside the closed ``(k, 2)`` polygon."""
-    p = np.asarray(points, dtype=np.float64)
+    edges = np.hstack([polygon, np.roll(polygon, -1, axis=0)])
+    return np.asarray(_crossings(np.asarray(points, dtype=np.float64), edges, np.zeros(1, np.int64))[..., 0] % 2 == 1)
+
+
+def _crossings(p: Array, edges: Array, starts: Array) -> Array:
+    """For each point ``(..., 2)``: how many edges of each polygon (edges ``starts[j]`` up to the
+    next start) a ray from it towards +x crosses (the even-odd rule: odd is inside)."""
     x, y = p[..., 0, None], p[..., 1, None]
-    x1, y1 = polygon[:, 0], polygon[:, 1]
-    x2, y2 = np.roll(x1, -1), np.roll(y1, -1)
+    x1, y1, x2, y2 = edges[:, 0], edges[:, 1], edges[:, 2], edges[:, 3]
     straddles = (y1 > y) != (y2 > y)
     with np.errstate(divide="ignore", invalid="ignore"):
         x_cross = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
-    return np.asarray((straddles & (x < x_cross)).sum(axis=-1) % 2 == 1)
+    hits = (straddles & (x < x_cross)).astype(np.int64)
+    return np.add.reduceat(hits, starts, axis=-1)
 
 
 class FloorPlan:
