@@ -103,6 +103,7 @@ def test_a_bad_batch_line_exits_2_naming_line_and_id(tmp_path: Path) -> None:
     assert r.returncode == 2 and "pairs.jsonl:2 (id x7) map b" in r.stderr and "empty" in r.stderr
 
 
+@pytest.mark.slow  # starts processes: run in CI, deselected by -m "not slow"
 def test_parameter_overrides_and_config_files_are_checked(tmp_path: Path) -> None:
     a, b = str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json")
     r = fleetmap("integrate", a, b, "--heuristic", "histogram", "--point-distance-tolerance", "0.01", "--json")
@@ -141,6 +142,7 @@ def test_extract_reads_carmen_and_rejects_garbage(tmp_path: Path) -> None:
     assert r.returncode == 2 and "junk.clf" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # starts processes: run in CI, deselected by -m "not slow"
 def test_every_command_is_listed_and_a_misspelt_one_is_refused_naming_them() -> None:
     listed = build_parser().format_help()
     misspelt = fleetmap("integrat", "a.json")

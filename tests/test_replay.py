@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from fleetmap.merger.service import Merger, Outgoing
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import LocalMap
@@ -15,6 +16,7 @@ from tests.helpers import true_local_map
 KEYS = FleetKeys("t")
 
 
+@pytest.mark.slow  # a whole session merged, restored and replayed: run in CI, deselected by -m "not slow"
 def test_a_restarted_mergers_repeated_step_is_replayed_once(tmp_path: Path) -> None:
     # A live session: two robots' maps, a step; r2's map grows and r1 starts an epoch, a step
     # that stops short (pairs still queued); the merger is killed and restored from its state,

@@ -67,6 +67,7 @@ def test_the_agent_joins_publishes_everything_on_its_key_and_leaves(buses, scans
     assert summary.published == len(published)
 
 
+@pytest.mark.slow  # starts processes: run in CI, deselected by -m "not slow"
 def test_scans_are_paced_by_their_stamps_over_speed(buses, scans):
     bus, _ = buses
     now = [0.0]
@@ -107,6 +108,7 @@ def test_a_republish_request_gets_the_latest_map_of_every_epoch_and_bad_events_a
     assert (summary.republished, summary.bad_events) == (1, 2)
 
 
+@pytest.mark.slow  # starts processes: run in CI, deselected by -m "not slow"
 def test_a_relocalized_event_ends_the_lost_robots_every_scan_publishing(buses, kidnapped):
     bus, seen = buses
     stream = list(robot_stream(kidnapped, "r1"))

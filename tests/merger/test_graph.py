@@ -43,6 +43,7 @@ def test_every_map_is_placed_right_with_no_order_given() -> None:
     assert result.rejected == []  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow  # builds maps from many scans: run in CI, deselected by -m "not slow"
 def test_the_same_maps_in_any_order_give_the_same_poses() -> None:
     _, first = _solve(list(MAPS))
     for seed in range(3):
