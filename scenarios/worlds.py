@@ -85,15 +85,9 @@ class World:
         return self.walls[hit[0]] if len(hit) else None
 
 
-def in_polygon(points: Array, polygon: Array) -> Array:
-    """Even-odd rule: whether each point ``(..., 2)`` is inside the closed ``(k, 2)`` polygon."""
-    edges = np.hstack([polygon, np.roll(polygon, -1, axis=0)])
-    return np.asarray(_crossings(np.asarray(points, dtype=np.float64), edges, np.zeros(1, np.int64))[..., 0] % 2 == 1)
-
-
 def _crossings(p: Array, edges: Array, starts: Array) -> Array:
     """For each point ``(..., 2)``: how many edges of each polygon (edges ``starts[j]`` up to the
-    next start) a ray from it towards +x crosses (the even-odd rule: odd is inside)."""
+    next start) a ray from it towards +x crosses (the even-odd rule: odd is inside that polygon)."""
     x, y = p[..., 0, None], p[..., 1, None]
     x1, y1, x2, y2 = edges[:, 0], edges[:, 1], edges[:, 2], edges[:, 3]
     straddles = (y1 > y) != (y2 > y)

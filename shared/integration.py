@@ -253,16 +253,15 @@ def _pick_distinct(t: Array, values: Array, k: int) -> list[int]:
     for idx in np.argsort(-values, kind="stable"):
         if values[idx] <= 0 or len(picked) >= k:
             break
-        ok = True
-        for j in picked:
-            d = math.hypot(t[idx, 0] - t[j, 0], t[idx, 1] - t[j, 1])
-            a = abs(math.remainder(t[idx, 2] - t[j, 2], 2 * math.pi))
-            if d < DISTINCT_TRANSLATION and a < DISTINCT_ROTATION:
-                ok = False
-                break
-        if ok:
+        if not any(_alike(t, idx, j) for j in picked):
             picked.append(int(idx))
     return picked
+
+
+def _alike(t: Array, i: int, j: int) -> bool:
+    """Whether candidates i and j are within DISTINCT_TRANSLATION and DISTINCT_ROTATION of each other."""
+    d = math.hypot(t[i, 0] - t[j, 0], t[i, 1] - t[j, 1])
+    return d < DISTINCT_TRANSLATION and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < DISTINCT_ROTATION
 
 
 def _also_by_value(t: Array, values: Array, picked: list[int], k: int) -> list[int]:
@@ -278,11 +277,7 @@ def _also_by_value(t: Array, values: Array, picked: list[int], k: int) -> list[i
     for j in _pick_distinct(t, values, k + len(picked)):
         if len(kept) >= k:
             break
-        if all(
-            math.hypot(t[j, 0] - t[i, 0], t[j, 1] - t[i, 1]) >= DISTINCT_TRANSLATION
-            or abs(math.remainder(t[j, 2] - t[i, 2], 2 * math.pi)) >= DISTINCT_ROTATION
-            for i in picked
-        ):
+        if not any(_alike(t, j, i) for i in picked):
             kept.append(j)
     return kept
 
