@@ -77,6 +77,7 @@ def test_a_kidnap_starts_a_new_epoch_from_the_first_scan_after_it(kidnapped, kid
     assert world_error(old[-1], kidnapped_stream[0].pose, kidnapped.world.walls).mean < 0.03
 
 
+@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_a_lost_robot_publishes_its_new_local_map_after_every_scan(kidnapped, kidnapped_stream, kidnapped_run):
     # Epoch 0 every publish_every (3) placed scans, then closed at the kidnap with its 6 placed
     # scans; the epoch after the kidnap after each of its first lost_scans placed scans.

@@ -106,6 +106,7 @@ def test_an_injected_wrong_edge_is_rejected_by_the_cycle_check() -> None:
     _check_against_truth(result)
 
 
+@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_maps_with_no_overlap_end_up_in_separate_components() -> None:
     g, _ = _solve(list(MAPS))
     # Another building: an L-shaped room with a pillar, 200 m away.

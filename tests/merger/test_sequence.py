@@ -62,6 +62,11 @@ def test_integration_counts_are_the_papers() -> None:
     # The paper's pivot method (no second witness): n - 1; fleetmap's witness adds one per map after the second.
     assert pivot(SCANS, IntegrationParams(pivot_witnesses=False)).integrations == n - 1
     assert merged("pivot").integrations == 2 * (n - 1) - 1
+
+
+@pytest.mark.slow  # the tree method's run (see SLOWEST)
+def test_the_tree_methods_integration_count_is_the_papers() -> None:
+    n = len(SCANS)
     # The tree method needs n(n - 1)/2 when every integration is valid (its fallback adds calls otherwise).
     assert merged("tree-no-shortcut").integrations >= n * (n - 1) // 2
 

@@ -164,6 +164,7 @@ def test_a_lost_robot_is_unknown_until_relocalized(maps) -> None:  # type: ignor
     assert event.kind == "relocalized" and event.robot == "r1"
 
 
+@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_a_lost_robots_pair_goes_first_and_a_step_can_stop_short(tmp_path) -> None:  # type: ignore[no-untyped-def]
     small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
     merger = Merger(KEYS)
@@ -201,6 +202,7 @@ def test_a_lost_robots_pair_goes_first_and_a_step_can_stop_short(tmp_path) -> No
     assert [m.to_msgpack() for m in again] == [m.to_msgpack() for m in first + second]
 
 
+@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_a_lost_robots_promising_pairs_go_first_and_the_others_still_get_their_turn() -> None:
     small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2", "r3")}
     merger = Merger(KEYS)
@@ -230,6 +232,7 @@ def test_a_lost_robots_promising_pairs_go_first_and_the_others_still_get_their_t
     assert not merger.has_work
 
 
+@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_a_lost_robot_cannot_starve_the_others_across_steps() -> None:
     small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2", "r3")}
     merger = Merger(KEYS)
