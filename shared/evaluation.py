@@ -56,6 +56,9 @@ class PreparedPairs:
     half2: Array
     long1: IntArray
     long2: IntArray
+    reach1: Array
+    reach2: Array
+    """Each long segment's crossing margin (m, see :func:`refused`), in ``long1``/``long2`` order."""
     phi1: Array
     phi2: Array
     cache: dict[str, object] = field(default_factory=dict, compare=False, repr=False)
@@ -72,10 +75,15 @@ class PreparedPairs:
         return _blocks(self)[1]
 
 
-def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams) -> PreparedPairs:
+def prepare(
+    s1: Array, s2: Array, oriented: bool, params: IntegrationParams, scan1: bool = False, scan2: bool = False
+) -> PreparedPairs:
+    """The pairs of S1 x S2 prepared for many candidates; ``scan1``/``scan2``: the map is a scan
+    seen from its frame's origin (its far walls are fixed less well: :func:`refused`)."""
     period = 2 * math.pi if oriented else math.pi
     len1, len2 = lengths(s1), lengths(s2)
     refuse = params.segment_length_refuse
+    long1, long2 = np.flatnonzero(len1 > refuse), np.flatnonzero(len2 > refuse)
     return PreparedPairs(
         s1=s1,
         s2=s2,
@@ -85,8 +93,10 @@ def prepare(s1: Array, s2: Array, oriented: bool, params: IntegrationParams) -> 
         half1=0.5 * len1,
         mid2=0.5 * (s2[:, 0:2] + s2[:, 2:4]),
         half2=0.5 * len2,
-        long1=np.flatnonzero(len1 > refuse),
-        long2=np.flatnonzero(len2 > refuse),
+        long1=long1,
+        long2=long2,
+        reach1=_crossing_margins(s1[long1], scan1, params),
+        reach2=_crossing_margins(s2[long2], scan2, params),
         phi1=orientations(s1),
         phi2=orientations(s2),
     )
@@ -132,21 +142,36 @@ BLOCK_FRACTIONS = (0.5, 0.8, 1.0)
 """S1 is evaluated in blocks holding these fractions of its length, longest segments first."""
 
 
+def _crossing_margins(long: Array, scan: bool, params: IntegrationParams) -> Array:
+    """How far (m) each long segment must reach beyond another's line, and the other beyond its,
+    for the two to cross (:func:`refused`): SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE,
+    plus, for a scan's segment, ``refuse_range_slope`` times its midpoint's distance from the
+    sensor."""
+    margin = np.full(len(long), params.segment_distance_threshold * params.point_distance_tolerance)
+    if scan and params.refuse_range_slope > 0:
+        margin += params.refuse_range_slope * np.hypot(0.5 * (long[:, 0] + long[:, 2]), 0.5 * (long[:, 1] + long[:, 3]))
+    return margin
+
+
 def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
     """Algorithm 4, steps 6-8: candidates that make two long segments cross.
 
     Two segments longer than SEGMENTLENGTHREFUSE that cross each other cannot both be walls seen
-    by the two maps. "Cross" is read strictly: each segment reaches more than
-    SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE beyond the other's line on both sides.
-    Two walls meeting at a corner touch (and, with extraction noise, overshoot a little) without
-    crossing, and two nearly parallel segments that overlap are a match, not a contradiction.
+    by the two maps. "Cross" is read strictly: each segment reaches more than a margin beyond the
+    other's line on both sides, the mean of the two segments' margins (:func:`_crossing_margins`):
+    SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE, and more for a scan's far segments. Two
+    walls meeting at a corner touch (and, with extraction noise, overshoot a little) without
+    crossing, and two nearly parallel segments that overlap are a match, not a contradiction. A
+    far wall is fixed by a few sparse points, so its line may turn by tens of degrees: at the true
+    alignment of edmonton's consecutive scans, 1 m segments 14-19 m from the sensor crossed the
+    other scan's line of the same wall at 14-31 degrees, reaching 0.1-0.6 m beyond it.
     """
     out = np.zeros(len(t), dtype=bool)
     if len(prep.long1) == 0 or len(prep.long2) == 0 or len(t) == 0:
         return out
     a = prep.s1[prep.long1]
     b = prep.s2[prep.long2]
-    margin = params.segment_distance_threshold * params.point_distance_tolerance
+    margin = (0.5 * (prep.reach1[:, None] + prep.reach2[None, :]))[None]  # (1, na, nb)
     ua = a[:, 2:4] - a[:, 0:2]
     na = np.column_stack([-ua[:, 1], ua[:, 0]]) / np.hypot(ua[:, 0], ua[:, 1])[:, None]
     ca = np.einsum("ij,ij->i", na, a[:, 0:2])[None, :, None]

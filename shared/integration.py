@@ -375,7 +375,7 @@ def _integrate_small(
 ) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs]:
     """Scans and small maps: every candidate valued by Algorithm 4 (with the early stop)."""
     oriented = m1.oriented and m2.oriented
-    prep = prepare(m1.segments, m2.segments, oriented, p)
+    prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered)
     free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.free_space_margin)
     raw, labels = gather_candidates(m1, m2, h, p)
     cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
@@ -444,7 +444,7 @@ def _integrate_large(
     among thousands would trip, is not applied.
     """
     oriented = m1.oriented and m2.oriented
-    prep = prepare(m1.segments, m2.segments, oriented, p)
+    prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered)
     i1 = index1 if index1 is not None else index_for(m1, p)
     i2 = index2 if index2 is not None else index_for(m2, p)
     free = GridFreeSpace(i1, i2)

@@ -119,6 +119,27 @@ def test_a_transformation_that_crosses_two_long_walls_is_refused() -> None:
     assert transformation_values(prep, crossing, IntegrationParams())[0] == -1.0
 
 
+def wall_turned(x: float, degrees: float) -> np.ndarray:
+    """A 1 m wall across the x axis at ``x``, turned by ``degrees`` about its middle."""
+    h = 0.5 * np.array([math.sin(math.radians(degrees)), math.cos(math.radians(degrees))])
+    return np.array([[x + h[0], -h[1], x - h[0], h[1]]])
+
+
+@pytest.mark.parametrize("x, refuses", [(2.0, True), (17.0, False)])
+def test_a_far_wall_seen_turned_does_not_refuse_between_scans_but_a_near_one_does(x: float, refuses: bool) -> None:
+    # The same 1 m wall seen by two scans, its line turned 25 degrees in one (a far wall is fixed by a
+    # few sparse points): its ends lie 0.21 m either side of the other's line. Near the sensor that
+    # is a crossing; 17 m away it is within what the sparse points can tell (refuse_range_slope).
+    p = IntegrationParams()
+    at = np.zeros((1, 3))
+    scans = prepare(wall_turned(x, 0.0), wall_turned(x, 25.0), True, p, scan1=True, scan2=True)
+    maps = prepare(wall_turned(x, 0.0), wall_turned(x, 25.0), True, p)
+    assert refused(scans, at, p)[0] == refuses
+    assert refused(maps, at, p)[0]  # partial maps keep the paper's margin: no sensor to be far from
+    paper = replace(p, refuse_range_slope=0.0)
+    assert refused(prepare(wall_turned(x, 0.0), wall_turned(x, 25.0), True, paper, True, True), at, paper)[0]
+
+
 def test_early_stop_keeps_the_best_transformation() -> None:
     a, b, _truth = PAIRS[2]
     p = IntegrationParams()
