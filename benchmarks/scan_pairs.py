@@ -1,0 +1,114 @@
+"""Benchmark: consecutive scan pairs of the corrected logs, and why each fails (run on demand).
+
+A robot agent grows its local map scan by scan (the pivot method), so a local map breaks where
+consecutive scans do not integrate. This integrates every consecutive pair of each corrected log's
+first ``--max-scans`` scans with no prior (INTEGRATE, as the agent's first witness does) and sorts
+the pairs by outcome: right (within 0.3 m and 3 deg of the corrected poses) or wrong, valid or
+not, and for the invalid ones the parts of the validity rule they fail:
+
+- ``low``: value under ``valid_min_value`` or ``valid_min_fraction`` of the smaller scan;
+- ``viol``: more than ``valid_max_violation`` of the value in the other scan's seen free space;
+- ``amb``: a clearly different transformation scores more than ``valid_max_ambiguity`` of it.
+
+A right but ambiguous pair is what a motion prior can settle; a wrong valid one is what breaks a
+local map. ``-v`` lists every pair that is not right and valid, with its best rival (where it
+puts the scan, in the best's frame): along a corridor (a few tenths of a metre to a metre, no
+turn) or turned round (180 deg, metres along).
+
+    python benchmarks/scan_pairs.py
+    python benchmarks/scan_pairs.py --datasets edmonton --refuse-range-slope 0 -v
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import math
+import multiprocessing
+import sys
+
+from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
+from fleetmap.shared.integration import Integration, integrate
+from merge import DATASETS, load_pieces
+
+RIGHT_TRANSLATION = 0.3
+RIGHT_ROTATION = math.radians(3)
+
+
+def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
+    """The parts of the scan-pair validity rule (``is_valid``) that ``r`` fails."""
+    parts = []
+    if r.value < p.valid_min_value or r.value < p.valid_min_fraction * smaller:
+        parts.append("low")
+    if r.violation > p.valid_max_violation * r.value:
+        parts.append("viol")
+    if r.runner_up > p.valid_max_ambiguity * (r.value - r.violation):
+        parts.append("amb")
+    return "+".join(parts)
+
+
+def classify(job: tuple[str, int, FleetmapConfig]) -> tuple[str, collections.Counter[str], list[str]]:
+    name, max_scans, config = job
+    piece = load_pieces(name, 1, 0, max_scans, config)[0]
+    p = config.integration
+    counts: collections.Counter[str] = collections.Counter()
+    rows = []
+    for j in range(1, len(piece.scans)):
+        a, b = piece.scans[j - 1], piece.scans[j]
+        truth = piece.truth[j - 1].inverse().compose(piece.truth[j])
+        r = integrate(a, b, p)
+        dt, dr = r.transform.distance(truth)
+        right = dt <= RIGHT_TRANSLATION and dr <= RIGHT_ROTATION
+        key = ("right" if right else "wrong") + (
+            " valid" if r.valid else " invalid: " + failed_parts(r, min(a.total_length, b.total_length), p)
+        )
+        counts[key] += 1
+        if right and r.valid:
+            continue
+        rival = ""
+        if r.rivals:
+            d = r.transform.inverse().compose(r.rivals[0][0])
+            rival = f", best rival at ({d.x:.2f}, {d.y:.2f}) m turned {math.degrees(d.theta):.0f} deg"
+        rows.append(
+            f"{j - 1}->{j} {key}: {dt:.2f} m / {math.degrees(dr):.1f} deg off, value {r.value:.1f}, "
+            f"violation {r.violation:.1f}, runner-up {r.runner_up:.1f}{rival}"
+        )
+    return name, counts, rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--datasets", default="aces,csail,freiburg-101,infinite-corridor,edmonton,orebro")
+    ap.add_argument("--max-scans", type=int, default=200, help="scans used per dataset (after subsampling)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("-v", "--verbose", action="store_true", help="list the pairs that are not right and valid")
+    add_config_arguments(ap, ["extraction", "integration"])
+    args = ap.parse_args()
+    config = config_from_args(args)
+    names = args.datasets.split(",")
+    unknown = [n for n in names if n not in DATASETS]
+    if unknown:
+        ap.error(f"unknown datasets {', '.join(unknown)} (known: {', '.join(DATASETS)})")
+    with multiprocessing.Pool(args.workers) as pool:
+        results = pool.map(classify, [(n, args.max_scans, config) for n in names])
+    columns = {
+        "right, valid": lambda k: k == "right valid",
+        "right, only ambiguous": lambda k: k == "right invalid: amb",
+        "right, invalid otherwise": lambda k: k.startswith("right invalid") and k != "right invalid: amb",
+        "wrong, invalid": lambda k: k.startswith("wrong invalid"),
+        "wrong, valid": lambda k: k == "wrong valid",
+    }
+    print("| dataset | pairs | " + " | ".join(columns) + " |")
+    print("|---|---|" + "---|" * len(columns))
+    for name, counts, _ in results:
+        cells = [sum(n for k, n in counts.items() if test(k)) for test in columns.values()]
+        print(f"| {name} | {sum(counts.values())} | " + " | ".join(map(str, cells)) + " |")
+    if args.verbose:
+        for name, counts, rows in results:
+            print(f"\n{name}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))
+            print("\n".join("  " + r for r in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
