@@ -11,9 +11,13 @@ not, and for the invalid ones the parts of the validity rule they fail:
 - ``amb``: a clearly different transformation scores more than ``valid_max_ambiguity`` of it.
 
 A right but ambiguous pair is what a motion prior can settle; a wrong valid one is what breaks a
-local map. ``-v`` lists every pair that is not right and valid, with its best rival (where it
-puts the scan, in the best's frame): along a corridor (a few tenths of a metre to a metre, no
-turn) or turned round (180 deg, metres along).
+local map. The last column is the median, over the pairs that turn more than 10 degrees and are
+placed within 3 degrees, of the rotation error as a fraction of the rotation: a scan whose beam
+angles are stretched turns too far by the same fraction, so that a spin in place drifts.
+
+``-v`` lists every pair that is not right and valid, with its best rival (where it puts the scan,
+in the best's frame): along a corridor (a few tenths of a metre to a metre, no turn) or turned
+round (180 deg, metres along).
 
     python benchmarks/scan_pairs.py
     python benchmarks/scan_pairs.py --datasets edmonton --refuse-range-slope 0 -v
@@ -25,6 +29,7 @@ import argparse
 import collections
 import math
 import multiprocessing
+import statistics
 import sys
 
 from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
@@ -33,6 +38,7 @@ from merge import DATASETS, load_pieces
 
 RIGHT_TRANSLATION = 0.3
 RIGHT_ROTATION = math.radians(3)
+TURN = math.radians(10)
 
 
 def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
@@ -47,18 +53,23 @@ def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
     return "+".join(parts)
 
 
-def classify(job: tuple[str, int, FleetmapConfig]) -> tuple[str, collections.Counter[str], list[str]]:
+def classify(
+    job: tuple[str, int, FleetmapConfig],
+) -> tuple[str, collections.Counter[str], list[str], list[float]]:
     name, max_scans, config = job
     piece = load_pieces(name, 1, 0, max_scans, config)[0]
     p = config.integration
     counts: collections.Counter[str] = collections.Counter()
     rows = []
+    turn_errors = []
     for j in range(1, len(piece.scans)):
         a, b = piece.scans[j - 1], piece.scans[j]
         truth = piece.truth[j - 1].inverse().compose(piece.truth[j])
         r = integrate(a, b, p)
         dt, dr = r.transform.distance(truth)
         right = dt <= RIGHT_TRANSLATION and dr <= RIGHT_ROTATION
+        if abs(truth.theta) > TURN and dr <= RIGHT_ROTATION:
+            turn_errors.append(math.remainder(r.transform.theta - truth.theta, 2 * math.pi) / truth.theta)
         key = ("right" if right else "wrong") + (
             " valid" if r.valid else " invalid: " + failed_parts(r, min(a.total_length, b.total_length), p)
         )
@@ -73,7 +84,7 @@ def classify(job: tuple[str, int, FleetmapConfig]) -> tuple[str, collections.Cou
             f"{j - 1}->{j} {key}: {dt:.2f} m / {math.degrees(dr):.1f} deg off, value {r.value:.1f}, "
             f"violation {r.violation:.1f}, runner-up {r.runner_up:.1f}{rival}"
         )
-    return name, counts, rows
+    return name, counts, rows, turn_errors
 
 
 def main() -> int:
@@ -98,13 +109,14 @@ def main() -> int:
         "wrong, invalid": lambda k: k.startswith("wrong invalid"),
         "wrong, valid": lambda k: k == "wrong valid",
     }
-    print("| dataset | pairs | " + " | ".join(columns) + " |")
-    print("|---|---|" + "---|" * len(columns))
-    for name, counts, _ in results:
+    print("| dataset | pairs | " + " | ".join(columns) + " | rotation error on turns |")
+    print("|---|---|" + "---|" * len(columns) + "---|")
+    for name, counts, _, turns in results:
         cells = [sum(n for k, n in counts.items() if test(k)) for test in columns.values()]
-        print(f"| {name} | {sum(counts.values())} | " + " | ".join(map(str, cells)) + " |")
+        bias = f"{100 * statistics.median(turns):+.2f} % ({len(turns)})" if turns else "-"
+        print(f"| {name} | {sum(counts.values())} | " + " | ".join(map(str, cells)) + f" | {bias} |")
     if args.verbose:
-        for name, counts, rows in results:
+        for name, counts, rows, _ in results:
             print(f"\n{name}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))
             print("\n".join("  " + r for r in rows))
     return 0
