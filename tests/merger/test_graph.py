@@ -106,6 +106,41 @@ def test_an_injected_wrong_edge_is_rejected_by_the_cycle_check() -> None:
     _check_against_truth(result)
 
 
+@pytest.mark.parametrize("bridge_value, joined", [(8.5, False), (12.0, True)])
+def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_strong(
+    bridge_value: float, joined: bool
+) -> None:
+    # a-b and c-d are right merges; b-c is the only valid edge between the two groups, so no
+    # cycle can check it. Just over valid_min_map_value (8 m) it is rejected and listed (a wrong
+    # merge of local maps scores about that; an edmonton edge of 8.3 m put 5 maps 55 m off); at
+    # 12 m it joins them. Between scans (a scan pair scores a few metres) the rule does not apply.
+    true = {
+        "a": Transform2D(0, 0, 0),
+        "b": Transform2D(8, 0, 0.3),
+        "c": Transform2D(16, 2, -0.4),
+        "d": Transform2D(24, 1, 1.0),
+    }
+
+    def edge(x: str, y: str, value: float) -> Edge:
+        return Edge(x, y, true[x].inverse().compose(true[y]), value, True)
+
+    for ordered in (False, True):
+        g = MapGraph()
+        for key in "abcd":
+            g.put_map(key, SegmentMap(MAPS["m0"].segments, ordered=ordered, oriented=True))
+        for e in (edge("a", "b", 30.0), edge("c", "d", 30.0), edge("b", "c", bridge_value)):
+            g.add_edge(e)
+        result = g.solve(fuse_maps=False)
+        together = result.component_of("a") is result.component_of("d")
+        assert together == (joined or ordered), (ordered, [c.members for c in result.components])
+        weak = [(e.a, e.b) for e in result.rejected]
+        assert weak == ([] if together else [("b", "c")])
+        comp = result.component_of("d")
+        assert comp is not None
+        dt, dr = true[comp.anchor].compose(comp.poses["d"]).distance(true["d"])
+        assert dt < 1e-6 and dr < 1e-6
+
+
 @pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
 def test_maps_with_no_overlap_end_up_in_separate_components() -> None:
     g, _ = _solve(list(MAPS))

@@ -156,6 +156,20 @@ def test_carmen_reader_reads_flaser_rlaser_and_robotlaser1_plain_and_gz(tmp_path
         assert scans[0].odom == (1.0, 2.0, 0.5)
 
 
+@pytest.mark.parametrize("beams, step_degrees", [(181, 1.0), (180, 1.0), (361, 0.5), (360, 0.5)])
+def test_a_flaser_lines_beams_are_a_lasers_steps_from_the_right(
+    tmp_path: Path, beams: int, step_degrees: float
+) -> None:
+    # An odd count spans -90..+90 degrees inclusive; an even one cannot at a laser's step, and
+    # takes 180/n degree steps from -90 as GMapping does (it corrected the logs we score with:
+    # spread over both ends, a 180-beam scan turned 0.8 % too far against them).
+    path = tmp_path / "log.clf"
+    path.write_text(_flaser_line([2.0] * beams, 1.0))
+    (scan,) = read_carmen(path)
+    assert math.isclose(scan.angle_min, -math.pi / 2)
+    assert math.isclose(scan.angle_increment, math.radians(step_degrees))
+
+
 def test_carmen_reader_names_the_line_of_a_truncated_record(tmp_path: Path) -> None:
     path = tmp_path / "bad.clf"
     path.write_text(_flaser_line([2.0] * 181, 1.0) + "FLASER 181 1.0 2.0\n")

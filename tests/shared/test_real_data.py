@@ -101,7 +101,8 @@ def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consec
     # fixed by three or four points, crosses the other scan's line of the same wall at 14-31
     # degrees. The paper's SEGMENTLENGTHREFUSE discards the alignment for it, and the best left
     # puts metres of wall in the other scan's seen free space: invalid, 0.1-0.2 m off. Between
-    # scans, the crossing margin grows with the distance from the sensor (refuse_range_slope).
+    # scans, the crossing margin grows with the distance from the sensor (refuse_range_slope): right
+    # within 0.1 m and 0.5 degrees.
     scans = list(read_carmen(datasets / "corrected" / "edmonton-corrected.log.gz"))[:123]
     for j in (22, 117, 119, 122):
         a, b = (SegmentMap(extract_segments(s), ordered=True, oriented=True) for s in scans[j - 1 : j + 1])
@@ -109,6 +110,6 @@ def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consec
         step = Transform2D(*scans[j - 1].odom).inverse().compose(Transform2D(*scans[j].odom))
         r = integrate(a, b)
         dt, dr = r.transform.distance(step)
-        assert r.valid and dt <= 0.06 and math.degrees(dr) <= 0.3, (j, r.valid, dt, math.degrees(dr))
+        assert r.valid and dt <= 0.1 and math.degrees(dr) <= 0.5, (j, r.valid, dt, math.degrees(dr))
         paper = integrate(a, b, IntegrationParams(refuse_range_slope=0.0))
         assert not paper.valid and paper.violation > 0.2 * paper.value, (j, paper)
