@@ -327,6 +327,14 @@ class MapGraph:
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
         partial = {k for k, n in self._nodes.items() if not n.map.ordered}
         weak = _weak_bridges(valid, self.merge.bridge_min_value, partial)
+        for e in weak.values():
+            log.info(
+                "rejecting edge %s-%s: no cycle checks it and its value %.1f m is under %.1f m",
+                e.a,
+                e.b,
+                e.value,
+                self.merge.bridge_min_value,
+            )
         valid = [e for e in valid if e.key() not in weak]
         excluded: set[tuple[str, str]] = set()
         while True:
@@ -471,11 +479,9 @@ def _weak_bridges(valid: list[Edge], min_value: float, partial: set[str]) -> dic
         return {}
     g = nx.Graph()
     g.add_edges_from((e.a, e.b) for e in valid)
-    bridges = {tuple(sorted(b)) for b in nx.bridges(g)}
+    bridges = {(a, b) if a <= b else (b, a) for a, b in nx.bridges(g)}  # as Edge.key orders them
     return {
-        e.key(): e
-        for e in valid
-        if e.value < min_value and e.a in partial and e.b in partial and tuple(sorted((e.a, e.b))) in bridges
+        e.key(): e for e in valid if e.value < min_value and e.a in partial and e.b in partial and e.key() in bridges
     }
 
 
