@@ -19,6 +19,14 @@ angles are stretched turns too far by the same fraction, so that a spin in place
 in the best's frame): along a corridor (a few tenths of a metre to a metre, no turn) or turned
 round (180 deg, metres along).
 
+A second table sorts those pairs by their *alias*: the wrong best, or the right best's best rival
+(where geometry alone would put the scan instead). Turned round (over 170 deg from the step),
+otherwise turned (over ``ALIAS_ROTATION``), or at the step's own heading: beside the way
+(``ALIAS_ACROSS`` or more off it), short of the step (along the way, less far than the robot
+drove, standing still or backing included) or past it. Steps under ``MIN_STEP`` are counted
+apart. Along a corridor the value is nearly flat along the way, and on these logs the alias
+lies mostly short of the step.
+
     python benchmarks/scan_pairs.py
     python benchmarks/scan_pairs.py --datasets edmonton --refuse-range-slope 0 -v
 """
@@ -33,12 +41,33 @@ import statistics
 import sys
 
 from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
+from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.integration import Integration, integrate
 from merge import DATASETS, load_pieces
 
 RIGHT_TRANSLATION = 0.3
 RIGHT_ROTATION = math.radians(3)
 TURN = math.radians(10)
+ALIAS_ROTATION = math.radians(5)
+ALIAS_ACROSS = 0.5
+MIN_STEP = 0.5
+ALIAS_KINDS = ("short of the step", "past the step", "beside the way", "turned round", "turned", "short steps")
+
+
+def alias_kind(alias: Transform2D, truth: Transform2D) -> str:
+    """What an alias of the step ``truth`` is (see the module docstring)."""
+    turn = abs(math.remainder(alias.theta - truth.theta, 2 * math.pi))
+    if turn > math.radians(170):
+        return "turned round"
+    if turn > ALIAS_ROTATION:
+        return "turned"
+    step = math.hypot(truth.x, truth.y)
+    if step < MIN_STEP:
+        return "short steps"
+    ux, uy = truth.x / step, truth.y / step
+    if abs(uy * alias.x - ux * alias.y) >= ALIAS_ACROSS:
+        return "beside the way"
+    return "short of the step" if alias.x * ux + alias.y * uy < step else "past the step"
 
 
 def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
@@ -55,11 +84,12 @@ def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
 
 def classify(
     job: tuple[str, int, FleetmapConfig],
-) -> tuple[str, collections.Counter[str], list[str], list[float]]:
+) -> tuple[str, collections.Counter[str], list[str], list[float], collections.Counter[str]]:
     name, max_scans, config = job
     piece = load_pieces(name, 1, 0, max_scans, config)[0]
     p = config.integration
     counts: collections.Counter[str] = collections.Counter()
+    aliases: collections.Counter[str] = collections.Counter()
     rows = []
     turn_errors = []
     for j in range(1, len(piece.scans)):
@@ -76,15 +106,19 @@ def classify(
         counts[key] += 1
         if right and r.valid:
             continue
+        alias = r.transform if not right else r.rivals[0][0] if r.rivals else None
+        kind = "" if alias is None else alias_kind(alias, truth)
+        if kind:
+            aliases[kind] += 1
         rival = ""
         if r.rivals:
             d = r.transform.inverse().compose(r.rivals[0][0])
             rival = f", best rival at ({d.x:.2f}, {d.y:.2f}) m turned {math.degrees(d.theta):.0f} deg"
         rows.append(
             f"{j - 1}->{j} {key}: {dt:.2f} m / {math.degrees(dr):.1f} deg off, value {r.value:.1f}, "
-            f"violation {r.violation:.1f}, runner-up {r.runner_up:.1f}{rival}"
+            f"violation {r.violation:.1f}, runner-up {r.runner_up:.1f}{rival}" + (f"; alias {kind}" if kind else "")
         )
-    return name, counts, rows, turn_errors
+    return name, counts, rows, turn_errors, aliases
 
 
 def main() -> int:
@@ -111,12 +145,18 @@ def main() -> int:
     }
     print("| dataset | pairs | " + " | ".join(columns) + " | rotation error on turns |")
     print("|---|---|" + "---|" * len(columns) + "---|")
-    for name, counts, _, turns in results:
+    for name, counts, _, turns, _ in results:
         cells = [sum(n for k, n in counts.items() if test(k)) for test in columns.values()]
         bias = f"{100 * statistics.median(turns):+.2f} % ({len(turns)})" if turns else "-"
         print(f"| {name} | {sum(counts.values())} | " + " | ".join(map(str, cells)) + f" | {bias} |")
+    kinds = ALIAS_KINDS
+    print("\n| dataset | pairs not right and valid, by alias | " + " | ".join(kinds) + " |")
+    print("|---|---|" + "---|" * len(kinds))
+    for name, _, _, _, aliases in results:
+        cells = [str(aliases[k]) for k in kinds]
+        print(f"| {name} | {sum(aliases.values())} | " + " | ".join(cells) + " |")
     if args.verbose:
-        for name, counts, rows, _ in results:
+        for name, counts, rows, _, _ in results:
             print(f"\n{name}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))
             print("\n".join("  " + r for r in rows))
     return 0
