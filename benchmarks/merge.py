@@ -8,7 +8,8 @@ never given to the algorithms, but for the reference ``--local-maps truth``):
 2. build each piece's local maps from its scans alone, as a robot agent does: the pivot method
    (:class:`fleetmap.merger.sequence.PivotMapBuilder`, no poses; the scans' times give the motion
    bound and prior, as a live agent's stamps do), and a new local map (epoch) when
-   ``--kidnap-after`` scans in a row cannot be placed, starting from the first of them;
+   ``--kidnap-after`` scans in a row cannot be placed, or one cannot be placed on a local map of
+   one scan, starting from the first of them;
 3. shuffle the local maps and merge them with the map graph (``--order unknown``);
 4. compare each placed map's pose (its first scan's frame, in the anchor's frame) with the
    corrected poses.
@@ -159,7 +160,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
             pose = builder.add(piece.scans[j], clock(j)).pose
             if pose is None:
                 unplaced.append(j)
-                if len(unplaced) >= kidnap_after:
+                if len(unplaced) >= kidnap_after or len(placed) == 1:  # the agent's rule (ONE_SCAN_REASON)
                     rest = unplaced + queue[n + 1 :]
                     break
                 continue

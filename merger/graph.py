@@ -327,6 +327,23 @@ class MapGraph:
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
         partial = {k for k, n in self._nodes.items() if not n.map.ordered}
         weak = _weak_bridges(valid, self.merge.bridge_min_value, partial)
+        while True:
+            kept = [e for e in valid if e.key() not in weak]
+            excluded: set[tuple[str, str]] = set()
+            while True:
+                tree, loops, conflicts, adjacency = self._kruskal([e for e in kept if e.key() not in excluded])
+                culprit = _culprit(tree, loops, conflicts, adjacency)
+                if culprit is None:
+                    break
+                log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
+                excluded.add(culprit.key())
+            # A cycle checks an edge only if it agrees: one that only a rejected edge kept from being
+            # a bridge has nothing for it (two weak edges that join the same two groups of maps
+            # differently are a conflict, and the stronger must not win by default).
+            late = _weak_bridges(tree + loops, self.merge.bridge_min_value, partial)
+            if not late:
+                break
+            weak.update(late)
         for e in weak.values():
             log.info(
                 "rejecting edge %s-%s: no cycle checks it and its value %.1f m is under %.1f m",
@@ -335,16 +352,7 @@ class MapGraph:
                 e.value,
                 self.merge.bridge_min_value,
             )
-        valid = [e for e in valid if e.key() not in weak]
-        excluded: set[tuple[str, str]] = set()
-        while True:
-            tree, loops, conflicts, adjacency = self._kruskal([e for e in valid if e.key() not in excluded])
-            culprit = _culprit(tree, loops, conflicts, adjacency)
-            if culprit is None:
-                break
-            log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
-            excluded.add(culprit.key())
-        rejected = conflicts + [e for e in valid if e.key() in excluded] + list(weak.values())
+        rejected = conflicts + [e for e in kept if e.key() in excluded] + list(weak.values())
         components = self._components(tree, loops, fuse_maps)
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
         for c in components:

@@ -276,7 +276,11 @@ class MergeParams:
     8.3 m (rival 1.6 m, no violation) joined two groups of maps 55 m along a corridor, 5 maps
     wrong; with 10 m none is, and no right merge is lost (64 of 154 within either way). On the
     maps fused from the corrected poses it changes nothing (67 of 84 within with and without it,
-    before the beam-step change; ``benchmarks/merge.py``)."""
+    before the beam-step change; ``benchmarks/merge.py``). Only a cycle that agrees checks an
+    edge: one that is a bridge once the edges the cycle check rejected are gone is held to this
+    too (two weak edges joined the same two groups of edmonton maps, a 90-degree alias of 8.4 m
+    and the 55 m one of 8.3 m; the check rejected the weaker, and the other put 4 maps 28-48 m
+    off)."""
     carried_max_ambiguity: float = 0.25
     """An integration of a robot's new epoch with its previous one that puts the new epoch's first
     scan farther from the previous epoch's last placed scan than the robot drives in four of its

@@ -106,6 +106,21 @@ def test_an_injected_wrong_edge_is_rejected_by_the_cycle_check() -> None:
     _check_against_truth(result)
 
 
+CHAIN = {
+    "a": Transform2D(0, 0, 0),
+    "b": Transform2D(8, 0, 0.3),
+    "c": Transform2D(16, 2, -0.4),
+    "d": Transform2D(24, 1, 1.0),
+}
+"""Four partial maps' true poses: a-b and c-d overlap, and b-c or a-d may join the two pairs."""
+
+
+def chain_edge(x: str, y: str, value: float, off: Transform2D | None = None) -> Edge:
+    """A valid edge between two of :data:`CHAIN`'s maps: right, or ``off`` it."""
+    t = CHAIN[x].inverse().compose(CHAIN[y])
+    return Edge(x, y, t if off is None else off.compose(t), value, True)
+
+
 @pytest.mark.parametrize("bridge_value, joined", [(8.5, False), (12.0, True)])
 def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_strong(
     bridge_value: float, joined: bool
@@ -114,16 +129,7 @@ def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_
     # cycle can check it. Just over valid_min_map_value (8 m) it is rejected and listed (a wrong
     # merge of local maps scores about that; an edmonton edge of 8.3 m put 5 maps 55 m off); at
     # 12 m it joins them. Between scans (a scan pair scores a few metres) the rule does not apply.
-    true = {
-        "a": Transform2D(0, 0, 0),
-        "b": Transform2D(8, 0, 0.3),
-        "c": Transform2D(16, 2, -0.4),
-        "d": Transform2D(24, 1, 1.0),
-    }
-
-    def edge(x: str, y: str, value: float) -> Edge:
-        return Edge(x, y, true[x].inverse().compose(true[y]), value, True)
-
+    true, edge = CHAIN, chain_edge
     for ordered in (False, True):
         g = MapGraph()
         for key in "abcd":
@@ -139,6 +145,33 @@ def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_
         assert comp is not None
         dt, dr = true[comp.anchor].compose(comp.poses["d"]).distance(true["d"])
         assert dt < 1e-6 and dr < 1e-6
+
+
+def test_two_weak_edges_that_join_two_groups_differently_join_nothing() -> None:
+    # a-b and c-d are right merges. Two weak edges join the groups: b-c right, a-d turned 90
+    # degrees and 40 m off (as an edmonton 90-degree alias, 8.4 m, beside a 55 m corridor alias,
+    # 8.3 m). They make a cycle, so neither is a bridge of the valid edges, but the cycle
+    # disagrees and the weaker one is rejected: the stronger, wrong, one then joins the groups
+    # with nothing for it. Neither may: both are listed as rejected and the groups stay apart.
+    # With a strong right edge instead, it joins them and the wrong weak one is rejected.
+    true, edge = CHAIN, chain_edge
+    wrong = Transform2D(40.0, 3.0, math.pi / 2)
+    for right_value, joined in ((8.3, False), (12.0, True)):
+        g = MapGraph()
+        for key in "abcd":
+            g.put_map(key, SegmentMap(MAPS["m0"].segments, ordered=False, oriented=True))
+        for e in (edge("a", "b", 30.0), edge("c", "d", 30.0), edge("b", "c", right_value), edge("a", "d", 8.4, wrong)):
+            g.add_edge(e)
+        result = g.solve(fuse_maps=False)
+        together = result.component_of("a") is result.component_of("d")
+        assert together == joined, (right_value, [c.members for c in result.components])
+        rejected = sorted((e.a, e.b) for e in result.rejected)
+        assert rejected == ([("a", "d")] if joined else [("a", "d"), ("b", "c")]), rejected
+        for comp in result.components:
+            base = true[comp.anchor]
+            for key, pose in comp.poses.items():
+                dt, dr = base.compose(pose).distance(true[key])
+                assert dt < 1e-6 and dr < 1e-6, (key, dt, dr)
 
 
 @pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
