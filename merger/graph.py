@@ -326,7 +326,10 @@ class MapGraph:
         order = {k: n.order for k, n in self._nodes.items()}
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
         partial = {k for k, n in self._nodes.items() if not n.map.ordered}
-        weak = _weak_bridges(valid, self.merge.bridge_min_value, partial)
+        # A weak edge is rejected if it is a bridge of the edges the cycle check accepts: then no
+        # cycle checks it, or only one that disagrees (two weak edges that join the same two
+        # groups of maps differently are a conflict, and the stronger must not win by default).
+        weak: dict[tuple[str, str], Edge] = {}
         while True:
             kept = [e for e in valid if e.key() not in weak]
             excluded: set[tuple[str, str]] = set()
@@ -337,13 +340,10 @@ class MapGraph:
                     break
                 log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
                 excluded.add(culprit.key())
-            # A cycle checks an edge only if it agrees: one that only a rejected edge kept from being
-            # a bridge has nothing for it (two weak edges that join the same two groups of maps
-            # differently are a conflict, and the stronger must not win by default).
-            late = _weak_bridges(tree + loops, self.merge.bridge_min_value, partial)
-            if not late:
+            found = _weak_bridges(tree + loops, self.merge.bridge_min_value, partial)
+            if not found:
                 break
-            weak.update(late)
+            weak.update(found)
         for e in weak.values():
             log.info(
                 "rejecting edge %s-%s: no cycle checks it and its value %.1f m is under %.1f m",
@@ -477,19 +477,19 @@ class MapGraph:
         return merged.segments if merged is not None else np.zeros((0, 4))
 
 
-def _weak_bridges(valid: list[Edge], min_value: float, partial: set[str]) -> dict[tuple[str, str], Edge]:
-    """The valid edges between two partial maps (in ``partial``; not scans) that no cycle can
-    check (bridges of the graph of valid edges) and whose value is under ``min_value``, by key.
+def _weak_bridges(edges: list[Edge], min_value: float, partial: set[str]) -> dict[tuple[str, str], Edge]:
+    """The ``edges`` between two partial maps (in ``partial``; not scans) that no cycle of them
+    can check (bridges of their graph) and whose value is under ``min_value``, by key.
     The paper's right merges of local maps scored about 10 m and its wrong ones about 5 m; a
     wrong one just over ``valid_min_map_value`` that joins two groups of maps has nothing to
     contradict it (see ``MergeParams.bridge_min_value``)."""
-    if min_value <= 0 or not valid:
+    if min_value <= 0 or not edges:
         return {}
     g = nx.Graph()
-    g.add_edges_from((e.a, e.b) for e in valid)
+    g.add_edges_from((e.a, e.b) for e in edges)
     bridges = {(a, b) if a <= b else (b, a) for a, b in nx.bridges(g)}  # as Edge.key orders them
     return {
-        e.key(): e for e in valid if e.value < min_value and e.a in partial and e.b in partial and e.key() in bridges
+        e.key(): e for e in edges if e.value < min_value and e.a in partial and e.b in partial and e.key() in bridges
     }
 
 
