@@ -497,6 +497,7 @@ class Merger:
                 "versions": list(e.versions),
                 "violation": e.violation,
                 "solid_violation": e.solid_violation,
+                "information": None if e.information is None else list(e.information),
             }
             for e in self.graph.edges
         ]
@@ -555,6 +556,7 @@ class Merger:
                         (int(e["versions"][0]), int(e["versions"][1])),
                         float(e.get("violation", 0.0)),
                         None if e.get("solid_violation") is None else float(e["solid_violation"]),
+                        _information(e.get("information")),
                     )
                 )
             robots = {}
@@ -575,6 +577,16 @@ class Merger:
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)
+
+
+def _information(value: object) -> tuple[float, ...] | None:
+    """An edge's saved :attr:`~fleetmap.merger.graph.Edge.information` (None: not saved, as in a
+    state written before it was; the edge then weighs by its value alone)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 9:
+        raise ValueError(f"an edge's information must be a list of 9 numbers, got {value!r}")
+    return tuple(float(v) for v in value)
 
 
 def _alternate(a: list[tuple[str, str]], b: list[tuple[str, str]]) -> list[tuple[str, str]]:

@@ -281,6 +281,22 @@ class MergeParams:
     too (two weak edges joined the same two groups of edmonton maps, a 90-degree alias of 8.4 m
     and the 55 m one of 8.3 m; the check rejected the weaker, and the other put 4 maps 28-48 m
     off)."""
+    polish_edges: bool = True
+    """A valid integration of two partial maps has its transform fitted again by least squares on the
+    maps as they are (fleetmap): the maps are integrated simplified (``simplify_tolerance``), and
+    the integration keeps the transformation of highest value, which is flat near the truth. On the
+    local maps fused from edmonton's corrected poses, two edges were 0.41 and 0.28 degrees off that
+    way, and 0.02 and 0.00 once fitted on the unsimplified maps; chained, they put three maps
+    0.27-0.52 m off (``benchmarks/merge.py --local-maps truth``). A fit that moves the transform
+    farther than the witness tolerances (``witness_translation``, ``witness_rotation``) is not a
+    polish and is not kept."""
+    edge_information: bool = True
+    """When the poses of a component are refined together, an edge weighs as firmly as its walls fix
+    each direction of its transform (fleetmap; the normal matrix of its least-squares fit on the
+    two maps), not by its value alone in every direction: along a corridor the walls leave the
+    translation nearly free. On the maps fused from orebro's corrected poses, an edge 0.29 m off
+    along a corridor pulled a map 0.23 m off, against the cycle of three edges that placed it
+    right (``benchmarks/merge.py --local-maps truth``)."""
     carried_max_ambiguity: float = 0.25
     """An integration of a robot's new epoch with its previous one that puts the new epoch's first
     scan farther from the previous epoch's last placed scan than the robot drives in four of its

@@ -46,40 +46,56 @@ def pair_residuals(s1: Array, s2t: Array) -> tuple[Array, Array, Array, Array]:
     return points, normal, offset, weight
 
 
+def _normal_equations(prep: PreparedPairs, t: Array, params: IntegrationParams) -> tuple[Array, Array] | None:
+    """The Gauss-Newton normal matrix and gradient of the point-to-line residuals of the pairs
+    matched at ``t`` (parameters x, y and heading of S2 in S1's frame; the heading about S2's
+    origin); None with fewer than two parallel pairs."""
+    i, k, _mv = matched_pairs(prep, t, params)
+    if len(i) < 2:
+        return None
+    s2t = Transform2D.from_array(t).apply(prep.s2[k])
+    s1 = prep.s1[i]
+    u1 = s1[:, 2:4] - s1[:, 0:2]
+    u2 = s2t[:, 2:4] - s2t[:, 0:2]
+    cos = np.einsum("ij,ij->i", u1, u2) / (np.hypot(*u1.T) * np.hypot(*u2.T))
+    parallel = np.abs(cos) >= math.cos(params.angle_difference_tolerance)
+    if parallel.sum() < 2:
+        return None
+    points, normal, offset, weight = pair_residuals(s1[parallel], s2t[parallel])
+    q = points.reshape(-1, 2)
+    n = np.repeat(normal, 2, axis=0)
+    r = np.einsum("ij,ij->i", n, q) - np.repeat(offset, 2)
+    w = np.repeat(weight, 2) * 0.5 / (1.0 + (r / params.point_distance_tolerance) ** 2)
+    rel = q - t[:2]
+    jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]])
+    return jac.T @ (jac * w[:, None]), jac.T @ (w * r)
+
+
 def refine_transform(
     prep: PreparedPairs, start: Transform2D, params: IntegrationParams, iterations: int = 12
 ) -> Transform2D:
     """Gauss-Newton on point-to-line residuals of the matched pairs, re-associating each step."""
     t = start.as_array()
-    scale = params.point_distance_tolerance
-    cos_tol = math.cos(params.angle_difference_tolerance)
     for _ in range(iterations):
-        i, k, _mv = matched_pairs(prep, t, params)
-        if len(i) < 2:
+        system = _normal_equations(prep, t, params)
+        if system is None:
             break
-        s2t = Transform2D.from_array(t).apply(prep.s2[k])
-        s1 = prep.s1[i]
-        u1 = s1[:, 2:4] - s1[:, 0:2]
-        u2 = s2t[:, 2:4] - s2t[:, 0:2]
-        cos = np.einsum("ij,ij->i", u1, u2) / (np.hypot(*u1.T) * np.hypot(*u2.T))
-        parallel = np.abs(cos) >= cos_tol
-        if parallel.sum() < 2:
-            break
-        points, normal, offset, weight = pair_residuals(s1[parallel], s2t[parallel])
-        q = points.reshape(-1, 2)
-        n = np.repeat(normal, 2, axis=0)
-        r = np.einsum("ij,ij->i", n, q) - np.repeat(offset, 2)
-        w = np.repeat(weight, 2) * 0.5 / (1.0 + (r / scale) ** 2)
-        rel = q - t[:2]
-        jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]])
-        h = jac.T @ (jac * w[:, None])
-        g = jac.T @ (w * r)
+        h, g = system
         damping = 1e-6 * (np.trace(h) + 1e-12)
         step = -np.linalg.solve(h + damping * np.eye(3), g)
         t = t + step
         if abs(step[0]) + abs(step[1]) < 1e-6 and abs(step[2]) < 1e-7:
             break
     return Transform2D.from_array(t)
+
+
+def fit_information(prep: PreparedPairs, t: Transform2D, params: IntegrationParams) -> Array | None:
+    """How firmly the matched pairs fix ``t``: the 3x3 normal matrix of their point-to-line fit
+    (x and y of S2 in S1's frame, in m, and its heading about S2's origin, in rad; each pair
+    weighted by its overlap length), whose small eigenvalues are directions the walls leave free
+    (along a corridor with no ends). None where fewer than two parallel pairs match."""
+    system = _normal_equations(prep, t.as_array(), params)
+    return None if system is None else system[0]
 
 
 def refinement_kept(

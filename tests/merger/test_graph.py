@@ -319,3 +319,25 @@ def test_kept_edges_stand_until_integrated_again_and_only_the_repeated_version_m
     assert g.put_map("m1", moved, version=2, keep_edges=True)
     assert g.is_current("m0", "m1") and not g.is_current("m1", "m2")
     assert g.integrate_pair_once("m1", "m2") is not None and g.is_current("m1", "m2")
+
+
+def test_a_reversed_edge_says_as_firmly_where_the_other_map_lies() -> None:
+    # An edge's information weighs a change of its transform's parameters; the reversed edge's
+    # weighs the same change seen from the other map: a corridor left free one way is free the
+    # other way too, whatever the turn between the maps.
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        t = Transform2D(*rng.uniform(-10, 10, 2), rng.uniform(-math.pi, math.pi))
+        root = rng.normal(size=(3, 3))
+        info = root @ root.T
+        edge = Edge("a", "b", t, 20.0, True, information=tuple(info.ravel().tolist()))
+        back = edge.reversed()
+        assert back.information is not None and back.transform == t.inverse()
+        d = rng.normal(scale=1e-4, size=3)
+        moved = Transform2D.from_array(back.transform.as_array() + d).inverse()
+        change = moved.as_array() - t.as_array()
+        change[2] = math.remainder(change[2], 2 * math.pi)
+        want = change @ info @ change
+        got = d @ np.array(back.information).reshape(3, 3) @ d
+        assert got == pytest.approx(want, rel=1e-3)
+        assert back.reversed().information == pytest.approx(edge.information)

@@ -106,6 +106,7 @@ def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) ->
     # Every integration comes back as it was, the violation its validity limits included.
     assert {e.key(): e for e in restored.graph.edges} == {e.key(): e for e in original.graph.edges}
     assert any(e.solid_violation is not None for e in restored.graph.edges)
+    assert any(e.information is not None for e in restored.graph.edges)  # how firmly walls fix it
     a = _feed(original, [maps["r3"][0]])
     b = _feed(restored, [maps["r3"][0]])
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
