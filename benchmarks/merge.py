@@ -195,6 +195,8 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     result = graph.solve()
     seconds = time.perf_counter() - start
     good = wrong = unplaced = scans_good = wrong_content = 0
+    alone = side = off = 0  # why the maps not within are not: merged with nothing, right in a smaller
+    # component, or in the largest but 0.2-1 m (or 3-10 degrees) off
     content = {key: lm.content for key, _, lm in local}
     details = []
     largest = result.components[0]
@@ -203,6 +205,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         comp = result.component_of(key)
         if comp is None or len(comp.members) < 2:
             unplaced += 1
+            alone += 1
             details.append(f"{key}{tag}:-")
             continue
         # Placed in its component's anchor frame: a map merged wrongly into a smaller component
@@ -215,9 +218,12 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
             wrong += 1
         elif comp is not largest:
             unplaced += 1
+            side += 1
         elif dt <= 0.2 and math.degrees(dr) <= 3:
             good += 1
             scans_good += len(lm.scans)
+        else:
+            off += 1
         by_content = "" if abs(ct - dt) < 0.5 else f"(content {ct:.2f}m/{math.degrees(cr):.1f}d)"
         details.append(f"{key}{tag}{mark}:{dt:.2f}m/{math.degrees(dr):.1f}d{by_content}")
     if args.edges_json:
@@ -252,6 +258,9 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         "wrong": wrong,
         "wrong_content": wrong_content,
         "unplaced": unplaced,
+        "alone": alone,
+        "side": side,
+        "off": off,
         "broken": sum(lm.broken for lm in maps),
         "dropped": len(dropped),
         "dropped_scans": sum(len(lm.scans) for lm in dropped),
@@ -329,8 +338,13 @@ def main() -> int:
     wrong_content = sum(r["wrong_content"] for r in rows)
     scans = sum(r["scans"] for r in rows)
     scans_good = sum(r["scans_good"] for r in rows)
+    alone, side, off = (sum(r[k] for r in rows) for k in ("alone", "side", "off"))
     print(
-        f"\noverall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
+        f"\nnot within: {alone} merged with nothing, {side} in a smaller component (not wrong), "
+        f"{off} in the largest but 0.2-1 m or 3-10 deg off"
+    )
+    print(
+        f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
         f"{wrong} wrong ({wrong_content} by where their content lies); "
         f"{100 * scans_good / max(scans, 1):.1f} % of the scans in maps placed within"
     )
