@@ -80,10 +80,12 @@ class Edge:
     solid_violation: float | None = None
     """The part of it the validity rule limits (:attr:`Integration.solid_violation`; None: all)."""
     information: tuple[float, ...] | None = None
-    """How firmly the two maps' walls fix ``transform`` (a valid edge; row-major 3x3,
-    :func:`~fleetmap.shared.refine.fit_information`): along a corridor the walls leave the
-    translation free, and the poses refined together take it from the other edges. None: not
-    known (an invalid edge, or one from an older state file); such an edge weighs by value alone."""
+    """How firmly the two maps' walls fix ``transform`` (row-major 3x3,
+    :func:`~fleetmap.shared.refine.fit_information`; found for an edge integrated valid): along a
+    corridor the walls leave the translation free, and the poses refined together take it from
+    the other edges. None: not known (an edge integrated invalid, ``MergeParams.edge_information``
+    off, fewer than two parallel pairs matched, or an edge given without it); such an edge weighs
+    by value alone, the same in every direction."""
 
     @property
     def limited_violation(self) -> float:
@@ -284,6 +286,17 @@ class MapGraph:
         if edge.a not in self._nodes or edge.b not in self._nodes:
             raise BadInput(f"edge {edge.a}-{edge.b}", "names a map that is not in the graph")
         self._edges[edge.key()] = edge
+
+    def fit_edges(self) -> int:
+        """Fit every valid edge that carries no information (:meth:`_fitted`: restored from a state
+        written before edges carried it) as a new integration's would be; how many."""
+        if not self.merge.edge_information:
+            return 0
+        missing = [e for e in self._edges.values() if e.valid and e.information is None]
+        for e in missing:
+            transform, information = self._fitted(self._nodes[e.a], self._nodes[e.b], e.transform)
+            self._edges[e.key()] = replace(e, transform=transform, information=information)
+        return len(missing)
 
     def edge(self, a: str, b: str) -> Edge | None:
         e = self._edges.get((a, b) if a <= b else (b, a))
@@ -496,10 +509,12 @@ class MapGraph:
 
         An edge whose :attr:`Edge.information` is known weighs as its walls fix it: its residual is
         the difference of its transform and the poses' (x, y, heading) through the square root of
-        that information (over ``SIGMA_T`` squared), plus a hundredth of the value-weighted one below
-        so that no direction is entirely free. Along a corridor one edge may be 0.3 m off while
-        another, whose walls end there, is right: weighted by value alone, the wrong one pulled
-        an orebro map 0.23 m off. Another edge weighs by its value, the same in every direction."""
+        that information (over ``SIGMA_T`` squared) with a hundredth of the value-weighted weight
+        below added, so that no direction is entirely free. Along a corridor one edge may be 0.3 m
+        off while another, whose walls end there, is right: weighted by value alone, the wrong one
+        pulled an orebro map 0.23 m off. Another edge, or one whose information is not a weight
+        (not positive definite with that share added), weighs by its value, the same in every
+        direction. Only a component with a cycle is refined: a tree's poses are its edges'."""
         free = [k for k in poses if k != anchor]
         index = {k: i for i, k in enumerate(free)}
         x0 = np.concatenate([poses[k].as_array() for k in free])
@@ -511,7 +526,11 @@ class MapGraph:
                 roots.append(None)
                 continue
             iso = np.diag([1 / sigma_t**2, 1 / sigma_t**2, 1 / sigma_r**2]) * w**2 * ISOTROPIC_SHARE
-            roots.append(np.linalg.cholesky(np.array(e.information).reshape(3, 3) / sigma_t**2 + iso).T)
+            try:
+                root = np.linalg.cholesky(np.array(e.information).reshape(3, 3) / sigma_t**2 + iso).T
+            except np.linalg.LinAlgError:
+                root = None
+            roots.append(root if root is not None and np.isfinite(root).all() else None)
 
         def pose(x: Array, k: str) -> Transform2D:
             if k == anchor:

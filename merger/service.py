@@ -571,6 +571,10 @@ class Merger:
             last_out = [Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])]
         except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
+        # A state written before edges carried their information: fit them as this merger would.
+        refitted = graph.fit_edges() if any("information" not in e for e in state["edges"]) else 0
+        if refitted:
+            log.info("%s: fitted %d edges saved without how firmly their walls fix them", source, refitted)
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
         self._queue, self._urgent_run, self._last_out = pairs, urgent_run, last_out
@@ -581,12 +585,18 @@ class Merger:
 
 def _information(value: object) -> tuple[float, ...] | None:
     """An edge's saved :attr:`~fleetmap.merger.graph.Edge.information` (None: not saved, as in a
-    state written before it was; the edge then weighs by its value alone)."""
+    state written before edges carried it; the restored graph fits it, :meth:`MapGraph.fit_edges`)."""
     if value is None:
         return None
     if not isinstance(value, list) or len(value) != 9:
         raise ValueError(f"an edge's information must be a list of 9 numbers, got {value!r}")
-    return tuple(float(v) for v in value)
+    h = np.array([float(v) for v in value]).reshape(3, 3)
+    scale = float(np.abs(h).max()) if np.isfinite(h).all() else math.inf
+    if not math.isfinite(scale) or not np.allclose(h, h.T, rtol=1e-9, atol=1e-12 * scale):
+        raise ValueError(f"an edge's information must be a finite symmetric matrix, got {value!r}")
+    if np.linalg.eigvalsh(h).min() < -1e-9 * scale:
+        raise ValueError(f"an edge's information must be positive semidefinite, got {value!r}")
+    return tuple(h.ravel().tolist())
 
 
 def _alternate(a: list[tuple[str, str]], b: list[tuple[str, str]]) -> list[tuple[str, str]]:

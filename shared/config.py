@@ -282,14 +282,16 @@ class MergeParams:
     and the 55 m one of 8.3 m; the check rejected the weaker, and the other put 4 maps 28-48 m
     off)."""
     polish_edges: bool = True
-    """A valid integration of two partial maps has its transform fitted again by least squares on the
-    maps as they are (fleetmap): the maps are integrated simplified (``simplify_tolerance``), and
-    the integration keeps the transformation of highest value, which is flat near the truth. On the
-    local maps fused from edmonton's corrected poses, two edges were 0.41 and 0.28 degrees off that
-    way, and 0.02 and 0.00 once fitted on the unsimplified maps; chained, they put three maps
-    0.27-0.52 m off (``benchmarks/merge.py --local-maps truth``). A fit that moves the transform
-    farther than the witness tolerances (``witness_translation``, ``witness_rotation``) is not a
-    polish and is not kept."""
+    """A valid integration of two maps either of which was integrated simplified (a partial map) has
+    its transform fitted again by least squares on the maps as they are (fleetmap): partial maps
+    are integrated simplified (``simplify_tolerance``), and the integration keeps the
+    transformation of highest value, which is flat near the truth. On the local maps fused from
+    edmonton's corrected poses, two edges were 0.41 and 0.28 degrees off that way, and 0.02 and
+    0.00 once fitted on the unsimplified maps; chained, they put three maps 0.27-0.52 m off
+    (``benchmarks/merge.py --local-maps truth``). A fit that moves the transform farther than the
+    witness tolerances (``witness_translation``, ``witness_rotation``) is not a polish and is not
+    kept. The edge keeps the value, violation and rivals of the integration (the fit moves it a
+    few centimetres or tenths of a degree)."""
     edge_information: bool = True
     """When the poses of a component are refined together, an edge weighs as firmly as its walls fix
     each direction of its transform (fleetmap; the normal matrix of its least-squares fit on the

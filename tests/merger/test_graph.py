@@ -341,3 +341,20 @@ def test_a_reversed_edge_says_as_firmly_where_the_other_map_lies() -> None:
         got = d @ np.array(back.information).reshape(3, 3) @ d
         assert got == pytest.approx(want, rel=1e-3)
         assert back.reversed().information == pytest.approx(edge.information)
+
+
+def test_an_edge_whose_information_is_no_weight_weighs_by_its_value() -> None:
+    # Edges come from recordings and state files too: one whose information is NaN or not
+    # positive definite must not stop the merge (scipy refuses residuals that are not finite,
+    # numpy a Cholesky factor of such a matrix); it weighs by value, and the cycle's poses are right.
+    for bad in ((math.nan,) * 9, (1.0, 0.0, 0.0, 0.0, -1e9, 0.0, 0.0, 0.0, 1.0)):
+        g = MapGraph()
+        for key in "abc":
+            g.put_map(key, SegmentMap(MAPS["m0"].segments, ordered=False, oriented=True))
+        for e in (chain_edge("a", "b", 30.0), chain_edge("b", "c", 20.0), chain_edge("a", "c", 12.0)):
+            g.add_edge(replace(e, information=bad) if e.b == "c" and e.a == "b" else e)
+        comp = g.solve(fuse_maps=False).component_of("c")
+        assert comp is not None and len(comp.members) == 3
+        for key, pose in comp.poses.items():
+            dt, dr = CHAIN[comp.anchor].compose(pose).distance(CHAIN[key])
+            assert dt < 1e-6 and dr < 1e-6, (bad, key, dt, dr)

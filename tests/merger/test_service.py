@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from fleetmap.agents.agent import _wire_segments
@@ -13,6 +16,7 @@ from fleetmap.merger.service import Merger
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.config import FleetmapConfig, MergeParams
+from fleetmap.shared.errors import BadInput
 from fleetmap.shared.extraction import extract_segments
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
@@ -136,6 +140,55 @@ def test_a_merger_killed_before_publishing_its_step_says_where_it_stands_when_re
     other = Merger(FleetKeys("other"))
     other.load_state(tmp_path / "merger.state")
     assert other.where_it_stands() == []
+
+
+def _three_robots_stepped() -> Merger:
+    merger = Merger(KEYS)
+    for r in ("r1", "r2", "r3"):
+        m = true_local_map("department", r, 0, 8)[0]
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+    merger.step()
+    return merger
+
+
+def _rewrite_edges(path: Path, change: Callable[[dict], None]) -> None:
+    state = msgpack.unpackb(path.read_bytes(), raw=False)
+    for e in state["edges"]:
+        change(e)
+    path.write_bytes(msgpack.packb(state, use_bin_type=True))
+
+
+def test_a_state_saved_before_edges_carried_their_information_gets_it_on_load(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # A merger restored from a state written before edges carried how firmly their walls fix
+    # them fits each valid edge as it would a new integration, not weighing it by value alone
+    # beside the edges it integrates later.
+    original = _three_robots_stepped()
+    path = tmp_path / "merger.state"
+    original.save_state(path)
+    _rewrite_edges(path, lambda e: e.pop("information"))
+    restored = Merger(KEYS)
+    restored.load_state(path)
+    before = {e.key(): e for e in original.graph.edges}
+    valid = [e for e in restored.graph.edges if e.valid]
+    assert valid and all(e.information is not None for e in valid)
+    for e in valid:
+        dt, dr = e.transform.distance(before[e.key()].transform)
+        assert dt < 1e-6 and dr < 1e-6
+        assert e.information == pytest.approx(before[e.key()].information, rel=1e-3)
+
+
+@pytest.mark.parametrize(
+    "information", [[math.nan] * 9, [1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0], [1.0, 2.0, 0.0] + [0.0] * 6, [1.0]]
+)
+def test_a_state_whose_edge_information_is_no_weight_is_refused_by_name(tmp_path, information) -> None:  # type: ignore[no-untyped-def]
+    # NaN, a matrix that is not positive semidefinite or not symmetric, or not 3x3: the merger
+    # would fail at its first step on every step after; it refuses the file instead, naming it.
+    path = tmp_path / "merger.state"
+    _three_robots_stepped().save_state(path)
+    _rewrite_edges(path, lambda e: e.update(information=information))
+    with pytest.raises(BadInput, match="information") as caught:
+        Merger(KEYS).load_state(path)
+    assert str(path) in str(caught.value)
 
 
 def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
