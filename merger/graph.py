@@ -55,7 +55,7 @@ SIGMA_T = 0.05
 together (the scale of the least-squares residuals)."""
 
 ISOTROPIC_SHARE = 0.01
-"""The share of the value-weighted residual an edge with known information keeps (see
+"""The share of the value-based weight an edge with known information keeps (see
 :meth:`MapGraph._least_squares`)."""
 
 POLISH_ITERATIONS = 30
@@ -290,8 +290,6 @@ class MapGraph:
     def fit_edges(self) -> int:
         """Fit every valid edge that carries no information (:meth:`_fitted`: restored from a state
         written before edges carried it) as a new integration's would be; how many."""
-        if not self.merge.edge_information:
-            return 0
         missing = [e for e in self._edges.values() if e.valid and e.information is None]
         for e in missing:
             transform, information = self._fitted(self._nodes[e.a], self._nodes[e.b], e.transform)
@@ -342,8 +340,11 @@ class MapGraph:
         (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
         tolerances."""
         p = self.integration
+        polish = self.merge.polish_edges and not (a.work is a.map and b.work is b.map)
+        if not (polish or self.merge.edge_information):
+            return t, None
         prep = prepare(a.map.segments, b.map.segments, a.map.oriented and b.map.oriented, p)
-        if self.merge.polish_edges and not (a.work is a.map and b.work is b.map):
+        if polish:
             fitted = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
             dt, dr = fitted.distance(t)
             if dt <= p.witness_translation and dr <= p.witness_rotation:

@@ -93,8 +93,8 @@ def fit_information(prep: PreparedPairs, t: Transform2D, params: IntegrationPara
     """How firmly the matched pairs fix ``t``: the 3x3 normal matrix of their point-to-line fit
     (x and y of S2 in S1's frame, in m, and its heading about S2's origin, in rad; each pair
     weighted by its overlap length and a Cauchy factor of its distance at ``t``), whose small
-    eigenvalues are directions the walls leave free
-    (along a corridor with no ends). None where fewer than two parallel pairs match."""
+    eigenvalues are directions the walls leave free (along a corridor with no ends). None where
+    fewer than two parallel pairs match."""
     system = _normal_equations(prep, t.as_array(), params)
     return None if system is None else system[0]
 

@@ -70,8 +70,9 @@ def test_an_edge_off_along_a_corridor_gives_way_to_the_edges_whose_walls_fix_tha
     # cycle 0-3-2-1 places it right. Weighted by value alone in every direction, the poses
     # refined together put maps 1 and 2 0.26 and 0.22 m off; weighted as their walls fix them,
     # every map lies within the benchmark's 0.2 m.
-    errors = _errors(_pieces(datasets, "orebro", [0, 1, 2, 3]), MergeParams())
+    pieces = _pieces(datasets, "orebro", [0, 1, 2, 3])
+    errors = _errors(pieces, MergeParams())
     for key, (dt, dr) in errors.items():
         assert dt <= 0.2 and dr <= 0.5, (key, errors)
-    by_value = _errors(_pieces(datasets, "orebro", [0, 1, 2, 3]), replace(MergeParams(), edge_information=False))
+    by_value = _errors(pieces, replace(MergeParams(), edge_information=False))
     assert max(dt for dt, _ in by_value.values()) > 0.2, by_value
