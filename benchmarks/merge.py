@@ -31,6 +31,16 @@ corrected poses put its content (:func:`content_frame`), not its first scan's.
     python benchmarks/merge.py --stamps index          # a scan a second, for logs without usable times
     python benchmarks/merge.py --local-maps truth      # the merge alone: each piece's one map fused
                                                        # from its scans at their corrected poses
+    python benchmarks/merge.py --datasets aces,csail --full-rate 2
+                                                       # every 2nd scan of the full-rate log in between
+
+``--full-rate N``: GMapping kept about a scan a metre in the corrected logs, so a piece's scans are a
+metre and seconds apart, where a robot's laser gives several a second. Where the full-rate log of
+the same tour is in ``../shared/data`` (aces; csail's is mit-csail), each corrected scan is found
+in it (same ranges) and every Nth scan the log holds between two corrected ones joins the piece.
+Only the corrected scans have a true pose: a map is then judged by the pose of its first
+corrected scan (the corrected pose, moved by where the map placed that scan), its size by its
+corrected scans, and the scan figures count the corrected scans.
 """
 
 from __future__ import annotations
@@ -53,7 +63,7 @@ from fleetmap.shared.config import FleetmapConfig, add_config_arguments, config_
 from fleetmap.shared.extraction import extract_segments
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.scans import RangeScan, read_carmen
 
 DATASETS = {
     # name: subsampling step (freiburg-079 is logged every 0.1 m; the others about every metre)
@@ -69,6 +79,12 @@ DATASETS = {
     "orebro": 1,
 }
 
+FULL_RATE = {
+    # name: the full-rate log of the same tour (``--full-rate``), under ../shared/data
+    "aces": "aces/aces.clf.gz",
+    "csail": "mit-csail/mit-csail.clf.gz",
+}
+
 
 def data_dir() -> Path:
     env = os.environ.get("FLEETMAP_DATA")
@@ -80,30 +96,52 @@ class Piece:
     scans: list[SegmentMap]
     stamps: list[float]
     """Each scan's time (s): the agent's motion bound and prior use it, as a live agent does."""
-    truth: list[Transform2D]
+    truth: list[Transform2D | None]
     """The corrected pose of each scan (given to no algorithm; ``--local-maps truth`` builds the
-    reference maps with it)."""
+    reference maps with it); None for a scan of the full-rate log between two corrected ones."""
 
 
-def load_pieces(name: str, k: int, overlap: int, max_scans: int, config: FleetmapConfig) -> list[Piece]:
+def load_pieces(
+    name: str, k: int, overlap: int, max_scans: int, config: FleetmapConfig, full_rate: int = 0
+) -> list[Piece]:
     scans = list(read_carmen(data_dir() / "corrected" / f"{name}-corrected.log.gz"))[:: DATASETS[name]][:max_scans]
-    maps = [SegmentMap(extract_segments(s, config.extraction), ordered=True, oriented=True) for s in scans]
+    raw = full_rate_positions(name, scans) if full_rate > 0 else None
     size = math.ceil(len(scans) / k)
     pieces = []
     for i in range(k):
         lo, hi = i * size, min(len(scans), (i + 1) * size + overlap)
-        keep = [j for j in range(lo, hi) if len(maps[j]) > 0]
+        sequence: list[tuple[RangeScan, Transform2D | None]] = []
+        for j in range(lo, hi):
+            pose = scans[j].odom
+            assert pose is not None  # corrected logs carry the SLAM pose on every laser line
+            sequence.append((scans[j], Transform2D(*pose)))
+            if raw is not None and j + 1 < hi:
+                log, at = raw
+                sequence.extend((log[n], None) for n in range(at[j] + full_rate, at[j + 1], full_rate))
+        maps = [SegmentMap(extract_segments(s, config.extraction), ordered=True, oriented=True) for s, _ in sequence]
+        keep = [n for n, m in enumerate(maps) if len(m) > 0]
         if keep:
-            poses = [scans[j].odom for j in keep]
-            assert all(p is not None for p in poses)  # corrected logs carry the SLAM pose on every laser line
             pieces.append(
-                Piece(
-                    [maps[j] for j in keep],
-                    [scans[j].stamp for j in keep],
-                    [Transform2D(*p) for p in poses if p is not None],
-                )
+                Piece([maps[n] for n in keep], [sequence[n][0].stamp for n in keep], [sequence[n][1] for n in keep])
             )
     return pieces
+
+
+def full_rate_positions(name: str, scans: list[RangeScan]) -> tuple[list[RangeScan], list[int]]:
+    """The full-rate log of ``name``'s tour, and where each corrected scan is in it (the first scan
+    from there on with the same ranges; the logs' clocks differ)."""
+    if name not in FULL_RATE:
+        raise SystemExit(f"--full-rate: no full-rate log of {name} (there is one of {', '.join(FULL_RATE)})")
+    log = list(read_carmen(data_dir() / FULL_RATE[name]))
+    ranges = np.array([s.ranges for s in log])
+    at: list[int] = []
+    for j, s in enumerate(scans):
+        start = at[-1] + 1 if at else 0
+        same = np.flatnonzero(np.abs(ranges[start:] - np.asarray(s.ranges)).max(axis=1) < 1e-6)
+        if len(same) == 0:
+            raise SystemExit(f"--full-rate: corrected scan {j} of {name} is not in {FULL_RATE[name]}")
+        at.append(start + int(same[0]))
+    return log, at
 
 
 @dataclass
@@ -115,15 +153,23 @@ class LocalMap:
     """Indices of the scans placed in it."""
     broken: bool
     """One of its scans is placed more than 1 m or 10 deg from where the corrected poses put it."""
-    content: Transform2D
+    content: Transform2D | None
     """Where its content lies: the frame that puts its placed scans nearest their corrected poses
     (the median over its scans of corrected pose times placed pose inverse). Its first scan's
-    corrected pose, unless that scan is placed apart from the rest (a broken map)."""
+    corrected pose, unless that scan is placed apart from the rest (a broken map). None: it
+    holds no corrected scan (``--full-rate``)."""
+    frame: Transform2D | None
+    """Where its frame is, by the corrected pose of its first corrected scan (moved by where it
+    placed that scan): its first scan's corrected pose, unless ``--full-rate``."""
+    corrected: int
+    """How many of its scans have a corrected pose (``len(scans)`` unless ``--full-rate``)."""
 
 
-def content_frame(placed: list[Transform2D], truth: list[Transform2D]) -> Transform2D:
+def content_frame(placed: list[Transform2D], truth: list[Transform2D]) -> Transform2D | None:
     """The median over the scans of ``truth[k] * placed[k]^-1`` (x, y and heading separately; the
-    headings as turns from the first scan's, so that none wraps)."""
+    headings as turns from the first scan's, so that none wraps); None without scans."""
+    if not placed:
+        return None
     frames = np.array([t.compose(p.inverse()).as_array() for p, t in zip(placed, truth, strict=True)])
     turn = float(np.median(np.remainder(frames[:, 2] - frames[0, 2] + math.pi, 2 * math.pi) - math.pi))
     x, y = (float(np.median(frames[:, k])) for k in (0, 1))
@@ -142,10 +188,12 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
     start = time.perf_counter()
     if local_maps == "truth":
         builder = PivotMapBuilder(config.integration)
+        truth = [t for t in piece.truth if t is not None]
+        assert len(truth) == len(piece.scans)  # main() refuses --full-rate with --local-maps truth
         for j, scan in enumerate(piece.scans):
-            builder.add_at(scan, piece.truth[0].inverse().compose(piece.truth[j]), clock(j))
+            builder.add_at(scan, truth[0].inverse().compose(truth[j]), clock(j))
         every = list(range(len(piece.scans)))
-        return [LocalMap(builder.map, 0, every, False, piece.truth[0])], time.perf_counter() - start
+        return [LocalMap(builder.map, 0, every, False, truth[0], truth[0], len(every))], time.perf_counter() - start
     out: list[LocalMap] = []
     queue = list(range(len(piece.scans)))
     while queue:
@@ -153,6 +201,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
         first = queue[0]
         placed: list[int] = []
         poses: list[Transform2D] = []
+        frame: Transform2D | None = None
         broken = False
         unplaced: list[int] = []
         rest: list[int] = []
@@ -167,25 +216,33 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
             unplaced = []
             placed.append(j)
             poses.append(pose)
-            dt, dr = pose.distance(piece.truth[first].inverse().compose(piece.truth[j]))
+            truth = piece.truth[j]
+            if truth is None:
+                continue
+            if frame is None:
+                frame = truth.compose(pose.inverse())
+            dt, dr = pose.distance(frame.inverse().compose(truth))
             broken |= dt > 1.0 or math.degrees(dr) > 10
-        content = content_frame(poses, [piece.truth[j] for j in placed])
-        out.append(LocalMap(builder.map, first, placed, broken, content))
+        known = [(p, t) for p, j in zip(poses, placed, strict=True) if (t := piece.truth[j]) is not None]
+        content = content_frame([p for p, _ in known], [t for _, t in known])
+        out.append(LocalMap(builder.map, first, placed, broken, content, frame, len(known)))
         queue = rest
     return out, time.perf_counter() - start
 
 
 def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, pool: multiprocessing.pool.Pool) -> dict:
-    pieces = load_pieces(name, k, args.overlap, args.max_scans, config)
+    pieces = load_pieces(name, k, args.overlap, args.max_scans, config, args.full_rate)
     built = pool.map(build_local_maps, [(p, config, args.kidnap_after, args.stamps, args.local_maps) for p in pieces])
     local = [
         (f"{name}/{i}.{e}", i, lm)
         for i, (maps, _) in enumerate(built)
         for e, lm in enumerate(maps)
-        if len(lm.scans) >= args.min_scans
+        if lm.corrected >= args.min_scans
     ]
-    dropped = [lm for maps, _ in built for lm in maps if len(lm.scans) < args.min_scans]
-    truth = {key: pieces[i].truth[lm.first] for key, i, lm in local}
+    dropped = [lm for maps, _ in built for lm in maps if lm.corrected < args.min_scans]
+    # A map of at least one corrected scan has a frame and a content frame.
+    truth = {key: lm.frame for key, _, lm in local if lm.frame is not None}
+    content = {key: lm.content for key, _, lm in local if lm.content is not None}
     order = list(range(len(local)))
     random.Random(args.shuffle_seed).shuffle(order)
     graph = MapGraph(config.integration, config.merge, anchor="largest")
@@ -197,7 +254,6 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     good = wrong = unplaced = scans_good = wrong_content = 0
     alone = side = off = 0  # why the maps not within are not: merged with nothing, right in a smaller
     # component, or in the largest but 0.2-1 m (or 3-10 degrees) off
-    content = {key: lm.content for key, _, lm in local}
     details = []
     largest = result.components[0]
     for key, _, lm in local:
@@ -221,7 +277,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
             side += 1
         elif dt <= 0.2 and math.degrees(dr) <= 3:
             good += 1
-            scans_good += len(lm.scans)
+            scans_good += lm.corrected
         else:
             off += 1
         by_content = "" if abs(ct - dt) < 0.5 else f"(content {ct:.2f}m/{math.degrees(cr):.1f}d)"
@@ -263,13 +319,13 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         "off": off,
         "broken": sum(lm.broken for lm in maps),
         "dropped": len(dropped),
-        "dropped_scans": sum(len(lm.scans) for lm in dropped),
+        "dropped_scans": sum(lm.corrected for lm in dropped),
         "merge_s": seconds,
         "build_s": sum(b[1] for b in built),
         "segments": f"{min(segs)}-{max(segs)}",
-        "scans_placed": sum(len(lm.scans) for lm in maps) + sum(len(lm.scans) for lm in dropped),
+        "scans_placed": sum(lm.corrected for lm in maps) + sum(lm.corrected for lm in dropped),
         "scans_good": scans_good,
-        "scans": sum(len(p.scans) for p in pieces),
+        "scans": sum(t is not None for p in pieces for t in p.truth),
         "rejected": len(result.rejected),
         "details": " ".join(details),
     }
@@ -299,9 +355,20 @@ def main() -> int:
         "its scans at their corrected poses (a reference: how the merge does on right local maps)",
     )
     ap.add_argument("--min-scans", type=int, default=5, help="local maps of fewer scans are not merged")
+    ap.add_argument(
+        "--full-rate",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also every Nth scan of the full-rate log between two corrected ones (aces, csail; see above)",
+    )
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
     args = ap.parse_args()
+    if args.full_rate < 0:
+        ap.error(f"--full-rate must be 0 (off) or a positive step, got {args.full_rate}")
+    if args.full_rate and args.local_maps == "truth":
+        ap.error("--full-rate's scans between the corrected ones have no true pose: not with --local-maps truth")
     config = config_from_args(args)
     args.edges_rows = []
     rows = []
