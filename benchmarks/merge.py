@@ -252,7 +252,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     result = graph.solve()
     seconds = time.perf_counter() - start
     good = wrong = unplaced = scans_good = wrong_content = 0
-    alone = side = off = 0  # why the maps not within are not: merged with nothing, right in a smaller
+    alone = side = side_within = off = 0  # why the maps not within are not: merged with nothing, right in a smaller
     # component, or in the largest but 0.2-1 m (or 3-10 degrees) off
     details = []
     largest = result.components[0]
@@ -275,6 +275,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         elif comp is not largest:
             unplaced += 1
             side += 1
+            side_within += dt <= 0.2 and math.degrees(dr) <= 3
         elif dt <= 0.2 and math.degrees(dr) <= 3:
             good += 1
             scans_good += lm.corrected
@@ -316,6 +317,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         "unplaced": unplaced,
         "alone": alone,
         "side": side,
+        "side_within": side_within,
         "off": off,
         "broken": sum(lm.broken for lm in maps),
         "dropped": len(dropped),
@@ -405,10 +407,10 @@ def main() -> int:
     wrong_content = sum(r["wrong_content"] for r in rows)
     scans = sum(r["scans"] for r in rows)
     scans_good = sum(r["scans_good"] for r in rows)
-    alone, side, off = (sum(r[k] for r in rows) for k in ("alone", "side", "off"))
+    alone, side, side_within, off = (sum(r[k] for r in rows) for k in ("alone", "side", "side_within", "off"))
     print(
-        f"\nnot within: {alone} merged with nothing, {side} in a smaller component (not wrong), "
-        f"{off} in the largest but 0.2-1 m or 3-10 deg off"
+        f"\nnot within: {alone} merged with nothing, {side} in a smaller component (not wrong; {side_within} of "
+        f"them within its anchor's frame), {off} in the largest but 0.2-1 m or 3-10 deg off"
     )
     print(
         f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
