@@ -147,10 +147,8 @@ def full_rate_positions(name: str, scans: list[RangeScan]) -> tuple[list[RangeSc
 @dataclass
 class LocalMap:
     map: SegmentMap
-    first: int
-    """Index (in its piece) of its first scan, whose frame is the map's."""
     scans: list[int]
-    """Indices of the scans placed in it."""
+    """Indices (in its piece) of the scans placed in it; the first one's frame is the map's."""
     broken: bool
     """One of its scans is placed more than 1 m or 10 deg from where the corrected poses put it."""
     content: Transform2D | None
@@ -189,16 +187,16 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
     if local_maps == "truth":
         builder = PivotMapBuilder(config.integration)
         truth = [t for t in piece.truth if t is not None]
-        assert len(truth) == len(piece.scans)  # main() refuses --full-rate with --local-maps truth
+        if len(truth) < len(piece.scans):
+            raise ValueError("--local-maps truth needs every scan's corrected pose (not with --full-rate)")
         for j, scan in enumerate(piece.scans):
             builder.add_at(scan, truth[0].inverse().compose(truth[j]), clock(j))
         every = list(range(len(piece.scans)))
-        return [LocalMap(builder.map, 0, every, False, truth[0], truth[0], len(every))], time.perf_counter() - start
+        return [LocalMap(builder.map, every, False, truth[0], truth[0], len(every))], time.perf_counter() - start
     out: list[LocalMap] = []
     queue = list(range(len(piece.scans)))
     while queue:
         builder = PivotMapBuilder(config.integration)
-        first = queue[0]
         placed: list[int] = []
         poses: list[Transform2D] = []
         frame: Transform2D | None = None
@@ -225,7 +223,7 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
             broken |= dt > 1.0 or math.degrees(dr) > 10
         known = [(p, t) for p, j in zip(poses, placed, strict=True) if (t := piece.truth[j]) is not None]
         content = content_frame([p for p, _ in known], [t for _, t in known])
-        out.append(LocalMap(builder.map, first, placed, broken, content, frame, len(known)))
+        out.append(LocalMap(builder.map, placed, broken, content, frame, len(known)))
         queue = rest
     return out, time.perf_counter() - start
 
@@ -252,8 +250,10 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     result = graph.solve()
     seconds = time.perf_counter() - start
     good = wrong = unplaced = scans_good = wrong_content = 0
-    alone = side = side_within = off = 0  # why the maps not within are not: merged with nothing, right in a smaller
-    # component, or in the largest but 0.2-1 m (or 3-10 degrees) off
+    # Why the maps not within are not: merged with nothing, right in a smaller component (and of
+    # those, how many lie within their anchor's frame), or in the largest but 0.2-1 m (or 3-10
+    # degrees) off.
+    alone = side = side_within = off = 0
     details = []
     largest = result.components[0]
     for key, _, lm in local:
@@ -362,7 +362,7 @@ def main() -> int:
         type=int,
         default=0,
         metavar="N",
-        help="also every Nth scan of the full-rate log between two corrected ones (aces, csail; see above)",
+        help=f"also every Nth scan of the full-rate log between two corrected ones ({', '.join(FULL_RATE)}; see above)",
     )
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
