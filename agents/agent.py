@@ -1,288 +1,241 @@
-"""The robot agent's logic: scans in, bus messages out (no network, no clock).
+"""The robot agent's logic: scans (and odometry) in, bus messages out (no network, no clock).
 
-For every scan the agent extracts segments (paper III-D) and grows its local map online with the
-pivot method (paper IV-C, Algorithm 6; :class:`~fleetmap.merger.sequence.PivotMapBuilder`): each
-scan is integrated with the previous placed one, its transform composed with that scan's pose, and
-the scan fused into the map, whose frame is the first scan's laser frame.
+Two front ends, chosen by ``[tracking] front_end``:
 
-A robot that knows nothing of where it is cannot tell a kidnap from any other change of view but
-by geometry: when ``kidnap_after`` scans in a row cannot be placed (no valid integration with the
-previous scan nor with the local map), the agent closes the local map and starts a new *epoch*
-whose frame is the first of those scans; the others are integrated into it. A scan is placed
-only where the robot can have gone since its last placed scan (``max_speed`` times the time
-between their stamps): a look-alike corridor 9 m away matches well, but a robot carried off in
-half a second did not drive there; nor, while it drives on straight, farther along its way than
-it can brake or speed up (``max_acceleration``). Where a scan matches two places almost equally
-(a hallway one door further, or turned round), or matches better one rack back of where it
-validly matches as the robot drove, the robot's own recent motion decides (the builder's motion
-prior, ``motion_prior_radius``; see :class:`~fleetmap.merger.sequence.PivotMapBuilder`). One
-unplaced scan
-followed by a placed one (a person walking by the laser) changes nothing, but for an epoch's
-second scan: a local map of one scan is no context to place a later scan on across one that
-would not integrate with it (with no motion prior yet either), so the epoch starts again from the
-scan that did not integrate (:data:`ONE_SCAN_REASON`). Scans without any
-segment (nothing within reach) are not placed, and count neither for nor against a kidnap: they
-say nothing about where the robot is.
+- **tracking** (the default; :mod:`fleetmap.agents.tracker`): each scan is predicted from odometry
+  or constant velocity, registered on the active submap and checked; the robot's path is cut into
+  small overlapping submaps chained by links; a robot that loses its place (several scans in a
+  row that fit nowhere near where it can be) starts a new epoch.
+- **pivot** (:mod:`fleetmap.agents.pivot`): the paper's pivot method, one local map per epoch;
+  kept so the paper's results can be reproduced.
 
-What :meth:`Agent.add_scan` returns, in this order:
+What :meth:`Agent.add_scan` returns with the tracking front end, in this order:
 
-- on a new epoch: the closed epoch's final LocalMap (when it changed since its last version), the
-  FleetEvent ``epoch`` (the two again for each epoch of one scan that its next unplaced scan
-  started again), the Scan (in the new epoch) and the new epoch's LocalMap version 0;
-- otherwise: the Scan, then the LocalMap when it is due: the epoch's first scan, then every
-  ``publish_every`` placed scans; in an epoch after the first, after each of its first
-  ``lost_scans`` placed scans, until the merger says it has placed it (:meth:`Agent.relocalized`).
-
-Why every scan then: a robot that started a new epoch has lost its place (it was carried off, or
-its view changed completely), and it stays lost until the merger places the new local map against
-the others. Each scan can be the one that makes that map unambiguous (in a warehouse, the first
-view of a lane matches every lane; the forklift's bay, two scans later, matches one), and the
-merger integrates the latest version it has: publishing every third scan would hold back the
-decisive one by up to two scans.
+- the final version of every submap that the scan finished (a submap is published once more,
+  ``final``, when it is full, or when its epoch ends);
+- on a new epoch, the FleetEvent ``epoch`` (its first scan and why);
+- the Scan: its segments, raw ranges, the submap that placed it and its pose there (none if the
+  scan did not fit), and the odometry reading;
+- the active submaps that are due: a submap's first version at once, then every
+  ``publish_every`` inserted scans; in an epoch after the first, after every inserted scan until
+  the merger says it has placed the epoch (:meth:`Agent.relocalized`): the robot is lost until
+  then, and each scan can be the one that makes its map unambiguous.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
 
-from fleetmap.merger.sequence import PivotMapBuilder
+import numpy as np
+from fleetmap.agents.counts import AgentCounts
+from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
+from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.extraction import extract_segments
 from fleetmap.shared.geometry import Array, Transform2D, lengths
 from fleetmap.shared.keys import check_name
-from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH, SegmentMap
-from fleetmap.shared.mapgrid import viewpoints_of
-from fleetmap.shared.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan
+from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH
+from fleetmap.shared.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan, SubmapLink
 from fleetmap.shared.scans import RangeScan
 
 log = logging.getLogger(__name__)
 
-KIDNAP_REASON = "{n} consecutive scans did not integrate with the local map"
-"""The reason of an epoch started by the kidnap check (EpochLink.reason and the event's detail)."""
-
-ONE_SCAN_REASON = "a scan did not integrate with the local map's only scan"
-"""The reason of an epoch started because its previous one held a single scan when the next one did
-not integrate with it. In orebro's log, a scan ambiguous against the first (a corridor: a metre
-on, or standing still) was left out, and the next, integrated with the first across it, was placed
-as if the robot had not moved, 2.2 m short; every later scan followed it, so the local map stood
-2.4 m off its first scan, and merged wrongly by that scan's pose (``benchmarks/merge.py``: orebro
-K = 4 and 8, 2 maps wrong each; none with this rule)."""
-
-LOST_SCANS = 20
-"""An epoch after the first publishes its local map after each of its first this many placed scans
-(the robot is lost until the merger places that map; see the module docstring)."""
-
-
-@dataclass(frozen=True)
-class AgentCounts:
-    """What an agent has done so far."""
-
-    scans: int
-    placed: int
-    """Scans placed in their epoch's local map (each epoch's first scan included)."""
-    epochs: int
-    """Epochs started (0 until the first scan with segments)."""
-    local_maps: int
-    """LocalMap versions emitted (republished ones not counted)."""
-
-
-@dataclass(frozen=True)
-class _Unplaced:
-    index: int
-    stamp: float
-    map: SegmentMap
-
-
-class _Epoch:
-    """One local map of the robot being built: the pivot builder and what was last published of it."""
-
-    def __init__(self, number: int, config: FleetmapConfig, link: EpochLink | None) -> None:
-        self.number = number
-        self.link = link
-        self.builder = PivotMapBuilder(config.integration)
-        self.placed = 0
-        self.pose: Transform2D | None = None
-        self.version = -1
-        self.published_placed = 0
-        self.published_pose: Transform2D | None = None
-        self.latest: LocalMap | None = None
-        self.found = False
-        """The merger said it placed this epoch (relocalized the robot)."""
-
-    @property
-    def started(self) -> bool:
-        return self.placed > 0
-
-    @property
-    def changed(self) -> bool:
-        return self.placed != self.published_placed or self.pose != self.published_pose
-
-    def add(self, scan: SegmentMap, stamp: float) -> bool:
-        """Integrate one scan (Algorithm 6, steps 3-6) with its stamp (the motion bound and prior);
-        whether it was placed."""
-        step = self.builder.add(scan, stamp)
-        self.pose = step.pose
-        if step.pose is not None:
-            self.placed += 1
-        return step.pose is not None
+__all__ = ["LOST_SCANS", "Agent", "AgentCounts"]
 
 
 class Agent:
-    """One robot's local mapping: ``add_scan`` for each scan, ``finish`` at the end.
+    """One robot's front end: ``add_scan`` for each scan, ``finish`` at the end.
 
     Deterministic: the same scans (and calls of :meth:`relocalized`) give the same messages, byte
-    for byte.
+    for byte. ``odometry`` False ignores whatever odometry the scans come with.
     """
 
     def __init__(
         self,
         robot: str,
         config: FleetmapConfig | None = None,
-        publish_every: int = 3,
-        kidnap_after: int = 2,
+        *,
+        odometry: bool = True,
         lost_scans: int = LOST_SCANS,
-    ):
+    ) -> None:
         self.robot = check_name(robot, "robot")
-        for name, value in (("publish_every", publish_every), ("kidnap_after", kidnap_after)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise BadInput(name, f"must be a positive integer, got {value!r}")
+        self.config = config or FleetmapConfig()
+        t = self.config.tracking
+        for name, value in (("publish_every", t.publish_every), ("kidnap_after", t.kidnap_after)):
+            if value < 1:
+                raise BadInput(f"[tracking] {name}", f"must be a positive integer, got {value!r}")
         if isinstance(lost_scans, bool) or not isinstance(lost_scans, int) or lost_scans < 0:
             raise BadInput("lost_scans", f"must be a non-negative integer, got {lost_scans!r}")
-        self.config = config or FleetmapConfig()
-        self.publish_every = publish_every
-        self.kidnap_after = kidnap_after
-        self.lost_scans = lost_scans
-        self._epoch = _Epoch(0, self.config, None)
-        self._closed: list[LocalMap] = []
-        """The latest version of every closed epoch, in epoch order."""
-        self._unplaced: list[_Unplaced] = []
-        """The scans with segments that could not be placed since the last placed one."""
-        self._scans = 0
-        self._placed = 0
-        self._local_maps = 0
-        self._last_stamp = 0.0
+        self._front: PivotFrontEnd | TrackingFrontEnd
+        if t.front_end == "pivot":
+            self._front = PivotFrontEnd(robot, self.config, t.publish_every, t.kidnap_after, lost_scans)
+        else:
+            self._front = TrackingFrontEnd(robot, self.config, odometry, lost_scans)
 
     @property
     def epoch(self) -> int:
         """The current epoch (the one the next scan goes into)."""
-        return self._epoch.number
+        return self._front.epoch
 
     @property
     def epoch_pose(self) -> Transform2D | None:
-        """The robot's pose in its current epoch's local map after the last scan (None: unplaced)."""
-        return self._epoch.pose
+        """The robot's pose in its current epoch's frame after the last scan (None: unplaced)."""
+        return self._front.epoch_pose
 
     @property
     def counts(self) -> AgentCounts:
-        return AgentCounts(self._scans, self._placed, self.epoch + int(self._epoch.started), self._local_maps)
+        return self._front.counts
 
-    def add_scan(self, index: int, stamp: float, scan: RangeScan) -> list[Message]:
+    def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> list[Message]:
         """The messages to publish for one scan, in order (see the module docstring)."""
+        return self._front.add_scan(index, stamp, scan, odometry)
+
+    def relocalized(self, epoch: int) -> None:
+        """The merger placed this robot's ``epoch`` (its "relocalized" event)."""
+        self._front.relocalized(epoch)
+
+    def finish(self) -> list[Message]:
+        """The final version of every map still being built."""
+        return self._front.finish()
+
+    def republish(self) -> list[Message]:
+        """The latest version of every map so far, as it was published (for a merger that
+        (re)started and must lose nothing)."""
+        return self._front.republish()
+
+
+class TrackingFrontEnd:
+    """The tracking front end's messages (see the module docstring)."""
+
+    def __init__(self, robot: str, config: FleetmapConfig, odometry: bool, lost_scans: int) -> None:
+        self.robot = robot
+        self.config = config
+        self.use_odometry = odometry and config.tracking.odometry != "off"
+        self.lost_scans = lost_scans
+        self.tracker = Tracker(config, self.use_odometry)
+        self._latest: dict[tuple[int, int], LocalMap] = {}
+        """The latest message of every submap, by (epoch, submap), in publication order."""
+        self._found: set[int] = set()
+        self._scans = 0
+        self._placed = 0
+        self._local_maps = 0
+        self._stamp = 0.0
+
+    @property
+    def epoch(self) -> int:
+        return max(self.tracker.epoch, 0)
+
+    @property
+    def epoch_pose(self) -> Transform2D | None:
+        return self.tracker.epoch_pose
+
+    @property
+    def counts(self) -> AgentCounts:
+        return AgentCounts(self._scans, self._placed, self.tracker.epoch + 1, self._local_maps)
+
+    def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None) -> list[Message]:
         segments = extract_segments(scan, self.config.extraction)
-        scan_map = SegmentMap(segments, ordered=True, oriented=True)
-        ranges = LaserRanges.from_range_scan(scan)
         self._scans += 1
-        self._last_stamp = stamp
+        self._stamp = stamp
+        steps = self.tracker.add(index, stamp, scan, segments, odometry if self.use_odometry else None)
         out: list[Message] = []
-        current = self._epoch
-        if len(segments) == 0:
-            current.pose = None  # nothing in reach: the robot cannot say where it is
-        elif not current.started:
-            self._place(current, scan_map, stamp)  # the epoch's frame
-        elif self._place(current, scan_map, stamp):
-            self._unplaced.clear()
-        else:
-            self._unplaced.append(_Unplaced(index, stamp, scan_map))
-            if len(self._unplaced) >= self.kidnap_after:
-                out += self._new_epoch(stamp, KIDNAP_REASON.format(n=len(self._unplaced)))
-            elif current.placed == 1:
-                out += self._new_epoch(stamp, ONE_SCAN_REASON)
-        out.append(Scan(self.robot, self.epoch, index, stamp, segments, ranges))
-        current = self._epoch
-        lost = current.number > 0 and current.placed <= self.lost_scans and not current.found
-        every = 1 if lost else self.publish_every
-        due = current.version < 0 or current.placed - current.published_placed >= every
-        if current.started and due:
-            out.append(self._local_map(stamp))
+        for step in steps:
+            if step.new_epoch:
+                out += self._finals(stamp)
+                detail = {
+                    "epoch": step.epoch,
+                    "first_scan": step.first_scan,
+                    "previous_epoch": step.epoch - 1,
+                    "reason": KIDNAP_REASON.format(n=self.config.tracking.kidnap_after),
+                }
+                out.append(FleetEvent("epoch", self.robot, stamp, json.dumps(detail)))
+            self._placed += step.pose is not None
+        out += self._finals(stamp)
+        last = steps[-1]
+        ranges = LaserRanges.from_range_scan(scan)
+        kept = odometry if odometry is not None and np.isfinite(odometry.as_array()).all() else None
+        out.append(Scan(self.robot, last.epoch, index, stamp, _wire(segments), ranges, last.submap, last.pose, kept))
+        out += self._due(stamp)
         return out
 
     def relocalized(self, epoch: int) -> None:
-        """The merger placed this robot's ``epoch`` (its "relocalized" event): if that is the current
-        epoch, the robot is no longer lost, and its map goes back to every ``publish_every`` scans."""
-        if epoch == self._epoch.number:
-            self._epoch.found = True
+        self._found.add(epoch)
 
     def finish(self) -> list[Message]:
-        """The current epoch's final LocalMap, unless its latest version already says it all."""
-        if self._epoch.started and self._epoch.changed:
-            return [self._local_map(self._last_stamp)]
-        return []
-
-    def republish(self) -> list[Message]:
-        """The latest LocalMap of every epoch so far, as they were published (for a merger that
-        (re)started and must lose nothing)."""
-        latest = [] if self._epoch.latest is None else [self._epoch.latest]
-        return [*self._closed, *latest]
-
-    # --- internals ---
-
-    def _place(self, epoch: _Epoch, scan_map: SegmentMap, stamp: float) -> bool:
-        placed = epoch.add(scan_map, stamp)
-        self._placed += int(placed)
-        return placed
-
-    def _new_epoch(self, stamp: float, reason: str) -> list[Message]:
-        """Close the current epoch and start the next from the unplaced scans (the first is its
-        frame); again from a later one of them that does not integrate with the new epoch's only
-        scan (:data:`ONE_SCAN_REASON`)."""
-        out: list[Message] = []
-        seeds, self._unplaced = self._unplaced, []
-        while seeds:
-            old = self._epoch
-            old.pose = None  # the robot is no longer anywhere in the old local map
-            if old.changed:
-                out.append(self._local_map(stamp))
-            if old.latest is not None:
-                self._closed.append(old.latest)
-            new = _Epoch(old.number + 1, self.config, EpochLink(old.number, reason, transform=None))
-            self._epoch = new
-            detail = {"epoch": new.number, "first_scan": seeds[0].index, "previous_epoch": old.number, "reason": reason}
-            log.info("%s: epoch %d from scan %d (%s)", self.robot, new.number, seeds[0].index, reason)
-            out.append(FleetEvent("epoch", self.robot, stamp, json.dumps(detail)))
-            rest, seeds = seeds, []
-            for n, seed in enumerate(rest):  # the first one is placed: it is the new epoch's frame
-                if self._place(new, seed.map, seed.stamp):
-                    self._unplaced.clear()
-                elif new.placed == 1:
-                    seeds, self._unplaced, reason = rest[n:], [], ONE_SCAN_REASON
-                    break
-                else:
-                    self._unplaced.append(seed)
+        out = self._finals(self._stamp)
+        for submap in self.tracker.submaps():
+            submap.finished = True
+            out += self._message(submap, self._stamp, final=True)
         return out
 
-    def _local_map(self, stamp: float) -> LocalMap:
-        epoch = self._epoch
-        epoch.version += 1
-        built = epoch.builder.map
+    def republish(self) -> list[Message]:
+        return list(self._latest.values())
+
+    # -- internals ---------------------------------------------------------------------------
+    def _finals(self, stamp: float) -> list[Message]:
+        out: list[Message] = []
+        for submap in self.tracker.take_finished():
+            out += self._message(submap, stamp, final=True)
+        return out
+
+    def _due(self, stamp: float) -> list[Message]:
+        out: list[Message] = []
+        epoch = self.tracker.epoch
+        lost = epoch > 0 and epoch not in self._found
+        every = 1 if lost and self._published_count(epoch) < self.lost_scans else self.config.tracking.publish_every
+        for submap in self.tracker.submaps():
+            held = self._latest.get((epoch, submap.number))
+            if held is None or submap.inserted - held.scans >= every:
+                out += self._message(submap, stamp, final=False)
+        return out
+
+    def _published_count(self, epoch: int) -> int:
+        """Inserted scans published so far in ``epoch``'s first submap (the lost robot's map)."""
+        held = self._latest.get((epoch, 0))
+        return 0 if held is None else held.scans
+
+    def _message(self, submap: Submap, stamp: float, final: bool) -> list[Message]:
+        ep = submap.epoch
+        held = self._latest.get((ep, submap.number))
+        if held is not None and held.final:
+            return []
+        built = submap.segment_map()
+        segments = _wire(built.segments)
+        if len(segments) == 0:
+            return []
+        pose = None
+        if not final and ep == self.tracker.epoch:
+            epoch_pose = self.tracker.epoch_pose
+            pose = None if epoch_pose is None else submap.origin.inverse().compose(epoch_pose)
+        link = None
+        if submap.link_transform is not None and submap.link_covariance is not None:
+            link = SubmapLink(submap.number - 1, submap.link_transform, tuple(submap.link_covariance.ravel().tolist()))
+        previous = EpochLink(ep - 1, KIDNAP_REASON.format(n=self.config.tracking.kidnap_after)) if ep > 0 else None
+        placed = submap.placed
         message = LocalMap(
             self.robot,
-            epoch.number,
-            epoch.version,
+            ep,
+            0 if held is None else held.version + 1,
             stamp,
-            _wire_segments(built.segments),
-            epoch.placed,
-            epoch.pose,
-            epoch.link,
-            viewpoints_of(built),
+            segments,
+            submap.inserted,
+            pose,
+            previous,
+            submap.viewpoints(),
+            submap=submap.number,
+            final=final,
+            link=link,
+            scan_indices=np.array([s.index for s in placed], dtype=np.int64),
+            scan_stamps=np.array([s.stamp for s in placed], dtype=np.float64),
+            scan_poses=np.array([[s.pose.x, s.pose.y, s.pose.theta] for s in placed]).reshape(-1, 3),
         )
-        epoch.published_placed, epoch.published_pose, epoch.latest = epoch.placed, epoch.pose, message
+        self._latest[(ep, submap.number)] = message
         self._local_maps += 1
-        return message
+        return [message]
 
 
-def _wire_segments(segments: Array) -> Array:
-    """The map's segments as a message carries them: fusion may leave a degenerate one behind."""
+def _wire(segments: Array) -> Array:
+    """Segments as a message carries them: fusion or simplification may leave a degenerate one."""
     return segments[lengths(segments) >= MIN_SEGMENT_LENGTH]

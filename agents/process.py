@@ -173,7 +173,8 @@ def run_agent(
         if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
             log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))
         first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
-        for index, stamp, scan in source:
+        for item in source:
+            stamp = item.stamp
             if first is None:
                 first = (stamp, clock())
             elif speed > 0:
@@ -187,7 +188,7 @@ def run_agent(
                 break
             for epoch in requests.take_relocalized():
                 agent.relocalized(epoch)
-            publish(agent.add_scan(index, stamp, scan))
+            publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
         publish(agent.finish())
         answer_requests()
         bus.flush()

@@ -1,8 +1,21 @@
 """Where an agent's scans come from: a simulated robot, a CARMEN log, or a ROS 2 bag in MCAP.
 
-Every source yields :class:`SourceScan` ``(index, stamp, scan)`` in order; ``stamp`` is in
-seconds and paces a live agent. No pose ever leaves a source: the scenario's true poses and the
-poses written in a CARMEN log stay here, so the algorithms see the ranges alone.
+Every source yields :class:`SourceScan` ``(index, stamp, scan)`` in order, with the robot's
+odometry at the scan where it has some; ``stamp`` is in seconds and paces a live agent. No true
+pose ever leaves a source: the scenario's true poses and the corrected poses written in a CARMEN
+log stay here, so the algorithms see the ranges and the robot's own odometry alone (which tracks
+the robot's own scans, never relates two robots' maps).
+
+Odometry, per source (``has_odometry`` says whether there is any):
+
+- **CARMEN**: the ODOM lines, interpolated at the scan's stamp (by file order where the stamps do
+  not increase: logs whose times are rounded or missing); without ODOM lines, the odometry pose
+  written on the laser line (FLASER/RLASER odom_x, odom_y, odom_theta; ROBOTLASER1's laser pose).
+- **ROS 2 bag**: nav_msgs/Odometry on a topic (found by type, or named), else the tf transform
+  from the odometry frame to the robot's base (on /tf), interpolated at the scan's stamp; the
+  laser's mounting (base to laser, on /tf_static) is applied when the bag has it.
+- **Scenario**: the simulator's wheel odometry (:mod:`fleetmap.scenarios.odometry`): it drifts,
+  and it does not see a robot being carried.
 
 Problems with the input raise :class:`~fleetmap.shared.errors.BadInput` naming it: a missing or
 unreadable file, a bag without the topic, a robot the scenario does not have, or a source that
@@ -23,13 +36,20 @@ from fleetmap.scenarios.fleet import Scenario
 from fleetmap.scenarios.loader import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.scans import RangeScan, read_carmen
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.scans import OdometryReading, RangeScan, read_carmen, read_carmen_lines, read_carmen_odometry
 from mcap.exceptions import InvalidMagic, McapError
 from mcap.reader import McapReader, make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 LASER_SCAN_SCHEMAS = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
 """How a ROS 2 bag names the sensor_msgs/LaserScan schema (the first is what ros2 bag writes)."""
+ODOMETRY_SCHEMAS = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+TF_SCHEMAS = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
+ODOMETRY_FRAMES = ("odom",)
+"""The odometry frame a tf odometry is read from (REP 105)."""
+BASE_FRAMES = ("base_link", "base_footprint")
+"""The robot's base frames, in order of preference, when its odometry comes from tf (REP 105)."""
 
 
 @dataclass(frozen=True)
@@ -42,6 +62,9 @@ class SourceScan:
     stamp: float
     """Seconds: scenario time, or the time the log or bag gives."""
     scan: RangeScan
+    odometry: Transform2D | None = None
+    """The robot's odometry pose at the scan (the laser's, in the odometry's own frame: only its
+    change from scan to scan means anything); None where the source has none."""
 
     def __iter__(self) -> Iterator[Any]:
         return iter((self.index, self.stamp, self.scan))
@@ -51,12 +74,13 @@ class ScanSource(Protocol):
     """Scans in order; ``name`` says where they come from (for logs and summaries)."""
 
     name: str
+    has_odometry: bool
 
     def __iter__(self) -> Iterator[SourceScan]: ...
 
 
-def _checked(source: str, index: int, stamp: float, scan: RangeScan) -> SourceScan:
-    """The scan as an agent gets it: a valid stamp and beam geometry, and no pose."""
+def _checked(source: str, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> SourceScan:
+    """The scan as an agent gets it: a valid stamp and beam geometry, no pose but the odometry."""
     where = f"{source}: scan {index}"
     if not math.isfinite(stamp) or stamp < 0:
         raise BadInput(where, f"stamp {stamp} is not a finite non-negative number of seconds")
@@ -64,7 +88,7 @@ def _checked(source: str, index: int, stamp: float, scan: RangeScan) -> SourceSc
         raise BadInput(where, f"bad beam angles (angle_min {scan.angle_min}, increment {scan.angle_increment})")
     if not scan.range_max > 0:
         raise BadInput(where, f"range_max {scan.range_max} is not positive")
-    return SourceScan(index, stamp, replace(scan, stamp=stamp, odom=None))
+    return SourceScan(index, stamp, replace(scan, stamp=stamp, odom=None, odometry=None), odometry)
 
 
 def _existing_file(path: str | Path, what: str) -> Path:
@@ -88,11 +112,12 @@ class ScenarioSource:
             )
         self.robot = robot
         self.name = f"scenario {self.scenario.name}, robot {robot}"
+        self.has_odometry = self.scenario.odometry.enabled
 
     def __iter__(self) -> Iterator[SourceScan]:
         for simulated in robot_stream(self.scenario, self.robot):
             # simulated.pose is the ground truth: it stays here
-            yield _checked(self.name, simulated.index, simulated.stamp, simulated.scan)
+            yield _checked(self.name, simulated.index, simulated.stamp, simulated.scan, simulated.odometry)
 
 
 class CarmenSource:
@@ -122,15 +147,66 @@ class CarmenSource:
     def __iter__(self) -> Iterator[SourceScan]:
         total = 0
         yielded = 0
-        for index, scan in enumerate(read_carmen(self.path, self.range_max)):
+        track = OdometryTrack(read_carmen_odometry(self.path))
+        for index, (line, scan) in enumerate(read_carmen_lines(self.path, self.range_max)):
             total = index + 1
             if self.stop is not None and index >= self.stop:
                 break
             if index >= self.start and (index - self.start) % self.step == 0:
                 yielded += 1
-                yield _checked(str(self.path), index, scan.stamp, scan)
+                odometry = track.at(line, scan.stamp) if track else _pose(scan.odometry)
+                yield _checked(str(self.path), index, scan.stamp, scan, odometry)
         if not yielded:
             raise BadInput(str(self.path), f"no laser scan from index {self.start} on (the log has {total})")
+
+    @property
+    def has_odometry(self) -> bool:
+        """Whether the log has ODOM lines, or odometry on its laser lines (the first one's, read)."""
+        if read_carmen_odometry(self.path):
+            return True
+        first = next(iter(read_carmen(self.path, self.range_max)), None)
+        return first is not None and first.odometry is not None
+
+
+def _pose(value: tuple[float, float, float] | None) -> Transform2D | None:
+    return None if value is None else Transform2D(float(value[0]), float(value[1]), float(value[2]))
+
+
+class OdometryTrack:
+    """A robot's odometry readings, to read at a scan: interpolated at its stamp where the readings'
+    stamps increase and enclose it; otherwise the last reading before the scan's line in the file
+    (logs whose times are rounded or missing)."""
+
+    def __init__(self, readings: list[OdometryReading]) -> None:
+        self.readings = readings
+        self.mounting: Transform2D | None = None
+        """The laser's pose on the robot's base, where the odometry is the base's (ROS tf)."""
+        self.stamps = np.array([r.stamp for r in readings])
+        self.lines = np.array([r.line for r in readings])
+        self.by_time = (
+            len(readings) >= 2 and bool(np.all(np.diff(self.stamps) >= 0)) and self.stamps[-1] > self.stamps[0]
+        )
+
+    def __bool__(self) -> bool:
+        return bool(self.readings)
+
+    def at(self, line: int, stamp: float) -> Transform2D:
+        r = self.readings
+        if self.by_time and self.stamps[0] <= stamp <= self.stamps[-1]:
+            j = int(np.searchsorted(self.stamps, stamp, side="right"))
+            if j >= len(r):
+                return Transform2D(*r[-1].pose)
+            a, b = r[j - 1], r[j]
+            span = b.stamp - a.stamp
+            f = (stamp - a.stamp) / span if span > 0 else 0.0
+            turn = math.remainder(b.pose[2] - a.pose[2], 2 * math.pi)
+            return Transform2D(
+                a.pose[0] + f * (b.pose[0] - a.pose[0]),
+                a.pose[1] + f * (b.pose[1] - a.pose[1]),
+                math.remainder(a.pose[2] + f * turn, 2 * math.pi),
+            )
+        j = max(int(np.searchsorted(self.lines, line, side="left")) - 1, 0)
+        return Transform2D(*r[j].pose)
 
 
 class Ros2BagSource:
@@ -140,15 +216,18 @@ class Ros2BagSource:
     time where the header has none; readings below ``range_min`` are no return, as in ROS.
     """
 
-    def __init__(self, path: str | Path, topic: str = "/scan") -> None:
+    def __init__(self, path: str | Path, topic: str = "/scan", odometry_topic: str | None = None) -> None:
         self.path = _existing_file(path, "an MCAP file")
         self.topic = topic
+        self.odometry_topic = odometry_topic
         self.name = f"{path} {topic}"
+        self._schemas: dict[str, str] = {}
         with self.path.open("rb") as stream:
             summary = self._guard(lambda: make_reader(stream).get_summary())
         if summary is None:
             return  # a bag without a summary section: the topic shows when reading
         schemas = {c.topic: summary.schemas.get(c.schema_id) for c in summary.channels.values()}
+        self._schemas = {t: sc.name for t, sc in schemas.items() if sc is not None}
         if topic not in schemas:
             listed = ", ".join(sorted(schemas)) or "none"
             raise BadInput(str(path), f"no topic {topic!r} in the bag (its topics: {listed})")
@@ -156,6 +235,66 @@ class Ros2BagSource:
         if schema is None or schema.name not in LASER_SCAN_SCHEMAS:
             kind = "no schema" if schema is None else schema.name
             raise BadInput(str(path), f"topic {topic!r} carries {kind}, not sensor_msgs/LaserScan")
+        if odometry_topic is not None and self._schemas.get(odometry_topic) not in ODOMETRY_SCHEMAS:
+            found = [t for t, name in sorted(self._schemas.items()) if name in ODOMETRY_SCHEMAS]
+            raise BadInput(
+                str(path),
+                f"topic {odometry_topic!r} is not nav_msgs/Odometry (odometry topics: {', '.join(found) or 'none'})",
+            )
+
+    @property
+    def has_odometry(self) -> bool:
+        """Whether the bag has nav_msgs/Odometry (the named topic, or any) or a tf topic."""
+        return any(name in ODOMETRY_SCHEMAS + TF_SCHEMAS for name in self._schemas.values())
+
+    def _odometry(self) -> OdometryTrack | None:
+        """The robot's odometry over the bag: the named nav_msgs/Odometry topic, else the first one,
+        else tf's odom -> base transforms; with the laser's mounting from /tf_static when there."""
+        odom_topics = [t for t, name in sorted(self._schemas.items()) if name in ODOMETRY_SCHEMAS]
+        topic = self.odometry_topic or (odom_topics[0] if odom_topics else None)
+        tf_topics = [t for t, name in sorted(self._schemas.items()) if name in TF_SCHEMAS]
+        if topic is None and not tf_topics:
+            return None
+        readings: list[OdometryReading] = []
+        mounting: dict[str, Transform2D] = {}
+        base: str | None = None
+        with self.path.open("rb") as stream:
+            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+            wanted = [t for t in [topic, *tf_topics] if t is not None]
+            decoded = reader.iter_decoded_messages(topics=wanted, log_time_order=True)
+            for _schema, channel, message, ros in self._guard(lambda: list(decoded)):
+                if channel.topic == topic:
+                    stamp = _stamp_of(ros.header.stamp, message.log_time)
+                    pose = ros.pose.pose
+                    readings.append(OdometryReading(len(readings), stamp, _planar(pose.position, pose.orientation)))
+                    base = base or ros.child_frame_id
+                elif topic is None or channel.topic.endswith("tf_static"):
+                    for t in ros.transforms:
+                        planar = _planar(t.transform.translation, t.transform.rotation)
+                        parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
+                        if channel.topic.endswith("tf_static"):
+                            mounting[f"{parent}>{child}"] = Transform2D(*planar)
+                        elif (
+                            topic is None
+                            and parent in ODOMETRY_FRAMES
+                            and child in BASE_FRAMES
+                            and (base is None or child == base)
+                        ):
+                            base = child
+                            stamp = _stamp_of(t.header.stamp, message.log_time)
+                            readings.append(OdometryReading(len(readings), stamp, planar))
+        if len(readings) < 2:
+            return None
+        track = OdometryTrack(readings)
+        track.mounting = mounting.get(f"{base}>{self._laser_frame()}") if base else None
+        return track
+
+    def _laser_frame(self) -> str:
+        with self.path.open("rb") as stream:
+            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+            for item in reader.iter_decoded_messages(topics=[self.topic]):
+                return str(item[3].header.frame_id).lstrip("/")
+        return ""
 
     def _guard(self, read: Any) -> Any:
         try:
@@ -167,11 +306,12 @@ class Ros2BagSource:
 
     def __iter__(self) -> Iterator[SourceScan]:
         yielded = 0
+        track = self._odometry()
         with self.path.open("rb") as stream:
             reader = make_reader(stream, decoder_factories=[DecoderFactory()])
             for index, (message, ros_msg) in enumerate(self._messages(reader)):
                 yielded += 1
-                yield self._scan(index, message.log_time, ros_msg)
+                yield self._scan(index, message.log_time, ros_msg, track)
         if not yielded:
             raise BadInput(str(self.path), f"no sensor_msgs/LaserScan message on topic {self.topic!r}")
 
@@ -186,14 +326,29 @@ class Ros2BagSource:
                 raise BadInput(str(self.path), f"topic {self.topic!r} does not carry sensor_msgs/LaserScan")
             yield message, ros_msg
 
-    def _scan(self, index: int, log_time_ns: int, msg: Any) -> SourceScan:
-        header = msg.header.stamp
-        stamp = header.sec + header.nanosec * 1e-9
-        if stamp == 0:
-            stamp = log_time_ns * 1e-9
+    def _scan(self, index: int, log_time_ns: int, msg: Any, track: OdometryTrack | None = None) -> SourceScan:
+        stamp = _stamp_of(msg.header.stamp, log_time_ns)
         ranges = np.asarray(msg.ranges, dtype=np.float64)
         with np.errstate(invalid="ignore"):
             ranges[ranges < msg.range_min] = np.nan
         range_max = float(msg.range_max) if msg.range_max > 0 else math.inf
         scan = RangeScan(stamp, float(msg.angle_min), float(msg.angle_increment), range_max, ranges)
-        return _checked(self.name, index, stamp, scan)
+        odometry = None
+        if track is not None and track.stamps[0] <= stamp <= track.stamps[-1]:
+            odometry = track.at(0, stamp)
+            if track.mounting is not None:
+                odometry = odometry.compose(track.mounting)  # the laser's pose, not the base's
+        return _checked(self.name, index, stamp, scan, odometry)
+
+
+def _stamp_of(header_stamp: Any, log_time_ns: int) -> float:
+    """A ROS 2 header stamp in seconds, or the log time where the header has none."""
+    stamp = float(header_stamp.sec) + float(header_stamp.nanosec) * 1e-9
+    return stamp if stamp != 0 else log_time_ns * 1e-9
+
+
+def _planar(position: Any, orientation: Any) -> tuple[float, float, float]:
+    """(x, y, yaw) of a ROS 3D pose: the heading of its quaternion about the vertical."""
+    qx, qy, qz, qw = (float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w))
+    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return float(position.x), float(position.y), yaw

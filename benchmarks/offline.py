@@ -35,19 +35,19 @@ from fleetmap.report import SessionLog, build_report, make_truth, summary_table
 WRONG_M, WRONG_DEG = 0.3, 3.0
 
 
-def run(name: str, config: FleetmapConfig, step: float, publish_every: int = 3) -> None:
+def run(name: str, config: FleetmapConfig, step: float) -> None:
     scenario = load_scenario(name)
     keys = FleetKeys()
     messages: list[tuple[float, int, Message]] = []
     for n, robot in enumerate(scenario.robot_ids):
-        agent = Agent(robot, config, publish_every)
+        agent = Agent(robot, config)
         truth: dict[int, Transform2D] = {}
         frames: dict[int, Transform2D] = {}
         unplaced = wrong = 0
         start = time.perf_counter()
         for s in robot_stream(scenario, robot):
             truth[s.index] = s.pose
-            out = agent.add_scan(s.index, s.stamp, s.scan)
+            out = agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
             for m in out:
                 messages.append((s.stamp, n, m))
                 if isinstance(m, FleetEvent) and m.kind == "epoch":
@@ -92,12 +92,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenarios", nargs="*", help=f"bundled names (default: all of {', '.join(list_scenarios())})")
     ap.add_argument("--step", type=float, default=1.0, help="scenario seconds between merger steps")
-    ap.add_argument("--publish-every", type=int, default=3, metavar="N", help="the agents' LocalMap cadence")
-    add_config_arguments(ap, ["extraction", "integration", "merge"])
+    add_config_arguments(ap, ["extraction", "integration", "merge", "tracking"])
     args = ap.parse_args()
     config = config_from_args(args)
     for name in args.scenarios or list_scenarios():
-        run(name, config, args.step, args.publish_every)
+        run(name, config, args.step)
     return 0
 
 

@@ -45,6 +45,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from fleetmap.merger.epochs import EpochMaps
 from fleetmap.merger.graph import Edge, MapGraph, MergeResult
 from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.config import FleetmapConfig
@@ -155,6 +156,9 @@ class Merger:
         self.links: dict[str, str] = {}
         """New epoch's map key -> the previous epoch's (the graph links the epochs of a robot)."""
         self._pending: dict[str, LocalMap] = {}
+        """Submap versions received since the last step, by submap key, in arrival order."""
+        self.epochs = EpochMaps()
+        """Every robot's submaps, chained into one map per epoch (the map graph's nodes)."""
         self._robots: dict[str, _Robot] = {}
         self._result: MergeResult | None = None
         self._global: GlobalMap | None = None
@@ -194,10 +198,10 @@ class Merger:
         return self._robots.setdefault(name, _Robot())
 
     def _take_local_map(self, m: LocalMap) -> None:
-        key = m.key
-        held = self.graph.version_of(key) if key in self.graph else -1
+        key = m.submap_key
+        held = self.epochs.held(m)
         waiting = self._pending.get(key)
-        if m.version <= held or (waiting is not None and m.version <= waiting.version):
+        if (held is not None and m.version <= held.version) or (waiting is not None and m.version <= waiting.version):
             self.stats.stale += 1
             return
         if len(m.segments) == 0:
@@ -244,8 +248,12 @@ class Merger:
             return []
         batch = list(self._pending.values())
         self._pending.clear()
+        changed: dict[tuple[str, int], LocalMap] = {}
         for m in batch:
-            self._enter(m)
+            if self.epochs.put(m):
+                changed.setdefault((m.robot, m.epoch), m)
+        for (robot, epoch), first in changed.items():
+            self._enter(robot, epoch, first)
         urgent, rest = self._work_lists()
         self.stats.lost_first += bool(urgent) and bool(rest) and self._urgent_run < URGENT_RUN
         new_edges: list[Edge] = []
@@ -289,7 +297,7 @@ class Merger:
         step = MergerStep(
             self.seq,
             self.stamp,
-            tuple(m.key for m in batch),
+            tuple(m.submap_key for m in batch),
             tuple(m.version for m in batch),
             integrations=taken,
             queued=len(self._queue),
@@ -404,21 +412,27 @@ class Merger:
         current = r is None or int(epoch) >= r.epoch
         return current and int(epoch) > 0 and not self._placed(key)
 
-    def _enter(self, m: LocalMap) -> None:
-        """Put a local map version into the graph and queue its pairs."""
-        r = self._robot(m.robot)
-        if m.epoch >= r.epoch:
-            r.epoch, r.stamp = m.epoch, m.stamp
-        r.pose_in_map[m.epoch] = m.pose
-        if m.previous_epoch_link is not None:
-            self.links[m.key] = f"{m.robot}/{m.previous_epoch_link.epoch}"
-        segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
-        if m.viewpoints is not None:
-            segment_map = with_viewpoints(segment_map, m.viewpoints)
-        if not self.graph.put_map(m.key, segment_map, m.version, keep_edges=True):
+    def _enter(self, robot: str, epoch: int, m: LocalMap) -> None:
+        """Put an epoch's map, chained from its submaps, into the graph as a new version, and queue
+        its pairs (``m``: one of its submaps that changed, for the epoch's link to the previous one)."""
+        built = self.epochs.epoch(robot, epoch)
+        if built is None or len(built.segments) == 0:
             return
-        for other in self.graph.pairs_for(m.key):
-            pair = (other, m.key) if other < m.key else (m.key, other)
+        key = f"{robot}/{epoch}"
+        version = self.graph.version_of(key) + 1 if key in self.graph else 0
+        r = self._robot(robot)
+        if epoch >= r.epoch:
+            r.epoch, r.stamp = epoch, built.stamp
+        r.pose_in_map[epoch] = built.pose
+        if m.previous_epoch_link is not None:
+            self.links[key] = f"{robot}/{m.previous_epoch_link.epoch}"
+        segment_map = SegmentMap(np.array(built.segments), ordered=False, oriented=True)
+        if len(built.viewpoints):
+            segment_map = with_viewpoints(segment_map, built.viewpoints)
+        if not self.graph.put_map(key, segment_map, version, keep_edges=True):
+            return
+        for other in self.graph.pairs_for(key):
+            pair = (other, key) if other < key else (key, other)
             if pair not in self._queue and not self.graph.is_current(*pair):
                 self._queue[pair] = None
 
@@ -518,6 +532,7 @@ class Merger:
             "edges": edges,
             "robots": robots,
             "links": self.links,
+            "submaps": [m.to_msgpack() for m in self.epochs.messages()],
             "queue": [list(pair) for pair in self._queue],
             "urgent_run": self._urgent_run,
             "last_out": [[o.key, o.payload] for o in self._last_out],
@@ -569,7 +584,13 @@ class Merger:
             pairs = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
             urgent_run = int(state.get("urgent_run", 0))
             last_out = [Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])]
-        except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException) as exc:
+            epochs = EpochMaps()
+            for payload in state.get("submaps", []):
+                held = decode(bytes(payload))
+                if not isinstance(held, LocalMap):
+                    raise ValueError(f"a saved submap is a {held.SCHEMA}")
+                epochs.put(held)
+        except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException, BadMessage) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         # A state written before edges carried their information: fit them as this merger would.
         refitted = graph.fit_edges() if any("information" not in e for e in state["edges"]) else 0
@@ -578,6 +599,7 @@ class Merger:
         self.graph, self._robots = graph, robots
         self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
         self._queue, self._urgent_run, self._last_out = pairs, urgent_run, last_out
+        self.epochs = epochs
         if len(self.graph):
             self._result = self.graph.solve()
             self._global = self._global_map(self._result)

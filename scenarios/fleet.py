@@ -1,8 +1,10 @@
 """A simulated fleet: robots that follow waypoints and scan at fixed spacing, and timed events.
 
-A robot drives its path (waypoints in the world frame) and takes a scan every ``spacing`` metres
-of path, one every ``period`` scenario seconds from its ``start``; its laser looks along the path
-(the heading of the leg it is on). Events change that plan:
+A robot drives its path (waypoints in the world frame) at ``spacing / period`` metres per second
+and takes a scan every ``period`` scenario seconds from its ``start``; its laser looks along the
+path (the heading of the leg it is on). At a waypoint it turns on the spot to the next leg's
+heading at ``turn_rate`` radians per second, scanning as it turns (``turn_rate`` 0: it faces the
+next leg at once, between two scans). Events change that plan:
 
 - ``join``: the robot starts at ``t`` (a late join); its first scan is at ``t``.
 - ``leave`` / ``crash``: the robot takes no scan at or after ``t`` (a clean exit / killed).
@@ -19,11 +21,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 from fleetmap.scenarios.laser import LaserParams
+from fleetmap.scenarios.odometry import OdometryParams
 from fleetmap.scenarios.worlds import World
 from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
 
@@ -43,6 +46,8 @@ class RobotSpec:
     """Scenario seconds between consecutive scans."""
     start: float = 0.0
     """Scenario time of the first scan (s); a join event's time when there is one."""
+    turn_rate: float = 0.0
+    """How fast (rad/s) the robot turns on the spot at a waypoint; 0: at once, between two scans."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,8 @@ class Scenario:
     """Sorted by time (file order among equal times)."""
     source: str = ""
     """The file the scenario came from."""
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    """The robots' wheel odometry (:mod:`fleetmap.scenarios.odometry`)."""
 
     @property
     def robot_ids(self) -> tuple[str, ...]:
@@ -168,12 +175,60 @@ def sample_path(path: Sequence[Point], spacing: float, heading: float | None = N
     return PathSamples(np.column_stack([xy, wrap_angle(theta)]), legs)
 
 
+def sample_motion(
+    path: Sequence[Point], spacing: float, period: float, turn_rate: float, heading: float | None = None
+) -> PathSamples:
+    """Poses every ``period`` seconds of a robot driving ``path`` at ``spacing / period`` m/s and
+    turning on the spot at each waypoint at ``turn_rate`` rad/s (:func:`sample_path` when it is 0).
+
+    It starts facing ``heading`` (the first leg's direction when None) and first turns to the first
+    leg; a sample turning at waypoint i belongs to leg i (the leg it turns to).
+    """
+    if turn_rate <= 0:
+        return sample_path(path, spacing, heading)
+    pts = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 1:
+        return PathSamples(np.array([[pts[0, 0], pts[0, 1], heading or 0.0]]), np.zeros(1, np.int64))
+    speed = spacing / period
+    steps = np.diff(pts, axis=0)
+    leg_len = np.hypot(steps[:, 0], steps[:, 1])
+    leg_heading = np.arctan2(steps[:, 1], steps[:, 0])
+    facing = float(leg_heading[0] if heading is None else heading)
+    # phases: (start time, duration, leg, kind, start heading, turn) with kind 0 = turn, 1 = drive
+    phases: list[tuple[float, float, int, int, float, float]] = []
+    t = 0.0
+    for i in range(len(leg_len)):
+        turn = float(wrap_angle(leg_heading[i] - facing))
+        if abs(turn) > 1e-9:
+            phases.append((t, abs(turn) / turn_rate, i, 0, facing, turn))
+            t += abs(turn) / turn_rate
+        phases.append((t, float(leg_len[i]) / speed, i, 1, float(leg_heading[i]), 0.0))
+        t += float(leg_len[i]) / speed
+        facing = float(leg_heading[i])
+    times = np.arange(math.floor(t / period + 1e-9) + 1) * period
+    starts = np.array([ph[0] for ph in phases])
+    poses = np.empty((len(times), 3))
+    legs = np.empty(len(times), dtype=np.int64)
+    for k, tk in enumerate(times):
+        j = max(int(np.searchsorted(starts, tk, side="right")) - 1, 0)
+        t0, duration, leg, kind, h0, turn = phases[j]
+        f = min(max((tk - t0) / duration, 0.0), 1.0) if duration > 0 else 1.0
+        if kind == 0:
+            poses[k] = (pts[leg, 0], pts[leg, 1], h0 + turn * f)
+        else:
+            xy = pts[leg] + steps[leg] * f
+            poses[k] = (xy[0], xy[1], h0)
+        legs[k] = leg
+    poses[:, 2] = wrap_angle(poses[:, 2])
+    return PathSamples(poses, legs)
+
+
 def plan_robot(robot: RobotSpec, events: Sequence[RobotEvent]) -> list[PlannedScan]:
     """Every scan the robot takes, in order: its path cut by its events (see the module docstring)."""
     start = next((e.t for e in events if isinstance(e, Join)), robot.start)
     end = min((e.t for e in events if isinstance(e, (Leave, Crash))), default=math.inf)
     kidnaps = sorted((e for e in events if isinstance(e, Kidnap)), key=lambda e: e.t)
-    samples = sample_path(robot.path, robot.spacing).poses
+    samples = sample_motion(robot.path, robot.spacing, robot.period, robot.turn_rate).poses
     out: list[PlannedScan] = []
     leg, j, k = 0, 0, 0
     while True:
@@ -182,7 +237,8 @@ def plan_robot(robot: RobotSpec, events: Sequence[RobotEvent]) -> list[PlannedSc
             break
         if leg < len(kidnaps) and stamp >= kidnaps[leg].t - 1e-9:
             kid = kidnaps[leg]
-            samples = sample_path(((kid.pose.x, kid.pose.y), *kid.path), robot.spacing, kid.pose.theta).poses
+            waypoints = ((kid.pose.x, kid.pose.y), *kid.path)
+            samples = sample_motion(waypoints, robot.spacing, robot.period, robot.turn_rate, kid.pose.theta).poses
             leg, j = leg + 1, 0
         if j >= len(samples):
             break

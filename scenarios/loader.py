@@ -7,6 +7,12 @@ A scenario file::
     world = "department"                # a bundled world (fleetmap.scenarios.worlds)
     seed = 7                            # seeds the laser noise
 
+    [odometry]                          # optional: the robots' wheel odometry (defaults shown)
+    enabled = true
+    translation_error = 0.03            # systematic share of the distance driven
+    rotation_error_deg_per_m = 1.5      # systematic heading drift
+    noise = 0.01                        # random share of each step
+
     [laser]                             # optional; the defaults are the paper's SICK LMS 200
     fov_deg = 180.0
     resolution_deg = 1.0
@@ -18,8 +24,9 @@ A scenario file::
     [[robots]]
     id = "r1"                           # ^[a-z][a-z0-9_-]{0,31}$
     path = [[3.0, 3.5], [5.0, 5.9], [8.0, 6.0]]   # waypoints, world frame (m)
-    spacing = 0.8                       # m of path between scans (at most 2.8, the paper's largest)
-    period = 0.5                        # scenario seconds between scans
+    spacing = 0.2                       # m of path between scans (at most 2.8, the paper's largest)
+    period = 0.2                        # scenario seconds between scans (here 5 Hz at 1 m/s)
+    turn_rate = 1.0                     # rad/s on the spot at a waypoint (0: at once, between scans)
     start = 0.0                         # s (or give a join event)
 
     [[events]]
@@ -66,9 +73,10 @@ from fleetmap.scenarios.fleet import (
     RobotSpec,
     Scenario,
     plan_robot,
-    sample_path,
+    sample_motion,
 )
 from fleetmap.scenarios.laser import LaserParams
+from fleetmap.scenarios.odometry import OdometryParams
 from fleetmap.scenarios.worlds import WORLDS, World, get_world
 from fleetmap.shared.errors import ConfigError
 from fleetmap.shared.geometry import Transform2D, wrap_angle
@@ -89,9 +97,10 @@ ROBOT_CLEARANCE = 0.25
 PATH_CHECK_STEP = 0.05
 """Paths are checked for clearance every this many metres."""
 
-TOP_KEYS = ("name", "description", "world", "seed", "laser", "robots", "events")
+TOP_KEYS = ("name", "description", "world", "seed", "laser", "odometry", "robots", "events")
 LASER_KEYS = ("fov_deg", "resolution_deg", "max_range", "noise", "dropout", "spurious")
-ROBOT_KEYS = ("id", "path", "spacing", "period", "start")
+ODOMETRY_KEYS = ("enabled", "translation_error", "rotation_error_deg_per_m", "noise")
+ROBOT_KEYS = ("id", "path", "spacing", "period", "turn_rate", "start")
 EVENT_KEYS: dict[str, tuple[str, ...]] = {
     "join": ("t", "type", "robot"),
     "leave": ("t", "type", "robot"),
@@ -202,6 +211,21 @@ def _laser(f: _Fields, value: Any) -> LaserParams:
     )
 
 
+def _odometry(f: _Fields, value: Any) -> OdometryParams:
+    t = f.table(value, "odometry", ODOMETRY_KEYS)
+    d = OdometryParams()
+    enabled = t.get("enabled", d.enabled)
+    if not isinstance(enabled, bool):
+        raise f.error("odometry.enabled", f"must be true or false, got {enabled!r}")
+    rotation = f.number(t, "rotation_error_deg_per_m", "odometry", math.degrees(d.rotation_error), low=0.0, high=90.0)
+    return OdometryParams(
+        enabled=enabled,
+        translation_error=f.number(t, "translation_error", "odometry", d.translation_error, low=0.0, high=1.0),
+        rotation_error=math.radians(rotation),
+        noise=f.number(t, "noise", "odometry", d.noise, low=0.0, high=1.0),
+    )
+
+
 def _waypoints(f: _Fields, value: Any, where: str, world: World, minimum: int) -> tuple[Point, ...]:
     if not isinstance(value, list) or len(value) < minimum:
         raise f.error(where, f"must be a list of at least {minimum} waypoints [x, y], got {value!r}"[:200])
@@ -252,9 +276,15 @@ def _pt(p: Any) -> str:
     return f"({float(p[0]):.2f}, {float(p[1]):.2f})"
 
 
-def _check_turns(f: _Fields, path: tuple[Point, ...], spacing: float, names: list[str], heading: float | None) -> None:
+def _check_turns(
+    f: _Fields,
+    path: tuple[Point, ...],
+    robot: RobotSpec,
+    names: list[str],
+    heading: float | None,
+) -> None:
     """No turn between two consecutive scans beyond the paper's largest (MAX_SCAN_TURN)."""
-    samples = sample_path(path, spacing, heading)
+    samples = sample_motion(path, robot.spacing, robot.period, robot.turn_rate, heading)
     turns = np.abs(wrap_angle(np.diff(samples.poses[:, 2])))
     bad = np.flatnonzero(turns > MAX_SCAN_TURN)
     if len(bad):
@@ -280,8 +310,10 @@ def _robot(f: _Fields, value: Any, where: str, world: World) -> tuple[RobotSpec,
     spacing = f.number(t, "spacing", where, low=0.0, high=MAX_SCAN_SPACING, low_open=True)
     period = f.number(t, "period", where, low=0.0, high=3600.0, low_open=True)
     start = f.number(t, "start", where, 0.0, low=0.0)
-    _check_turns(f, path, spacing, names, None)
-    return RobotSpec(rid, path, spacing, period, start), "start" in t
+    turn_rate = f.number(t, "turn_rate", where, 0.0, low=0.0, high=MAX_SCAN_TURN / period)
+    robot = RobotSpec(rid, path, spacing, period, start, turn_rate)
+    _check_turns(f, path, robot, names, None)
+    return robot, "start" in t
 
 
 def _event(f: _Fields, value: Any, where: str, robots: Mapping[str, RobotSpec], world: World) -> Event:
@@ -309,7 +341,7 @@ def _event(f: _Fields, value: Any, where: str, robots: Mapping[str, RobotSpec], 
     path = _waypoints(f, t["path"], f"{where}.path", world, 1)
     names = [f"{where}.pose"] + [f"{where}.path[{i}]" for i in range(len(path))]
     _check_moves(f, ((x, y), *path), names, world)
-    _check_turns(f, ((x, y), *path), robots[rid].spacing, names, theta)
+    _check_turns(f, ((x, y), *path), robots[rid], names, theta)
     return Kidnap(when, rid, Transform2D(x, y, float(wrap_angle(theta))), path)
 
 
@@ -324,7 +356,7 @@ def _check_timeline(f: _Fields, robot: RobotSpec, start_given: bool, events: lis
             raise f.error(
                 f"events[{i}].t", f"robot {robot.id!r} has start = {robot.start:g} and joins at {join.t:g}: give one"
             )
-        robot = RobotSpec(robot.id, robot.path, robot.spacing, robot.period, join.t)
+        robot = RobotSpec(robot.id, robot.path, robot.spacing, robot.period, join.t, robot.turn_rate)
     ends = [(i, e) for i, e in events if isinstance(e, (Leave, Crash))]
     if len(ends) > 1:
         raise f.error(f"events[{ends[1][0]}]", f"robot {robot.id!r} already ends at events[{ends[0][0]}]")
@@ -366,6 +398,7 @@ def parse_scenario(data: Any, source: str, default_name: str = "scenario") -> Sc
     if isinstance(seed_value, bool) or not isinstance(seed_value, int) or seed_value < 0:
         raise f.error("seed", f"must be a non-negative integer, got {seed_value!r}")
     laser = _laser(f, top.get("laser", {}))
+    odometry = _odometry(f, top.get("odometry", {}))
     robot_tables = f.array_of_tables(top["robots"], "robots")
     if not robot_tables:
         raise f.error("robots", "no robots")
@@ -385,7 +418,7 @@ def parse_scenario(data: Any, source: str, default_name: str = "scenario") -> Sc
         mine = [(i, e) for i, e in enumerate(events) if not isinstance(e, MergerRestart) and e.robot == rid]
         robots[rid] = _check_timeline(f, robots[rid], start_given[rid], mine)
     ordered = tuple(e for _, e in sorted(enumerate(events), key=lambda ie: (ie[1].t, ie[0])))
-    return Scenario(name, description, world, seed_value, laser, tuple(robots.values()), ordered, source)
+    return Scenario(name, description, world, seed_value, laser, tuple(robots.values()), ordered, source, odometry)
 
 
 def read_scenario(path: str | Path) -> Scenario:
@@ -447,10 +480,16 @@ def scenario_to_toml(scenario: Scenario) -> str:
         f"noise = {lp.noise!r}",
         f"dropout = {lp.dropout!r}",
         f"spurious = {lp.spurious!r}",
+        "",
+        "[odometry]",
+        f"enabled = {'true' if scenario.odometry.enabled else 'false'}",
+        f"translation_error = {scenario.odometry.translation_error!r}",
+        f"rotation_error_deg_per_m = {math.degrees(scenario.odometry.rotation_error)!r}",
+        f"noise = {scenario.odometry.noise!r}",
     ]
     for r in scenario.robots:
         lines += ["", "[[robots]]", f"id = {_q(r.id)}", f"path = {_points(r.path)}"]
-        lines += [f"spacing = {r.spacing!r}", f"period = {r.period!r}"]
+        lines += [f"spacing = {r.spacing!r}", f"period = {r.period!r}", f"turn_rate = {r.turn_rate!r}"]
         if not any(isinstance(e, Join) and e.robot == r.id for e in scenario.events):
             lines.append(f"start = {r.start!r}")
     for e in scenario.events:

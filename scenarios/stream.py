@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fleetmap.scenarios.fleet import PlannedScan, Scenario, plan
 from fleetmap.scenarios.laser import noisy_ranges, true_ranges
+from fleetmap.scenarios.odometry import simulate_odometry
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.scans import RangeScan
 
@@ -36,6 +37,9 @@ class SimulatedScan:
     leg: int
     """0 before the robot's first kidnap, k after its k-th."""
     scan: RangeScan
+    odometry: Transform2D | None = None
+    """The robot's wheel odometry at the scan (:mod:`fleetmap.scenarios.odometry`); None if it
+    has none."""
 
 
 def scan_rng(seed: int, robot_id: str, index: int) -> np.random.Generator:
@@ -54,10 +58,12 @@ def simulate(scenario: Scenario, planned: PlannedScan) -> SimulatedScan:
 
 
 def robot_stream(scenario: Scenario, robot_id: str, start_index: int = 0) -> Iterator[SimulatedScan]:
-    """The scans of one robot, in order, from scan ``start_index`` on.
+    """The scans of one robot, in order, from scan ``start_index`` on, with its odometry.
 
     The stream ends when the robot's path ends or it leaves or crashes (the live runner stops the
-    process); a kidnap shows only as a jump in the (true) poses.
+    process); a kidnap shows only as a jump in the (true) poses, and not in the odometry.
     """
-    for planned in plan(scenario, robot_id)[start_index:]:
-        yield simulate(scenario, planned)
+    planned = plan(scenario, robot_id)
+    odometry = simulate_odometry(planned, scenario.odometry, scenario.seed, robot_id)
+    for p, odom in zip(planned[start_index:], odometry[start_index:], strict=True):
+        yield replace(simulate(scenario, p), odometry=odom)

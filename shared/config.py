@@ -31,6 +31,8 @@ from fleetmap.shared.errors import ConfigError
 
 Heuristic = Literal["all", "consecutive", "random", "histogram", "auto"]
 HEURISTICS: tuple[str, ...] = get_args(Heuristic)
+FrontEnd = Literal["tracking", "pivot"]
+Odometry = Literal["auto", "on", "off"]
 
 
 @dataclass(frozen=True)
@@ -310,12 +312,106 @@ class MergeParams:
 
 
 @dataclass(frozen=True)
+class TrackingParams:
+    """The robot agent's front end: scan-to-submap tracking (fleetmap; ``fleetmap.shared.tracking``
+    and ``fleetmap.agents.tracker``, ``docs/decisions/001-tracking-front-end.md``)."""
+
+    front_end: FrontEnd = "tracking"
+    """tracking: predict each scan from odometry or constant velocity, register it on the active
+    submap, check the fit; pivot: the paper's pivot method (IV-C, Algorithm 6), one local map per
+    epoch, each scan placed by pose-free integration (reproduces the paper)."""
+    odometry: Odometry = "auto"
+    """auto: use the source's odometry when it has some; on: require it (an error if the source
+    has none); off: constant velocity only."""
+    sample_spacing: float = 0.10
+    """Metres between the points sampled along a scan's segments for registration."""
+    voxel_size: float = 0.05
+    """Cell size (m) of a submap's registration grid (the mean point and normal of each cell)."""
+    residual_sigma: float = 0.03
+    """The standard deviation (m) of a matched point's distance from the submap's wall (laser
+    noise and the submap's own blur): it weighs the walls against the prior."""
+    max_correspondence: float = 1.0
+    """Registration runs in stages, coarse to fine: its first stage matches a scan point to submap
+    walls up to this far (m), each later stage to half as far, down to ``min_correspondence``; a
+    stage ends when the fit stops moving or after ``iterations_per_stage``. A prediction a few tens
+    of centimetres or ten degrees off finds its walls that way, nearby walls pulling first."""
+    min_correspondence: float = 0.25
+    """The last stage's correspondence radius (m)."""
+    loss_scale: float = 0.2
+    """The robust (Cauchy) loss's scale, as a share of the stage's correspondence radius."""
+    iterations_per_stage: int = 8
+    max_iterations: int = 30
+    convergence_translation: float = 0.001
+    """A Gauss-Newton step shorter than this (m) ..."""
+    convergence_rotation: float = 0.001
+    """... and turned less than this (rad) has converged."""
+    max_normal_angle: float = 1.0472
+    """A scan point matches a submap wall only if their normals are within this (rad, 60 degrees):
+    the two sides of a thin wall are different walls."""
+    odometry_translation_sigma: float = 0.05
+    """Odometry's uncertainty per scan step: this (m) ..."""
+    odometry_translation_rate: float = 0.1
+    """... plus this share of the distance driven ..."""
+    odometry_rotation_sigma: float = 0.087
+    """... and this (rad, 5 degrees) ...; deliberately loose: the odometry of real robots is off by
+    10-25 degrees on single fast turns (mit-csail), and where the walls fix the pose they decide."""
+    odometry_rotation_rate: float = 0.5
+    """... plus this share of the turn."""
+    velocity_translation_sigma: float = 0.05
+    """Constant velocity's uncertainty per scan step: this (m) plus ``max_acceleration`` times
+    the step's time squared over two ..."""
+    velocity_rotation_sigma: float = 0.087
+    """... and this (rad) plus ``max_angular_acceleration`` times the step's time squared over two."""
+    max_angular_acceleration: float = 6.0
+    """The hardest a robot starts or stops turning (rad/s^2): constant velocity's rotation
+    uncertainty."""
+    insert_distance: float = 0.10
+    """A tracked scan is inserted into the submaps when the robot has moved this far (m) ..."""
+    insert_rotation: float = 0.035
+    """... or turned this much (rad, 2 degrees) since the last inserted scan ..."""
+    insert_interval: float = 5.0
+    """... or this much time (s) has passed (a robot standing still refreshes its view)."""
+    submap_length: float = 10.0
+    """A submap covers this much of the robot's path (m) ..."""
+    submap_scans: int = 100
+    """... or this many inserted scans, whichever comes first; the next submap starts halfway, so
+    consecutive submaps overlap by half."""
+    typical_score_share: float = 0.5
+    """A fit whose score (:attr:`fleetmap.shared.tracking.Registration.score`) is below this share of
+    the robot's recent fits' median is not taken at once: the robot standing still, the other
+    motion model and the pose-free integration are tried too, and the best taken."""
+    min_matched_share: float = 0.3
+    """A fit is good only if at least this share of the scan's wall length lies on the submap's
+    walls (the rest is new ground) ..."""
+    min_matched_length: float = 1.0
+    """... and at least this much of it (m) ..."""
+    max_see_through: float = 0.5
+    """... and the scan's beams pass through at most this share of the submap wall they could
+    have seen (:func:`fleetmap.shared.tracking.see_through`): a laser cannot see through walls."""
+    see_through_margin: float = 0.3
+    """A beam passes through a submap wall when its return lies this much (m) beyond it ..."""
+    see_through_slope: float = 0.02
+    """... plus the range change a heading error of this much (rad) makes on that wall, at its
+    range and incidence (:func:`fleetmap.shared.tracking.see_through`) ..."""
+    see_through_beams: float = 5.0
+    """... and only walls wide enough to span this many of the laser's beams at their range count
+    (a thin thing between two beams is not seen through)."""
+    kidnap_after: int = 5
+    """After this many scans in a row that neither fit the submap nor re-acquire it by pose-free
+    integration, the robot has lost its place: a new epoch (a kidnap)."""
+    publish_every: int = 5
+    """The active submap is published after every this many inserted scans (a finished one once,
+    as final)."""
+
+
+@dataclass(frozen=True)
 class FleetmapConfig:
     """The whole configuration: one section per stage."""
 
     extraction: ExtractionParams = field(default_factory=ExtractionParams)
     integration: IntegrationParams = field(default_factory=IntegrationParams)
     merge: MergeParams = field(default_factory=MergeParams)
+    tracking: TrackingParams = field(default_factory=TrackingParams)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in fields(self)}
@@ -334,6 +430,7 @@ SECTIONS: dict[str, type] = {
     "extraction": ExtractionParams,
     "integration": IntegrationParams,
     "merge": MergeParams,
+    "tracking": TrackingParams,
 }
 
 

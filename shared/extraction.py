@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 from fleetmap.shared.config import ExtractionParams
-from fleetmap.shared.geometry import Array, point_segment_distance
+from fleetmap.shared.geometry import Array
 from fleetmap.shared.scans import RangeScan
 
 
@@ -55,6 +55,13 @@ def clusters(
     applies between neighbouring beams only (``beams`` gives each point's beam index): across
     beams that returned nothing, tau holds.
     """
+    return [points[a:b] for a, b in cluster_bounds(points, tau, step, breakpoint_angle, beams)]
+
+
+def cluster_bounds(
+    points: Array, tau: float, step: float = 0.0, breakpoint_angle: float = 0.0, beams: Array | None = None
+) -> list[tuple[int, int]]:
+    """:func:`clusters` as ``(start, stop)`` index ranges into ``points``."""
     if len(points) == 0:
         return []
     gaps = np.hypot(*np.diff(points, axis=0).T)
@@ -65,8 +72,8 @@ def clusters(
         if beams is not None:
             adaptive = np.where(np.diff(beams) == 1, adaptive, tau)
         limit = np.maximum(limit, adaptive)
-    cuts = np.flatnonzero(gaps >= limit) + 1
-    return np.split(points, cuts)
+    cuts = [0, *(np.flatnonzero(gaps >= limit) + 1).tolist(), len(points)]
+    return list(itertools.pairwise(cuts))
 
 
 def split_polyline(points: Array, kappa: float) -> list[int]:
@@ -74,15 +81,23 @@ def split_polyline(points: Array, kappa: float) -> list[int]:
     n = len(points)
     if n < 2:
         return []
+    x = points[:, 0]
+    y = points[:, 1]
     vertices = {0, n - 1}
     stack = [(0, n - 1)]
     while stack:
         i, j = stack.pop()
         if j - i < 2:
             continue
-        inner = points[i + 1 : j]
-        chord = np.concatenate([points[i], points[j]])
-        d = point_segment_distance(inner, chord[None, :])
+        # distance of the inner points from the chord (as point_segment_distance, inlined: this
+        # loop runs for every vertex of every scan)
+        ax, ay = x[i], y[i]
+        dx, dy = x[j] - ax, y[j] - ay
+        l2 = dx * dx + dy * dy
+        px = x[i + 1 : j] - ax
+        py = y[i + 1 : j] - ay
+        t = np.clip((px * dx + py * dy) / (l2 if l2 > 0 else 1.0), 0.0, 1.0)
+        d = np.hypot(px - t * dx, py - t * dy)
         k = int(np.argmax(d))
         if d[k] > kappa:
             m = i + 1 + k
@@ -90,6 +105,46 @@ def split_polyline(points: Array, kappa: float) -> list[int]:
             stack.append((i, m))
             stack.append((m, j))
     return sorted(vertices)
+
+
+def split_polylines(points: Array, bounds: list[tuple[int, int]], kappa: float) -> list[list[int]]:
+    """:func:`split_polyline` of every cluster ``points[a:b]`` at once, level by level: at each
+    level the farthest inner point of every open interval from its chord, for all intervals in one
+    pass; the vertices of each cluster are indices into the cluster."""
+    x = points[:, 0]
+    y = points[:, 1]
+    vertices: list[set[int]] = [{a, b - 1} if b - a >= 2 else set() for a, b in bounds]
+    owner_of = [k for k, (a, b) in enumerate(bounds) if b - a >= 3]
+    open_i = np.array([bounds[k][0] for k in owner_of], dtype=np.int64)
+    open_j = np.array([bounds[k][1] - 1 for k in owner_of], dtype=np.int64)
+    owner = np.array(owner_of, dtype=np.int64)
+    while len(open_i):
+        inner = open_j - open_i - 1
+        keep = inner > 0
+        open_i, open_j, owner, inner = open_i[keep], open_j[keep], owner[keep], inner[keep]
+        if not len(open_i):
+            break
+        interval = np.repeat(np.arange(len(open_i)), inner)
+        first = np.repeat(np.cumsum(inner) - inner, inner)
+        idx = open_i[interval] + 1 + (np.arange(int(inner.sum())) - first)
+        ax, ay = x[open_i][interval], y[open_i][interval]
+        dx, dy = x[open_j][interval] - ax, y[open_j][interval] - ay
+        l2 = dx * dx + dy * dy
+        px, py = x[idx] - ax, y[idx] - ay
+        t = np.clip((px * dx + py * dy) / np.where(l2 > 0, l2, 1.0), 0.0, 1.0)
+        d = np.hypot(px - t * dx, py - t * dy)
+        best = np.maximum.reduceat(d, np.cumsum(inner) - inner)
+        # each interval's first point at its maximum, as argmax picks it
+        hit = np.flatnonzero(d == best[interval])
+        first_hit = np.full(len(open_i), len(d), dtype=np.int64)
+        np.minimum.at(first_hit, interval[hit], hit)
+        split = best > kappa
+        middle = idx[first_hit[split]]
+        for o, v in zip(owner[split].tolist(), middle.tolist(), strict=True):
+            vertices[o].add(v)
+        open_i, open_j = np.concatenate([open_i[split], middle]), np.concatenate([middle, open_j[split]])
+        owner = np.concatenate([owner[split], owner[split]])
+    return [sorted(v - a for v in vs) for vs, (a, _) in zip(vertices, bounds, strict=True)]
 
 
 def vertex_runs(points: Array, vertices: list[int], tau: float) -> list[list[int]]:
@@ -114,46 +169,93 @@ def _moments(points: Array) -> Array:
     return np.array([len(points), x.sum(), y.sum(), (x * x).sum(), (x * y).sum(), (y * y).sum()])
 
 
+def _cumulative_moments(points: Array) -> Array:
+    """Prefix sums of the moments of each point: the moments of ``points[i : j + 1]`` are row
+    ``j + 1`` less row ``i`` (every piece's fit in O(1))."""
+    x = points[:, 0]
+    y = points[:, 1]
+    rows = np.column_stack([np.ones(len(points)), x, y, x * x, x * y, y * y])
+    return np.vstack([np.zeros((1, 6)), np.cumsum(rows, axis=0)])
+
+
 def _line_from_moments(m: Array) -> tuple[Array, Array, float]:
     """Centroid, unit direction and mean squared residual of the total least squares line."""
-    n = m[0]
-    c = np.array([m[1] / n, m[2] / n])
-    sxx = m[3] / n - c[0] * c[0]
-    sxy = m[4] / n - c[0] * c[1]
-    syy = m[5] / n - c[1] * c[1]
-    evals, evecs = np.linalg.eigh(np.array([[sxx, sxy], [sxy, syy]]))
-    return c, evecs[:, 1], max(float(evals[0]), 0.0)
+    c, (ux, uy), mse = _fit_line(*(float(v) for v in m))
+    return np.array(c), np.array([ux, uy]), mse
 
 
-def merge_pieces(points: Array, vertices: list[int], kappa: float) -> list[tuple[int, int]]:
-    """Merge adjacent polyline pieces that fit one line (step 4); returns inclusive index ranges."""
+def _fit_line(
+    n: float, sx: float, sy: float, sxx: float, sxy: float, syy: float
+) -> tuple[tuple[float, float], tuple[float, float], float]:
+    """:func:`_line_from_moments` on plain floats: the 2x2 covariance's eigen pair in closed form."""
+    cx, cy = sx / n, sy / n
+    vxx = sxx / n - cx * cx
+    vxy = sxy / n - cx * cy
+    vyy = syy / n - cy * cy
+    half = 0.5 * (vxx + vyy)
+    root = math.hypot(0.5 * (vxx - vyy), vxy)
+    small = half - root
+    # the direction: the eigenvector of the larger eigenvalue half + root
+    if vxx >= vyy:
+        ux, uy = root + 0.5 * (vxx - vyy), vxy
+    else:
+        ux, uy = vxy, root - 0.5 * (vxx - vyy)
+    norm = math.hypot(ux, uy)
+    if norm > 0:
+        ux, uy = ux / norm, uy / norm
+    else:
+        ux, uy = 1.0, 0.0
+    return (cx, cy), (ux, uy), max(small, 0.0)
+
+
+def merge_pieces(points: Array, vertices: list[int], kappa: float, cum: Array | None = None) -> list[tuple[int, int]]:
+    """Merge adjacent polyline pieces that fit one line (step 4); returns inclusive index ranges.
+
+    Greedy: the adjacent pair whose joint fit has the smallest mean squared residual is merged
+    first, while that is within (kappa / 2)^2 and no point lies farther than 2 kappa from the
+    joint line. A pair's cost is computed once and again only when one of its pieces changes.
+    """
     pieces = [(vertices[k], vertices[k + 1]) for k in range(len(vertices) - 1)]
-    moments = [_moments(points[i : j + 1]) for i, j in pieces]
+    if len(pieces) < 2:
+        return pieces
+    if cum is None:
+        cum = _cumulative_moments(points)
     rms_limit = (0.5 * kappa) ** 2
-    while len(pieces) > 1:
-        best, best_cost = -1, rms_limit
-        for k in range(len(pieces) - 1):
-            m = moments[k] + moments[k + 1] - _moments(points[pieces[k][1] : pieces[k][1] + 1])
-            _, _, mse = _line_from_moments(m)
-            if mse <= best_cost:
-                c, u, _ = _line_from_moments(m)
-                seg = points[pieces[k][0] : pieces[k + 1][1] + 1] - c
-                if np.abs(seg[:, 0] * u[1] - seg[:, 1] * u[0]).max() <= 2.0 * kappa:
-                    best, best_cost = k, mse
-        if best < 0:
+
+    def cost(a: tuple[int, int], b: tuple[int, int]) -> float:
+        """The joint fit's mse, or inf when it is out of bounds (the pieces share a point)."""
+        m = (cum[b[1] + 1] - cum[a[0]]).tolist()
+        (cx, cy), (ux, uy), mse = _fit_line(*m)
+        if mse > rms_limit:
+            return math.inf
+        seg = points[a[0] : b[1] + 1]
+        if np.abs((seg[:, 0] - cx) * uy - (seg[:, 1] - cy) * ux).max() > 2.0 * kappa:
+            return math.inf
+        return mse
+
+    costs = [cost(pieces[k], pieces[k + 1]) for k in range(len(pieces) - 1)]
+    while costs:
+        best = min(range(len(costs)), key=lambda k: (costs[k], -k))
+        if not math.isfinite(costs[best]):
             break
-        shared = points[pieces[best][1] : pieces[best][1] + 1]
-        moments[best] = moments[best] + moments[best + 1] - _moments(shared)
         pieces[best] = (pieces[best][0], pieces[best + 1][1])
-        del pieces[best + 1], moments[best + 1]
+        del pieces[best + 1], costs[best]
+        if best > 0:
+            costs[best - 1] = cost(pieces[best - 1], pieces[best])
+        if best < len(costs):
+            costs[best] = cost(pieces[best], pieces[best + 1])
     return pieces
 
 
-def fitted_polyline(points: Array, pieces: list[tuple[int, int]]) -> Array:
+def fitted_polyline(points: Array, pieces: list[tuple[int, int]], cum: Array | None = None) -> Array:
     """Segments on the fitted lines of ``pieces``; neighbours meet where their lines cross."""
-    # A two-point piece between two walls is the cut across a corner that fell between two
-    # beams: drop it, so the walls meet where their lines cross.
-    pieces = [
+    return _fitted_runs(points, [_without_corner_cuts(pieces)], cum)
+
+
+def _without_corner_cuts(pieces: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """A two-point piece between two walls is the cut across a corner that fell between two
+    beams: drop it, so the walls meet where their lines cross."""
+    return [
         pc
         for k, pc in enumerate(pieces)
         if not (
@@ -163,31 +265,62 @@ def fitted_polyline(points: Array, pieces: list[tuple[int, int]]) -> Array:
             and pieces[k + 1][1] - pieces[k + 1][0] > 1
         )
     ]
-    lines = [_line_from_moments(_moments(points[i : j + 1]))[:2] for i, j in pieces]
 
-    def project(p: Array, line: tuple[Array, Array]) -> Array:
-        c, u = line
-        return c + u * float(np.dot(p - c, u))
 
-    ends = []
-    for k, (i, j) in enumerate(pieces):
-        ends.append([project(points[i], lines[k]), project(points[j], lines[k])])
-    for k in range(len(pieces) - 1):
-        (c1, u1), (c2, u2) = lines[k], lines[k + 1]
-        det = u1[0] * u2[1] - u1[1] * u2[0]
-        vertex = 0.5 * (points[pieces[k][1]] + points[pieces[k + 1][0]])
-        if abs(det) > 0.17:  # lines more than ~10 degrees apart: a corner, put it where they cross
-            d = c2 - c1
-            s = (d[0] * u2[1] - d[1] * u2[0]) / det
-            cross = c1 + s * u1
-            if np.hypot(*(cross - vertex)) < 0.1:
-                ends[k][1] = cross
-                ends[k + 1][0] = cross
-                continue
-        mid = 0.5 * (ends[k][1] + ends[k + 1][0])
-        ends[k][1] = mid
-        ends[k + 1][0] = mid
-    return np.array([[a[0], a[1], b[0], b[1]] for a, b in ends])
+def _fitted_runs(points: Array, runs: list[list[tuple[int, int]]], cum: Array | None = None) -> Array:
+    """:func:`fitted_polyline` of several runs of pieces at once (neighbours meet within a run)."""
+    if cum is None:
+        cum = _cumulative_moments(points)
+    flat = [pc for run in runs for pc in run]
+    if not flat:
+        return np.zeros((0, 4))
+    first = np.array([i for i, _ in flat])
+    last = np.array([j for _, j in flat])
+    # a junction between consecutive pieces only inside a run: mark the last piece of each run
+    joins = np.zeros(len(flat) - 1, dtype=bool)
+    k = 0
+    for run in runs:
+        if run:
+            joins[k : k + len(run) - 1] = True
+            k += len(run)
+    c, u = _lines(cum[last + 1] - cum[first])
+    # each piece's ends: its first and last points projected on its line
+    start = c + u * ((points[first] - c) * u).sum(axis=1)[:, None]
+    end = c + u * ((points[last] - c) * u).sum(axis=1)[:, None]
+    if len(flat) > 1:
+        c1, u1, c2, u2 = c[:-1], u[:-1], c[1:], u[1:]
+        det = u1[:, 0] * u2[:, 1] - u1[:, 1] * u2[:, 0]
+        vertex = 0.5 * (points[last[:-1]] + points[first[1:]])
+        d = c2 - c1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            along = (d[:, 0] * u2[:, 1] - d[:, 1] * u2[:, 0]) / det
+        cross = c1 + along[:, None] * u1
+        # lines more than ~10 degrees apart: a corner, put it where they cross (if near the vertex)
+        corner = (np.abs(det) > 0.17) & (np.hypot(*(cross - vertex).T) < 0.1)
+        mid = 0.5 * (end[:-1] + start[1:])
+        joint = np.where(corner[:, None], cross, mid)
+        end[:-1] = np.where(joins[:, None], joint, end[:-1])
+        start[1:] = np.where(joins[:, None], joint, start[1:])
+    return np.hstack([start, end])
+
+
+def _lines(m: Array) -> tuple[Array, Array]:
+    """Centroids ``(k, 2)`` and unit directions ``(k, 2)`` of the total least squares lines of the
+    moments' rows (:func:`_fit_line`, vectorised)."""
+    n = m[:, 0]
+    cx, cy = m[:, 1] / n, m[:, 2] / n
+    vxx = m[:, 3] / n - cx * cx
+    vxy = m[:, 4] / n - cx * cy
+    vyy = m[:, 5] / n - cy * cy
+    half = 0.5 * (vxx - vyy)
+    root = np.hypot(half, vxy)
+    ux = np.where(vxx >= vyy, root + half, vxy)
+    uy = np.where(vxx >= vyy, vxy, root - half)
+    norm = np.hypot(ux, uy)
+    safe = norm > 0
+    ux = np.where(safe, ux / np.where(safe, norm, 1.0), 1.0)
+    uy = np.where(safe, uy / np.where(safe, norm, 1.0), 0.0)
+    return np.column_stack([cx, cy]), np.column_stack([ux, uy])
 
 
 def range_noise(points: Array, beams: Array) -> float:
@@ -233,17 +366,20 @@ def extract_segments(scan: RangeScan, params: ExtractionParams | None = None) ->
     step = abs(scan.angle_increment)
     points, beams = _returns(scan, p.max_range)
     kappa = kappa_for(range_noise(points, beams), p) if p.kappa_noise_factor > 0 else p.kappa
-    for cluster in clusters(points, p.tau, step, p.breakpoint_angle, beams):
-        if len(cluster) < max(p.min_cluster_points, 2):
-            continue
-        for run in vertex_runs(cluster, split_polyline(cluster, kappa), p.tau):
-            part = cluster[run[0] : run[-1] + 1]
-            vertices = [v - run[0] for v in run]
+    cum = _cumulative_moments(points) if p.line_fit else None
+    runs: list[list[tuple[int, int]]] = []
+    bounds = [(a, b) for a, b in cluster_bounds(points, p.tau, step, p.breakpoint_angle, beams)]
+    bounds = [(a, b) for a, b in bounds if b - a >= max(p.min_cluster_points, 2)]
+    for (a, b), vertices in zip(bounds, split_polylines(points, bounds, kappa), strict=True):
+        cluster = points[a:b]
+        for run in vertex_runs(cluster, vertices, p.tau):
             if p.line_fit:
-                out.append(fitted_polyline(part, merge_pieces(part, vertices, kappa)))
+                runs.append(_without_corner_cuts(merge_pieces(points, [a + v for v in run], kappa, cum)))
             else:
-                v = part[vertices]
+                v = cluster[run]
                 out.append(np.hstack([v[:-1], v[1:]]))
+    if runs:
+        out.append(_fitted_runs(points, runs, cum))
     if not out:
         return np.zeros((0, 4))
     seg = np.vstack(out)

@@ -31,8 +31,10 @@ from fleetmap.shared.errors import BadInput
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_-]{0,31}")
 """Robot ids, fleet names and service names (matched whole)."""
 
-MAP_KEY_PATTERN = re.compile(r"([a-z][a-z0-9_-]{0,31})/(0|[1-9][0-9]{0,17})")
-"""``<robot>/<epoch>``: a local map; the epoch is a non-negative integer without leading zeros."""
+MAP_KEY_PATTERN = re.compile(r"([a-z][a-z0-9_-]{0,31})/(0|[1-9][0-9]{0,17})(?:/(0|[1-9][0-9]{0,17}))?")
+"""``<robot>/<epoch>``: a robot's local map of one epoch (the frame of its first scan), or
+``<robot>/<epoch>/<submap>``: one submap of it; the numbers are non-negative integers without
+leading zeros."""
 
 DEFAULT_FLEET = "default"
 
@@ -62,11 +64,25 @@ def map_key(robot: str, epoch: int) -> str:
 
 
 def parse_map_key(key: str) -> tuple[str, int]:
-    """``(robot, epoch)`` of a map key ``<robot>/<epoch>``."""
+    """``(robot, epoch)`` of a map key ``<robot>/<epoch>`` or ``<robot>/<epoch>/<submap>``."""
+    robot, epoch, _ = parse_submap_key(key)
+    return robot, epoch
+
+
+def submap_key(robot: str, epoch: int, submap: int) -> str:
+    """The name of one submap of a robot's epoch: ``<robot>/<epoch>/<submap>``."""
+    if isinstance(submap, bool) or not isinstance(submap, int) or submap < 0:
+        raise BadInput("submap", f"expected a non-negative integer, got {submap!r}")
+    return f"{map_key(robot, epoch)}/{submap}"
+
+
+def parse_submap_key(key: str) -> tuple[str, int, int | None]:
+    """``(robot, epoch, submap)`` of a map key; submap None for a whole epoch's ``<robot>/<epoch>``."""
     match = MAP_KEY_PATTERN.fullmatch(key) if isinstance(key, str) else None
     if match is None:
-        raise BadInput("map key", f"{str(key)[:64]!r} is not <robot>/<epoch>")
-    return match.group(1), int(match.group(2))
+        raise BadInput("map key", f"{str(key)[:64]!r} is not <robot>/<epoch> or <robot>/<epoch>/<submap>")
+    submap = match.group(3)
+    return match.group(1), int(match.group(2)), None if submap is None else int(submap)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ Conventions on the wire:
   are refused;
 - transforms are maps ``{"x", "y", "theta"}`` (``../shared/CONTRACTS.md``, Transform);
 - ``stamp`` is seconds (the scan's time: simulated or wall clock), finite and non-negative;
-- a local map is named by its map key ``<robot>/<epoch>`` (:func:`fleetmap.shared.keys.map_key`);
+- a robot's local map of one epoch is named by its map key ``<robot>/<epoch>``, one submap of it
+  by ``<robot>/<epoch>/<submap>`` (:mod:`fleetmap.shared.keys`);
 - optional fields are ``nil`` or absent; unknown fields are ignored, so a newer sender may add
   optional fields without breaking older receivers; a ``v`` this code does not read is refused.
 """
@@ -331,6 +332,71 @@ class EpochLink:
 
 
 @dataclass(frozen=True, eq=False)
+class SubmapLink:
+    """How a submap follows the previous one of its epoch, by the robot's own tracking.
+
+    ``transform`` is the submap's frame in the previous submap's frame; ``covariance`` its
+    uncertainty (row-major 3x3 over x, y, theta; m^2, m rad, rad^2), as the tracking measured it.
+    """
+
+    SCHEMA: ClassVar[str] = "fleetmap.SubmapLink"
+
+    submap: int
+    transform: Transform2D
+    covariance: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        s = self.SCHEMA
+        _set(self, "submap", _count(s, "submap", self.submap))
+        _set(self, "transform", _transform(s, "transform", self.transform))
+        _set(self, "covariance", _covariance(s, "covariance", self.covariance))
+
+    @property
+    def covariance_matrix(self) -> Array:
+        return np.array(self.covariance, dtype=np.float64).reshape(3, 3)
+
+
+def _covariance(schema: str, name: str, value: Any) -> tuple[float, ...]:
+    """A 3x3 covariance, row-major: 9 finite numbers, symmetric, positive definite."""
+    raw = value.ravel().tolist() if isinstance(value, np.ndarray) else value
+    items = _sequence(schema, name, raw, 9)
+    if len(items) != 9:
+        raise BadMessage(schema, name, f"expected 9 numbers (a 3x3 matrix, row-major), got {len(items)}")
+    numbers = tuple(_number(schema, f"{name}[{i}]", v) for i, v in enumerate(items))
+    m = np.array(numbers).reshape(3, 3)
+    if not np.allclose(m, m.T, rtol=1e-6, atol=1e-12 * max(float(np.abs(m).max()), 1e-300)):
+        raise BadMessage(schema, name, "is not symmetric")
+    if np.linalg.eigvalsh(m).min() <= 0:
+        raise BadMessage(schema, name, "is not positive definite")
+    return numbers
+
+
+def _int_rows(schema: str, name: str, value: Any, limit: int) -> Array:
+    """Non-negative integers (scan indices) as a 1-D int64 array, from a list or packed bytes."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        raw = bytes(value)
+        if len(raw) % 8:
+            raise BadMessage(schema, name, f"{len(raw)} bytes is not a whole number of int64")
+        array = np.frombuffer(raw, dtype="<i8")
+    elif isinstance(value, (np.ndarray, list, tuple)):
+        try:
+            array = np.asarray(value, dtype=np.int64)
+        except (TypeError, ValueError, OverflowError):
+            raise BadMessage(schema, name, "expected a list of integers") from None
+        if array.size == 0:
+            array = array.reshape(0)
+        if array.ndim != 1:
+            raise BadMessage(schema, name, f"expected one integer per scan, got shape {array.shape}")
+    else:
+        raise BadMessage(schema, name, f"expected packed int64 indices, got {type(value).__name__}")
+    if len(array) > limit:
+        raise BadMessage(schema, name, f"{len(array)} items is more than {limit}")
+    if len(array) and array.min() < 0:
+        raise BadMessage(schema, name, f"index {int(array.min())} is negative")
+    return _readonly(array)
+
+
+@dataclass(frozen=True, eq=False)
 class Component:
     """One connected component of the map graph: local maps merged into one global map.
 
@@ -409,6 +475,8 @@ class WireMessage:
 
 def _to_wire(value: Any) -> Any:
     if isinstance(value, np.ndarray):
+        if value.dtype.kind in "iu":
+            return np.ascontiguousarray(value, dtype="<i8").tobytes()
         return np.ascontiguousarray(value, dtype="<f4" if value.dtype == np.float32 else "<f8").tobytes()
     if isinstance(value, Transform2D):
         return {"x": value.x, "y": value.y, "theta": value.theta}
@@ -434,6 +502,13 @@ class Scan(WireMessage):
     stamp: float
     segments: Array
     ranges: LaserRanges | None = None
+    submap: int | None = None
+    """The submap of the scan's epoch that placed it (None: not placed)."""
+    pose: Transform2D | None = None
+    """The laser's pose in that submap's frame, by the robot's tracking (None: not placed)."""
+    odometry: Transform2D | None = None
+    """The robot's odometry at the scan (its own frame: only differences between scans mean
+    anything); None when the robot has none."""
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
@@ -444,13 +519,29 @@ class Scan(WireMessage):
         _set(self, "segments", _segments(s, "segments", self.segments))
         if self.ranges is not None:
             _set(self, "ranges", _part(LaserRanges, s, "ranges", self.ranges))
+        _set(self, "submap", _optional_count(s, "submap", self.submap))
+        _set(self, "pose", _optional_transform(s, "pose", self.pose))
+        _set(self, "odometry", _optional_transform(s, "odometry", self.odometry))
+        if (self.submap is None) != (self.pose is None):
+            raise BadMessage(s, "pose", "a placed scan names its submap and its pose in it, an unplaced one neither")
 
 
 @dataclass(frozen=True, eq=False)
 class LocalMap(WireMessage):
-    """A robot's local map of one epoch, version ``version`` (it grows as scans are integrated)."""
+    """A robot's submap, version ``version``: the walls of a stretch of its path, in the frame of
+    the submap's first scan, as its tracking placed them (``fleetmap.agents.tracker``).
+
+    A robot's submaps of one epoch are numbered 0, 1, ... (submap 0's frame is the epoch's);
+    consecutive ones overlap and are chained by ``link``. The active submap grows in versions;
+    a finished one is published once more with ``final`` true and never changes again.
+
+    Version 1 (recordings made before submaps) carried a whole epoch's local map: it reads as
+    submap 0, not final, without a link or scan table.
+    """
 
     SCHEMA: ClassVar[str] = "fleetmap.LocalMap"
+    VERSION: ClassVar[int] = 2
+    READS: ClassVar[tuple[int, ...]] = (1, 2)
 
     robot: str
     epoch: int
@@ -460,13 +551,26 @@ class LocalMap(WireMessage):
     scans: int
     """How many scans went into it."""
     pose: Transform2D | None = None
-    """The robot's current pose in this local map's frame; None when the robot is lost."""
+    """The robot's current pose in this submap's frame; None when the robot is lost."""
     previous_epoch_link: EpochLink | None = None
-    """Set on the first versions of an epoch that follows another one of the same robot."""
+    """Set on the submaps of an epoch that follows another one of the same robot."""
     viewpoints: Array | None = None
-    """Where each placed scan was taken, in the map's frame, and the bearings its laser covers:
-    rows ``[x, y, theta, bearing_min, bearing_max]`` (fleetmap.shared.mapgrid). With them the
-    merger knows the free space the robot saw and refuses a match that puts walls in it."""
+    """Where each scan that went into it was taken, in the map's frame, and the bearings its laser
+    covers: rows ``[x, y, theta, bearing_min, bearing_max]`` (fleetmap.shared.mapgrid). With them
+    the merger knows the free space the robot saw and refuses a match that puts walls in it."""
+    submap: int = 0
+    """The submap's number in its epoch."""
+    final: bool = False
+    """The submap is finished: this version is its last."""
+    link: SubmapLink | None = None
+    """Submap ``submap - 1``'s frame to this one's, by the robot's tracking (None for submap 0)."""
+    scan_indices: Array | None = None
+    """The scans this submap places (each scan of an epoch is placed by one submap): their
+    indices in the robot's stream, ..."""
+    scan_stamps: Array | None = None
+    """... their stamps (s), ..."""
+    scan_poses: Array | None = None
+    """... and their laser poses in this submap's frame, rows ``[x, y, theta]``."""
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
@@ -484,11 +588,47 @@ class LocalMap(WireMessage):
             if link.epoch >= self.epoch:
                 raise BadMessage(s, "previous_epoch_link.epoch", f"{link.epoch} is not before epoch {self.epoch}")
             _set(self, "previous_epoch_link", link)
+        _set(self, "submap", _count(s, "submap", self.submap))
+        _set(self, "final", _flag(s, "final", self.final))
+        if self.link is not None:
+            submap_link = _part(SubmapLink, s, "link", self.link)
+            if submap_link.submap != self.submap - 1:
+                raise BadMessage(s, "link.submap", f"{submap_link.submap} is not the submap before {self.submap}")
+            _set(self, "link", submap_link)
+        table = (self.scan_indices, self.scan_stamps, self.scan_poses)
+        if any(part is not None for part in table):
+            if any(part is None for part in table):
+                raise BadMessage(s, "scan_indices", "scan_indices, scan_stamps and scan_poses go together")
+            indices = _int_rows(s, "scan_indices", self.scan_indices, MAX_SEGMENTS)
+            stamps = _float_rows(s, "scan_stamps", _column(self.scan_stamps), "stamp", "stamp", MAX_SEGMENTS)[:, 0]
+            if len(stamps) and stamps.min() < 0:
+                raise BadMessage(s, "scan_stamps", f"stamp {float(stamps.min())} is negative")
+            poses = _float_rows(s, "scan_poses", self.scan_poses, "x, y, theta", "pose", MAX_SEGMENTS)
+            if not len(indices) == len(stamps) == len(poses):
+                raise BadMessage(
+                    s, "scan_poses", f"{len(indices)} indices, {len(stamps)} stamps and {len(poses)} poses differ"
+                )
+            _set(self, "scan_indices", indices)
+            _set(self, "scan_stamps", _readonly(stamps))
+            _set(self, "scan_poses", _readonly(poses))
 
     @property
     def key(self) -> str:
-        """The map key ``<robot>/<epoch>``."""
+        """The map key ``<robot>/<epoch>`` of the epoch this submap belongs to."""
         return f"{self.robot}/{self.epoch}"
+
+    @property
+    def submap_key(self) -> str:
+        """The submap's own key ``<robot>/<epoch>/<submap>``."""
+        return f"{self.robot}/{self.epoch}/{self.submap}"
+
+
+def _column(value: Any) -> Any:
+    """A 1-D sequence of numbers as one column (the wire packs it as bytes either way)."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return value
+    array = np.asarray(value, dtype=np.float64) if not isinstance(value, np.ndarray) else value
+    return array.reshape(-1, 1)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,11 @@ class RangeScan:
     range_max: float
     ranges: Array
     odom: tuple[float, float, float] | None = None
-    """The pose written on the log line (odometry or SLAM-corrected): never used by the algorithms."""
+    """The pose written on the log line (odometry or SLAM-corrected): never used by the algorithms
+    (benchmarks score against it where it is a corrected pose)."""
+    odometry: tuple[float, float, float] | None = None
+    """The robot's odometry written on the log line (FLASER/RLASER: its odom_x, odom_y,
+    odom_theta; ROBOTLASER1: the laser's pose by odometry), for a source that has no ODOM lines."""
 
     def to_json_dict(self) -> dict[str, Any]:
         return {
@@ -84,10 +88,12 @@ def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | N
             rest = tokens[2 + n :]
             if len(ranges) != n or len(rest) < 7:
                 raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
-            pose = _floats(rest[0:3], source)
+            pose = _floats(rest[0:6], source)
             stamp = float(rest[6])
             angle_min, inc = half_circle_angles(n)
-            return RangeScan(stamp, angle_min, inc, range_max, ranges, (pose[0], pose[1], pose[2]))
+            return RangeScan(
+                stamp, angle_min, inc, range_max, ranges, (pose[0], pose[1], pose[2]), (pose[3], pose[4], pose[5])
+            )
         if kind in ("ROBOTLASER1", "ROBOTLASER2"):
             start, _fov, res, max_range = _floats(tokens[2:6], source)
             n = int(tokens[8])
@@ -98,7 +104,8 @@ def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | N
                 raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
             pose = _floats(rest[0:3], source)
             stamp = float(rest[11])
-            return RangeScan(stamp, start, res, min(max_range, range_max), ranges, (pose[0], pose[1], pose[2]))
+            xyz = (pose[0], pose[1], pose[2])
+            return RangeScan(stamp, start, res, min(max_range, range_max), ranges, xyz, xyz)
     except (IndexError, ValueError):
         raise BadInput(source, f"malformed {kind} line") from None
     return None
@@ -110,11 +117,13 @@ def read_carmen(path: str | Path, range_max: float = math.inf) -> Iterator[Range
     ``range_max`` marks the no-return reading of FLASER/RLASER lines (which do not carry it):
     readings at or beyond it are no return.
     """
-    p = Path(path)
-    if not p.exists():
-        raise BadInput(str(path), "no such file")
-    if p.is_dir():
-        raise BadInput(str(path), "is a directory, not a CARMEN log")
+    for _, scan in read_carmen_lines(path, range_max):
+        yield scan
+
+
+def read_carmen_lines(path: str | Path, range_max: float = math.inf) -> Iterator[tuple[int, RangeScan]]:
+    """:func:`read_carmen` with each scan's line number."""
+    p = _carmen_file(path)
     found_any = False
     with _open_text(p) as fh:
         try:
@@ -124,11 +133,51 @@ def read_carmen(path: str | Path, range_max: float = math.inf) -> Iterator[Range
                 scan = parse_carmen_line(line, f"{path}:{lineno}", range_max)
                 if scan is not None:
                     found_any = True
-                    yield scan
+                    yield lineno, scan
         except (OSError, EOFError) as exc:
             raise BadInput(str(path), f"cannot read (corrupt or truncated file?): {exc}") from None
     if not found_any:
         raise BadInput(str(path), "no FLASER, RLASER or ROBOTLASER1 lines: not a CARMEN laser log")
+
+
+@dataclass(frozen=True)
+class OdometryReading:
+    """One ODOM line of a CARMEN log: the robot's odometry pose and when it was read."""
+
+    line: int
+    stamp: float
+    pose: tuple[float, float, float]
+
+
+def read_carmen_odometry(path: str | Path) -> list[OdometryReading]:
+    """The ODOM lines of a CARMEN log, in file order (``ODOM x y theta tv rv accel ipc_timestamp
+    ...``); a line that does not parse is skipped (a log may end in a cut line)."""
+    p = _carmen_file(path)
+    out: list[OdometryReading] = []
+    with _open_text(p) as fh:
+        try:
+            for lineno, line in enumerate(fh, 1):
+                if not line.startswith("ODOM "):
+                    continue
+                tokens = line.split()
+                try:
+                    x, y, theta = float(tokens[1]), float(tokens[2]), float(tokens[3])
+                    stamp = float(tokens[7])
+                except (IndexError, ValueError):
+                    continue
+                out.append(OdometryReading(lineno, stamp, (x, y, theta)))
+        except (OSError, EOFError) as exc:
+            raise BadInput(str(path), f"cannot read (corrupt or truncated file?): {exc}") from None
+    return out
+
+
+def _carmen_file(path: str | Path) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(str(path), "no such file")
+    if p.is_dir():
+        raise BadInput(str(path), "is a directory, not a CARMEN log")
+    return p
 
 
 def scan_from_dict(data: Any, source: str) -> RangeScan:

@@ -71,12 +71,13 @@ def _clear(x: float, y: float) -> bool:
 def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch: int = 0, version: int = 0):  # type: ignore[no-untyped-def]
     """A robot's local map built from its scans ``start:stop`` placed at their TRUE poses (a perfect
     agent), as the LocalMap message the merger receives; its frame is scan ``start``'s, as an
-    agent's epoch would be. Returns (message, true pose of the frame in the world)."""
+    agent's epoch would be. Returns (message, true pose of the frame in the world). A bundled
+    scenario's scans are its sparse copy's (:func:`sparse`)."""
     from fleetmap.scenarios import load_scenario, robot_stream
     from fleetmap.shared.fusion import fuse
     from fleetmap.shared.messages import LocalMap
 
-    sc = load_scenario(scenario_name)
+    sc = load_scenario(sparse(scenario_name))
     scans = [s for s in robot_stream(sc, robot) if start <= s.index < stop]
     frame = scans[0].pose
     merged = None
@@ -90,6 +91,18 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
     return message, frame
 
 
+SPARSE = Path(__file__).parent / "data" / "sparse"
+"""The bundled scenarios as they were when robots scanned every 0.8-1.2 m of path (the paper's
+Section V spacing): the tests of pose-free integration and merging cut their maps from these."""
+
+
+def sparse(name: str) -> str:
+    """A bundled scenario's sparse copy (:data:`SPARSE`), or ``name`` itself (a file, or a name
+    without one)."""
+    path = SPARSE / f"{name}.toml"
+    return str(path) if path.exists() else name
+
+
 NORTH_LANE = str(Path(__file__).parent / "data" / "warehouse-north-lane.toml")
 """warehouse-events as bundled until 2026-11-21: r1 carried to the north lane facing west (its
 scans 16 on), driving away from the forklift's bay; the lane cases of the tests are cut from it."""
@@ -97,12 +110,13 @@ scans 16 on), driving away from the forklift's bay; the lane cases of the tests 
 
 @functools.cache
 def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, SegmentMap, Transform2D]]:
-    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario or a
-    scenario file (once per test process: several tests cut their cases from the same scans)."""
+    """(stamp, scan, true pose) of one robot's scans 0 to stop - 1 in a bundled scenario's sparse
+    copy (:func:`sparse`) or a scenario file (once per test process: several tests cut their cases
+    from the same scans)."""
     from fleetmap.scenarios import load_scenario, robot_stream
 
     out = []
-    for s in itertools.islice(robot_stream(load_scenario(name), robot), stop):
+    for s in itertools.islice(robot_stream(load_scenario(sparse(name)), robot), stop):
         m = SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True)
         out.append((s.stamp, m, s.pose))
     return out

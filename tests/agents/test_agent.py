@@ -1,246 +1,240 @@
-"""The agent's logic on simulated robots: what it publishes, how good its local map is, and when
-it starts a new epoch."""
+"""The agent's tracking front end on simulated robots scanning at 5 Hz with drifting odometry: what
+it publishes, how close its poses and submaps stay to the truth, and when it starts a new epoch."""
 
 from __future__ import annotations
 
-import itertools
 import json
+import logging
 import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from fleetmap.agents.agent import ONE_SCAN_REASON, Agent
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import load_scenario, map_error, robot_stream
+from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
-from fleetmap.shared.scans import read_carmen
 
 from tests.agents.conftest import blocked, epoch_events, kidnap_index, run, source_scans
 
 
-def local_maps(messages, epoch=None):
+def submaps(messages, epoch=None):
     return [m for m in messages if isinstance(m, LocalMap) and (epoch is None or m.epoch == epoch)]
 
 
-def world_error(local_map, frame_pose, walls):
-    """How far a local map lies from the true walls, placed by its frame scan's true pose."""
-    return map_error(frame_pose.apply(np.asarray(local_map.segments)), walls)
-
-
-def test_every_scan_is_published_once_in_order_with_its_readings(r2_stream, r2_messages):
-    scans = [m for m in r2_messages if isinstance(m, Scan)]
-    assert [s.index for s in scans] == [s.index for s in r2_stream]
-    assert [s.stamp for s in scans] == [s.stamp for s in r2_stream]
-    for sent, simulated in zip(scans, r2_stream, strict=True):
-        assert sent.robot == "r2" and sent.epoch == 0 and len(sent.segments) > 0
-        assert sent.ranges is not None
-        np.testing.assert_array_equal(sent.ranges.ranges, simulated.scan.ranges.astype(np.float32))
-        assert decode(sent.to_msgpack()).index == sent.index  # every message is valid on the wire
-
-
-def test_the_local_map_grows_in_versions_and_matches_the_true_walls(department, r2_stream, r2_messages):
-    maps = local_maps(r2_messages)
-    assert [m.version for m in maps] == list(range(len(maps)))
-    assert all(m.epoch == 0 and m.previous_epoch_link is None for m in maps)
-    # version 0 at the first scan (the epoch's frame), then every 3 placed scans, the last on finish
-    assert maps[0].scans == 1 and maps[0].pose == maps[0].pose.identity()
-    assert [m.scans for m in maps[:-1]] == [1 + 3 * k for k in range(len(maps) - 1)]
-    assert maps[-1].scans >= len(r2_stream) - 1, "all but one scan at most integrate with the previous one"
-    error = world_error(maps[-1], r2_stream[0].pose, department.world.walls)
-    assert error.mean < 0.03 and error.p95 < 0.08
-    # the robot's pose in its local map is where it truly is, seen from the first scan
-    placed = [m for m in maps if m.pose is not None][-1]
-    at = next(s for s in r2_stream if s.stamp == placed.stamp)
-    translation, rotation = placed.pose.distance(r2_stream[0].pose.inverse().compose(at.pose))
-    assert at.index > 10 and translation < 0.10 and rotation < np.radians(2)
-
-
-def test_a_kidnap_starts_a_new_epoch_from_the_first_scan_after_it(kidnapped, kidnapped_stream, kidnapped_run):
-    kidnap = kidnap_index(kidnapped_stream)
-    messages = kidnapped_run.messages
-    [(said_at, event)] = [(i, m) for i, out in kidnapped_run.steps for m in out if isinstance(m, FleetEvent)]
-    [detail] = epoch_events(messages)
-    assert event.kind == "epoch" and event.robot == "r1"
-    assert set(detail) == {"epoch", "first_scan", "previous_epoch", "reason"}
-    assert detail["epoch"] == 1 and detail["previous_epoch"] == 0 and detail["first_scan"] == kidnap
-    assert said_at <= kidnap + kidnapped_run.agent.kidnap_after - 1
-    # the scans from the one that decided it on are in the new epoch
-    assert {m.epoch for m in messages if isinstance(m, Scan) and m.index >= said_at} == {1}
-    # the old local map is closed with the robot no longer in it; the new one says where it comes from
-    old, new = local_maps(messages, 0), local_maps(messages, 1)
-    assert old[-1].pose is None and messages.index(old[-1]) < messages.index(event) < messages.index(new[0])
-    assert [m.version for m in new] == list(range(len(new)))
-    assert {(m.previous_epoch_link.epoch, m.previous_epoch_link.transform) for m in new} == {(0, None)}
-    # the new epoch's frame is the first scan after the kidnap: its map fits the walls from there
-    frame = next(s for s in kidnapped_stream if s.index == kidnap)
-    assert world_error(new[-1], frame.pose, kidnapped.world.walls).mean < 0.03
-    assert world_error(old[-1], kidnapped_stream[0].pose, kidnapped.world.walls).mean < 0.03
-
-
-@pytest.mark.slow  # builds and merges maps from many scans: run in CI, deselected by -m "not slow"
-def test_a_lost_robot_publishes_its_new_local_map_after_every_scan(kidnapped, kidnapped_stream, kidnapped_run):
-    # Epoch 0 every publish_every (3) placed scans, then closed at the kidnap with its 6 placed
-    # scans; the epoch after the kidnap after each of its first lost_scans placed scans.
-    assert [m.scans for m in local_maps(kidnapped_run.messages, 0)] == [1, 4, 6]
-    eager = [m.scans for m in local_maps(kidnapped_run.messages, 1)]
-    assert len(eager) >= 3 and eager == list(range(eager[0], eager[0] + len(eager))), eager
-    # After lost_scans, every 3 again.
-    stream = list(robot_stream(kidnapped, "r1"))[: kidnap_index(kidnapped_stream) + 6]
-    briefly = [m.scans for m in local_maps(run(Agent("r1", lost_scans=2), source_scans(stream)), 1)]
-    assert briefly[:2] == [2, 5], briefly
-
-
-def test_the_kidnap_of_the_bundled_department_events_scenario_starts_an_epoch():
-    # The hallway scan before the kidnap and the hall scan after it match validly 9 m apart (look-alike
-    # walls); the motion bound (max_speed) is what refuses it: the robot cannot move 9 m in 0.5 s.
-    scenario = load_scenario("department-events")
-    stream = list(robot_stream(scenario, "r1"))
-    kidnap = kidnap_index(stream)
-    # from three scans before the kidnap (in the hallway) to two after it (in the hall)
-    messages = run(Agent("r1", kidnap_after=2), source_scans(stream[kidnap - 3 : kidnap + 2]))
-    assert kidnap in [e["first_scan"] for e in epoch_events(messages)]
-
-
-def test_one_blocked_scan_is_not_a_kidnap_but_two_in_a_row_are_a_new_view(r2_stream):
-    scans = r2_stream[:6]
-    once = run(Agent("r2"), source_scans([*scans[:3], blocked(scans[3]), *scans[4:]]))
-    assert epoch_events(once) == []
-    assert {m.epoch for m in once if isinstance(m, Scan)} == {0}
-    assert local_maps(once)[-1].scans == 5, "the blocked scan is left out of the map"
-
-    twice = run(Agent("r2"), source_scans([*scans[:3], blocked(scans[3]), blocked(scans[4]), scans[5]]))
-    assert [e["first_scan"] for e in epoch_events(twice)][:1] == [scans[3].index]
-
-
-def test_republish_gives_the_latest_map_of_every_epoch_unchanged(kidnapped_run):
-    latest = {m.epoch: m for m in local_maps(kidnapped_run.messages)}
-    again = kidnapped_run.agent.republish()
-    assert [(m.epoch, m.version) for m in again] == [(0, latest[0].version), (1, latest[1].version)]
-    assert [m.to_msgpack() for m in again] == [latest[0].to_msgpack(), latest[1].to_msgpack()]
-
-
-def test_the_same_scans_give_byte_identical_messages(r2_stream):
-    scans = source_scans(r2_stream[:5])
-    first = [m.to_msgpack() for m in run(Agent("r2"), scans)]
-    second = [m.to_msgpack() for m in run(Agent("r2"), scans)]
-    assert first == second and len(first) > 5
-
-
-def test_finish_says_the_last_version_once(r2_stream):
-    agent = Agent("r2", publish_every=2)
-    for index, stamp, scan in source_scans(r2_stream[:3]):  # versions at scans 1 and 3
-        published = agent.add_scan(index, stamp, scan)
-    assert isinstance(published[-1], LocalMap) and published[-1].scans == 3
-    assert agent.finish() == []
-    index, stamp, scan = source_scans(r2_stream[3:4])[0]
-    agent.add_scan(index, stamp, scan)
-    [final] = agent.finish()
-    assert (final.version, final.scans, final.stamp) == (2, 4, stamp)
-    assert agent.finish() == []
-
-
-def test_scans_that_see_nothing_are_published_but_place_nothing(r2_stream):
-    empty = [replace(s, scan=replace(s.scan, ranges=np.full_like(s.scan.ranges, np.inf))) for s in r2_stream[:3]]
-    agent = Agent("r2", kidnap_after=1)
-    messages = run(agent, source_scans([*empty, *r2_stream[3:5]]))
-    assert [len(m.segments) for m in messages if isinstance(m, Scan)][:3] == [0, 0, 0]
-    assert epoch_events(messages) == []
-    # the first scan that sees walls is the frame of epoch 0
-    assert local_maps(messages)[0].stamp == r2_stream[3].stamp and agent.counts.placed == 2
-
-
-@pytest.mark.parametrize(
-    ("kwargs", "named"),
-    [
-        ({"robot": "R1"}, "robot"),
-        ({"publish_every": 0}, "publish_every"),
-        ({"kidnap_after": 0}, "kidnap_after"),
-        ({"lost_scans": -1}, "lost_scans"),
-    ],
-)
-def test_bad_parameters_are_refused_by_name(kwargs, named):
-    with pytest.raises(BadInput, match=named):
-        Agent(**{"robot": "r1", **kwargs})
-
-
-@pytest.mark.slow  # builds local maps from simulated scenario scans
-@pytest.mark.parametrize(
-    "name, robot, epochs",
-    [
-        # warehouse, r1: its agent loses its place once, after the first corner (scan 19): scans
-        # 21 and 22 do not integrate, and epoch 1 starts at 21. It used to lose it three times
-        # more: after the next corner (scan 27), constant velocity turned the robot round, so
-        # nothing challenged the scans' best match one rack back, and two scans were placed 3.5 m
-        # off before a new epoch; and along lanes, where the right placement ranked below the
-        # rivals an integration keeps.
-        ("warehouse", "r1", 2),
-        # office-events, r3: at the corner of scan 21 (a quarter turn, four segments in view) the
-        # refinement on the map slid the scan 0.7 m along the corridor, away from where its two
-        # integrations agreed, and the next scan started an epoch.
-        ("office-events", "r3", 1),
-    ],
-)
-def test_a_robot_keeps_its_place_round_corners(name, robot, epochs):
-    stream = list(robot_stream(load_scenario(name), robot))
-    agent = _run_placing_none_off(robot, stream)
-    assert agent.counts.epochs <= epochs
-    assert agent.counts.placed >= len(stream) - epochs
-
-
-def _run_placing_none_off(robot, stream):
-    """The robot's agent after ``stream``, asserting that no scan was placed off in its local map
-    (0.3 m, 3 deg from where the true poses put it relative to its epoch's first scan)."""
-    agent = Agent(robot)
-    frames = {}
-    for s in stream:
-        for m in agent.add_scan(s.index, s.stamp, s.scan):
-            if isinstance(m, FleetEvent) and m.kind == "epoch":
-                frames[json.loads(m.detail)["epoch"]] = stream[json.loads(m.detail)["first_scan"]].pose
+def track(robot_stream_, agent):
+    """Run ``agent`` on a simulated stream; the largest distance (m) and turn (deg) of a placed
+    scan from where the truth puts it relative to its epoch's first scan, and the messages."""
+    frames: dict[int, Transform2D] = {}
+    worst = (0.0, 0.0)
+    messages = []
+    for s in robot_stream_:
+        messages += agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
         pose = agent.epoch_pose
         if pose is None:
             continue
-        dt, dr = pose.distance(frames.setdefault(agent.epoch, s.pose).inverse().compose(s.pose))
-        assert dt < 0.3 and math.degrees(dr) < 3.0, f"scan {s.index}: {dt:.2f} m {math.degrees(dr):.1f} deg"
-    return agent
+        frame = frames.setdefault(agent.epoch, s.pose.compose(pose.inverse()))
+        dt, dr = pose.distance(frame.inverse().compose(s.pose))
+        worst = (max(worst[0], dt), max(worst[1], math.degrees(dr)))
+    return worst, messages + agent.finish()
 
 
-@pytest.mark.slow  # builds local maps from simulated scenario scans
-@pytest.mark.parametrize("robot, scans", [("r2", 10), ("r3", 7)])
-def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
-    # warehouse, r2 along the north lane: racks every 3.5 m, scans 1.2 m apart, the laser looking
-    # ahead. Two scans apart the views match one rack off with confidence (11 m against 1.7 m);
-    # one apart they match right, and nearly as well one rack back. r3 along the cross aisle sees
-    # only the next rack row ahead: after one unplaced scan, the next matches the last placed
-    # one only one rack back (11 m against 1.7 m where it is), which would make the robot reverse
-    # at 2.4 m/s within a second (max_acceleration). Geometry against motion: a scan may stay
-    # unplaced or start an epoch, but none is placed off in its local map.
-    stream = list(itertools.islice(robot_stream(load_scenario("warehouse"), robot), scans))
-    assert _run_placing_none_off(robot, stream).counts.placed >= 6
+@pytest.fixture(scope="module")
+def office_r3():
+    return list(robot_stream(load_scenario("office"), "r3"))
 
 
-@pytest.mark.slow  # 30 scans of a real log through the agent
-def test_a_scan_is_not_placed_on_a_local_map_of_one_scan_across_one_that_did_not_integrate(datasets) -> None:
-    # orebro, along a corridor, with no usable times: scan 151 is ambiguous against 150 (a metre
-    # on, or standing still). Placed on 150 across it, 152 went where the robot had not moved,
-    # 2.2 m short (value 5.3 against 3.0 at the truth), every later scan followed, and the local
-    # map stood 2.4 m off its first scan: merged by that scan's pose, it was wrong. The agent now
-    # starts the epoch again from 151: every placed scan lies where the corrected poses put it
-    # relative to its epoch's first scan, within 0.3 m and 3 degrees.
-    scans = list(read_carmen(datasets / "corrected" / "orebro-corrected.log.gz"))[150:180]
+@pytest.fixture(scope="module")
+def office_r3_run(office_r3):
+    return track(office_r3, Agent("r3"))
+
+
+def test_every_scan_is_published_once_in_order_with_its_readings_pose_and_odometry(r2_stream):
+    messages = run(Agent("r2"), source_scans(r2_stream))
+    scans = [m for m in messages if isinstance(m, Scan)]
+    assert [s.index for s in scans] == [s.index for s in r2_stream]
+    for sent, simulated in zip(scans, r2_stream, strict=True):
+        assert sent.robot == "r2" and sent.epoch == 0 and len(sent.segments) > 0
+        np.testing.assert_array_equal(sent.ranges.ranges, simulated.scan.ranges.astype(np.float32))
+        assert sent.odometry == simulated.odometry and sent.submap is not None and sent.pose is not None
+        assert decode(sent.to_msgpack()).pose == sent.pose  # every message is valid on the wire
+    # the first scan is the frame of the epoch's first submap
+    assert (scans[0].submap, scans[0].pose) == (0, Transform2D())
+
+
+def test_a_robot_with_drifting_odometry_is_tracked_within_5cm_over_its_whole_path(office_r3, office_r3_run):
+    (worst_m, worst_deg), messages = office_r3_run
+    assert worst_m < 0.05 and worst_deg < 0.5, (worst_m, worst_deg)
+    assert epoch_events(messages) == []
+    # the odometry alone drifts by decimetres over the same path: the tracking corrects it
+    first, last = office_r3[0], office_r3[-1]
+    true = first.pose.inverse().compose(last.pose)
+    odometry = first.odometry.inverse().compose(last.odometry)
+    assert odometry.distance(true)[0] > 0.3
+
+
+def test_without_odometry_constant_velocity_tracks_the_robot_too(office_r3):
+    # (along the office corridor, constant velocity is all that fixes the robot's progress: the
+    # error there grows to 4-5 cm, where odometry's stays at 1-2)
+    config = replace(FleetmapConfig(), tracking=TrackingParams(odometry="off"))
+    (worst_m, worst_deg), messages = track(office_r3, Agent("r3", config))
+    assert worst_m < 0.08 and worst_deg < 0.5, (worst_m, worst_deg)
+    assert all(m.odometry is not None for m in messages if isinstance(m, Scan)), "still recorded"
+
+
+def test_submaps_are_bounded_overlap_chain_by_links_and_are_final_once(office_r3, office_r3_run):
+    _, messages = office_r3_run
+    params = TrackingParams()
+    by_submap: dict[int, list[LocalMap]] = {}
+    for m in submaps(messages):
+        by_submap.setdefault(m.submap, []).append(m)
+    assert len(by_submap) >= 5, "the path is cut into several submaps"
+    truth = {s.index: s.pose for s in office_r3}
+    origin = {0: Transform2D()}
+    for k, versions in sorted(by_submap.items()):
+        assert [v.version for v in versions] == list(range(len(versions)))
+        finals = [v for v in versions if v.final]
+        assert finals == versions[-1:], "published final once, as its last version"
+        last = versions[-1]
+        views = np.asarray(last.viewpoints)
+        path = float(np.hypot(*np.diff(views[:, 0:2], axis=0).T).sum())
+        assert path <= params.submap_length + 0.5, (k, path)
+        if k > 0:
+            assert last.link is not None and last.link.submap == k - 1
+            origin[k] = origin[k - 1].compose(last.link.transform)
+        # every scan the submap placed is where the truth puts it, chained from the epoch's frame
+        for index, pose in zip(last.scan_indices, last.scan_poses, strict=True):
+            true = truth[0].inverse().compose(truth[int(index)])
+            dt, dr = origin[k].compose(Transform2D(*pose)).distance(true)
+            assert dt < 0.05 and math.degrees(dr) < 0.5, (k, int(index), dt)
+    # consecutive submaps overlap: the next begins before the previous one ends
+    for k in sorted(by_submap)[1:]:
+        before, after = by_submap[k - 1][-1], by_submap[k][-1]
+        if len(after.scan_indices):  # (the last one may have placed nothing yet)
+            assert min(after.scan_indices) == max(before.scan_indices) + 1
+        first_view = np.asarray(after.viewpoints)[0]
+        previous_views = origin[k - 1].inverse().compose(origin[k]).apply_points(first_view[None, 0:2])
+        assert np.hypot(*(np.asarray(before.viewpoints)[:, 0:2] - previous_views).T).min() < 1e-6
+    # every scan is placed by exactly one submap
+    placed = sorted(int(i) for v in by_submap.values() for i in v[-1].scan_indices)
+    assert placed == [s.index for s in office_r3]
+    # the walls of a submap are one segment per stretch of wall, on the true walls
+    world = load_scenario("office").world.walls
+    for k, versions in by_submap.items():
+        walls = truth[0].compose(origin[k]).apply(np.asarray(versions[-1].segments))
+        assert map_error(walls, world).p95 < 0.05, k
+
+
+def test_a_carried_robot_starts_a_new_epoch_within_a_few_scans(carried, carried_stream, carried_run):
+    kidnap = kidnap_index(carried_stream)
+    messages = carried_run.messages
+    [(said_at, event)] = [(i, m) for i, out in carried_run.steps for m in out if isinstance(m, FleetEvent)]
+    [detail] = epoch_events(messages)
+    assert event.robot == "r1" and detail["epoch"] == 1 and detail["first_scan"] == kidnap
+    assert said_at <= kidnap + TrackingParams().kidnap_after, "within kidnap_after scans"
+    # the old epoch's submaps are finished before the event; the new epoch says where it comes from
+    old, new = submaps(messages, 0), submaps(messages, 1)
+    assert old[-1].final and messages.index(old[-1]) < messages.index(event) < messages.index(new[0])
+    assert {(m.previous_epoch_link.epoch, m.previous_epoch_link.transform) for m in new} == {(0, None)}
+    # the new epoch's frame is the first scan after the kidnap: its map fits the walls from there
+    frame = next(s for s in carried_stream if s.index == kidnap)
+    walls = carried.world.walls
+    assert map_error(frame.pose.apply(np.asarray(new[-1].segments)), walls).mean < 0.03
+    assert {m.epoch for m in messages if isinstance(m, Scan) and m.index > said_at} == {1}
+
+
+def test_a_featureless_corridor_keeps_odometrys_estimate_along_it():
+    # Two walls 2 m apart, 80 m long; the laser (8 m) sees no end. The odometry reads 5 % long.
+    walls = np.array([[-40.0, -1.0, 40.0, -1.0], [40.0, 1.0, -40.0, 1.0]])
+    laser = LaserParams()
+    rng = np.random.default_rng(1)
+    scans = []
+    for k in range(40):
+        x, y = 0.3 * k, 0.02 * math.sin(0.3 * k)
+        scan = simulate_scan(walls, (x, y, 0.0), laser, rng, stamp=0.2 * k)
+        scans.append(SourceScan(k, 0.2 * k, scan, Transform2D(1.05 * x, 0.0, 0.0)))
     agent = Agent("r1")
+    for s in scans:
+        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+    pose = agent.epoch_pose
+    assert pose.x == pytest.approx(1.05 * 0.3 * 39, abs=0.02), "along the corridor, odometry's estimate"
+    assert pose.y == pytest.approx(0.02 * math.sin(0.3 * 39), abs=0.02) and abs(pose.theta) < math.radians(0.5)
+    assert agent.counts.epochs == 1
+
+
+def test_scans_with_no_return_break_nothing(r2_stream):
+    empty = [replace(s, scan=replace(s.scan, ranges=np.full_like(s.scan.ranges, np.inf))) for s in r2_stream[4:10]]
+    stream = [*r2_stream[:4], *empty, *r2_stream[10:]]
+    (worst_m, _), messages = track(stream, Agent("r2"))
+    assert epoch_events(messages) == [] and worst_m < 0.05
+    scans = [m for m in messages if isinstance(m, Scan)]
+    assert [len(m.segments) for m in scans][4:10] == [0] * 6 and all(m.pose is None for m in scans[4:10])
+    assert all(m.pose is not None for m in scans[10:])
+
+
+def test_a_person_blocking_the_laser_for_a_moment_is_no_kidnap(r2_stream):
+    stream = [*r2_stream[:5], *(blocked(s) for s in r2_stream[5:8]), *r2_stream[8:]]
+    (worst_m, _), messages = track(stream, Agent("r2"))
+    assert epoch_events(messages) == [] and worst_m < 0.05
+
+
+def test_odometry_that_is_not_a_number_or_jumps_is_ignored_with_a_warning(r2_stream, caplog):
+    broken = list(r2_stream)
+    broken[6] = replace(broken[6], odometry=Transform2D(math.nan, 0.0, 0.0))
+    broken[9] = replace(broken[9], odometry=broken[9].odometry.compose(Transform2D(50.0, 0.0, 0.0)))
+    with caplog.at_level(logging.WARNING, logger="fleetmap.agents.tracker"):
+        (worst_m, _), messages = track(broken, Agent("r2"))
+    assert worst_m < 0.05 and epoch_events(messages) == []
+    warned = " ".join(r.getMessage() for r in caplog.records)
+    assert "not a finite number" in warned and "jumped" in warned
+    sent = [m for m in messages if isinstance(m, Scan)]
+    assert sent[6].odometry is None, "a reading that is not a number is not published either"
+
+
+def test_republish_gives_the_latest_version_of_every_submap_and_finish_the_finals(r2_stream):
+    agent = Agent("r2")
     messages = []
-    placed = {}
-    for i, s in enumerate(scans):
-        messages += agent.add_scan(i, s.stamp, s)
-        if agent.epoch_pose is not None:
-            placed[i] = (agent.epoch, agent.epoch_pose)
-    events = epoch_events(messages)
-    assert events and events[0]["first_scan"] == 1 and events[0]["reason"] == ONE_SCAN_REASON, events
-    frame = {0: 0} | {int(e["epoch"]): int(e["first_scan"]) for e in events}
-    for i, (epoch, pose) in sorted(placed.items()):
-        truth = Transform2D(*scans[frame[epoch]].odom).inverse().compose(Transform2D(*scans[i].odom))
-        dt, dr = pose.distance(truth)
-        assert dt <= 0.3 and math.degrees(dr) <= 3, (i, epoch, dt, math.degrees(dr))
-    assert len(placed) >= 25, sorted(placed)
+    for s in source_scans(r2_stream):
+        messages += agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+    latest = {(m.epoch, m.submap): m for m in submaps(messages)}
+    again = agent.republish()
+    assert [m.to_msgpack() for m in again] == [latest[(m.epoch, m.submap)].to_msgpack() for m in again]
+    assert {(m.epoch, m.submap) for m in again} == set(latest)
+    finals = agent.finish()
+    assert finals and all(m.final and m.pose is None for m in finals)
+    assert agent.finish() == []
+
+
+def test_the_same_scans_give_byte_identical_messages(r2_stream):
+    scans = source_scans(r2_stream[:8])
+    first = [m.to_msgpack() for m in run(Agent("r2"), scans)]
+    second = [m.to_msgpack() for m in run(Agent("r2"), scans)]
+    assert first == second and len(first) > 8
+
+
+def test_the_pivot_front_end_is_selectable_and_publishes_one_local_map_per_epoch(sparse_r2_stream):
+    config = replace(FleetmapConfig(), tracking=TrackingParams(front_end="pivot"))
+    messages = run(Agent("r2", config), source_scans(sparse_r2_stream[:6]))
+    maps = submaps(messages)
+    assert maps and all(m.submap == 0 and m.link is None and m.scan_indices is None for m in maps)
+    assert maps[-1].scans >= 5
+
+
+@pytest.mark.parametrize(
+    ("tracking", "named"),
+    [({"publish_every": 0}, "publish_every"), ({"kidnap_after": 0}, "kidnap_after")],
+)
+def test_bad_parameters_are_refused_by_name(tracking, named):
+    with pytest.raises(BadInput, match=named):
+        Agent("r1", replace(FleetmapConfig(), tracking=TrackingParams(**tracking)))
+    with pytest.raises(BadInput, match="robot"):
+        Agent("R1")
+
+
+def test_an_epochs_event_says_why(carried_run):
+    [detail] = [json.loads(m.detail) for m in carried_run.messages if isinstance(m, FleetEvent)]
+    assert "fit neither the submap" in detail["reason"]

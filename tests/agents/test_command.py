@@ -24,3 +24,14 @@ def test_bad_input_exits_2_with_one_line_naming_it(tmp_path, monkeypatch, capsys
     assert main(["agent", *args, "--connect", "tcp/127.0.0.1:9", "--wait-for-listener", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("fleetmap agent: error: ") and says in err[0]
+
+
+def test_odometry_on_for_a_source_without_odometry_exits_2(tmp_path, monkeypatch, capsys):
+    from tests.agents.test_sources import write_bag
+
+    bag = tmp_path / "laser-only.mcap"
+    write_bag(bag, [(5.0, [1.0, 2.0, 3.0])])
+    args = ["agent", "--robot", "r1", "--ros2-bag", str(bag), "--odometry", "on", "--connect", "tcp/127.0.0.1:9"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has no odometry" in err[0] and str(bag) in err[0]

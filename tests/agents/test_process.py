@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
 import pytest
 from fleetmap.agents.agent import Agent
@@ -18,6 +19,7 @@ from fleetmap.agents.process import run_agent
 from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import robot_stream
 from fleetmap.shared.bus import InMemoryBus
+from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
 from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
@@ -138,7 +140,8 @@ def test_a_stop_ends_the_run_with_the_final_local_map_and_a_leave(buses, scans):
         stop.set()  # as SIGTERM does
         yield from scans[2:]
 
-    summary = run_agent(source(), Agent("r2", publish_every=5), bus, KEYS, speed=0, stop=stop)
+    agent = Agent("r2", replace(FleetmapConfig(), tracking=TrackingParams(publish_every=5)))
+    summary = run_agent(source(), agent, bus, KEYS, speed=0, stop=stop)
     assert summary.stopped and summary.scans == 2
     final = seen.messages(LocalMap)[-1]
     assert (final.version, final.scans, final.stamp) == (1, 2, scans[1].stamp)

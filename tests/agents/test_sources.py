@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScenarioSource
+from fleetmap.scenarios import robot_stream
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Transform2D
 from mcap_ros2.writer import Writer
 
 LASER_SCAN_MSGDEF = """\
@@ -53,13 +55,23 @@ def carmen_log(tmp_path: Path) -> Path:
     return path
 
 
-def test_a_scenario_source_gives_the_robots_scans_without_their_poses():
-    scans = list(ScenarioSource("department", "r3"))
-    assert [s.index for s in scans] == list(range(len(scans))) and len(scans) > 30
-    assert [s.stamp for s in scans] == [0.5 * i for i in range(len(scans))]
+def test_a_scenario_source_gives_the_robots_scans_and_odometry_without_their_poses():
+    source = ScenarioSource("department", "r3")
+    scans = list(source)
+    assert [s.index for s in scans] == list(range(len(scans))) and len(scans) > 100
+    assert [s.stamp for s in scans] == pytest.approx([0.2 * i for i in range(len(scans))])
     assert all(s.scan.odom is None and s.scan.stamp == s.stamp for s in scans)
     index, stamp, scan = scans[3]
-    assert (index, stamp, scan) == (3, 1.5, scans[3].scan)
+    assert (index, stamp, scan) == (3, scans[3].stamp, scans[3].scan)
+    # the robot's odometry: it starts at zero, each step a few per cent off the true one, and over
+    # the whole loop it drifts by metres (a degree and a half per metre)
+    assert source.has_odometry and scans[0].odometry == Transform2D()
+    truth = list(robot_stream(source.scenario, "r3"))
+    for a, b, ta, tb in zip(scans[10:20], scans[11:21], truth[10:20], truth[11:21], strict=True):
+        step, true = a.odometry.inverse().compose(b.odometry), ta.pose.inverse().compose(tb.pose)
+        assert step.distance(true)[0] < 0.1 * math.hypot(true.x, true.y) + 0.01
+    driven = truth[0].pose.inverse().compose(truth[-1].pose)
+    assert scans[-1].odometry.distance(driven)[0] > 1.0
 
 
 def test_a_carmen_log_split_between_two_robots_keeps_the_logs_indices_and_stamps(carmen_log):
@@ -175,3 +187,171 @@ def test_a_topic_of_another_type_is_refused(tmp_path):
         writer.finish()
     with pytest.raises(BadInput, match="carries std_msgs/msg/String, not sensor_msgs/LaserScan"):
         Ros2BagSource(bag)
+
+
+def test_a_carmen_logs_odometry_is_its_odom_lines_interpolated_at_each_scan(tmp_path):
+    # ODOM lines every 0.1 s, the robot driving 1 m/s along x and turning 0.2 rad/s; scans between them
+    lines = []
+    for i in range(12):
+        t = 100.0 + 0.1 * i
+        lines.append(f"ODOM {0.1 * i:.6f} 0 {0.02 * i:.6f} 0 0 0 {t:.6f} host {t:.6f}\n")
+        if 0 < i < 11:
+            lines.append(flaser_line([2.0] * 181, t + 0.05, pose=(99.0, 99.0, 3.0)))  # a corrected pose: unused
+    log = tmp_path / "robot.log"
+    log.write_text("".join(lines))
+    scans = list(CarmenSource(log))
+    assert CarmenSource(log).has_odometry and len(scans) == 10
+    for k, s in enumerate(scans, start=1):
+        assert s.odometry.x == pytest.approx(0.1 * k + 0.05) and s.odometry.theta == pytest.approx(0.02 * k + 0.01)
+
+
+def test_a_carmen_log_without_usable_times_takes_the_odom_line_before_each_scan(tmp_path):
+    lines = []
+    for i in range(4):
+        lines.append(f"ODOM {float(i):.1f} 0 0 0 0 0 0 host 0\n")
+        lines.append(flaser_line([2.0] * 181, 0.0, pose=(99.0, 99.0, 3.0)))
+    log = tmp_path / "robot.log"
+    log.write_text("".join(lines))
+    assert [s.odometry.x for s in CarmenSource(log)] == [0.0, 1.0, 2.0, 3.0]
+
+
+def test_a_carmen_log_without_odom_lines_takes_the_odometry_on_its_laser_lines(carmen_log, tmp_path):
+    no_odom = tmp_path / "laser-only.log"
+    no_odom.write_text("".join(line for line in carmen_log.read_text().splitlines(True) if not line.startswith("ODOM")))
+    scans = list(CarmenSource(no_odom))
+    assert [s.odometry.x for s in scans] == [float(i) for i in range(10)]
+    assert all(s.scan.odom is None and s.scan.odometry is None for s in scans), "travels beside the scan only"
+
+
+SEPARATOR = "=" * 80 + "\n"
+ROS_TYPES = {
+    "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "geometry_msgs/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
+    "geometry_msgs/Pose": "Point position\nQuaternion orientation\n",
+    "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/Quaternion": "float64 x\nfloat64 y\nfloat64 z\nfloat64 w\n",
+    "geometry_msgs/TwistWithCovariance": "Twist twist\nfloat64[36] covariance\n",
+    "geometry_msgs/Twist": "Vector3 linear\nVector3 angular\n",
+    "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/TransformStamped": "std_msgs/Header header\nstring child_frame_id\nTransform transform\n",
+    "geometry_msgs/Transform": "Vector3 translation\nQuaternion rotation\n",
+}
+
+
+def msgdef(body: str, *uses: str) -> str:
+    """A message definition as ros2 bag stores it: the body, then every type it uses."""
+    return body + "".join(f"{SEPARATOR}MSG: {name}\n{ROS_TYPES[name]}" for name in uses)
+
+
+ODOMETRY_MSGDEF = msgdef(
+    "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\n"
+    "geometry_msgs/TwistWithCovariance twist\n",
+    "std_msgs/Header",
+    "builtin_interfaces/Time",
+    "geometry_msgs/PoseWithCovariance",
+    "geometry_msgs/Pose",
+    "geometry_msgs/Point",
+    "geometry_msgs/Quaternion",
+    "geometry_msgs/TwistWithCovariance",
+    "geometry_msgs/Twist",
+    "geometry_msgs/Vector3",
+)
+"""nav_msgs/msg/Odometry as ros2 bag stores its definition."""
+
+TF_MSGDEF = msgdef(
+    "geometry_msgs/TransformStamped[] transforms\n",
+    "geometry_msgs/TransformStamped",
+    "std_msgs/Header",
+    "builtin_interfaces/Time",
+    "geometry_msgs/Transform",
+    "geometry_msgs/Vector3",
+    "geometry_msgs/Quaternion",
+)
+"""tf2_msgs/msg/TFMessage as ros2 bag stores its definition."""
+
+
+def _stamp(t: float) -> dict[str, int]:
+    return {"sec": int(t), "nanosec": round((t - int(t)) * 1e9)}
+
+
+def _quaternion(yaw: float) -> dict[str, float]:
+    return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
+
+
+def write_robot_bag(path: Path, odometry: str) -> list[float]:
+    """Five scans at 10 Hz and the base's odometry at 50 Hz (1 m/s along x, turning 0.5 rad/s),
+    as nav_msgs/Odometry on /odom or as tf odom -> base_link; the laser 0.2 m ahead of the base
+    (/tf_static). The scans' stamps."""
+    with path.open("wb") as stream:
+        writer = Writer(stream)
+        scan_schema = writer.register_msgdef("sensor_msgs/msg/LaserScan", LASER_SCAN_MSGDEF)
+        odom_schema = writer.register_msgdef("nav_msgs/msg/Odometry", ODOMETRY_MSGDEF)
+        tf_schema = writer.register_msgdef("tf2_msgs/msg/TFMessage", TF_MSGDEF)
+        mount = {
+            "header": {"stamp": _stamp(0.0), "frame_id": "base_link"},
+            "child_frame_id": "laser",
+            "transform": {"translation": {"x": 0.2, "y": 0.0, "z": 0.1}, "rotation": _quaternion(0.0)},
+        }
+        writer.write_message("/tf_static", tf_schema, {"transforms": [mount]}, log_time=1)
+        for k in range(60):
+            t = 50.0 + 0.02 * k
+            pose = {"position": {"x": t - 50.0, "y": 0.0, "z": 0.0}, "orientation": _quaternion(0.5 * (t - 50.0))}
+            if odometry == "odom":
+                message = {
+                    "header": {"stamp": _stamp(t), "frame_id": "odom"},
+                    "child_frame_id": "base_link",
+                    "pose": {"pose": pose, "covariance": [0.0] * 36},
+                    "twist": {
+                        "twist": {"linear": {"x": 1.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.5}},
+                        "covariance": [0.0] * 36,
+                    },
+                }
+                writer.write_message("/odom", odom_schema, message, log_time=round(t * 1e9))
+            else:
+                tf = {
+                    "header": {"stamp": _stamp(t), "frame_id": "odom"},
+                    "child_frame_id": "base_link",
+                    "transform": {"translation": pose["position"], "rotation": pose["orientation"]},
+                }
+                writer.write_message("/tf", tf_schema, {"transforms": [tf]}, log_time=round(t * 1e9))
+        stamps = [50.1 + 0.1 * k for k in range(5)]
+        for t in stamps:
+            scan = {
+                "header": {"stamp": _stamp(t), "frame_id": "laser"},
+                "angle_min": -math.pi / 2,
+                "angle_max": math.pi / 2,
+                "angle_increment": math.pi / 180,
+                "time_increment": 0.0,
+                "scan_time": 0.1,
+                "range_min": 0.1,
+                "range_max": 8.0,
+                "ranges": [2.0] * 181,
+                "intensities": [],
+            }
+            writer.write_message("/scan", scan_schema, scan, log_time=round(t * 1e9))
+        writer.finish()
+    return stamps
+
+
+@pytest.mark.parametrize("odometry", ["odom", "tf"])
+def test_a_ros2_bags_odometry_is_read_at_each_scan_on_the_laser(tmp_path, odometry):
+    bag = tmp_path / "robot.mcap"
+    stamps = write_robot_bag(bag, odometry)
+    source = Ros2BagSource(bag)
+    assert source.has_odometry
+    scans = list(source)
+    assert [s.stamp for s in scans] == pytest.approx(stamps)
+    for s in scans:
+        base = Transform2D(s.stamp - 50.0, 0.0, 0.5 * (s.stamp - 50.0))
+        laser = base.compose(Transform2D(0.2, 0.0, 0.0))  # the mounting, from /tf_static
+        assert s.odometry.distance(laser)[0] < 1e-3 and s.odometry.distance(laser)[1] < 1e-3
+
+
+def test_a_ros2_bag_without_odometry_says_so(tmp_path):
+    bag = tmp_path / "robot.mcap"
+    write_bag(bag, [(5.0, [1.0, 2.0, 3.0])])
+    source = Ros2BagSource(bag)
+    assert not source.has_odometry and next(iter(source)).odometry is None
+    with pytest.raises(BadInput, match="is not nav_msgs/Odometry"):
+        Ros2BagSource(bag, odometry_topic="/odom")

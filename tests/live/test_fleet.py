@@ -180,7 +180,7 @@ def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path
         start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
         assert steps.wait_for(1, WAIT), "the restored merger did not say where it stands"
         assert steps.items[0][1] == unpublished
-        assert MergerStep.from_msgpack(unpublished).maps == ("r1/0", "r2/0")
+        assert MergerStep.from_msgpack(unpublished).maps == ("r1/0/0", "r2/0/0")
         assert maps.wait_for(1, WAIT)
         assert maps.items[0][1] == killed.global_map.to_msgpack()
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
-from fleetmap.agents.agent import _wire_segments
+from fleetmap.agents.pivot import _wire_segments
 from fleetmap.merger.graph import Edge
 from fleetmap.merger.sequence import PivotMapBuilder
 from fleetmap.merger.service import Merger
@@ -33,7 +33,7 @@ from fleetmap.shared.messages import (
     decode,
 )
 
-from tests.helpers import true_local_map
+from tests.helpers import sparse, true_local_map
 
 KEYS = FleetKeys("test")
 
@@ -59,7 +59,7 @@ def test_three_robots_are_merged_and_placed(maps) -> None:  # type: ignore[no-un
     merger = Merger(KEYS)
     out = _feed(merger, [maps[r][0] for r in ("r1", "r2", "r3")])
     step = next(m for m in out if isinstance(m, MergerStep))
-    assert step.maps == ("r1/0", "r2/0", "r3/0") and step.versions == (0, 0, 0)
+    assert step.maps == ("r1/0/0", "r2/0/0", "r3/0/0") and step.versions == (0, 0, 0)
     assert sum(isinstance(m, MergeEdge) for m in out) == 3
     gmap = next(m for m in out if isinstance(m, GlobalMap))
     assert len(gmap.components) == 1 and set(gmap.components[0].members) == {"r1/0", "r2/0", "r3/0"}
@@ -131,7 +131,7 @@ def test_a_merger_killed_before_publishing_its_step_says_where_it_stands_when_re
     assert [(o.key, o.payload) for o in said] == [(o.key, o.payload) for o in lost]
     kinds = [type(m).__name__ for m in _decoded(said)]
     assert {"MergeEdge", "GlobalMap", "RobotPose"} <= set(kinds) and kinds[-1] == "MergerStep"
-    assert decode(said[-1].payload).maps == ("r1/0", "r2/0")  # type: ignore[union-attr]
+    assert decode(said[-1].payload).maps == ("r1/0/0", "r2/0/0")  # type: ignore[union-attr]
     # The robots' republished maps are the versions it holds: no step follows, nothing else to say.
     for m in small.values():
         restored.receive(KEYS.localmap(m.robot), m.to_msgpack())
@@ -231,7 +231,7 @@ def test_a_lost_robots_pair_goes_first_and_a_step_can_stop_short(tmp_path) -> No
         merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
     first = _decoded(merger.step(limit=2))
     step = next(m for m in first if isinstance(m, MergerStep))
-    assert step.maps == ("r2/0", "r1/1") and step.integrations == 2 and step.queued == 1
+    assert step.maps == ("r2/0/0", "r1/1/0") and step.integrations == 2 and step.queued == 1
     # The lost robot's pairs first (never integrated: the most similar map first); r2's grown map
     # waits, although it came first.
     assert [(e.a, e.b) for e in first if isinstance(e, MergeEdge)] == [("r1/1", "r2/0"), ("r1/0", "r1/1")]
@@ -329,7 +329,7 @@ def test_a_map_seen_from_too_few_places_is_not_integrated_until_it_can_merge() -
     # Two viewpoints: no map may merge with it (valid_min_map_scans), so it is not integrated ...
     young = LocalMap("r2", 0, 0, r2.stamp, r2.segments, 2, r2.pose, viewpoints=views[:2])
     out = _feed(merger, [young])
-    assert next(m for m in out if isinstance(m, MergerStep)).maps == ("r2/0",)
+    assert next(m for m in out if isinstance(m, MergerStep)).maps == ("r2/0/0",)
     assert not any(isinstance(m, MergeEdge) for m in out) and "r2/0" in merger.graph
     # ... nor with a map that arrives after it.
     r3, _ = true_local_map("department", "r3", 0, 15)
@@ -432,7 +432,7 @@ def _epochs_cut_at(name: str, robot: str, firsts: list[int]) -> tuple[dict[int, 
         )
         published = placed
 
-    for s in robot_stream(load_scenario(name), robot):
+    for s in robot_stream(load_scenario(sparse(name)), robot):
         truth[s.index] = s.pose
         segments = extract_segments(s.scan)
         if len(segments) == 0:

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.scenarios.fleet import plan, sample_path, scenario_end
+from fleetmap.scenarios.fleet import plan, sample_motion, sample_path, scenario_end
 from fleetmap.scenarios.loader import list_scenarios, load_scenario, read_scenario
 from fleetmap.scenarios.metrics import coverage, visible_walls
+from fleetmap.scenarios.odometry import OdometryParams, simulate_odometry
 
 WriteScenario = Callable[..., Path]
 
@@ -61,3 +63,34 @@ def test_a_kidnapped_robot_drives_into_what_other_robots_have_seen(name: str) ->
         after = [s for s in plan(sc, kidnap.robot) if s.stamp >= kidnap.t][:10]
         shared = [coverage(mapped, visible_walls(sc.world.walls, [s.pose], sc.laser)) for s in after]
         assert max(shared) > 0.7, (name, shared)
+
+
+def test_a_robot_turns_on_the_spot_at_its_turn_rate_scanning_as_it_turns() -> None:
+    # 1 m/s (0.2 m every 0.2 s), a quarter turn at 1.5 rad/s: about 1 s on the spot, 5 scans
+    s = sample_motion([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)], 0.2, 0.2, 1.5)
+    headings = s.poses[:, 2]
+    turns = np.abs(np.diff(headings))
+    assert turns.max() <= 1.5 * 0.2 + 1e-9, "no turn between two scans beyond the rate"
+    on_the_spot = [
+        k for k in range(len(s.poses)) if np.allclose(s.poses[k, :2], [1.0, 0.0]) and 0 < headings[k] < math.pi / 2
+    ]
+    assert len(on_the_spot) == 5
+    assert s.poses[-1, :2] == pytest.approx([1.0, 1.0], abs=0.2) and headings[-1] == pytest.approx(math.pi / 2)
+    # with no turn rate, as before: the next leg's heading at once
+    assert sample_motion([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)], 0.2, 0.2, 0.0).poses.shape == (11, 3)
+
+
+def test_odometry_drifts_a_few_per_cent_and_does_not_see_a_kidnap(scenario_file: WriteScenario) -> None:
+    sc = read_scenario(scenario_file())
+    planned = plan(sc, "r1")
+    odometry = simulate_odometry(planned, OdometryParams(), sc.seed, "r1")
+    assert odometry == simulate_odometry(planned, OdometryParams(), sc.seed, "r1"), "seeded"
+    kidnap = next(k for k, s in enumerate(planned) if s.leg == 1)
+    assert odometry[kidnap] == odometry[kidnap - 1], "carried: the wheels did not turn"
+    before = planned[:kidnap]
+    true = before[0].pose.inverse().compose(before[-1].pose)
+    measured = odometry[0].inverse().compose(odometry[kidnap - 1])
+    path = sum(a.pose.distance(b.pose)[0] for a, b in itertools.pairwise(before))
+    off = measured.distance(true)[0]
+    assert 0.01 * path < off < 0.5 * path, (off, path)
+    assert simulate_odometry(planned, OdometryParams(enabled=False), sc.seed, "r1") == [None] * len(planned)

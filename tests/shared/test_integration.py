@@ -220,7 +220,9 @@ def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -
     from fleetmap.shared.config import ExtractionParams
     from fleetmap.shared.extraction import extract_segments
 
-    stream = list(itertools.islice(robot_stream(load_scenario("department"), "r1"), 17, 19))
+    from tests.helpers import sparse
+
+    stream = list(itertools.islice(robot_stream(load_scenario(sparse("department")), "r1"), 17, 19))
     a, b = (SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True) for s in stream)
     true = stream[0].pose.inverse().compose(stream[1].pose)
     r = integrate(a, b)

@@ -25,6 +25,7 @@ from fleetmap.shared.messages import (
     MergerStep,
     RobotPose,
     Scan,
+    SubmapLink,
     decode,
 )
 from fleetmap.shared.scans import RangeScan
@@ -102,6 +103,74 @@ def test_local_map_viewpoints_round_trip_and_are_optional():
     assert LocalMap.from_msgpack(local_map().to_msgpack()).viewpoints is None
 
 
+def submap(**changes):
+    """Submap 3 of r1's epoch 2, final, linked to submap 2, placing two scans."""
+    base = dict(
+        submap=3,
+        final=True,
+        link=SubmapLink(2, Transform2D(4.0, 0.5, 0.1), (1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-5)),
+        scan_indices=np.array([41, 42]),
+        scan_stamps=np.array([1_700_000_000.123456, 1_700_000_000.323456]),
+        scan_poses=np.array([[0.0, 0.0, 0.0], [0.3, 0.01, 0.02]]),
+    )
+    return replace(local_map(), **{**base, **changes})
+
+
+def test_a_submap_round_trips_with_its_link_and_the_scans_it_places():
+    back = LocalMap.from_msgpack(submap().to_msgpack())
+    assert (back.submap, back.final, back.submap_key, back.key) == (3, True, "r1/2/3", "r1/2")
+    assert back.link.transform == Transform2D(4.0, 0.5, 0.1) and back.link.covariance_matrix[2, 2] == 1e-5
+    assert back.scan_indices.tolist() == [41, 42]
+    assert back.scan_stamps.tolist() == [1_700_000_000.123456, 1_700_000_000.323456], "stamps exact"
+    np.testing.assert_array_equal(back.scan_poses, [[0.0, 0.0, 0.0], [0.3, 0.01, 0.02]])
+
+
+def test_a_local_map_of_version_1_reads_as_an_epochs_first_submap():
+    # Recorded before submaps: version 1, none of their fields.
+    data = wire(local_map())
+    data["v"] = 1
+    for name in ("submap", "final", "link", "scan_indices", "scan_stamps", "scan_poses"):
+        data.pop(name, None)
+    back = LocalMap.from_msgpack(repack(data))
+    assert (back.submap, back.final, back.link, back.scan_indices) == (0, False, None, None)
+    assert back.submap_key == "r1/2/0" and back.version == 5
+
+
+@pytest.mark.parametrize(
+    ("changes", "field", "reason"),
+    [
+        ({"link": SubmapLink(1, Transform2D(), (1, 0, 0, 0, 1, 0, 0, 0, 1))}, "link.submap", "not the submap before"),
+        ({"scan_stamps": np.array([1.0])}, "scan_poses", "differ"),
+        ({"scan_indices": None}, "scan_indices", "go together"),
+        ({"scan_indices": np.array([-1, 2])}, "scan_indices", "negative"),
+    ],
+)
+def test_a_submaps_link_and_scan_table_are_checked(changes, field, reason):
+    with pytest.raises(BadMessage, match=reason) as error:
+        submap(**changes)
+    assert error.value.field == field
+
+
+@pytest.mark.parametrize(
+    "covariance",
+    [(1, 0, 0, 0, 1, 0, 0, 0), (1, 2, 0, 0, 1, 0, 0, 0, 1), (1, 0, 0, 0, -1, 0, 0, 0, 1), (math.nan,) * 9],
+)
+def test_a_link_covariance_that_is_no_covariance_is_refused(covariance):
+    with pytest.raises(BadMessage, match="covariance"):
+        SubmapLink(0, Transform2D(), covariance)
+
+
+def test_a_scan_names_its_submap_and_pose_together_and_carries_odometry():
+    placed = replace(
+        scan(), submap=2, pose=Transform2D(0.1, 0.2, 0.3), odometry=Transform2D(5.0, 6.0, 7.0 - 2 * math.pi)
+    )
+    back = Scan.from_msgpack(placed.to_msgpack())
+    assert (back.submap, back.pose, back.odometry) == (2, placed.pose, placed.odometry)
+    with pytest.raises(BadMessage, match="names its submap and its pose"):
+        replace(scan(), submap=2)
+    assert Scan.from_msgpack(scan().to_msgpack()).odometry is None
+
+
 def test_a_lost_robot_has_no_pose_in_its_local_map():
     lost = LocalMap("r1", 0, 0, 0.0, SEGMENTS, 1, None)
     assert LocalMap.from_msgpack(lost.to_msgpack()).pose is None
@@ -126,7 +195,11 @@ def test_value_messages_round_trip_equal():
         FleetEvent("merger_start", None, 2.0),
     ):
         assert type(message).from_msgpack(message.to_msgpack()) == message
-    for step in (MergerStep(7, 9.5, ("r1/0", "r2/3"), (4, 0), integrations=3, queued=12), MergerStep(8, 9.5, (), ())):
+    for step in (
+        MergerStep(7, 9.5, ("r1/0", "r2/3"), (4, 0), integrations=3, queued=12),
+        MergerStep(8, 9.5, (), ()),
+        MergerStep(9, 9.5, ("r1/0/4", "r2/3/0"), (1, 7)),
+    ):
         back = MergerStep.from_msgpack(step.to_msgpack())
         fields = ("seq", "stamp", "maps", "versions", "integrations", "queued")
         assert [getattr(back, f) for f in fields] == [getattr(step, f) for f in fields]
@@ -144,7 +217,7 @@ def test_a_merger_step_without_its_integration_counts_reads_as_one_that_did_all(
 
 def test_payload_is_a_msgpack_map_with_schema_version_and_packed_float64_segments():
     data = wire(local_map())
-    assert data["schema"] == "fleetmap.LocalMap" and data["v"] == 1
+    assert data["schema"] == "fleetmap.LocalMap" and data["v"] == 2
     assert data["segments"] == struct.pack("<12d", *SEGMENTS.ravel())
     assert data["pose"] == {"x": 0.5, "y": -1.0, "theta": 0.25}
 

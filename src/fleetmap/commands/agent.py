@@ -25,14 +25,17 @@ WAIT_FOR_LISTENER = 5.0
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "agent",
-        help="run one robot: extract segments, grow its local map, publish scans and local maps",
+        help="run one robot: extract segments, track its scans into submaps, publish scans and submaps",
         description="One robot agent on the fleet's bus. For each scan of its source it extracts segments "
-        "(paper III-D), grows its local map with the pivot method (paper IV-C, Algorithm 6) and publishes the "
-        "scan; every --publish-every placed scans it publishes the local map (after every scan for the first "
-        "--lost-scans of a later epoch). After --kidnap-after scans in a "
-        "row that do not integrate, it starts a new local map (a new epoch) and says so on the events key. "
-        "It holds the liveliness token fleet/<fleet>/alive/<robot> while it runs, republishes its latest local "
-        "maps when a merger asks, and stops cleanly on SIGINT or SIGTERM (final local map, then leave).",
+        "(paper III-D), predicts the scan's pose from odometry (--odometry auto|on|off) or constant velocity, "
+        "registers it on the active submap and checks the fit; a scan that does not fit is re-acquired by the "
+        "paper's pose-free integration, and after --kidnap-after scans in a row that fit nowhere the robot "
+        "starts a new epoch (it lost its place) and says so on the events key. It publishes every scan, and "
+        "each submap every --publish-every inserted scans and once more when finished (after every inserted "
+        "scan for the first --lost-scans of a later epoch). --front-end pivot runs the paper's pivot method "
+        "instead (IV-C, Algorithm 6). It holds the liveliness token fleet/<fleet>/alive/<robot> while it runs, "
+        "republishes its latest submaps when a merger asks, and stops cleanly on SIGINT or SIGTERM (final "
+        "submaps, then leave).",
     )
     p.add_argument("--robot", required=True, metavar="ID", help="the robot id (^[a-z][a-z0-9_-]{0,31}$)")
     source = p.add_argument_group("scan source (exactly one)")
@@ -51,15 +54,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
     )
     source.add_argument("--topic", default="/scan", help="ROS 2 bag: the LaserScan topic (default /scan)")
+    source.add_argument(
+        "--odometry-topic",
+        default=None,
+        metavar="TOPIC",
+        help="ROS 2 bag: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
+    )
     p.add_argument(
         "--speed",
         type=float,
         default=1.0,
         metavar="X",
         help="play the scans at X times their stamps' pace; 0: as fast as possible (default 1)",
-    )
-    p.add_argument(
-        "--publish-every", type=int, default=3, metavar="N", help="publish the local map every N placed scans"
     )
     p.add_argument(
         "--lost-scans",
@@ -70,13 +76,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         f"map after each of its first N placed scans (default {LOST_SCANS})",
     )
     p.add_argument(
-        "--kidnap-after",
-        type=int,
-        default=2,
-        metavar="N",
-        help="start a new epoch after N scans in a row that do not integrate (default 2)",
-    )
-    p.add_argument(
         "--wait-for-listener",
         type=float,
         default=WAIT_FOR_LISTENER,
@@ -84,7 +83,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help=f"wait up to S seconds for a subscriber before the first scan (default {WAIT_FOR_LISTENER:g})",
     )
     add_zenoh_arguments(p)
-    add_config_arguments(p, ["extraction", "integration"])
+    add_config_arguments(p, ["extraction", "integration", "tracking"])
     p.set_defaults(func=run)
 
 
@@ -92,21 +91,24 @@ def make_source(args: argparse.Namespace) -> ScanSource:
     """The source the flags name (files are checked here, before the agent goes on the bus)."""
     if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
         raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
-    if args.ros2_bag is None and args.topic != "/scan":
-        raise BadInput("--topic", "applies to --ros2-bag only")
+    if args.ros2_bag is None and (args.topic != "/scan" or args.odometry_topic is not None):
+        raise BadInput("--topic/--odometry-topic", "apply to --ros2-bag only")
     if args.scenario is not None:
         return ScenarioSource(args.scenario, args.robot)
     if args.carmen is not None:
         return CarmenSource(args.carmen, args.start, args.stop, args.step, args.range_max)
-    return Ros2BagSource(args.ros2_bag, args.topic)
+    return Ros2BagSource(args.ros2_bag, args.topic, args.odometry_topic)
 
 
 def run(args: argparse.Namespace) -> int:
     robot = check_name(args.robot, "--robot")
     if not args.speed >= 0 or math.isinf(args.speed):
         raise BadInput("--speed", f"must be 0 (as fast as possible) or a positive number, got {args.speed}")
-    agent = Agent(robot, config_from_args(args), args.publish_every, args.kidnap_after, args.lost_scans)
+    config = config_from_args(args)
     source = make_source(args)
+    if config.tracking.odometry == "on" and not source.has_odometry:
+        raise BadInput(source.name, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+    agent = Agent(robot, config, odometry=source.has_odometry, lost_scans=args.lost_scans)
     options = zenoh_options_from_args(args)
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
         print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)

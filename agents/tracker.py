@@ -1,0 +1,564 @@
+"""A robot's front end: its scans tracked into small, overlapping submaps (``../shared/DESIGN.md``).
+
+For each scan (:meth:`Tracker.add`):
+
+1. **Predict** its pose from the previous one: the odometry's increment when the robot has
+   odometry, else constant velocity (:mod:`fleetmap.shared.motion`), with that model's
+   uncertainty.
+2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
+   (:func:`fleetmap.shared.tracking.register`).
+3. **Check the fit**: enough of the scan's walls on the submap's (``min_matched_share``,
+   ``min_matched_length``), the scan's beams through little of the submap's walls
+   (``max_see_through``: a laser does not see through walls), and a pose the robot can have
+   driven to since its last good scan (``max_speed``).
+4. A failed fit is **re-acquired** with the paper's pose-free integration of the scan on the
+   submap (Algorithms 1-4), within the reach of the robot, then registered and checked again.
+5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
+   moved ``insert_distance`` or turned ``insert_rotation`` since the last inserted one (or
+   ``insert_interval`` has passed).
+6. A scan that neither fits nor re-acquires is left unplaced (its pose predicted, for the next
+   scan); after ``kidnap_after`` of them in a row the robot has lost its place: a new **epoch**
+   begins at the first of them, whose place nobody knows until the merger finds it, and the
+   others are tracked into it.
+
+**Submaps** (Cartographer's scheme): two are active at a time, and every inserted scan goes into
+both. A scan is registered on, and placed by, the older one, which holds more. A submap is
+finished when it covers ``submap_length`` metres of the robot's path or ``submap_scans`` inserted
+scans; the next one starts halfway through, at an inserted scan, whose pose is the new submap's
+frame. So consecutive submaps overlap by half, and each is chained to the previous one by the
+*link*: its frame in the previous submap's frame, with the uncertainty of the registration that
+placed it. A finished submap never changes.
+
+The tracker is pure: scans and odometry in, poses and submaps out; no clock, no I/O.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.integration import Window, integrate
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import scan_viewpoint
+from fleetmap.shared.motion import Prediction, from_odometry, from_velocity, odometry_increment, velocity_between
+from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.tracking import ReferenceMap, Registration, ScanSamples, register, sample_segments, see_through
+from fleetmap.shared.walls import WallMap
+
+log = logging.getLogger(__name__)
+
+LINK_MIN_SIGMA_TRANSLATION = 0.01
+"""The least uncertainty (m) of a link between submaps: a registration's own information counts
+every sampled point as independent and claims millimetres."""
+LINK_MIN_SIGMA_ROTATION = 0.005
+"""... and of its rotation (rad, about 0.3 degrees)."""
+
+RECENT_FITS = 20
+"""How many of the robot's recent good fits make its typical score (:meth:`Tracker._fit`)."""
+
+KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
+"""The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
+
+
+@dataclass(frozen=True)
+class PlacedScan:
+    """A scan as a submap places it."""
+
+    index: int
+    stamp: float
+    pose: Transform2D
+    """The laser's pose in the submap's frame."""
+
+
+@dataclass
+class Submap:
+    """One submap of an epoch (see the module docstring): what the agent publishes of it and the
+    reference the tracker registers on."""
+
+    epoch: int
+    number: int
+    origin: Transform2D
+    """Its frame (the pose of its first scan) in the epoch's frame."""
+    link_transform: Transform2D | None
+    """Its frame in the previous submap's frame (None for an epoch's first submap)."""
+    link_covariance: Array | None
+    reference: ReferenceMap
+    walls: WallMap
+    viewpoints_in: list[Array] = field(default_factory=list)
+    """The inserted scans' viewpoints ``[x, y, theta, bearing_min, bearing_max]``."""
+    placed: list[PlacedScan] = field(default_factory=list)
+    """The scans this submap placed (registered on it while it was the matching submap)."""
+    path_length: float = 0.0
+    inserted: int = 0
+    finished: bool = False
+    _last_insert: Transform2D | None = None
+
+    def insert(self, samples: ScanSamples, segments: Array, pose: Transform2D) -> None:
+        """Add a scan taken at ``pose`` (this submap's frame), its samples and segments in its own."""
+        self.reference.insert(samples.moved(pose))
+        self.walls.add(pose.apply(segments))
+        viewpoint = scan_viewpoint(segments)
+        if len(viewpoint):
+            viewpoint[0, 0:3] = pose.x, pose.y, pose.theta
+            self.viewpoints_in.append(viewpoint[0])
+        if self._last_insert is not None:
+            self.path_length += math.hypot(pose.x - self._last_insert.x, pose.y - self._last_insert.y)
+        self._last_insert = pose
+        self.inserted += 1
+
+    def segment_map(self) -> SegmentMap:
+        """Its walls, one segment per stretch of wall (:class:`fleetmap.shared.walls.WallMap`)."""
+        return SegmentMap(self.walls.segments, ordered=False, oriented=True)
+
+    def viewpoints(self) -> Array:
+        return np.array(self.viewpoints_in) if self.viewpoints_in else np.zeros((0, 5))
+
+
+@dataclass(frozen=True)
+class TrackStep:
+    """What one scan did to the tracker."""
+
+    status: str
+    """"first" (an epoch's first scan), "tracked", "reacquired" (by pose-free integration),
+    "unplaced" (the fit failed), or "empty" (no segment: nothing to track)."""
+    epoch: int
+    """The epoch the scan is in."""
+    submap: int | None
+    """The submap that placed it (None: not placed)."""
+    pose: Transform2D | None
+    """Its laser pose in that submap's frame."""
+    new_epoch: bool = False
+    """This scan started an epoch after a lost one (a kidnap); the epoch's first scan is
+    ``first_scan`` and its placed scans are in its submaps."""
+    first_scan: int | None = None
+    registration: Registration | None = None
+
+
+@dataclass
+class _Held:
+    """A scan that did not fit, kept until the robot finds its place again or starts an epoch."""
+
+    index: int
+    stamp: float
+    scan: RangeScan
+    segments: Array
+    samples: ScanSamples
+    odometry: Transform2D | None
+
+
+@dataclass(frozen=True)
+class _Fit:
+    registration: Registration
+    good: bool
+    why: str
+
+
+class Tracker:
+    """One robot's tracking: :meth:`add` each scan in order."""
+
+    def __init__(self, config: FleetmapConfig | None = None, odometry: bool = True) -> None:
+        self.config = config or FleetmapConfig()
+        self.params = self.config.tracking
+        self.use_odometry = odometry
+        self.epoch = -1
+        """The current epoch (-1 before the first scan with segments)."""
+        self.active: list[Submap] = []
+        """The active submaps, oldest (the matching one) first."""
+        self.finished: list[Submap] = []
+        """Submaps finished since :meth:`take_finished` was last called, in order."""
+        self._submaps = 0
+        self._pose: Transform2D | None = None
+        """The robot's pose in the epoch's frame after the last scan (predicted if unplaced)."""
+        self._stamp: float | None = None
+        self._odometry: Transform2D | None = None
+        self._good: tuple[float, Transform2D] | None = None
+        """Stamp and epoch-frame pose of the last placed scan."""
+        self._velocity = np.zeros(3)
+        """Per second (or per scan where stamps do not advance), in the laser's frame."""
+        self._per_scan = False
+        self._velocity_known = False
+        """Whether two placed scans of the epoch with times between them gave the velocity."""
+        self._held: list[_Held] = []
+        self._scores: deque[float] = deque(maxlen=RECENT_FITS)
+        """The scores of the robot's recent good fits (:meth:`_fit`)."""
+        self._inserted_at: tuple[float, Transform2D] | None = None
+        self.bad_odometry = 0
+        """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
+
+    # -- queries -----------------------------------------------------------------------------
+    @property
+    def matching(self) -> Submap | None:
+        return self.active[0] if self.active else None
+
+    @property
+    def pose(self) -> Transform2D | None:
+        """The robot's pose in the matching submap's frame after the last scan; None if lost."""
+        if self._pose is None or self._held or not self.active:
+            return None
+        return self.active[0].origin.inverse().compose(self._pose)
+
+    @property
+    def epoch_pose(self) -> Transform2D | None:
+        """The robot's pose in its epoch's frame after the last scan; None if that scan was not placed."""
+        if self._pose is None or self._held:
+            return None
+        return self._pose
+
+    def take_finished(self) -> list[Submap]:
+        out, self.finished = self.finished, []
+        return out
+
+    # -- the step ----------------------------------------------------------------------------
+    def add(
+        self, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None = None
+    ) -> list[TrackStep]:
+        """Track one scan; the steps it caused (more than one when it starts an epoch: then the
+        scans held since the robot lost its place are tracked into it too, in order)."""
+        samples = sample_segments(segments, self.params.sample_spacing)
+        if len(samples) == 0:
+            self._advance_blind(stamp, odometry)
+            return [TrackStep("empty", max(self.epoch, 0), None, None)]
+        if self.epoch < 0:
+            return [self._start_epoch(index, stamp, scan, segments, samples, odometry, new=False)]
+        predictions = self._predictions(stamp, odometry)
+        fit = self._fit(scan, samples, segments, predictions, stamp)
+        if fit.good:
+            self._held.clear()
+            return [
+                self._place(index, stamp, segments, samples, odometry, fit, "tracked" if fit.why == "" else fit.why)
+            ]
+        self._held.append(_Held(index, stamp, scan, segments, samples, odometry))
+        self._pose = self._pose_in_epoch(predictions[0])
+        self._stamp, self._odometry = stamp, odometry if odometry is not None else self._odometry
+        if len(self._held) < self.params.kidnap_after:
+            log.debug("scan %d did not fit (%s)", index, fit.why)
+            return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
+        return self._lost()
+
+    # -- internals ---------------------------------------------------------------------------
+    def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
+        base = self._pose if self._pose is not None else Transform2D()
+        return base.compose(prediction.increment)
+
+    def _advance_blind(self, stamp: float, odometry: Transform2D | None) -> None:
+        """A scan with nothing to track: the pose moves by odometry (or velocity) alone."""
+        if self._pose is not None and self._stamp is not None:
+            self._pose = self._pose_in_epoch(self._predictions(stamp, odometry)[0])
+            self._stamp = stamp
+            if odometry is not None:
+                self._odometry = odometry
+
+    def _predictions(self, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
+        """Where the scan should be: by odometry when the robot has it, then by constant velocity
+        (each a motion model that can be wrong: a real robot's odometry is off by ten degrees or
+        more on some fast turns, and a robot brakes or turns where constant velocity goes on)."""
+        integration = self.config.integration
+        seconds = stamp - self._stamp if self._stamp is not None else 0.0
+        out = []
+        if self.use_odometry and odometry is not None:
+            increment, why = odometry_increment(self._odometry, odometry, seconds, integration.max_speed)
+            if increment is not None:
+                out.append(from_odometry(increment, self.params))
+            elif self._odometry is not None:
+                self.bad_odometry += 1
+                if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
+                    log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
+        if seconds > 0 and not self._per_scan:
+            out.append(from_velocity(self._velocity, seconds, self.params, integration.max_acceleration))
+        else:
+            # stamps that do not advance (a log without times): the last step again
+            out.append(from_velocity(self._velocity, 1.0, self.params, integration.max_acceleration))
+        return out
+
+    def _fit(
+        self, scan: RangeScan, samples: ScanSamples, segments: Array, predictions: list[Prediction], stamp: float
+    ) -> _Fit:
+        """The scan's fit on the matching submap.
+
+        The first prediction's fit is taken when it is good and typical: its score at least
+        ``typical_score_share`` of the median of the robot's recent fits (a fit that suddenly
+        supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
+        the other predictions, and the robot standing still, are tried too, and the pose-free
+        integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
+        only if it scores over ``1 / typical_score_share`` times as much (where the walls leave a
+        direction free, as along a corridor, the fits score alike and the first prediction's
+        stands). Failing all, the first fit, not good."""
+        submap = self.active[0]
+        share = self.params.typical_score_share
+        typical = float(np.median(self._scores)) if len(self._scores) >= 3 else 0.0
+        floor = share * typical
+        tried: list[tuple[Transform2D, Prediction]] = []
+        fits: list[_Fit] = []
+        last = self._good[1] if self._good is not None else self._pose or Transform2D()
+        standing = Prediction(Transform2D(), predictions[-1].sigma_translation, predictions[-1].sigma_rotation, "still")
+        # Two motion models that disagree on the heading by more than the first one's uncertainty:
+        # one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one fast
+        # turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
+        # fix the heading everywhere, so both are registered and the better fit by score is taken.
+        apart = (
+            len(predictions) > 1
+            and abs(float(wrap_angle(predictions[1].increment.theta - predictions[0].increment.theta)))
+            > predictions[0].sigma_rotation
+        )
+        for n, prediction in enumerate([*predictions, standing]):
+            if n and fits and fits[0].good and fits[0].registration.score >= floor and not (apart and n == 1):
+                break
+            # the robot standing still where it was last placed; the models from its last pose
+            base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
+            predicted = submap.origin.inverse().compose(base)
+            if any(_within(predicted, other, p) for other, p in tried):
+                continue
+            tried.append((predicted, prediction))
+            reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
+            why = self._judge(reg, scan, submap, stamp)
+            fits.append(_Fit(reg, why == "", why))
+        best = None
+        for n, fit in enumerate(fits):
+            margin = 1.0 if apart and n == 1 else share
+            if fit.good and (best is None or fit.registration.score * margin >= best.registration.score):
+                best = fit
+        if best is None or best.registration.score < floor:
+            # a scan re-acquired by pose-free integration must fit as well as the robot's scans
+            # usually do: one that explains a fraction of what they did matched a look-alike (a
+            # carried robot's view of one corridor on another)
+            again = self._reacquire(scan, samples, segments, submap, stamp)
+            if (
+                again is not None
+                and again.registration.score >= floor
+                and (best is None or again.registration.score * share >= best.registration.score)
+            ):
+                best = again
+        if best is not None:
+            self._scores.append(best.registration.score)
+            return best
+        return fits[0]
+
+    def _judge(self, reg: Registration, scan: RangeScan, submap: Submap, stamp: float) -> str:
+        """Why the fit is not good ("" when it is)."""
+        p = self.params
+        if reg.matched_length < p.min_matched_length or reg.matched_share < p.min_matched_share:
+            return f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
+        through, visible = see_through(submap.reference, scan, reg.pose, p, self.config.extraction.max_range)
+        if visible > 0 and through > p.max_see_through * visible:
+            return f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
+        if not self._reachable(submap.origin.compose(reg.pose), stamp):
+            return "farther than the robot can have driven"
+        return ""
+
+    def _reachable(self, pose: Transform2D, stamp: float) -> bool:
+        """Whether the robot can have driven to ``pose`` (epoch frame) since its last placed scan:
+        no farther than ``max_speed`` allows, and, once its velocity is known, no farther from where
+        that velocity takes it than ``max_acceleration`` allows (plus ``witness_translation`` for the
+        fits' own error). Physics, not a pose: a look-alike corridor matches well, but a robot
+        driving at 1.5 m/s is not 1.4 m on 0.4 s later."""
+        integration = self.config.integration
+        if self._good is None:
+            return True
+        seconds = stamp - self._good[0]
+        if seconds <= 0:
+            return True  # no usable time: no bound
+        last = self._good[1]
+        margin = integration.witness_translation
+        if integration.max_speed > 0 and math.hypot(pose.x - last.x, pose.y - last.y) > (
+            integration.max_speed * seconds + margin
+        ):
+            return False
+        if integration.max_acceleration > 0 and self._velocity_known:
+            v = self._velocity * seconds
+            expected = last.compose(Transform2D(float(v[0]), float(v[1]), float(v[2])))
+            off = math.hypot(pose.x - expected.x, pose.y - expected.y)
+            return off <= 0.5 * integration.max_acceleration * seconds * seconds + margin
+        return True
+
+    def _reacquire(
+        self,
+        scan: RangeScan,
+        samples: ScanSamples,
+        segments: Array,
+        submap: Submap,
+        stamp: float,
+    ) -> _Fit | None:
+        """The paper's pose-free integration of the scan on the submap, within the robot's reach of
+        its last placed scan (any heading), then registered and checked: a fit, or None."""
+        built = submap.segment_map()
+        if len(built) == 0:
+            return None
+        reach = self._reach(stamp)
+        last = submap.origin.inverse().compose(self._good[1] if self._good is not None else self._pose or Transform2D())
+        near = _near(built, last, reach + self.config.extraction.max_range)
+        if len(near) == 0:
+            return None
+        window = Window(last, reach, math.pi)
+        found = integrate(
+            near, SegmentMap(segments, ordered=True, oriented=True), self.config.integration, window=window
+        )
+        if not found.valid:
+            return None
+        start = found.transform
+        # the prior is the integration's pose, loosely: the walls decide
+        loose = np.diag([1.0 / 0.25**2, 1.0 / 0.25**2, 1.0 / 0.1**2])
+        reg = register(samples, submap.reference, start, start, loose, self.params)
+        if self._judge(reg, scan, submap, stamp) != "":
+            return None
+        return _Fit(reg, True, "reacquired")
+
+    def _reach(self, stamp: float) -> float:
+        """How far (m) the robot can have driven since its last placed scan."""
+        integration = self.config.integration
+        if self._good is None or integration.max_speed <= 0:
+            return self.config.extraction.max_range
+        seconds = stamp - self._good[0]
+        if seconds <= 0:
+            return self.config.extraction.max_range
+        return integration.max_speed * seconds + integration.witness_translation
+
+    def _place(
+        self,
+        index: int,
+        stamp: float,
+        segments: Array,
+        samples: ScanSamples,
+        odometry: Transform2D | None,
+        fit: _Fit,
+        status: str,
+    ) -> TrackStep:
+        submap = self.active[0]
+        reg = fit.registration
+        pose = submap.origin.compose(reg.pose)
+        if self._good is not None:
+            seconds = stamp - self._good[0]
+            if seconds > 0:
+                self._velocity, self._per_scan = velocity_between(self._good[1], pose, seconds), False
+                self._velocity_known = True
+            else:
+                self._velocity, self._per_scan = velocity_between(self._good[1], pose, 1.0), True
+        self._pose, self._stamp, self._good = pose, stamp, (stamp, pose)
+        if odometry is not None:
+            self._odometry = odometry
+        submap.placed.append(PlacedScan(index, stamp, reg.pose))
+        if self._due(stamp, pose):
+            self._insert(stamp, segments, samples, pose, reg)
+        return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
+
+    def _due(self, stamp: float, pose: Transform2D) -> bool:
+        p = self.params
+        if self._inserted_at is None:
+            return True
+        when, where = self._inserted_at
+        moved = math.hypot(pose.x - where.x, pose.y - where.y)
+        turned = abs(float(wrap_angle(pose.theta - where.theta)))
+        return moved >= p.insert_distance or turned >= p.insert_rotation or stamp - when >= p.insert_interval
+
+    def _insert(
+        self, stamp: float, segments: Array, samples: ScanSamples, pose: Transform2D, reg: Registration | None
+    ) -> None:
+        """Insert a placed scan (epoch-frame ``pose``) into the active submaps; finish and start
+        submaps as they fill (see the module docstring)."""
+        p = self.params
+        self._inserted_at = (stamp, pose)
+        for submap in self.active:
+            submap.insert(samples, segments, submap.origin.inverse().compose(pose))
+        newest = self.active[-1]
+        half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1)
+        if half and len(self.active) == 1:
+            self._start_submap(pose, segments, samples, reg)
+        oldest = self.active[0]
+        if len(self.active) > 1 and (oldest.path_length >= p.submap_length or oldest.inserted >= p.submap_scans):
+            oldest.finished = True
+            self.finished.append(self.active.pop(0))
+            newest = self.active[-1]
+            if newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1):
+                self._start_submap(pose, segments, samples, reg)
+
+    def _start_submap(self, pose: Transform2D, segments: Array, samples: ScanSamples, reg: Registration | None) -> None:
+        previous = self.active[-1] if self.active else None
+        link = covariance = None
+        if previous is not None:
+            link = previous.origin.inverse().compose(pose)
+            covariance = _link_covariance(reg)
+        walls = WallMap(self.config.integration.simplify_tolerance)
+        submap = Submap(self.epoch, self._submaps, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls)
+        self._submaps += 1
+        submap.insert(samples, segments, Transform2D())
+        self.active.append(submap)
+
+    def _start_epoch(
+        self,
+        index: int,
+        stamp: float,
+        scan: RangeScan,
+        segments: Array,
+        samples: ScanSamples,
+        odometry: Transform2D | None,
+        new: bool,
+    ) -> TrackStep:
+        """Begin an epoch whose frame is this scan's pose."""
+        for submap in self.active:
+            submap.finished = True
+            self.finished.append(submap)
+        self.active = []
+        self.epoch += 1
+        self._submaps = 0
+        self._pose, self._stamp, self._good = Transform2D(), stamp, (stamp, Transform2D())
+        self._odometry = odometry
+        self._velocity, self._per_scan, self._velocity_known = np.zeros(3), False, False
+        self._inserted_at = None
+        self._held = []
+        self._scores.clear()
+        self._start_submap(Transform2D(), segments, samples, None)
+        self._inserted_at = (stamp, Transform2D())
+        self.active[0].placed.append(PlacedScan(index, stamp, Transform2D()))
+        return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
+
+    def _lost(self) -> list[TrackStep]:
+        """``kidnap_after`` scans in a row did not fit: a new epoch from the first of them."""
+        held, self._held = self._held, []
+        first = held[0]
+        log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))
+        steps = [
+            self._start_epoch(
+                first.index, first.stamp, first.scan, first.segments, first.samples, first.odometry, new=True
+            )
+        ]
+        for h in held[1:]:
+            steps += self.add(h.index, h.stamp, h.scan, h.segments, h.odometry)
+        return steps
+
+    def submaps(self) -> Iterator[Submap]:
+        """The active submaps, oldest first."""
+        return iter(self.active)
+
+
+def _within(a: Transform2D, b: Transform2D, prediction: Prediction) -> bool:
+    """Whether two predicted poses lie within one standard deviation of ``prediction`` of each other."""
+    d, r = a.distance(b)
+    return d <= prediction.sigma_translation and r <= prediction.sigma_rotation
+
+
+def _link_covariance(reg: Registration | None) -> Array:
+    """The covariance of a submap link from the registration that placed the new submap's frame,
+    no tighter than LINK_MIN_SIGMA_*."""
+    floor = np.diag([LINK_MIN_SIGMA_TRANSLATION**2, LINK_MIN_SIGMA_TRANSLATION**2, LINK_MIN_SIGMA_ROTATION**2])
+    if reg is None:
+        return floor
+    try:
+        cov = np.linalg.inv(reg.information)
+    except np.linalg.LinAlgError:
+        return floor
+    cov = 0.5 * (cov + cov.T) + floor
+    return cov
+
+
+def _near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:
+    """The segments of ``m`` with an end within ``radius`` (box) of ``pose``."""
+    seg = m.segments
+    near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
+        axis=1
+    )
+    return SegmentMap(seg[near], ordered=False, oriented=m.oriented)

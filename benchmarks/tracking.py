@@ -1,0 +1,250 @@
+"""Benchmark: the tracking front end on real logs and the bundled scenarios (run on demand, not in CI).
+
+**Real logs** (``../shared/data`` or ``$FLEETMAP_DATA``): aces, fr079 and mit-csail, each log as
+one robot, through the agent exactly as ``fleetmap agent --carmen`` runs it (same source, same
+code), with its odometry and without. Scored with their Kümmerle relations whose two scans are at
+most 10 s apart: a relation is *joined* when both scans are placed in one epoch (its estimate is
+the two scans' poses in that epoch's frame), and *within* (0.10 m, 2 deg) or (0.30 m, 5 deg) when
+the estimate's error is; a relation not joined counts as not within. Also the epochs started
+per 1,000 scans (these logs have no kidnap: every epoch after the first is a failure) and the
+agent's median time per scan (extraction, tracking, submaps and messages, serialised).
+
+**Scenarios**: every bundled scenario's robots through their agents: epochs started (against the
+kidnaps the scenario has), scans placed, and the placed scans' pose error against the truth,
+relative to their epoch's first scan (mean and 95th percentile).
+
+    python benchmarks/tracking.py                      # everything
+    python benchmarks/tracking.py --logs mit-csail --no-scenarios
+    python benchmarks/tracking.py --write-results      # and update benchmarks/RESULTS.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.sources import CarmenSource
+from fleetmap.scenarios import load_scenario, robot_stream
+from fleetmap.scenarios.loader import list_scenarios
+from fleetmap.shared.config import FleetmapConfig, add_config_arguments, config_from_args
+from fleetmap.shared.geometry import Transform2D
+from results import write_section
+
+LOGS = {
+    "aces": ("aces/aces.clf.gz", 50.0),
+    "fr079": ("fr079/fr079.clf.gz", 81.91),
+    "mit-csail": ("mit-csail/mit-csail.clf.gz", 81.91),
+}
+"""Full-rate logs with their relations: file under the data folder, and the no-return reading."""
+MAX_SECONDS = 10.0
+WITHIN = ((0.10, 2.0), (0.30, 5.0))
+
+
+def data_folder() -> Path:
+    for candidate in (os.environ.get("FLEETMAP_DATA"), Path(__file__).resolve().parents[2] / "shared" / "data"):
+        if candidate and (Path(candidate) / "relations").is_dir():
+            return Path(candidate)
+    raise SystemExit("no dataset folder: set FLEETMAP_DATA to ../shared/data")
+
+
+@dataclass(frozen=True)
+class LogResult:
+    name: str
+    odometry: bool
+    scans: int
+    relations: int
+    joined: int
+    within: tuple[float, float]
+    mean_translation: float
+    mean_rotation_deg: float
+    epochs: int
+    ms_median: float
+    ms_p95: float
+
+
+def relative(a: Transform2D, b: Transform2D) -> Transform2D:
+    return a.inverse().compose(b)
+
+
+def run_log(job: tuple[str, bool, FleetmapConfig, Path]) -> LogResult:
+    name, odometry, config, data = job
+    path, range_max = LOGS[name]
+    source = CarmenSource(data / path, range_max=range_max)
+    agent = Agent("r1", config, odometry=odometry)
+    poses: dict[float, tuple[int, Transform2D]] = {}
+    times = []
+    scans = 0
+    for s in source:
+        start = time.perf_counter()
+        for message in agent.add_scan(s.index, s.stamp, s.scan, s.odometry):
+            message.to_msgpack()
+        times.append(time.perf_counter() - start)
+        scans += 1
+        pose = agent.epoch_pose
+        if pose is not None:
+            poses[round(s.stamp, 4)] = (agent.epoch, pose)
+    for message in agent.finish():
+        message.to_msgpack()
+    errors_t, errors_r, counted, hits = [], [], 0, [0, 0]
+    for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(data / "relations" / f"{name}.relations"):
+        if abs(t2 - t1) > MAX_SECONDS:
+            continue
+        counted += 1
+        a, b = poses.get(round(t1, 4)), poses.get(round(t2, 4))
+        if a is None or b is None or a[0] != b[0]:
+            continue
+        error = Transform2D(x, y, yaw).inverse().compose(relative(a[1], b[1]))
+        et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
+        errors_t.append(et)
+        errors_r.append(er)
+        for k, (tt, rr) in enumerate(WITHIN):
+            hits[k] += et < tt and er < rr
+    return LogResult(
+        name,
+        odometry,
+        scans,
+        counted,
+        len(errors_t),
+        (hits[0] / max(counted, 1), hits[1] / max(counted, 1)),
+        statistics.fmean(errors_t) if errors_t else math.nan,
+        statistics.fmean(errors_r) if errors_r else math.nan,
+        agent.counts.epochs,
+        1000 * statistics.median(times),
+        1000 * float(np.percentile(times, 95)),
+    )
+
+
+@dataclass(frozen=True)
+class ScenarioResult:
+    name: str
+    robot: str
+    scans: int
+    placed: int
+    epochs: int
+    kidnaps: int
+    error_mean: float
+    error_p95: float
+    rotation_p95_deg: float
+
+
+def run_scenario(job: tuple[str, FleetmapConfig]) -> list[ScenarioResult]:
+    name, config = job
+    scenario = load_scenario(name)
+    out = []
+    for robot in scenario.robot_ids:
+        agent = Agent(robot, config)
+        frames: dict[int, Transform2D] = {}
+        truth: dict[int, Transform2D] = {}
+        errors, turns, placed, scans = [], [], 0, 0
+        for s in robot_stream(scenario, robot):
+            truth[s.index] = s.pose
+            scans += 1
+            agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+            pose = agent.epoch_pose
+            if pose is None:
+                continue
+            placed += 1
+            frame = frames.get(agent.epoch)
+            if frame is None:
+                # an epoch's frame is its first placed scan: the first pose seen in it is identity
+                frames[agent.epoch] = frame = s.pose.compose(pose.inverse())
+            dt, dr = pose.distance(frame.inverse().compose(s.pose))
+            errors.append(dt)
+            turns.append(math.degrees(dr))
+        kidnaps = sum(1 for e in scenario.kidnaps() if e.robot == robot)
+        out.append(
+            ScenarioResult(
+                name,
+                robot,
+                scans,
+                placed,
+                agent.counts.epochs,
+                kidnaps,
+                statistics.fmean(errors) if errors else math.nan,
+                float(np.percentile(errors, 95)) if errors else math.nan,
+                float(np.percentile(turns, 95)) if turns else math.nan,
+            )
+        )
+    return out
+
+
+def log_table(results: list[LogResult]) -> str:
+    rows = [
+        "| log | odometry | scans | relations (<= 10 s) | joined | within 0.10 m, 2 deg | within 0.30 m, 5 deg "
+        "| mean error | epochs per 1,000 scans | ms per scan (median / p95) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        rows.append(
+            f"| {r.name} | {'on' if r.odometry else 'off'} | {r.scans} | {r.relations} | {r.joined} "
+            f"| {100 * r.within[0]:.1f} % | {100 * r.within[1]:.1f} % "
+            f"| {r.mean_translation:.3f} m, {r.mean_rotation_deg:.2f} deg "
+            f"| {1000 * (r.epochs - 1) / max(r.scans, 1):.2f} ({r.epochs - 1} in all) "
+            f"| {r.ms_median:.1f} / {r.ms_p95:.1f} |"
+        )
+    return "\n".join(rows)
+
+
+def scenario_table(results: list[ScenarioResult]) -> str:
+    rows = [
+        "| scenario | robot | scans | placed | epochs | kidnaps | error mean / p95 | rotation p95 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        rows.append(
+            f"| {r.name} | {r.robot} | {r.scans} | {r.placed} | {r.epochs} | {r.kidnaps} "
+            f"| {100 * r.error_mean:.1f} / {100 * r.error_p95:.1f} cm | {r.rotation_p95_deg:.2f} deg |"
+        )
+    return "\n".join(rows)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--logs", default=",".join(LOGS), help="full-rate logs to run (comma-separated)")
+    ap.add_argument(
+        "--with-odometry",
+        choices=("both", "on", "off"),
+        default="both",
+        help="run the logs with odometry, without, or both",
+    )
+    ap.add_argument("--no-scenarios", action="store_true", help="skip the bundled scenarios")
+    ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
+    ap.add_argument("--write-results", action="store_true", help="update benchmarks/RESULTS.md")
+    add_config_arguments(ap, ["extraction", "integration", "tracking"])
+    args = ap.parse_args()
+    config = config_from_args(args)
+    names = [n for n in args.logs.split(",") if n]
+    unknown = [n for n in names if n not in LOGS]
+    if unknown:
+        raise SystemExit(f"unknown log {unknown[0]!r} (known: {', '.join(LOGS)})")
+    modes = {"both": (True, False), "on": (True,), "off": (False,)}[args.with_odometry]
+    data = data_folder() if names else Path()
+    jobs = [(n, o, config, data) for n in names for o in modes]
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        log_results = list(pool.map(run_log, jobs))
+        scenario_results = []
+        if not args.no_scenarios:
+            for part in pool.map(run_scenario, [(n, config) for n in list_scenarios()]):
+                scenario_results += part
+    body = ""
+    if log_results:
+        body += "Real logs, each one robot; relations whose scans are at most 10 s apart.\n\n" + log_table(log_results)
+    if scenario_results:
+        body += "\n\nBundled scenarios: epochs against kidnaps, and the placed scans' pose error relative to "
+        body += "their epoch's first scan.\n\n" + scenario_table(scenario_results)
+    print(body)
+    if args.write_results:
+        write_section("tracking", "Tracking front end (`benchmarks/tracking.py`)", body)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

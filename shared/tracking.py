@@ -1,0 +1,381 @@
+"""Scan-to-submap registration: robust point-to-line ICP with a motion prior (pure core).
+
+A robot's next scan is the easy case of mapping: its laser runs at 5-40 Hz, so the scan is a few
+centimetres and degrees from where its odometry (or its recent velocity) predicts it. Production
+2D SLAM tracks such scans locally against a small submap (Cartographer, slam_toolbox, Hector);
+so do two of the project's source papers: Dugarjav & Lee build each robot's local map by ICP, and
+Armesto et al. register a scan's points to the continuous curve of the other scan (eICP). Here:
+
+- **The scan** is sampled along its extracted segments (paper III-D), every ``sample_spacing``
+  metres: points with the segment's normal and the wall length each stands for. Sampling the
+  segments, not the raw returns, weighs a wall by its length rather than by how close it is, and
+  the segment fit has already averaged the range noise.
+- **The submap** is a :class:`ReferenceMap`: the samples of its scans' segments, placed by their
+  tracked poses, averaged per cell of a ``voxel_size`` grid, each with the mean normal of its
+  cell. A scan point is matched to the nearest such point whose normal faces the same way (a thin
+  wall's two sides are two different walls), and its residual is the distance from that point's
+  line (point-to-line: Censi's PLICP; Armesto et al.'s point-to-curve).
+- **The fit** minimises the robust (Cauchy) sum of squared residuals plus the prior, by
+  Gauss-Newton, with the correspondence radius and the loss's scale annealed from coarse to fine
+  (:func:`correspondence_schedule`): a prediction a few tens of centimetres or ten degrees off still
+  finds its walls, since nearby walls pull first.
+- **The prior** is the prediction with its uncertainty (odometry's, or constant velocity's).
+  Where the walls fix the pose (a room), it barely matters; where they leave a direction free (a
+  corridor with no feature along it), it alone decides that direction: the prediction is kept
+  along the corridor. Weighing the two by their information is the mechanism; there is no
+  corridor threshold.
+- **The check against physics** (:func:`see_through`): a laser cannot see through a wall. The
+  share of the submap's wall, in front of the laser and within its reach, that the scan's beams
+  pass through at the fitted pose says the scan was taken somewhere else (a kidnap, a wrong fit).
+
+Everything here is numpy in, numpy out: no clock, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from fleetmap.shared.config import TrackingParams
+from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.scans import RangeScan
+from scipy.spatial import cKDTree
+
+_KEY_STRIDE = 1 << 32
+"""Packs a voxel's two cell indices into one int64 key."""
+
+
+@dataclass(frozen=True)
+class ScanSamples:
+    """Points along a scan's (or a map's) segments, in its own frame.
+
+    ``normals`` are unit vectors to the left of each segment: for oriented segments (a scan's,
+    counter-clockwise) that is towards the free space the laser saw the wall from.
+    """
+
+    points: Array
+    """``(n, 2)``"""
+    normals: Array
+    """``(n, 2)``"""
+    weights: Array
+    """``(n,)``: the wall length (m) each point stands for."""
+    support: Array | None = None
+    """``(n,)``: the length (m) of the segment each point lies on (None: unknown)."""
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def length(self) -> float:
+        return float(self.weights.sum())
+
+    def moved(self, pose: Transform2D) -> ScanSamples:
+        """The samples in the frame where ``pose`` places their own."""
+        c, s = math.cos(pose.theta), math.sin(pose.theta)
+        rotation = np.array([[c, s], [-s, c]])
+        return ScanSamples(
+            self.points @ rotation + (pose.x, pose.y), self.normals @ rotation, self.weights, self.support
+        )
+
+
+def sample_segments(segments: Array, spacing: float) -> ScanSamples:
+    """Points every ``spacing`` metres along each segment (at least one, at the middle of equal
+    stretches), with the segment's left normal and the length of its stretch."""
+    seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    if len(seg) == 0:
+        return ScanSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    d = seg[:, 2:4] - seg[:, 0:2]
+    length = np.hypot(d[:, 0], d[:, 1])
+    keep = length > 1e-9
+    seg, d, length = seg[keep], d[keep], length[keep]
+    count = np.maximum(1, np.ceil(length / spacing)).astype(np.int64)
+    owner = np.repeat(np.arange(len(seg)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    fraction = (np.arange(int(count.sum())) - first + 0.5) / count[owner]
+    points = seg[owner, 0:2] + d[owner] * fraction[:, None]
+    normals = np.column_stack([-d[owner, 1], d[owner, 0]]) / length[owner, None]
+    return ScanSamples(points, normals, (length / count)[owner], length[owner])
+
+
+class ReferenceMap:
+    """A submap's walls for registration: scan samples averaged per cell of a square grid.
+
+    Each occupied cell keeps the mean of the points that fell in it and the mean of their normals
+    (normals that cancel, a thin wall's two sides in one cell, leave the cell without a usable
+    normal; it is kept but matches nothing). Inserting is cheap; the KD-tree over the cells is
+    rebuilt on the next query after an insertion.
+    """
+
+    def __init__(self, voxel_size: float) -> None:
+        if not voxel_size > 0:
+            raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+        self.voxel_size = voxel_size
+        self._index: dict[int, int] = {}
+        self._sum = np.zeros((0, 2))
+        self._normal_sum = np.zeros((0, 2))
+        self._weight = np.zeros(0)
+        self._count = np.zeros(0)
+        self._support = np.zeros(0)
+        self._tree: cKDTree | None = None
+        self._points = np.zeros((0, 2))
+        self._normals = np.zeros((0, 2))
+        self._valid = np.zeros(0, dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self._weight)
+
+    def insert(self, samples: ScanSamples) -> None:
+        """Add samples given in the submap's frame."""
+        if len(samples) == 0:
+            return
+        cells = np.floor(samples.points / self.voxel_size).astype(np.int64)
+        keys = cells[:, 0] * _KEY_STRIDE + cells[:, 1]
+        slots = np.empty(len(keys), dtype=np.int64)
+        size = len(self._weight)
+        fresh = size
+        for i, key in enumerate(keys.tolist()):
+            slot = self._index.get(key)
+            if slot is None:
+                slot = self._index[key] = fresh
+                fresh += 1
+            slots[i] = slot
+        if fresh > size:
+            grow = fresh - size
+            self._sum = np.vstack([self._sum, np.zeros((grow, 2))])
+            self._normal_sum = np.vstack([self._normal_sum, np.zeros((grow, 2))])
+            self._weight = np.concatenate([self._weight, np.zeros(grow)])
+            self._count = np.concatenate([self._count, np.zeros(grow)])
+            self._support = np.concatenate([self._support, np.zeros(grow)])
+        w = samples.weights
+        np.add.at(self._sum, slots, samples.points * w[:, None])
+        np.add.at(self._normal_sum, slots, samples.normals * w[:, None])
+        np.add.at(self._weight, slots, w)
+        np.add.at(self._count, slots, 1.0)
+        if samples.support is not None:
+            np.maximum.at(self._support, slots, samples.support)
+        self._tree = None
+
+    def _refresh(self) -> None:
+        if self._tree is not None:
+            return
+        self._points = self._sum / self._weight[:, None]
+        norm = np.hypot(self._normal_sum[:, 0], self._normal_sum[:, 1])
+        # a cell whose normals mostly cancel (both sides of a thin wall) has no side
+        self._valid = norm > 0.5 * self._weight
+        self._normals = self._normal_sum / np.maximum(norm, 1e-12)[:, None]
+        self._tree = cKDTree(self._points)
+
+    @property
+    def points(self) -> Array:
+        self._refresh()
+        return self._points
+
+    @property
+    def normals(self) -> Array:
+        self._refresh()
+        return self._normals
+
+    @property
+    def support(self) -> Array:
+        """For each cell, the longest segment that put a sample in it (m)."""
+        return self._support
+
+    @property
+    def weights(self) -> Array:
+        """The wall length each cell stands for: its samples' mean (a wall seen many times
+        counts once)."""
+        return self._weight / np.maximum(self._count, 1.0)
+
+    def nearest(self, points: Array, radius: float) -> tuple[Array, Array]:
+        """For each point, the nearest cell within ``radius`` (index; -1 where none) and its distance."""
+        self._refresh()
+        if len(self._weight) == 0 or len(points) == 0:
+            return np.full(len(points), -1, dtype=np.int64), np.full(len(points), math.inf)
+        tree = self._tree
+        if tree is None:  # pragma: no cover - _refresh built it
+            raise RuntimeError("the reference map has no index")
+        distance, index = tree.query(points, distance_upper_bound=radius)
+        found = np.isfinite(distance)
+        index = np.where(found, index, -1)
+        index[found] = np.where(self._valid[index[found]], index[found], -1)
+        return index.astype(np.int64), distance
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The outcome of registering a scan on a submap."""
+
+    pose: Transform2D
+    """The scan's pose in the submap's frame."""
+    information: Array
+    """``(3, 3)``: how firmly the fit fixes (x, y, theta), prior included (the inverse covariance)."""
+    scan_information: Array
+    """``(3, 3)``: the same from the walls alone, without the prior (small eigenvalues: directions
+    the walls leave free, such as along a featureless corridor)."""
+    matched_length: float
+    """Wall length of the scan (m) within the final correspondence radius of a submap wall facing
+    the same way."""
+    matched_share: float
+    """``matched_length`` over the scan's whole wall length."""
+    rms: float
+    """Root mean square of the matched residuals (m)."""
+    iterations: int
+    converged: bool
+    score: float = 0.0
+    """The robust fit's support: the matched wall length (m), each point weighted by the Cauchy
+    loss's weight at its residual in the last stage. Between two fits of one scan on one submap
+    (from two predictions), the higher is the better."""
+
+    @property
+    def covariance(self) -> Array:
+        return np.linalg.inv(self.information)
+
+
+def _rotation(theta: float) -> Array:
+    """The matrix that rotates row vectors by ``theta`` (``v @ R``)."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, s], [-s, c]])
+
+
+def correspondence_schedule(params: TrackingParams) -> list[tuple[float, float]]:
+    """The registration's stages: (correspondence radius, Cauchy scale) in metres, coarse to fine."""
+    stages = []
+    radius = params.max_correspondence
+    while radius > params.min_correspondence * 1.001:
+        stages.append(radius)
+        radius /= 2.0
+    stages.append(params.min_correspondence)
+    return [(r, r * params.loss_scale) for r in stages]
+
+
+def register(
+    scan: ScanSamples,
+    reference: ReferenceMap,
+    initial: Transform2D,
+    prior: Transform2D,
+    prior_information: Array,
+    params: TrackingParams,
+) -> Registration:
+    """The scan's pose on the submap: robust point-to-line ICP from ``initial``, pulled towards
+    ``prior`` with ``prior_information`` (3x3, on x, y, theta in the submap's frame)."""
+    x = initial.as_array()
+    mu = prior.as_array()
+    schedule = correspondence_schedule(params)
+    stage = 0
+    radius, scale = schedule[0]
+    since = 0
+    sigma2 = params.residual_sigma**2
+    cos_normals = math.cos(params.max_normal_angle)
+    h_scan = np.zeros((3, 3))
+    h = prior_information.copy()
+    matched = np.zeros(len(scan), dtype=bool)
+    residuals = np.zeros(0)
+    w = np.zeros(0)
+    converged = False
+    iterations = 0
+    for iterations in range(1, params.max_iterations + 1):
+        rot = _rotation(x[2])
+        moved = scan.points @ rot + x[:2]
+        index, _ = reference.nearest(moved, radius)
+        found = index >= 0
+        q = reference.points[index[found]]
+        n = reference.normals[index[found]]
+        facing = ((scan.normals[found] @ rot) * n).sum(axis=1) >= cos_normals
+        rows = np.flatnonzero(found)[facing]
+        q, n = q[facing], n[facing]
+        p = moved[rows]
+        residuals = ((p - q) * n).sum(axis=1)
+        # Cauchy loss: weight 1 / (1 + (r / c)^2), times the wall length the point stands for
+        w = scan.weights[rows] / (1.0 + (residuals / scale) ** 2)
+        arm = p - x[:2]
+        jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]])
+        jw = jac * (w / sigma2)[:, None]
+        h_scan = jw.T @ jac
+        h = h_scan + prior_information
+        error = x - mu
+        error[2] = float(wrap_angle(error[2]))
+        g = jw.T @ residuals + prior_information @ error
+        try:
+            step = -np.linalg.solve(h, g)
+        except np.linalg.LinAlgError:
+            break
+        x = x + step
+        matched = np.zeros(len(scan), dtype=bool)
+        matched[rows] = True
+        small = math.hypot(step[0], step[1]) < params.convergence_translation and abs(step[2]) < (
+            params.convergence_rotation
+        )
+        if small and stage == len(schedule) - 1:
+            converged = True
+            break
+        if small or iterations - since >= params.iterations_per_stage:
+            stage = min(stage + 1, len(schedule) - 1)
+            radius, scale = schedule[stage]
+            since = iterations
+    inliers = np.abs(residuals) <= radius
+    score = float(w.sum()) if len(residuals) else 0.0
+    total = scan.length
+    matched_length = float(scan.weights[matched].sum()) if len(scan) else 0.0
+    rms = float(np.sqrt(np.mean(residuals[inliers] ** 2))) if inliers.any() else math.inf
+    return Registration(
+        Transform2D.from_array(x),
+        h,
+        h_scan,
+        matched_length,
+        matched_length / total if total > 0 else 0.0,
+        rms,
+        iterations,
+        converged,
+        score,
+    )
+
+
+def see_through(
+    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+) -> tuple[float, float]:
+    """Wall of the submap the scan's beams pass through, at ``pose`` (the scan's pose in the
+    submap): ``(violating length, visible length)`` in metres.
+
+    A submap wall point is *visible* when it lies within the laser's field of view and reach,
+    faces the laser, its beam returned something, and it lies on a wall wide enough for that beam
+    to hit: its segment spans ``see_through_beams`` beams at its range (a chair leg that one beam
+    hits and the next misses is not a wall the next one saw through). It is *seen through* when its
+    beam's return lies beyond it by more than the margin: ``see_through_margin``, plus the range
+    change that a heading error of ``see_through_slope`` radians makes on a wall at that range and
+    incidence (``r * slope * tan(incidence)``: a wall seen at a grazing angle moves far along the
+    beam when the heading moves a little). A beam that returned nothing says little (glass, a dark
+    surface) and counts for neither.
+    """
+    if len(reference) == 0:
+        return 0.0, 0.0
+    visible, through = see_through_masks(reference, scan, pose, params, max_range)
+    weights = reference.weights
+    return float(weights[through].sum()), float(weights[visible].sum())
+
+
+def see_through_masks(
+    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+) -> tuple[Array, Array]:
+    """:func:`see_through`'s cells: which are visible, and which of those are seen through."""
+    ranges = np.asarray(scan.ranges, dtype=np.float64)
+    beams = len(ranges)
+    local = (reference.points - (pose.x, pose.y)) @ _rotation(-pose.theta)
+    normals = reference.normals @ _rotation(-pose.theta)
+    distance = np.hypot(local[:, 0], local[:, 1])
+    bearing = np.arctan2(local[:, 1], local[:, 0])
+    beam = np.rint((bearing - scan.angle_min) / scan.angle_increment).astype(np.int64)
+    # facing the laser: the normal points back towards it; cos of the incidence angle
+    cos_incidence = -(normals * local).sum(axis=1) / np.maximum(distance, 1e-9)
+    reach = min(scan.range_max, max_range)
+    wide = reference.support >= params.see_through_beams * distance * abs(scan.angle_increment)
+    candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
+    measured = ranges[np.clip(beam, 0, beams - 1)]
+    with np.errstate(invalid="ignore"):
+        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max)
+    visible = candidate & returned
+    cos_i = np.clip(cos_incidence, 1e-3, 1.0)
+    tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
+    margin = params.see_through_margin + params.see_through_slope * distance * np.maximum(tan_incidence, 1.0)
+    through = visible & (measured > distance + margin)
+    return visible, through

@@ -1,0 +1,198 @@
+"""A submap's walls kept as one segment per stretch of wall, as its scans come in (pure core).
+
+:func:`fleetmap.shared.simplify.simplify` turns a finished partial map into one segment per
+covered stretch of wall; a robot's submap needs the same while it grows, several times a second,
+and simplifying all its scans' segments again each time costs tens of milliseconds. A
+:class:`WallMap` does it incrementally: each new segment joins the wall it lies on (both ends
+within ``tolerance`` of the wall's fitted line, directions within ``angle_tolerance`` (a short
+segment, whose direction is noise, only within ``min_short_cos``), the same side facing the
+sensor, and its extent within ``gap`` of the wall's along the line), the wall's line is fitted
+again from its accumulated moments, and walls that the new segment chains together become one.
+A segment that joins no wall starts one. The tests and the fit are :func:`simplify`'s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from fleetmap.shared.geometry import Array
+
+_GROW = 64
+
+
+class WallMap:
+    """Walls as fitted lines with extents; :meth:`add` segments, :attr:`segments` to read."""
+
+    def __init__(
+        self,
+        tolerance: float = 0.05,
+        angle_tolerance: float = 0.1,
+        gap: float = 0.3,
+        short_length: float = 0.5,
+        min_short_cos: float = 0.3,
+        oriented: bool = True,
+    ) -> None:
+        self.tolerance = tolerance
+        self.cos_tolerance = math.cos(angle_tolerance)
+        self.gap = gap
+        self.short_length = short_length
+        self.min_short_cos = min_short_cos
+        self.oriented = oriented
+        self._n = 0
+        # per wall: moments (s0, s1x, s1y, s2xx, s2xy, s2yy), line (cx, cy, ux, uy), extent (lo, hi)
+        self._moments = np.zeros((_GROW, 6))
+        self._line = np.zeros((_GROW, 4))
+        self._extent = np.zeros((_GROW, 2))
+        self._alive = np.zeros(_GROW, dtype=bool)
+
+    def __len__(self) -> int:
+        return int(self._alive[: self._n].sum())
+
+    @property
+    def segments(self) -> Array:
+        """One segment per wall ``(w, 4)``, running along the wall's direction."""
+        alive = np.flatnonzero(self._alive[: self._n])
+        c = self._line[alive, 0:2]
+        u = self._line[alive, 2:4]
+        lo = self._extent[alive, 0:1]
+        hi = self._extent[alive, 1:2]
+        return np.hstack([c + lo * u, c + hi * u])
+
+    def add(self, segments: Array) -> None:
+        """Add segments ``(n, 4)`` in the map's frame, longest first (long walls set the lines).
+
+        Which walls each segment lies on is tested for all of them at once, against the walls as
+        they were before; the segments of one scan do not overlap one another, so a wall one of
+        them starts is not one another of them joins."""
+        seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+        length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
+        real = np.flatnonzero(length > 1e-9)
+        if len(real) == 0:
+            return
+        seg, length = seg[real], length[real]
+        hits = self._walls_for(seg, length)
+        redirect: dict[int, int] = {}
+
+        def current(k: int) -> int:
+            while k in redirect:
+                k = redirect[k]
+            return k
+
+        touched: dict[int, list[tuple[float, float]]] = {}
+        for i in np.argsort(-length, kind="stable").tolist():
+            ax, ay, bx, by = (float(v) for v in seg[i])
+            joined: list[int] = []
+            for k in hits[i].tolist():
+                k = current(k)
+                if k not in joined:
+                    joined.append(k)
+            if not joined:
+                self._new_wall(seg[i, 0:2], seg[i, 2:4], (seg[i, 2:4] - seg[i, 0:2]) / length[i], float(length[i]))
+                continue
+            keep = joined[0]
+            self._moments[keep] += _segment_moments(ax, ay, bx, by, float(length[i]))
+            ends = touched.setdefault(keep, [])
+            ends += [(ax, ay), (bx, by)]
+            for other in joined[1:]:
+                self._moments[keep] += self._moments[other]
+                self._absorb_extent(keep, other)
+                self._alive[other] = False
+                redirect[other] = keep
+                ends += touched.pop(other, [])
+        # each wall a segment joined is fitted again once, with the joined segments' ends
+        for k, ends in touched.items():
+            if self._alive[k]:
+                self._refit(k, ends)
+
+    # -- internals ---------------------------------------------------------------------------
+    def _walls_for(self, seg: Array, length: Array) -> list[Array]:
+        """For each segment, the walls it lies on, the longest first."""
+        alive = np.flatnonzero(self._alive[: self._n])
+        if len(alive) == 0:
+            return [alive] * len(seg)
+        cx, cy, ux, uy = (self._line[alive, j] for j in range(4))
+        ax, ay, bx, by = (seg[:, j : j + 1] for j in range(4))
+        dx = (bx - ax) / length[:, None]
+        dy = (by - ay) / length[:, None]
+        dot = dx * ux + dy * uy
+        limit = np.where(length < self.short_length, self.min_short_cos, self.cos_tolerance)[:, None]
+        aligned = (dot if self.oriented else np.abs(dot)) >= limit
+        ax, ay, bx, by = ax - cx, ay - cy, bx - cx, by - cy
+        near = (np.abs(ay * ux - ax * uy) <= self.tolerance) & (np.abs(by * ux - bx * uy) <= self.tolerance)
+        ta = ax * ux + ay * uy
+        tb = bx * ux + by * uy
+        ext = self._extent[alive]
+        chained = (np.minimum(ta, tb) <= ext[:, 1] + self.gap) & (np.maximum(ta, tb) >= ext[:, 0] - self.gap)
+        hit = aligned & near & chained
+        span = ext[:, 1] - ext[:, 0]
+        order = np.argsort(-span, kind="stable")
+        return [alive[order][row[order]] for row in hit]
+
+    def _new_wall(self, a: Array, b: Array, d: Array, length: float) -> None:
+        if self._n == len(self._alive):
+            grow = len(self._alive)
+            self._moments = np.vstack([self._moments, np.zeros((grow, 6))])
+            self._line = np.vstack([self._line, np.zeros((grow, 4))])
+            self._extent = np.vstack([self._extent, np.zeros((grow, 2))])
+            self._alive = np.concatenate([self._alive, np.zeros(grow, dtype=bool)])
+        k = self._n
+        self._n += 1
+        self._moments[k] = _segment_moments(float(a[0]), float(a[1]), float(b[0]), float(b[1]), length)
+        self._alive[k] = True
+        self._line[k] = (a[0], a[1], d[0], d[1])
+        self._extent[k] = (0.0, length)
+
+    def _absorb_extent(self, keep: int, other: int) -> None:
+        """Carry the other wall's ends into ``keep``'s extent (in ``keep``'s current line)."""
+        c, u = self._line[keep, 0:2], self._line[keep, 2:4]
+        oc, ou = self._line[other, 0:2], self._line[other, 2:4]
+        for t in self._extent[other]:
+            p = oc + t * ou
+            self._stretch(keep, float((p - c) @ u))
+
+    def _stretch(self, k: int, t: float) -> None:
+        self._extent[k, 0] = min(self._extent[k, 0], t)
+        self._extent[k, 1] = max(self._extent[k, 1], t)
+
+    def _refit(self, k: int, extra: list[tuple[float, float]]) -> None:
+        """Fit wall ``k``'s line again from its moments; its extent is its old ends and ``extra``
+        points, projected on the new line."""
+        ocx, ocy, oux, ouy = (float(v) for v in self._line[k])
+        lo, hi = (float(v) for v in self._extent[k])
+        ends = [(ocx + lo * oux, ocy + lo * ouy), (ocx + hi * oux, ocy + hi * ouy), *extra]
+        s0, sx, sy, sxx, sxy, syy = (float(v) for v in self._moments[k])
+        cx, cy = sx / s0, sy / s0
+        vxx, vxy, vyy = sxx - s0 * cx * cx, sxy - s0 * cx * cy, syy - s0 * cy * cy
+        half = 0.5 * (vxx - vyy)
+        root = math.hypot(half, vxy)
+        if vxx >= vyy:
+            ux, uy = root + half, vxy
+        else:
+            ux, uy = vxy, root - half
+        norm = math.hypot(ux, uy)
+        if norm <= 1e-12:
+            ux, uy = oux, ouy
+        else:
+            ux, uy = ux / norm, uy / norm
+        if ux * oux + uy * ouy < 0:
+            ux, uy = -ux, -uy  # keep the wall's direction (the side the sensor saw it from)
+        t = [(px - cx) * ux + (py - cy) * uy for px, py in ends]
+        self._line[k] = (cx, cy, ux, uy)
+        self._extent[k] = (min(t), max(t))
+
+
+def _segment_moments(ax: float, ay: float, bx: float, by: float, length: float) -> tuple[float, ...]:
+    """A segment's share of a wall's line fit: its two ends weighted by its length, and its own
+    spread along itself (length / 12 times its direction's outer product), as in
+    :func:`fleetmap.shared.simplify._fit`."""
+    w = length
+    ex, ey = bx - ax, by - ay
+    return (
+        2.0 * w,
+        w * (ax + bx),
+        w * (ay + by),
+        w * (ax * ax + bx * bx) + w / 12.0 * ex * ex,
+        w * (ax * ay + bx * by) + w / 12.0 * ex * ey,
+        w * (ay * ay + by * by) + w / 12.0 * ey * ey,
+    )

@@ -1,0 +1,131 @@
+"""Scan-to-submap registration, the see-through check, the motion models and the wall map: on
+simulated scans of known poses."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fleetmap.scenarios import get_world
+from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import TrackingParams
+from fleetmap.shared.extraction import extract_segments
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.motion import from_odometry, odometry_increment
+from fleetmap.shared.tracking import ReferenceMap, register, sample_segments, see_through
+from fleetmap.shared.walls import WallMap
+
+PARAMS = TrackingParams()
+LOOSE = np.diag([1 / 0.5**2, 1 / 0.5**2, 1 / 0.3**2])
+"""A prior that barely pulls: the walls decide."""
+
+
+LASER = LaserParams()
+
+
+def scan_at(walls, pose, seed=0):
+    return simulate_scan(walls, (pose.x, pose.y, pose.theta), LASER, np.random.default_rng(seed))
+
+
+def submap_of(walls, poses):
+    """A reference map of scans taken at ``poses``, in the first one's frame (true poses)."""
+    reference = ReferenceMap(PARAMS.voxel_size)
+    frame = poses[0]
+    for k, pose in enumerate(poses):
+        samples = sample_segments(extract_segments(scan_at(walls, pose, seed=k)), PARAMS.sample_spacing)
+        reference.insert(samples.moved(frame.inverse().compose(pose)))
+    return reference, frame
+
+
+@pytest.fixture(scope="module")
+def office():
+    return get_world("office").walls
+
+
+@pytest.mark.parametrize(
+    "offset",
+    [Transform2D(0.15, -0.10, 0.05), Transform2D(-0.3, 0.2, -0.12), Transform2D(0.0, 0.0, math.radians(10))],
+)
+def test_a_scan_predicted_off_is_registered_where_it_was_taken(office, offset):
+    # corridor of the office floor, looking along it past a junction
+    poses = [Transform2D(8.0 + 0.2 * k, 7.0, 0.0) for k in range(5)]
+    reference, frame = submap_of(office, poses)
+    true = Transform2D(9.3, 7.1, 0.08)
+    samples = sample_segments(extract_segments(scan_at(office, true, seed=99)), PARAMS.sample_spacing)
+    truth = frame.inverse().compose(true)
+    start = truth.compose(offset)
+    reg = register(samples, reference, start, start, LOOSE, PARAMS)
+    dt, dr = reg.pose.distance(truth)
+    assert dt < 0.02 and math.degrees(dr) < 0.3, (dt, math.degrees(dr))
+    assert reg.matched_share > 0.8 and reg.rms < 0.02
+    through, visible = see_through(reference, scan_at(office, true, seed=99), reg.pose, PARAMS, 20.0)
+    assert visible > 5.0 and through < 0.05 * visible
+
+
+def test_a_featureless_corridor_leaves_the_translation_along_it_to_the_prior():
+    # two parallel walls 2 m apart, 60 m long: a laser of 8 m sees no end
+    walls = np.array([[-30.0, -1.0, 30.0, -1.0], [30.0, 1.0, -30.0, 1.0]])
+    poses = [Transform2D(0.2 * k, 0.0, 0.0) for k in range(6)]
+    reference, _ = submap_of(walls, poses)
+    true = Transform2D(1.5, 0.05, 0.02)
+    samples = sample_segments(extract_segments(scan_at(walls, true)), PARAMS.sample_spacing)
+    prior = Transform2D(1.8, -0.1, 0.0)  # odometry 30 cm long, 15 cm to the side, 1 degree off
+    information = from_odometry(Transform2D(0.3, 0.0, 0.0), PARAMS).information()
+    reg = register(samples, reference, prior, prior, information, PARAMS)
+    assert reg.pose.x == pytest.approx(prior.x, abs=0.01), "along the corridor the prior decides"
+    assert reg.pose.y == pytest.approx(true.y, abs=0.01), "across it the walls do"
+    assert reg.pose.theta == pytest.approx(true.theta, abs=math.radians(0.3))
+    # the walls' own information is nearly nothing along the corridor
+    values, vectors = np.linalg.eigh(reg.scan_information[:2, :2])
+    assert values[0] < 1e-3 * values[1] and abs(vectors[0, 0]) > 0.99
+
+
+def test_a_scan_taken_elsewhere_sees_through_the_submaps_walls(office):
+    poses = [Transform2D(8.0 + 0.2 * k, 7.0, 0.0) for k in range(5)]
+    reference, _ = submap_of(office, poses)
+    elsewhere = Transform2D(16.0, 4.4, -1.0)  # in a south room
+    scan = scan_at(office, elsewhere)
+    samples = sample_segments(extract_segments(scan), PARAMS.sample_spacing)
+    start = Transform2D(1.0, 0.0, 0.0)  # where odometry says the robot is: it was carried
+    reg = register(samples, reference, start, start, LOOSE, PARAMS)
+    through, visible = see_through(reference, scan, reg.pose, PARAMS, 20.0)
+    fits = reg.matched_share >= PARAMS.min_matched_share and through <= PARAMS.max_see_through * visible
+    assert not fits, (reg.matched_share, through, visible)
+
+
+def test_odometry_that_jumps_or_is_not_a_number_is_no_measurement():
+    a = Transform2D(1.0, 2.0, 0.3)
+    step, why = odometry_increment(a, a.compose(Transform2D(0.1, 0.0, 0.05)), 0.1, 3.0)
+    assert step is not None and why is None and step.x == pytest.approx(0.1)
+    step, why = odometry_increment(a, Transform2D(50.0, 2.0, 0.3), 0.1, 3.0)
+    assert step is None and "jumped" in why
+    step, why = odometry_increment(a, Transform2D(math.nan, 2.0, 0.3), 0.1, 3.0)
+    assert step is None and "finite" in why
+
+
+def test_a_reference_cell_seen_from_both_sides_of_a_thin_wall_matches_nothing():
+    reference = ReferenceMap(0.05)
+    wall = np.array([[0.0, 0.0, 2.0, 0.0]])  # free space above (left of the direction)
+    reference.insert(sample_segments(wall, 0.05))
+    reference.insert(sample_segments(wall[:, [2, 3, 0, 1]], 0.05))  # the same wall seen from below
+    index, _ = reference.nearest(np.array([[1.0, 0.02]]), 0.5)
+    assert index[0] == -1
+
+
+def test_the_wall_map_keeps_one_segment_per_stretch_of_wall():
+    walls = WallMap(tolerance=0.05)
+    rng = np.random.default_rng(3)
+    # a 10 m wall seen in 40 overlapping noisy pieces, and a parallel one 1 m off
+    for _ in range(40):
+        x0 = rng.uniform(0, 8)
+        y0, y1 = rng.normal(0, 0.01, 2)
+        walls.add(np.array([[x0, y0, x0 + 2.0, y1], [x0 + 2.0, 1.0, x0, 1.0]]))
+    seg = walls.segments
+    assert len(seg) == 2
+    lower = seg[np.argmin(np.abs(seg[:, 1]))]
+    assert lower[0] == pytest.approx(min(seg[:, 0]), abs=0.5) and abs(lower[1]) < 0.02
+    assert lower[2] > lower[0], "it keeps the side the sensor saw it from"
+    # the other side of the lower wall, seen from below, is another wall
+    walls.add(np.array([[5.0, -0.02, 3.0, -0.02]]))
+    assert len(walls.segments) == 3
