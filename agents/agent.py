@@ -230,6 +230,7 @@ class TrackingFrontEnd:
             scan_indices=np.array([s.index for s in placed], dtype=np.int64),
             scan_stamps=np.array([s.stamp for s in placed], dtype=np.float64),
             scan_poses=np.array([[s.pose.x, s.pose.y, s.pose.theta] for s in placed]).reshape(-1, 3),
+            frame_scan=submap.frame_scan,
         )
         self._latest[(ep, submap.number)] = message
         self._local_maps += 1

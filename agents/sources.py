@@ -74,7 +74,9 @@ class ScanSource(Protocol):
     """Scans in order; ``name`` says where they come from (for logs and summaries)."""
 
     name: str
-    has_odometry: bool
+
+    @property
+    def has_odometry(self) -> bool: ...
 
     def __iter__(self) -> Iterator[SourceScan]: ...
 

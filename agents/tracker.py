@@ -83,6 +83,8 @@ class Submap:
 
     epoch: int
     number: int
+    frame_scan: int
+    """The index of the scan whose pose is its frame (its first inserted scan)."""
     origin: Transform2D
     """Its frame (the pose of its first scan) in the epoch's frame."""
     link_transform: Transform2D | None
@@ -443,7 +445,7 @@ class Tracker:
             self._odometry = odometry
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self._due(stamp, pose):
-            self._insert(stamp, segments, samples, pose, reg)
+            self._insert(index, stamp, segments, samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
 
     def _due(self, stamp: float, pose: Transform2D) -> bool:
@@ -456,7 +458,13 @@ class Tracker:
         return moved >= p.insert_distance or turned >= p.insert_rotation or stamp - when >= p.insert_interval
 
     def _insert(
-        self, stamp: float, segments: Array, samples: ScanSamples, pose: Transform2D, reg: Registration | None
+        self,
+        index: int,
+        stamp: float,
+        segments: Array,
+        samples: ScanSamples,
+        pose: Transform2D,
+        reg: Registration | None,
     ) -> None:
         """Insert a placed scan (epoch-frame ``pose``) into the active submaps; finish and start
         submaps as they fill (see the module docstring)."""
@@ -467,23 +475,27 @@ class Tracker:
         newest = self.active[-1]
         half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1)
         if half and len(self.active) == 1:
-            self._start_submap(pose, segments, samples, reg)
+            self._start_submap(index, pose, segments, samples, reg)
         oldest = self.active[0]
         if len(self.active) > 1 and (oldest.path_length >= p.submap_length or oldest.inserted >= p.submap_scans):
             oldest.finished = True
             self.finished.append(self.active.pop(0))
             newest = self.active[-1]
             if newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1):
-                self._start_submap(pose, segments, samples, reg)
+                self._start_submap(index, pose, segments, samples, reg)
 
-    def _start_submap(self, pose: Transform2D, segments: Array, samples: ScanSamples, reg: Registration | None) -> None:
+    def _start_submap(
+        self, index: int, pose: Transform2D, segments: Array, samples: ScanSamples, reg: Registration | None
+    ) -> None:
         previous = self.active[-1] if self.active else None
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
             covariance = _link_covariance(reg)
         walls = WallMap(self.config.integration.simplify_tolerance)
-        submap = Submap(self.epoch, self._submaps, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls)
+        submap = Submap(
+            self.epoch, self._submaps, index, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls
+        )
         self._submaps += 1
         submap.insert(samples, segments, Transform2D())
         self.active.append(submap)
@@ -511,7 +523,7 @@ class Tracker:
         self._inserted_at = None
         self._held = []
         self._scores.clear()
-        self._start_submap(Transform2D(), segments, samples, None)
+        self._start_submap(index, Transform2D(), segments, samples, None)
         self._inserted_at = (stamp, Transform2D())
         self.active[0].placed.append(PlacedScan(index, stamp, Transform2D()))
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)

@@ -86,6 +86,12 @@ class Edge:
     the other edges. None: not known (an edge integrated invalid, ``MergeParams.edge_information``
     off, fewer than two parallel pairs matched, or an edge given without it); such an edge weighs
     by value alone, the same in every direction."""
+    link: bool = False
+    """A robot's own link between consecutive submaps (its tracking), not an integration: its
+    information is the inverse of the link's covariance, and no cycle check rejects it."""
+    rivals: tuple[Transform2D, ...] = ()
+    """The clearly different alignments that scored next best (:attr:`Integration.rivals`), best
+    first: where a repetitive building puts b too."""
 
     @property
     def limited_violation(self) -> float:
@@ -101,13 +107,20 @@ class Edge:
 
     def reversed(self) -> Edge:
         inverse = self.transform.inverse()
+        rivals = tuple(t.inverse() for t in self.rivals)
         information = None
         if self.information is not None:
             # The inverse is its own inverse: T's parameters move by J(T^-1) times T^-1's.
             j = _inverse_jacobian(inverse)
             information = tuple((j.T @ np.array(self.information).reshape(3, 3) @ j).ravel().tolist())
         return replace(
-            self, a=self.b, b=self.a, transform=inverse, versions=self.versions[::-1], information=information
+            self,
+            a=self.b,
+            b=self.a,
+            transform=inverse,
+            versions=self.versions[::-1],
+            information=information,
+            rivals=rivals,
         )
 
     def key(self) -> tuple[str, str]:
@@ -124,6 +137,8 @@ class _Node:
     """The map as integrated and fused: simplified (fleetmap.shared.simplify) unless it is a scan."""
     index: MapIndex | None = None
     """Its grid index for the large-map path, built on first use and kept."""
+    reach: float | None = None
+    """How far its walls reach from its frame (m), found on first use and kept."""
 
 
 @dataclass(frozen=True)
@@ -255,7 +270,7 @@ class MapGraph:
                 return True
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)
-            node.work, node.index = self._work(segment_map), None
+            node.work, node.index, node.reach = self._work(segment_map), None, None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
                     del self._edges[k]
@@ -330,6 +345,7 @@ class MapGraph:
             r.violation,
             r.solid_violation,
             information,
+            rivals=tuple(t for t, _ in r.rivals),
         )
         self._edges[e.key()] = e
         return e
@@ -375,6 +391,10 @@ class MapGraph:
         if self.is_current(x, y):
             return None
         return self._oriented_pair(x, y)
+
+    def seen_enough(self, a: str, b: str) -> bool:
+        """Whether two maps can merge at all (see :meth:`_too_few_places`)."""
+        return not self._too_few_places(self._nodes[a].map, self._nodes[b].map)
 
     def _too_few_places(self, a: SegmentMap, b: SegmentMap) -> bool:
         """Whether two partial maps cannot merge whatever their geometry: one was seen from fewer
@@ -445,18 +465,7 @@ class MapGraph:
         for e in edges:
             ra, rb = root[e.a], root[e.b]
             if ra != rb:
-                # Pose of rb's frame in ra's frame: P_a * T_ab * P_b^-1.
-                move = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
-                small, big = (ra, rb) if len(members[ra]) < len(members[rb]) else (rb, ra)
-                if small == ra:
-                    move = move.inverse()
-                for k in members[small]:
-                    rel[k] = move.compose(rel[k])
-                    root[k] = big
-                members[big].extend(members.pop(small))
-                tree.append(e)
-                adjacency[e.a].append(e)
-                adjacency[e.b].append(e.reversed())
+                _unite(e, root, rel, members, tree, adjacency)
             else:
                 predicted = rel[e.a].inverse().compose(rel[e.b])
                 dt, dr = _disagreement(predicted, e.transform)
@@ -633,6 +642,31 @@ def _bfs_order(adjacency: dict[str, list[Edge]], start: str) -> list[str]:
                 order.append(e.b)
         i += 1
     return order
+
+
+def _unite(
+    e: Edge,
+    root: dict[str, str],
+    rel: dict[str, Transform2D],
+    members: dict[str, list[str]],
+    tree: list[Edge],
+    adjacency: dict[str, list[Edge]],
+) -> None:
+    """Join the two groups of a forest that ``e`` spans (union by size): the smaller group's poses
+    move into the larger's root frame, ``e`` goes into the tree."""
+    ra, rb = root[e.a], root[e.b]
+    # Pose of rb's frame in ra's frame: P_a * T_ab * P_b^-1.
+    move = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
+    small, big = (ra, rb) if len(members[ra]) < len(members[rb]) else (rb, ra)
+    if small == ra:
+        move = move.inverse()
+    for k in members[small]:
+        rel[k] = move.compose(rel[k])
+        root[k] = big
+    members[big].extend(members.pop(small))
+    tree.append(e)
+    adjacency[e.a].append(e)
+    adjacency[e.b].append(e.reversed())
 
 
 def _tree_path(adjacency: dict[str, list[Edge]], a: str, b: str) -> list[Edge]:

@@ -1,31 +1,45 @@
-"""The merger service: local maps in, global maps and robot poses out.
+"""The merger service: submaps in, global maps and robot poses out.
 
 :class:`Merger` is the whole logic as a library (no network, no clock): ``receive`` takes the bytes
-of a bus message, ``step`` integrates what arrived since the last step into the map graph
-(:mod:`fleetmap.merger.graph`) and returns the messages to publish. It is deterministic given the
-same messages in the same order, which is what lets a recorded session replay to the same map:
-every step is published as a :class:`~fleetmap.shared.messages.MergerStep` naming the local map
-versions it took, in order, and how many pairs of maps it integrated, and a replay follows those
-steps. New versions enter the graph at once; their integrations with the other maps wait in a
-queue, lost robots' first, and the live service gives each step a time budget (a step that
-integrated every new version with every map took seconds in a warehouse, while a kidnapped
-robot's next map waited).
+of a bus message, ``step`` takes the submaps received since the last step into the pose graph
+(:mod:`fleetmap.merger.posegraph`), integrates the pairs of submaps due, solves the graph and returns
+the messages to publish. It is deterministic given the same messages in the same order, which is
+what lets a recorded session replay to the same map: every step is published as a
+:class:`~fleetmap.shared.messages.MergerStep` naming the submap versions it took, in order, and how
+many pairs it integrated, and a replay follows those steps.
+
+**Bounded work per submap.** A submap is integrated when it is final (it never changes again),
+and, while its robot's current epoch is not placed (a robot that joined, or lost its place),
+every ``STALE_VERSIONS`` versions of its active submap. Which pairs:
+
+- *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
+  robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
+  put the new one (not its neighbours on its own chain), at most
+  ``MergeParams.near_candidates``, registered near that prediction
+  (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
+  searches near a trajectory;
+- *far*: the submaps of the other components most like it (a rotation-invariant correlation of
+  segment-orientation histograms, the cheap descriptor), at most ``MergeParams.far_candidates``,
+  by the paper's pose-free integration; every ``loop_sweep_every``-th final
+  submap also tries the most similar submap of its own component beyond its reach (a loop its
+  drift hides from the near search).
+
+So integrating n submaps costs O(n) integrations, not n^2 (:attr:`MergerStats.integrations`).
 
 What it publishes after a step:
 
-- ``GlobalMap``: every component of the graph (anchor, members, poses, fused segments), the
-  largest first;
-- ``RobotPose`` for every robot: its pose in its component's frame, composed from the pose of its
-  current local map and its pose in that map. A robot whose current epoch is merged with nothing
-  (a kidnapped robot that has not been relocalized yet) is reported *unknown*: pose None, never a
-  guess. A robot's first epoch, before anything merges, is placed only if it is the largest
-  component (it is the global map);
-- ``MergeEdge`` for every integration computed in the step, ``MergerStep``, and ``FleetEvent``
+- ``GlobalMap``: every component of the graph (anchor, member submaps, their poses, fused
+  walls), the largest first;
+- ``RobotPose`` for every robot: its pose in its component's frame, composed from its newest
+  submap's pose and its pose in that submap; *unknown* (None, never a guess) while its current
+  epoch is merged with no other epoch (a kidnapped robot not relocalized yet), except a robot's
+  first epoch when it is the largest component (it is the global map);
+- ``MergeEdge`` for every integration of the step, ``MergerStep``, and ``FleetEvent``
   "relocalized" when a later epoch of a robot is placed for the first time.
 
-:class:`MergerService` wraps it for a bus: subscriptions, a queryable with the current global map
-(a late viewer or a rejoining robot gets it at once), presence from liveliness tokens, and an
-optional state file that a restarted merger loads (:meth:`Merger.save_state`).
+:class:`MergerService` wraps it for a bus: subscriptions, a queryable with the current global map,
+presence from liveliness tokens, and an optional state file that a restarted merger loads
+(:meth:`Merger.save_state`).
 """
 
 from __future__ import annotations
@@ -39,22 +53,22 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
-from fleetmap.merger.epochs import EpochMaps
-from fleetmap.merger.graph import Edge, MapGraph, MergeResult
+from fleetmap.merger.graph import Component as GraphComponent
+from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
+from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import max_map_violation
-from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.keys import FleetKeys, parse_submap_key
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import viewpoints_of, with_viewpoints
+from fleetmap.shared.mapgrid import with_viewpoints
 from fleetmap.shared.messages import (
     BadMessage,
     Component,
@@ -70,29 +84,14 @@ from fleetmap.shared.messages import (
 
 log = logging.getLogger(__name__)
 
-STATE_VERSION = 1
+STATE_VERSION = 2
 
-STALE_VERSIONS = 2
-"""A lost robot's pair integrated this many versions of its map ago is worth another try (a robot
-that starts an epoch publishes its map after every scan: two more scans)."""
-
-URGENT_RUN = 2
-"""Lost robots' promising pairs a merger integrates for one of the others' (when both wait)."""
-
-CARRIED_STEPS = 4
-"""How many of its longest steps a robot may drive between its previous epoch's last placed scan and
-its new epoch's first before an integration of the two says it was carried (:meth:`Merger._carried`):
-two scans to the break, and two for the last placed scans of an epoch about to break, the least
-sure (in the warehouse, r1's last scan of epoch 2 had slid 2.4 m along its lane; r3's epoch 2,
-merged two racks back, put its first scan 5.8 m from epoch 1's last, four steps 4.8 m)."""
+STALE_VERSIONS = 3
+"""An unplaced robot's active submap is integrated again once it has this many more versions."""
 
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
-integration that finds this much time gone. A lost robot's newest map waits for the step under
-way to end, then goes first in the next (its promising pairs do); shorter steps give lost robots
-their turns more often, for a little more per-step work (solve, global map, state file). Half a
-second cost the live warehouse kidnap a scan or two in about half the runs (README, "Kidnapped
-robots")."""
+integration that finds this much time gone; the other pairs wait for the next step."""
 
 
 @dataclass(frozen=True)
@@ -111,14 +110,12 @@ class MergerStats:
     ignored: int = 0
     """Well-formed messages not meant for the merger on the key they came on."""
     stale: int = 0
-    """Local maps older than (or as old as) the version already held."""
+    """Submap versions older than (or as old as) the version already held."""
     steps: int = 0
-    lost_first: int = 0
-    """Steps that began with a lost robot's pair while other pairs waited behind it."""
-    carried_refused: int = 0
-    """Integrations of a robot's consecutive epochs taken as invalid: they said the robot was
-    carried, on too little evidence (``MergeParams.carried_max_ambiguity``)."""
     integrations: int = 0
+    """Pairs of submaps integrated (pose-free or near a prediction)."""
+    near: int = 0
+    """... of which registered near where the graph predicts them."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -128,8 +125,8 @@ class MergerStats:
             "ignored": self.ignored,
             "stale": self.stale,
             "steps": self.steps,
-            "lost_first": self.lost_first,
             "integrations": self.integrations,
+            "near": self.near,
         }
 
 
@@ -137,10 +134,16 @@ class MergerStats:
 class _Robot:
     epoch: int = 0
     stamp: float = 0.0
-    """Stamp of the robot's latest local map: when its pose in that map was true."""
-    pose_in_map: dict[int, Transform2D | None] = field(default_factory=dict)
+    """Stamp of the robot's newest submap that says where it is: when its pose there was true."""
+    at: tuple[str, Transform2D] | None = None
+    """The robot's newest pose: (submap key, pose in that submap); None when it is lost."""
     relocalized: set[int] = field(default_factory=set)
     present: bool = False
+
+
+def _epoch_of(key: str) -> str:
+    robot, epoch, _ = parse_submap_key(key)
+    return f"{robot}/{epoch}"
 
 
 class Merger:
@@ -149,25 +152,31 @@ class Merger:
     def __init__(self, keys: FleetKeys, config: FleetmapConfig | None = None) -> None:
         self.keys = keys
         self.config = config or FleetmapConfig()
-        self.graph = MapGraph(self.config.integration, self.config.merge, anchor="first")
+        self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
         self.stats = MergerStats()
         self.seq = 0
         self.stamp = 0.0
-        self.links: dict[str, str] = {}
-        """New epoch's map key -> the previous epoch's (the graph links the epochs of a robot)."""
+        self.submaps: dict[str, LocalMap] = {}
+        """The version of every submap in the graph, by submap key."""
         self._pending: dict[str, LocalMap] = {}
         """Submap versions received since the last step, by submap key, in arrival order."""
-        self.epochs = EpochMaps()
-        """Every robot's submaps, chained into one map per epoch (the map graph's nodes)."""
         self._robots: dict[str, _Robot] = {}
         self._result: MergeResult | None = None
         self._global: GlobalMap | None = None
-        self._queue: dict[tuple[str, str], None] = {}
-        """Pairs of maps to integrate (an ordered set: the oldest first), each as (S1, S2)."""
-        self._urgent_run = 0
-        """Promising pairs of lost robots taken since the last of the rest (see :meth:`_work_lists`)."""
+        self._queue: dict[tuple[str, str], Transform2D | None] = {}
+        """Pairs to integrate, oldest first: (a, b) with b's predicted pose in a (near), or None
+        (pose-free)."""
+        self._scheduled: dict[str, int] = {}
+        """The version of each submap its integrations were last scheduled for."""
+        self._finals = 0
+        """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
+        self._far_tries: dict[str, int] = {}
+        """Pose-free integrations queued for each submap with other components' submaps."""
+        self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
-        """The last step's messages as published (kept in the state: see :meth:`where_it_stands`)."""
+        self._where: dict[str, int] = {}
+        self._epoch_where: dict[str, int] = {}
+        self._epochs_in: list[set[str]] = []
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -185,7 +194,7 @@ class Merger:
             if key != self.keys.localmap(message.robot):
                 self.stats.ignored += 1
                 return []
-            self._take_local_map(message)
+            self._take_submap(message)
         elif isinstance(message, Scan):
             self._robot(message.robot)  # a robot that only scans so far is known, not placed
         elif isinstance(message, FleetEvent) and message.kind == "epoch" and message.robot is not None:
@@ -197,9 +206,9 @@ class Merger:
     def _robot(self, name: str) -> _Robot:
         return self._robots.setdefault(name, _Robot())
 
-    def _take_local_map(self, m: LocalMap) -> None:
+    def _take_submap(self, m: LocalMap) -> None:
         key = m.submap_key
-        held = self.epochs.held(m)
+        held = self.submaps.get(key)
         waiting = self._pending.get(key)
         if (held is not None and m.version <= held.version) or (waiting is not None and m.version <= waiting.version):
             self.stats.stale += 1
@@ -207,7 +216,6 @@ class Merger:
         if len(m.segments) == 0:
             self.stats.ignored += 1
             return
-        # Arrival order of the first version decides the order of a step; later versions replace it.
         self._pending[key] = m
 
     def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
@@ -221,65 +229,58 @@ class Merger:
     def pending(self) -> int:
         return len(self._pending)
 
-    # -- one step --------------------------------------------------------------------------
     @property
     def has_work(self) -> bool:
-        """Whether a step has something to do: local maps pending, or pairs still to integrate."""
-        return bool(self._pending) or bool(self._queue)
+        """Whether a step has something to do: submaps pending, pairs to integrate, or a robot
+        nobody has placed whose submaps have candidates left to try (:meth:`_idle_pairs`)."""
+        return bool(self._pending) or bool(self._queue) or self._searching
+
+    @property
+    def _searching(self) -> bool:
+        if self._result is None or len(self._result.components) < 2:
+            return False
+        budget = self.config.merge.far_budget
+        return any(
+            self._far_tries.get(k, 0) < budget
+            for i, c in enumerate(self._result.components)
+            if len(self._epochs_in[i]) <= 1
+            for k in c.members
+        )
 
     @property
     def queued(self) -> int:
-        """Pairs of maps still to integrate."""
+        """Pairs of submaps still to integrate."""
         return len(self._queue)
 
-    def step(self, limit: int | None = None, enough: Callable[[], bool] | None = None) -> list[Outgoing]:
-        """Take the local maps received since the last step into the graph, integrate queued pairs,
-        and return the messages to publish.
-
-        Every new map version enters the graph at once (its old version's integrations stand
-        until replaced) and queues its pairs with the other maps, most similar first. The step
-        then integrates queued pairs in the order of :meth:`_work_lists` (lost robots' first):
-        all of them, or ``limit`` of them (a replay repeats the live steps), or until ``enough()``
-        says the step has taken long enough (the live service's time budget: a step that integrated every new
-        version with every map took seconds in a warehouse, while a kidnapped robot's next map
-        version waited). The step's MergerStep says how many pairs it took, and how many wait.
-        """
+    # -- one step --------------------------------------------------------------------------
+    def step(
+        self, limit: int | None = None, enough: Callable[[], bool] | None = None, fuse: bool = True
+    ) -> list[Outgoing]:
+        """Take the submaps received since the last step into the graph, integrate the pairs due
+        (all of them, ``limit`` of them as a replay repeats a live step, or until ``enough()`` says
+        the step took long enough), solve, and return the messages to publish. With ``fuse``
+        False the global map's walls are left out (an offline run fuses them once, at its end)."""
         if not self.has_work:
             return []
         batch = list(self._pending.values())
         self._pending.clear()
-        changed: dict[tuple[str, int], LocalMap] = {}
         for m in batch:
-            if self.epochs.put(m):
-                changed.setdefault((m.robot, m.epoch), m)
-        for (robot, epoch), first in changed.items():
-            self._enter(robot, epoch, first)
-        urgent, rest = self._work_lists()
-        self.stats.lost_first += bool(urgent) and bool(rest) and self._urgent_run < URGENT_RUN
+            self._enter(m)
+        for m in batch:
+            self._schedule(m)
+        if not self._queue:
+            self._idle_pairs()
         new_edges: list[Edge] = []
         taken = 0
-        while urgent or rest:
+        while self._queue:
             if (limit is not None and taken >= limit) or (limit is None and enough is not None and taken and enough()):
                 break
-            if urgent and (self._urgent_run < URGENT_RUN or not rest):
-                pair = urgent.pop(0)
-                self._urgent_run += 1
-            else:
-                pair = rest.pop(0)
-                self._urgent_run = 0
+            pair, predicted = next(iter(self._queue.items()))
             del self._queue[pair]
             taken += 1
-            computed = self.graph.integrate_pair_once(*pair)
-            if computed is not None:
-                if (
-                    computed.valid
-                    and self._carried(computed)
-                    and computed.ambiguity > self.config.merge.carried_max_ambiguity
-                ):
-                    computed = replace(computed, valid=False)
-                    self.graph.add_edge(computed)
-                    self.stats.carried_refused += 1
-                new_edges.append(computed)
+            edge = self._integrate(pair, predicted)
+            if edge is not None:
+                new_edges.append(edge)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -287,9 +288,10 @@ class Merger:
         out: list[Outgoing] = []
         for e in new_edges:
             t = e.transform
-            edge = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
-            out.append(Outgoing(self.keys.edges, edge.to_msgpack()))
-        self._result = self.graph.solve()
+            said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
+            out.append(Outgoing(self.keys.edges, said.to_msgpack()))
+        self._result = self.graph.solve(fuse_maps=fuse)
+        self._index_result()
         self._global = self._global_map(self._result)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += self._robot_poses()
@@ -308,134 +310,207 @@ class Merger:
 
     def where_it_stands(self) -> list[Outgoing]:
         """What a merger restored from its state publishes first: its last step's messages again,
-        byte for byte (its edges, global map, the robots' poses and events, the MergerStep last;
-        nothing before its first step, nothing meant for another fleet).
+        byte for byte (nothing before its first step, nothing meant for another fleet).
 
         A merger killed after saving its state and before publishing that step's messages would
-        otherwise never publish them: the robots' republished maps are the versions it already
-        holds, so no step follows; whoever waits for those maps to be integrated (``fleetmap
-        run``) would wait for ever, and a robot relocalized in that step would never hear it. A
-        replay knows the repeated MergerStep for a repeat (:func:`fleetmap.replay.replay`).
-        """
+        otherwise never publish them: the robots' republished submaps are the versions it already
+        holds, so no step follows. A replay knows the repeated MergerStep for a repeat."""
         return [o for o in self._last_out if o.key.startswith(self.keys.prefix + "/")]
 
-    def _work_lists(self) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
-        """The queued pairs a step integrates: lost robots' promising pairs, best first, and the
-        rest, oldest first. The step takes ``URGENT_RUN`` promising pairs for one of the rest,
-        counted across steps (a robot lost for long cannot starve the others).
+    def _enter(self, m: LocalMap) -> None:
+        """Put a submap version into the graph, with its link, and note where its robot is."""
+        key = m.submap_key
+        r = self._robot(m.robot)
+        if m.epoch > r.epoch:
+            r.epoch, r.at = m.epoch, None
+        if m.epoch == r.epoch and m.pose is not None and m.stamp >= r.stamp:
+            r.at, r.stamp = (key, m.pose), m.stamp
+        segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
+        if m.viewpoints is not None and len(m.viewpoints):
+            segment_map = with_viewpoints(segment_map, m.viewpoints)
+        self.graph.put_map(key, segment_map, m.version, keep_edges=True)
+        if m.link is not None:
+            previous = f"{m.robot}/{m.epoch}/{m.link.submap}"
+            self.graph.put_link(previous, key, m.link.transform, m.link.covariance_matrix)
+        self.submaps[key] = m
 
-        A robot is lost while its current epoch (after the first) is merged with nothing: its
-        pose is unknown. Its promising pairs are those whose last integration was nearly valid
-        (only ambiguous: a few more scans may be all it lacks), least ambiguous first, in turn
-        with those never integrated and then those last integrated with a version of its map
-        ``STALE_VERSIONS`` or more older, the oldest first (in a warehouse, r1's map after its
-        kidnap matched r4's from 5 to 7 scans ambiguously, 0.86-0.95 as well elsewhere; at 8
-        scans 0.78; at 10 it was valid). The issue asks for the best candidates first; the last versions'
-        integrations are the best guide there is. A pair tried with the last version or the one
-        before and far from valid waits its turn with the rest: a robot exploring where no one
-        has been keeps publishing, and its pairs must not crowd out the fleet's. A robot whose
-        previous epoch was placed (the fleet knew where it was: a kidnap) goes before those never
-        placed, which take turns (in the warehouse, three robots whose epochs broke at corners
-        were lost along with the kidnapped one: median 11 scans to relocalize it live, 10 with it
-        first). The lists depend only on the queue and the graph, so a replay of the recorded
-        steps repeats them.
-        """
-        lost_maps = {k for k in self.graph.keys if self._is_lost(k)}
-        urgent: list[tuple[tuple[int, float], tuple[str, str]]] = []
-        rest: list[tuple[str, str]] = []
-        for pair in self._queue:
-            promise = self._promise(pair, lost_maps) if pair[0] in lost_maps or pair[1] in lost_maps else None
-            if promise is not None and promise[0] < 2:
-                urgent.append((promise, pair))
-            else:
-                rest.append(pair)
-        urgent.sort(key=lambda x: x[0])  # stable: the oldest first among equals
-        # Within one robot's, a nearly valid pair and an untried one in turn: racks that repeat
-        # leave many pairs nearly valid, and the one that becomes valid may not be among them yet.
-        by_map: dict[str, tuple[list[tuple[str, str]], list[tuple[str, str]]]] = {}
-        for promise, pair in urgent:
-            near, untried = by_map.setdefault(pair[0] if pair[0] in lost_maps else pair[1], ([], []))
-            (near if promise[0] == 0 else untried).append(pair)
-        # Robots whose previous epoch was placed first: the fleet knew where they were (a kidnap).
-        # The others after them, in turn, each one's best first (one robot's pair that stays
-        # nearly valid version after version must not hold back another's).
-        known = [k for k in by_map if k in self.links and self._placed(self.links[k])]
-        first = [pair for k in known for pair in _alternate(*by_map[k])]
-        turns = [_alternate(*own) for k, own in by_map.items() if k not in known]
-        return first + [own[k] for k in range(max(map(len, turns), default=0)) for own in turns if k < len(own)], rest
+    # -- which pairs -----------------------------------------------------------------------
+    def _component_of(self, key: str) -> GraphComponent | None:
+        index = self._where.get(key)
+        return None if index is None or self._result is None else self._result.components[index]
 
-    def _placed(self, key: str) -> bool:
-        """Whether the last solve placed map ``key`` (merged it with another)."""
-        return self._result is not None and self._result.poses.get(key) is not None
+    def _placed_epoch(self, epoch_key: str) -> bool:
+        """Whether an epoch shares its component with another epoch (the fleet knows where it is)."""
+        index = self._epoch_where.get(epoch_key)
+        return index is not None and len(self._epochs_in[index]) > 1
 
-    def _promise(self, pair: tuple[str, str], lost_maps: set[str]) -> tuple[int, float]:
-        """How promising a lost robot's pair is (see :meth:`_work_lists`): (0, ambiguity) if its
-        last integration was nearly valid; (1, -age) if it was never integrated, or only with a
-        version of the lost map STALE_VERSIONS or more older (the map has grown since); (2, 0)
-        otherwise."""
-        e = self.graph.edge(*pair)
-        if e is None:
-            return (1, -math.inf)
-        p = self.config.integration
-        if e.limited_violation <= max_map_violation(e.value, p) * e.value and e.ambiguity <= p.valid_max_ambiguity:
-            return (0, e.ambiguity)
-        ends = zip((e.a, e.b), e.versions, strict=True)
-        age = max(self.graph.version_of(k) - version for k, version in ends if k in lost_maps)
-        return (1, -float(age)) if age >= STALE_VERSIONS else (2, 0.0)
+    def _index_result(self) -> None:
+        """Which component holds each submap and each epoch, and which epochs each holds."""
+        self._where, self._epoch_where, self._epochs_in = {}, {}, []
+        for i, c in enumerate(self._result.components if self._result is not None else []):
+            epochs = {_epoch_of(k) for k in c.members}
+            self._epochs_in.append(epochs)
+            for k in c.members:
+                self._where[k] = i
+            for epoch in epochs:
+                self._epoch_where.setdefault(epoch, i)
 
-    def _carried(self, e: Edge) -> bool:
-        """Whether ``e`` links a robot's previous epoch to the next one (the agent's link) and puts
-        the new epoch's first scan farther from the previous epoch's last placed scan than the
-        robot can drive in ``CARRIED_STEPS`` of its longest steps in that epoch, plus
-        ``witness_translation``: the agent starts an epoch two scans after its last placed one,
-        the robot may have driven on at its full speed (a robot that had stopped may start
-        again), and that last scan may have slid a little. The maps carry their scans' poses in
-        order, not their times. Such an edge says the robot was carried; see
-        ``MergeParams.carried_max_ambiguity``."""
-        if self.links.get(e.b) == e.a:
-            previous, pose = e.a, e.transform
-        elif self.links.get(e.a) == e.b:
-            previous, pose = e.b, e.transform.inverse()
-        else:
-            return False
-        views = viewpoints_of(self.graph.map_of(previous))[:, 0:2]
-        if len(views) < 2:
-            return False
-        step = float(np.max(np.hypot(*np.diff(views, axis=0).T)))
-        reach = CARRIED_STEPS * step + self.config.integration.witness_translation
-        return math.hypot(pose.x - views[-1, 0], pose.y - views[-1, 1]) > reach
+    def _predicted(self, key: str) -> Transform2D | None:
+        """Where the graph puts a submap in its component's frame: its refined pose, or its
+        predecessor's composed with its link."""
+        if self._result is None:
+            return None
+        pose = self._result.poses.get(key)
+        if pose is not None:
+            return pose
+        link = self.graph.link_to(key)
+        if link is not None and self._result.poses.get(link.a) is not None:
+            before = self._result.poses[link.a]
+            return before.compose(link.transform) if before is not None else None
+        return None
 
-    def _is_lost(self, key: str) -> bool:
-        """Whether ``key`` is the current epoch (after the first) of a robot whose pose is unknown."""
-        robot, epoch = key.rsplit("/", 1)
-        r = self._robots.get(robot)
-        current = r is None or int(epoch) >= r.epoch
-        return current and int(epoch) > 0 and not self._placed(key)
-
-    def _enter(self, robot: str, epoch: int, m: LocalMap) -> None:
-        """Put an epoch's map, chained from its submaps, into the graph as a new version, and queue
-        its pairs (``m``: one of its submaps that changed, for the epoch's link to the previous one)."""
-        built = self.epochs.epoch(robot, epoch)
-        if built is None or len(built.segments) == 0:
+    def _schedule(self, m: LocalMap) -> None:
+        """Queue the integrations a submap version is due (see the module docstring)."""
+        key = m.submap_key
+        mp = self.config.merge
+        r = self._robots[m.robot]
+        current = m.epoch == r.epoch
+        placed = self._placed_epoch(f"{m.robot}/{m.epoch}")
+        last = self._scheduled.get(key)
+        final = m.final and (last is None or last < m.version)
+        searching = current and not placed and (last is None or m.version - last >= STALE_VERSIONS)
+        if not (final or searching):
             return
-        key = f"{robot}/{epoch}"
-        version = self.graph.version_of(key) + 1 if key in self.graph else 0
-        r = self._robot(robot)
-        if epoch >= r.epoch:
-            r.epoch, r.stamp = epoch, built.stamp
-        r.pose_in_map[epoch] = built.pose
-        if m.previous_epoch_link is not None:
-            self.links[key] = f"{robot}/{m.previous_epoch_link.epoch}"
-        segment_map = SegmentMap(np.array(built.segments), ordered=False, oriented=True)
-        if len(built.viewpoints):
-            segment_map = with_viewpoints(segment_map, built.viewpoints)
-        if not self.graph.put_map(key, segment_map, version, keep_edges=True):
-            return
-        for other in self.graph.pairs_for(key):
-            pair = (other, key) if other < key else (key, other)
-            if pair not in self._queue and not self.graph.is_current(*pair):
-                self._queue[pair] = None
+        self._scheduled[key] = m.version
+        mine = self._component_members(key)
+        if final and self._predicted(key) is not None:
+            # its chain is in the graph: the submaps of its component near where the links put it
+            # (its own earlier submaps too: a loop), whether or not another robot is there yet
+            for other, predicted in self._near(key, mine)[: mp.near_candidates]:
+                self._queue.setdefault((other, key), predicted)
+            if m.final:
+                self._finals += 1
+                if mp.loop_sweep_every > 0 and self._finals % mp.loop_sweep_every == 0:
+                    sweep = self._far(key, mine, within=True)[:1]
+                    for other in sweep:
+                        self._queue.setdefault(_ordered(other, key), None)
+        for other in self._far(key, mine, within=False)[: mp.far_candidates]:
+            self._queue_far(key, other)
 
+    def _queue_far(self, key: str, other: str) -> None:
+        pair = _ordered(other, key)
+        if pair not in self._queue:
+            self._queue[pair] = None
+            self._far_tries[key] = self._far_tries.get(key, 0) + 1
+
+    def _idle_pairs(self) -> int:
+        """With nothing else to do: one more pose-free pair for a submap of each component whose
+        maps are merged with no other epoch's (a robot nobody has placed yet), its next most
+        similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
+        how many were queued. Every submap's candidates are tried in turn: in a building where
+        most views look alike (racks), the descriptor ranks the right partner anywhere."""
+        if self._result is None or len(self._result.components) < 2:
+            return 0
+        budget = self.config.merge.far_budget
+        queued = 0
+        for i, component in enumerate(self._result.components):
+            if len(self._epochs_in[i]) > 1:
+                continue
+            mine = set(component.members)
+            finals = [k for k in component.members if self.submaps[k].final] or list(component.members)
+            for key in sorted(finals, key=lambda k: (self._far_tries.get(k, 0), k)):
+                if self._far_tries.get(key, 0) >= budget:
+                    continue
+                others = self._far(key, mine, within=False)
+                if others:
+                    self._queue_far(key, others[0])
+                    queued += 1
+                    break
+                self._far_tries[key] = budget  # none left
+        return queued
+
+    def _component_members(self, key: str) -> set[str]:
+        """The submaps in ``key``'s component, by the last solve and its links."""
+        members = {key}
+        link = self.graph.link_to(key)
+        anchor = link.a if link is not None else key
+        component = self._component_of(anchor)
+        if component is not None:
+            members.update(component.members)
+        return members
+
+    def _near(self, key: str, mine: set[str]) -> list[tuple[str, Transform2D]]:
+        """Submaps of ``key``'s component within reach of where the graph puts it, nearest first,
+        with the predicted pose of ``key`` in each; not its neighbours on its own chain."""
+        here = self._predicted(key)
+        if here is None or self._result is None:
+            return []
+        radius = self._radius(key)
+        out = []
+        for other in sorted(mine):
+            if other == key or self._neighbours(key, other):
+                continue
+            there = self._result.poses.get(other)
+            if there is None:
+                continue
+            distance = math.hypot(here.x - there.x, here.y - there.y)
+            if distance <= radius + self._radius(other):
+                out.append((distance, other, there.inverse().compose(here)))
+        out.sort(key=lambda x: (x[0], x[1]))
+        return [(other, predicted) for _, other, predicted in out]
+
+    def _neighbours(self, a: str, b: str) -> bool:
+        """Whether two submaps are within two of each other on one robot's chain (they share
+        scans, or their links already say how they lie)."""
+        ra, ea, sa = parse_submap_key(a)
+        rb, eb, sb = parse_submap_key(b)
+        return ra == rb and ea == eb and sa is not None and sb is not None and abs(sa - sb) <= 2
+
+    def _radius(self, key: str) -> float:
+        """How far a submap's walls reach from its frame (m)."""
+        seg = self.graph.map_of(key).segments
+        if len(seg) == 0:
+            return 0.0
+        return float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max())
+
+    def _far(self, key: str, mine: set[str], within: bool) -> list[str]:
+        """Submaps most like ``key`` (orientation histograms), of the other components, or of its
+        own beyond its reach (``within``), most similar first."""
+        h = self._histogram(key)
+        here = self._predicted(key)
+        candidates = []
+        for other in self.graph.keys:
+            if other == key or (other in mine) != within or self._neighbours(key, other):
+                continue
+            if within and here is not None and self._result is not None:
+                there = self._result.poses.get(other)
+                if there is not None and math.hypot(here.x - there.x, here.y - there.y) <= self._radius(
+                    key
+                ) + self._radius(other):
+                    continue  # within reach: the near search's
+            if not self.graph.seen_enough(key, other) or self.graph.is_current(*_ordered(other, key)):
+                continue
+            candidates.append((-similarity(self._histogram(other), h), other))
+        candidates.sort()
+        return [other for _, other in candidates]
+
+    def _histogram(self, key: str) -> Any:
+        version = self.graph.version_of(key)
+        held = self._histograms.get(key)
+        if held is None or held[0] != version:
+            held = self._histograms[key] = (version, orientation_histogram(self.graph.map_of(key).segments))
+        return held[1]
+
+    def _integrate(self, pair: tuple[str, str], predicted: Transform2D | None) -> Edge | None:
+        a, b = pair
+        if a not in self.graph or b not in self.graph:
+            return None
+        if predicted is not None:
+            self.stats.near += 1
+            return self.graph.align_pair(a, b, predicted)
+        return self.graph.integrate_pair_once(a, b)
+
+    # -- outputs ---------------------------------------------------------------------------
     def _global_map(self, result: MergeResult) -> GlobalMap:
         components = tuple(
             Component(c.anchor, tuple(c.members), dict(c.poses), np.asarray(c.segments)) for c in result.components
@@ -445,26 +520,25 @@ class Merger:
     def robot_pose(self, robot: str) -> tuple[Transform2D | None, int | None]:
         """A robot's pose in its component's frame and the component's index; (None, None) if unknown."""
         r = self._robots.get(robot)
-        if r is None or self._result is None or self._global is None:
+        if r is None or r.at is None or self._result is None or self._global is None:
             return None, None
-        key = f"{robot}/{r.epoch}"
-        in_map = r.pose_in_map.get(r.epoch)
-        index = self._global.component_of(key)
-        if in_map is None or index is None:
+        key, in_submap = r.at
+        index = self._where.get(key)
+        if index is None:
             return None, None
         component = self._result.components[index]
-        merged = len(component.members) > 1
+        merged = len(self._epochs_in[index]) > 1
         if not merged and not (r.epoch == 0 and index == 0):
             return None, None  # a later epoch merged with nothing: the robot is lost, not guessed
-        return component.poses[key].compose(in_map), index
+        return component.poses[key].compose(in_submap), index
 
     def _robot_poses(self) -> list[Outgoing]:
         out = []
         for robot in sorted(self._robots):
             r = self._robots[robot]
+            if r.at is None and not any(k.startswith(f"{robot}/{r.epoch}/") for k in self.submaps):
+                continue  # no submap yet: nothing to say
             pose, index = self.robot_pose(robot)
-            if r.pose_in_map.get(r.epoch, None) is None and f"{robot}/{r.epoch}" not in self.graph:
-                continue  # no local map yet: nothing to say
             out.append(Outgoing(self.keys.pose(robot), RobotPose(robot, r.epoch, r.stamp, pose, index).to_msgpack()))
             if pose is not None and r.epoch > 0 and r.epoch not in r.relocalized:
                 r.relocalized.add(r.epoch)
@@ -485,20 +559,11 @@ class Merger:
 
     # -- state file ------------------------------------------------------------------------
     def save_state(self, path: str | Path) -> None:
-        """Everything needed to resume: maps (with versions, in insertion order), edges, robots.
+        """Everything needed to resume: the submaps (as received, in the order they entered the
+        graph), the integrations, the robots, the queue, the last step's messages.
 
         Written to a temporary file and renamed, so a merger killed while saving leaves the
-        previous state whole.
-        """
-        nodes = [
-            {
-                "key": k,
-                "version": self.graph.version_of(k),
-                "segments": np.ascontiguousarray(self.graph.map_of(k).segments, dtype="<f8").tobytes(),
-                "viewpoints": np.ascontiguousarray(viewpoints_of(self.graph.map_of(k)), dtype="<f8").tobytes(),
-            }
-            for k in self.graph.keys
-        ]
+        previous state whole."""
         edges = [
             {
                 "a": e.a,
@@ -512,14 +577,16 @@ class Merger:
                 "violation": e.violation,
                 "solid_violation": e.solid_violation,
                 "information": None if e.information is None else list(e.information),
+                "rivals": [[t.x, t.y, t.theta] for t in e.rivals],
             }
             for e in self.graph.edges
+            if not e.link  # links come back with their submaps
         ]
         robots = {
             name: {
                 "epoch": r.epoch,
                 "stamp": r.stamp,
-                "pose_in_map": {str(ep): None if p is None else [p.x, p.y, p.theta] for ep, p in r.pose_in_map.items()},
+                "at": None if r.at is None else [r.at[0], r.at[1].x, r.at[1].y, r.at[1].theta],
                 "relocalized": sorted(r.relocalized),
             }
             for name, r in self._robots.items()
@@ -528,13 +595,13 @@ class Merger:
             "v": STATE_VERSION,
             "seq": self.seq,
             "stamp": self.stamp,
-            "nodes": nodes,
+            "submaps": [self.submaps[k].to_msgpack() for k in self.graph.keys],
             "edges": edges,
             "robots": robots,
-            "links": self.links,
-            "submaps": [m.to_msgpack() for m in self.epochs.messages()],
-            "queue": [list(pair) for pair in self._queue],
-            "urgent_run": self._urgent_run,
+            "queue": [[a, b, None if t is None else [t.x, t.y, t.theta]] for (a, b), t in self._queue.items()],
+            "scheduled": self._scheduled,
+            "finals": self._finals,
+            "far_tries": self._far_tries,
             "last_out": [[o.key, o.payload] for o in self._last_out],
         }
         p = Path(path)
@@ -546,20 +613,21 @@ class Merger:
         os.replace(tmp, p)
 
     def load_state(self, path: str | Path) -> None:
-        """Restore a state written by :meth:`save_state` (the graph is not recomputed)."""
+        """Restore a state written by :meth:`save_state` (the graph is rebuilt from its submaps and
+        integrations, not recomputed)."""
         source = str(path)
+        fresh = Merger(self.keys, self.config)
         try:
             state = msgpack.unpackb(Path(path).read_bytes(), raw=False)
             if not isinstance(state, dict) or state.get("v") != STATE_VERSION:
                 raise BadInput(source, f"not a fleetmap merger state file (version {STATE_VERSION})")
-            graph = MapGraph(self.config.integration, self.config.merge, anchor="first")
-            for n in state["nodes"]:
-                seg = np.frombuffer(n["segments"], dtype="<f8").reshape(-1, 4).copy()
-                vp = np.frombuffer(n.get("viewpoints", b""), dtype="<f8").reshape(-1, 5)
-                restored = SegmentMap(seg, ordered=False, oriented=True)
-                graph.put_map(n["key"], with_viewpoints(restored, vp) if len(vp) else restored, int(n["version"]))
+            for payload in state["submaps"]:
+                m = decode(bytes(payload))
+                if not isinstance(m, LocalMap):
+                    raise ValueError(f"a saved submap is a {m.SCHEMA}")
+                fresh._enter(m)
             for e in state["edges"]:
-                graph.add_edge(
+                fresh.graph.add_edge(
                     Edge(
                         e["a"],
                         e["b"],
@@ -572,42 +640,46 @@ class Merger:
                         float(e.get("violation", 0.0)),
                         None if e.get("solid_violation") is None else float(e["solid_violation"]),
                         _information(e.get("information")),
+                        rivals=tuple(Transform2D(*t) for t in e.get("rivals", [])),
                     )
                 )
             robots = {}
             for name, r in state["robots"].items():
-                robot = _Robot(epoch=int(r["epoch"]), stamp=float(r["stamp"]), relocalized=set(r["relocalized"]))
-                robot.pose_in_map = {
-                    int(ep): None if p is None else Transform2D(*p) for ep, p in r["pose_in_map"].items()
-                }
-                robots[name] = robot
-            pairs = {(str(a), str(b)): None for a, b in state.get("queue", []) if a in graph and b in graph}
-            urgent_run = int(state.get("urgent_run", 0))
+                at = r.get("at")
+                robots[name] = _Robot(
+                    epoch=int(r["epoch"]),
+                    stamp=float(r["stamp"]),
+                    at=None if at is None else (str(at[0]), Transform2D(float(at[1]), float(at[2]), float(at[3]))),
+                    relocalized={int(x) for x in r["relocalized"]},
+                )
+            pairs: dict[tuple[str, str], Transform2D | None] = {}
+            for a, b, t in state.get("queue", []):
+                if a in fresh.graph and b in fresh.graph:
+                    pairs[(str(a), str(b))] = None if t is None else Transform2D(*t)
+            scheduled = {str(k): int(v) for k, v in state.get("scheduled", {}).items()}
+            far_tries = {str(k): int(v) for k, v in state.get("far_tries", {}).items()}
             last_out = [Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])]
-            epochs = EpochMaps()
-            for payload in state.get("submaps", []):
-                held = decode(bytes(payload))
-                if not isinstance(held, LocalMap):
-                    raise ValueError(f"a saved submap is a {held.SCHEMA}")
-                epochs.put(held)
+            seq, stamp, finals = int(state["seq"]), float(state["stamp"]), int(state.get("finals", 0))
         except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException, BadMessage) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
-        # A state written before edges carried their information: fit them as this merger would.
-        refitted = graph.fit_edges() if any("information" not in e for e in state["edges"]) else 0
-        if refitted:
-            log.info("%s: fitted %d edges saved without how firmly their walls fix them", source, refitted)
-        self.graph, self._robots = graph, robots
-        self.seq, self.stamp, self.links = int(state["seq"]), float(state["stamp"]), dict(state["links"])
-        self._queue, self._urgent_run, self._last_out = pairs, urgent_run, last_out
-        self.epochs = epochs
+        self.graph, self.submaps, self._robots = fresh.graph, fresh.submaps, robots
+        self.seq, self.stamp, self._finals = seq, stamp, finals
+        self._queue, self._scheduled, self._last_out = pairs, scheduled, last_out
+        self._far_tries = far_tries
         if len(self.graph):
             self._result = self.graph.solve()
+            self._index_result()
             self._global = self._global_map(self._result)
 
 
+def _ordered(a: str, b: str) -> tuple[str, str]:
+    """A pose-free pair, always one way (INTEGRATE(a, b) is not exactly the inverse of INTEGRATE(b,
+    a): whatever order the submaps arrived in, the same edge)."""
+    return (a, b) if a < b else (b, a)
+
+
 def _information(value: object) -> tuple[float, ...] | None:
-    """An edge's saved :attr:`~fleetmap.merger.graph.Edge.information` (None: not saved, as in a
-    state written before edges carried it; the restored graph fits it, :meth:`MapGraph.fit_edges`)."""
+    """An edge's saved :attr:`~fleetmap.merger.graph.Edge.information` (None: not saved)."""
     if value is None:
         return None
     if not isinstance(value, list) or len(value) != 9:
@@ -619,11 +691,6 @@ def _information(value: object) -> tuple[float, ...] | None:
     if np.linalg.eigvalsh(h).min() < -1e-9 * scale:
         raise ValueError(f"an edge's information must be positive semidefinite, got {value!r}")
     return tuple(h.ravel().tolist())
-
-
-def _alternate(a: list[tuple[str, str]], b: list[tuple[str, str]]) -> list[tuple[str, str]]:
-    """a[0], b[0], a[1], b[1], ... and the rest of the longer."""
-    return [x for k in range(max(len(a), len(b))) for x in (a[k : k + 1] + b[k : k + 1])]
 
 
 class MergerService:

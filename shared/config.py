@@ -268,7 +268,25 @@ class MergeParams:
     cycle_rotation_tolerance: float = 0.087
     """... or by more than this (rad, 5 degrees)."""
     max_candidates: int = 0
-    """Integrate a new map against at most this many existing maps, most similar first (0: all)."""
+    """``fleetmap merge``: integrate a new map against at most this many existing maps, most
+    similar first (0: all)."""
+    near_candidates: int = 3
+    """The merger: a placed robot's submap is registered on at most this many submaps near where the
+    graph puts it, nearest first (``fleetmap.merger.service``) ..."""
+    far_candidates: int = 3
+    """... and integrated (pose-free) with at most this many of the other components' submaps most
+    like it ..."""
+    far_budget: int = 12
+    """... and, while nobody has placed its robot, with at most this many of them in all (the next
+    most similar in turn, when the merger has nothing else to do) ..."""
+    join_support: int = 2
+    """An integration joins two groups of submaps only if at least this many pairs of their
+    submaps, itself included, bear it out and none contradicts it
+    (:meth:`fleetmap.merger.posegraph.PoseGraph._join_holds`): one wrong integration cannot join
+    two robots' maps."""
+    loop_sweep_every: int = 4
+    """... and every this-many-th final submap of a placed robot also with the most similar submap of
+    its own component beyond its reach (a loop its drift hides from the near search; 0: never)."""
     bridge_min_value: float = 10.0
     """A valid integration of two partial maps that no cycle can check (a bridge of the graph of
     valid edges: without it, the maps on either side fall apart) joins them only if its value is

@@ -53,7 +53,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fleetmap.shared.candidates import IntArray, find_transformations
-from fleetmap.shared.config import HEURISTICS, IntegrationParams
+from fleetmap.shared.config import HEURISTICS, IntegrationParams, TrackingParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.evaluation import (
     PreparedPairs,
@@ -66,6 +66,7 @@ from fleetmap.shared.geometry import Array, Transform2D, lengths, wrap_angle
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
 from fleetmap.shared.refine import refine_transform
+from fleetmap.shared.tracking import ReferenceMap, register, sample_segments
 from fleetmap.shared.visibility import FreeSpace
 
 AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
@@ -686,3 +687,58 @@ def _shortlist_scores(t: Array, values: Array, free: FreeSpace) -> Array:
 def _matches(prep: PreparedPairs, t: Transform2D, p: IntegrationParams) -> tuple[IntArray, IntArray]:
     i, k, _ = matched_pairs(prep, t.as_array(), p)
     return i, k
+
+
+def align_near(
+    m1: SegmentMap,
+    m2: SegmentMap,
+    predicted: Transform2D,
+    params: IntegrationParams,
+    tracking: TrackingParams,
+    reference1: ReferenceMap,
+    index1: MapIndex | None = None,
+    index2: MapIndex | None = None,
+) -> Integration:
+    """S2 on S1 where it is expected to be (fleetmap): the walls of S2 registered on S1's from
+    ``predicted`` (robust point-to-line ICP, :func:`fleetmap.shared.tracking.register`), then valued
+    as :func:`integrate` values its best transformation: the paper's transformation value
+    (Algorithm 4), the wall put in the other map's seen free space, and the validity rule, with no
+    rival (a prediction names one place; the search near it finds the walls there or fails).
+
+    This is the constraint search of production back ends (Cartographer's constraint builder)
+    for a robot the fleet has placed: its tracking says where its new submap lies among the others,
+    so the pose-free search, a hundred times the cost, is needed only for robots nobody has placed.
+    ``reference1`` is S1's registration grid (:class:`fleetmap.shared.tracking.ReferenceMap`)."""
+    check_map(m1, "S1")
+    check_map(m2, "S2")
+    start = time.perf_counter()
+    samples = sample_segments(m2.segments, tracking.sample_spacing)
+    loose = np.diag([1.0 / NEAR_PRIOR_TRANSLATION**2, 1.0 / NEAR_PRIOR_TRANSLATION**2, 1.0 / NEAR_PRIOR_ROTATION**2])
+    reg = register(samples, reference1, predicted, predicted, loose, tracking)
+    t = reg.pose
+    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered)
+    i1 = index1 if index1 is not None else index_for(m1, params)
+    i2 = index2 if index2 is not None else index_for(m2, params)
+    free = GridFreeSpace(i1, i2)
+    choice = _evaluated(prep, free, t, 0, params)
+    violation = choice.value - choice.score
+    solid = float(free.violation(t.as_array(), solid=True)[0]) if free.active and choice.value > 0 else violation
+    valid = is_valid(choice.value, violation, 0.0, m1, m2, params, large=True, solid_violation=solid)
+    matches = _matches(prep, t, params) if choice.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return Integration(
+        transform=t,
+        value=choice.value,
+        valid=valid,
+        seconds=time.perf_counter() - start,
+        candidates=1,
+        heuristic="near",
+        violation=violation,
+        solid_violation=solid,
+        matches=matches,
+    )
+
+
+NEAR_PRIOR_TRANSLATION = 1.0
+"""How far (m) :func:`align_near`'s registration lets the prediction pull (loosely: the walls decide) ..."""
+NEAR_PRIOR_ROTATION = 0.35
+"""... and how far it turns (rad)."""

@@ -571,6 +571,8 @@ class LocalMap(WireMessage):
     """... their stamps (s), ..."""
     scan_poses: Array | None = None
     """... and their laser poses in this submap's frame, rows ``[x, y, theta]``."""
+    frame_scan: int | None = None
+    """The index of the scan whose laser pose is this submap's frame (its first inserted scan)."""
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
@@ -590,6 +592,7 @@ class LocalMap(WireMessage):
             _set(self, "previous_epoch_link", link)
         _set(self, "submap", _count(s, "submap", self.submap))
         _set(self, "final", _flag(s, "final", self.final))
+        _set(self, "frame_scan", _optional_count(s, "frame_scan", self.frame_scan))
         if self.link is not None:
             submap_link = _part(SubmapLink, s, "link", self.link)
             if submap_link.submap != self.submap - 1:

@@ -9,6 +9,9 @@ segment, whose direction is noise, only within ``min_short_cos``), the same side
 sensor, and its extent within ``gap`` of the wall's along the line), the wall's line is fitted
 again from its accumulated moments, and walls that the new segment chains together become one.
 A segment that joins no wall starts one. The tests and the fit are :func:`simplify`'s.
+
+A large map (a fleet's global map, hundreds of submaps) keeps its walls in a grid of ``cell``
+metres: a segment is tested against the walls registered in the cells it touches, not all of them.
 """
 
 from __future__ import annotations
@@ -19,6 +22,9 @@ import numpy as np
 from fleetmap.shared.geometry import Array
 
 _GROW = 64
+
+GRID_FROM = 512
+"""With more walls than this, a segment is tested only against the walls of the grid cells it touches."""
 
 
 class WallMap:
@@ -32,6 +38,7 @@ class WallMap:
         short_length: float = 0.5,
         min_short_cos: float = 0.3,
         oriented: bool = True,
+        cell: float = 2.0,
     ) -> None:
         self.tolerance = tolerance
         self.cos_tolerance = math.cos(angle_tolerance)
@@ -45,6 +52,10 @@ class WallMap:
         self._line = np.zeros((_GROW, 4))
         self._extent = np.zeros((_GROW, 2))
         self._alive = np.zeros(_GROW, dtype=bool)
+        self.cell = cell
+        self._grid: dict[tuple[int, int], set[int]] = {}
+        self._cells: dict[int, list[tuple[int, int]]] = {}
+        """The cells each wall is registered in."""
 
     def __len__(self) -> int:
         return int(self._alive[: self._n].sum())
@@ -98,6 +109,7 @@ class WallMap:
                 self._moments[keep] += self._moments[other]
                 self._absorb_extent(keep, other)
                 self._alive[other] = False
+                self._register(other)  # out of the grid
                 redirect[other] = keep
                 ends += touched.pop(other, [])
         # each wall a segment joined is fitted again once, with the joined segments' ends
@@ -108,7 +120,13 @@ class WallMap:
     # -- internals ---------------------------------------------------------------------------
     def _walls_for(self, seg: Array, length: Array) -> list[Array]:
         """For each segment, the walls it lies on, the longest first."""
-        alive = np.flatnonzero(self._alive[: self._n])
+        if self._n > GRID_FROM:
+            near: set[int] = set()
+            for cell in self._cells_of(seg, self.tolerance):
+                near |= self._grid.get(cell, set())
+            alive = np.array(sorted(near), dtype=np.int64)
+        else:
+            alive = np.flatnonzero(self._alive[: self._n])
         if len(alive) == 0:
             return [alive] * len(seg)
         cx, cy, ux, uy = (self._line[alive, j] for j in range(4))
@@ -142,6 +160,7 @@ class WallMap:
         self._alive[k] = True
         self._line[k] = (a[0], a[1], d[0], d[1])
         self._extent[k] = (0.0, length)
+        self._register(k)
 
     def _absorb_extent(self, keep: int, other: int) -> None:
         """Carry the other wall's ends into ``keep``'s extent (in ``keep``'s current line)."""
@@ -180,6 +199,30 @@ class WallMap:
         t = [(px - cx) * ux + (py - cy) * uy for px, py in ends]
         self._line[k] = (cx, cy, ux, uy)
         self._extent[k] = (min(t), max(t))
+        self._register(k)
+
+    def _register(self, k: int) -> None:
+        """(Re-)register wall ``k`` in the grid cells its extent, widened by the tests' reach, touches."""
+        for cell in self._cells.pop(k, []):
+            self._grid[cell].discard(k)
+        if not self._alive[k]:
+            return
+        cx, cy, ux, uy = self._line[k]
+        lo, hi = self._extent[k]
+        ends = np.array([[cx + lo * ux, cy + lo * uy, cx + hi * ux, cy + hi * uy]])
+        cells = self._cells_of(ends, self.gap + self.tolerance)
+        for cell in cells:
+            self._grid.setdefault(cell, set()).add(k)
+        self._cells[k] = cells
+
+    def _cells_of(self, seg: Array, margin: float) -> list[tuple[int, int]]:
+        """The grid cells the segments' bounding boxes, widened by ``margin``, touch."""
+        out: set[tuple[int, int]] = set()
+        lo = np.floor((np.minimum(seg[:, 0:2], seg[:, 2:4]) - margin) / self.cell).astype(np.int64)
+        hi = np.floor((np.maximum(seg[:, 0:2], seg[:, 2:4]) + margin) / self.cell).astype(np.int64)
+        for (x0, y0), (x1, y1) in zip(lo.tolist(), hi.tolist(), strict=True):
+            out.update((i, j) for i in range(x0, x1 + 1) for j in range(y0, y1 + 1))
+        return sorted(out)
 
 
 def _segment_moments(ax: float, ay: float, bx: float, by: float, length: float) -> tuple[float, ...]:

@@ -52,6 +52,6 @@ def test_a_restarted_mergers_repeated_step_is_replayed_once(tmp_path: Path) -> N
 
     result = replay(path, tmp_path / "replay")
     # Each map version fed once, every step followed once, and the live global map rebuilt.
-    assert result.inputs == ["r1/0@0", "r2/0@0", "r2/0@1", "r1/1@0"]
+    assert result.inputs == ["r1/0/0@0", "r2/0/0@0", "r2/0/0@1", "r1/1/0@0"]
     assert result.exact and result.report["replay"]["matches_live"] is True
     assert result.steps == restored.stats.steps + merger.stats.steps

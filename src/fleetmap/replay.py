@@ -158,15 +158,17 @@ def replay(
     inputs: list[str] = []
     pace = _Pacer(opts.speed)
     if exact:
-        by_version = {(msg.key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
+        by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
         for n, step in enumerate(steps):
             for key, version in zip(step.maps, step.versions, strict=True):
+                if key.count("/") == 1:  # recorded before submaps: an epoch's map is its submap 0
+                    key = f"{key}/0"
                 found = by_version.get((key, version))
                 if found is None:
                     log.warning("local map %s version %d is not in the recording", key, version)
                     continue
                 pace.wait(found[0].log_time)
-                robot = key.rsplit("/", 1)[0]
+                robot = found[1].robot
                 merger.receive(keys.localmap(robot), found[0].payload)
                 inputs.append(f"{key}@{version}")
             take(merger.step(limit=step.integrations))
@@ -179,7 +181,7 @@ def replay(
         for n, (m, msg) in enumerate(maps):
             pace.wait(m.log_time)
             merger.receive(keys.localmap(msg.robot), m.payload)
-            inputs.append(f"{msg.key}@{msg.version}")
+            inputs.append(f"{msg.submap_key}@{msg.version}")
             take(merger.step())
             if progress:
                 progress(n + 1, len(maps))

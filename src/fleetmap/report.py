@@ -5,9 +5,11 @@ in order (:class:`SessionLog`). With a scenario the report scores against its gr
 true pose of every scan, never seen by the algorithms); a replay of real data has no truth, and
 its error and coverage fields are null (``../shared/CONTRACTS.md``).
 
-The frame of a local map ``<robot>/<epoch>`` is the laser frame of the epoch's first scan
-(the pivot method's), so its true pose is that scan's true pose. The global frame is the anchor
-map's; the world-to-global alignment comes from the anchor's true pose.
+The frame of a submap ``<robot>/<epoch>/<submap>`` is the laser frame of its frame scan (the
+message says which; an epoch's first submap's is the epoch's first scan, and so is the frame of a
+local map of the pivot front end or of a recording made before submaps), so its true pose is that
+scan's true pose. The global frame is the anchor submap's; the world-to-global alignment comes
+from the anchor's true pose.
 """
 
 from __future__ import annotations
@@ -25,10 +27,11 @@ from fleetmap.scenarios import GroundTruth, Scenario, ground_truth
 from fleetmap.scenarios.fleet import Kidnap
 from fleetmap.scenarios.metrics import coverage, map_error, pose_error, world_from_global
 from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.keys import FleetKeys, parse_submap_key
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.messages import (
     BadMessage,
+    Component,
     FleetEvent,
     GlobalMap,
     LaserRanges,
@@ -51,7 +54,7 @@ class SessionLog:
     poses: list[tuple[RobotPose, int]] = field(default_factory=list)
     """Each robot pose with the number of global maps received before it."""
     local_maps: dict[str, LocalMap] = field(default_factory=dict)
-    """The latest version of every local map."""
+    """The latest version of every submap, by submap key ``<robot>/<epoch>/<submap>``."""
     scans: dict[str, list[tuple[int, float, int]]] = field(default_factory=dict)
     """Per robot: (index, stamp, epoch) of every scan."""
     epoch_first_scan: dict[tuple[str, int], int] = field(default_factory=dict)
@@ -67,9 +70,9 @@ class SessionLog:
             case RobotPose():
                 self.poses.append((message, len(self.global_maps)))
             case LocalMap():
-                held = self.local_maps.get(message.key)
+                held = self.local_maps.get(message.submap_key)
                 if held is None or message.version >= held.version:
-                    self.local_maps[message.key] = message
+                    self.local_maps[message.submap_key] = message
             case Scan():
                 self.scans.setdefault(message.robot, []).append((message.index, message.stamp, message.epoch))
                 self.epoch_first_scan.setdefault((message.robot, message.epoch), message.index)
@@ -130,12 +133,39 @@ def make_truth(scenario: Scenario | None) -> Truth | None:
     return None if scenario is None else Truth(scenario, ground_truth(scenario))
 
 
+def frame_scan(log: SessionLog, key: str) -> tuple[str, int] | None:
+    """The robot and scan index whose laser pose is the frame of map ``key`` (a submap key, or an
+    epoch key of a recording made before submaps), or None where the session does not say."""
+    robot, epoch, submap = parse_submap_key(key)
+    held = log.local_maps.get(key if submap is not None else f"{key}/0")
+    if held is not None and held.frame_scan is not None:
+        return robot, held.frame_scan
+    if submap in (None, 0):
+        first = log.epoch_first_scan.get((robot, epoch))
+        return None if first is None else (robot, first)
+    return None
+
+
+def true_frame(log: SessionLog, truth: Truth, key: str) -> Transform2D | None:
+    """The true pose of map ``key``'s frame in the world (:func:`frame_scan`)."""
+    found = frame_scan(log, key)
+    return None if found is None else truth.scan_pose(*found)
+
+
+def epoch_poses(component: Component) -> dict[str, Transform2D]:
+    """The pose of each epoch's frame (its first submap's) in a component, by ``<robot>/<epoch>``."""
+    out = {}
+    for key, pose in component.poses.items():
+        robot, epoch, submap = parse_submap_key(key)
+        if submap in (None, 0):
+            out[f"{robot}/{epoch}"] = pose
+    return out
+
+
 def _world_global(log: SessionLog, truth: Truth, gmap: GlobalMap, component: int) -> Transform2D | None:
     """World-from-global of one component of a global map, from its anchor's true pose."""
     anchor = gmap.components[component].anchor
-    robot, epoch = anchor.rsplit("/", 1)
-    first = log.epoch_first_scan.get((robot, int(epoch)))
-    true = truth.scan_pose(robot, first) if first is not None else None
+    true = true_frame(log, truth, anchor)
     if true is None:
         return None
     return world_from_global(true, gmap.components[component].poses[anchor])
@@ -154,9 +184,7 @@ def _merged_wrongly(log: SessionLog, truth: Truth, final: GlobalMap) -> list[str
         if world is None or len(component.members) < 2:
             continue
         for key in component.members:
-            robot, epoch = key.rsplit("/", 1)
-            first = log.epoch_first_scan.get((robot, int(epoch)))
-            true = truth.scan_pose(robot, first) if first is not None else None
+            true = true_frame(log, truth, key)
             if true is None:
                 continue
             e = pose_error(component.poses[key], true, world)
@@ -172,10 +200,11 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
     latest_pose: dict[str, RobotPose] = {}
     for pose, _ in log.poses:
         latest_pose[pose.robot] = pose
-    # A robot is placed when the local map of its latest epoch is part of the global map.
+    # A robot is placed when a submap of its latest epoch is part of the global map.
     latest_epoch = {r: max((e for (rr, e) in log.epoch_first_scan if rr == r), default=0) for r in robots}
     main_members = set(final.components[0].members) if final is not None and final.components else set()
-    placed = [r for r in robots if f"{r}/{latest_epoch[r]}" in main_members]
+    main_epochs = {_epoch_key(k) for k in main_members}
+    placed = [r for r in robots if f"{r}/{latest_epoch[r]}" in main_epochs]
     report: dict[str, Any] = {
         "map_error_mean_m": None,
         "map_error_p95_m": None,
@@ -205,13 +234,10 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
         report["maps_merged_wrongly"] = _merged_wrongly(log, truth, final)
     for key in sorted(log.local_maps):
         entry: dict[str, Any] = {"placed": key in main.poses, "component": final.component_of(key)}
-        robot, epoch = key.rsplit("/", 1)
-        first = log.epoch_first_scan.get((robot, int(epoch)))
-        if key in main.poses and truth is not None and world is not None and first is not None:
-            true = truth.scan_pose(robot, first)
-            if true is not None:
-                e = pose_error(main.poses[key], true, world)
-                entry.update(error_m=e.translation_m, error_deg=e.rotation_deg)
+        true = true_frame(log, truth, key) if truth is not None else None
+        if key in main.poses and world is not None and true is not None:
+            e = pose_error(main.poses[key], true, world)
+            entry.update(error_m=e.translation_m, error_deg=e.rotation_deg)
         report["maps"][key] = entry
     for robot in robots:
         p = latest_pose.get(robot)
@@ -344,15 +370,24 @@ def _overlap_stamp(log: SessionLog, truth: Truth, event: Kidnap) -> float | None
 
 
 def global_map_json(log: SessionLog) -> dict[str, Any]:
-    """global_map.json: the largest component as a map file, with every local map's pose (or null)."""
+    """global_map.json: the largest component as a map file, with the pose of every epoch's frame
+    (``<robot>/<epoch>``, ``../shared/CONTRACTS.md``) and of every submap (or null)."""
     final = log.final
     main = final.components[0] if final is not None and final.components else None
     segments = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
     out = SegmentMap(segments.round(6), ordered=False, oriented=True).to_json_dict()
-    keys = sorted(set(log.local_maps) | (set(main.members) if main is not None else set()))
-    out["poses"] = {k: (main.poses[k].to_dict() if main is not None and k in main.poses else None) for k in keys}
+    submaps = sorted(set(log.local_maps) | (set(main.members) if main is not None else set()))
+    epochs = sorted({_epoch_key(k) for k in submaps})
+    frames = epoch_poses(main) if main is not None else {}
+    out["poses"] = {k: (frames[k].to_dict() if k in frames else None) for k in epochs}
+    out["submaps"] = {k: (main.poses[k].to_dict() if main is not None and k in main.poses else None) for k in submaps}
     out["anchor"] = None if main is None else main.anchor
     return out
+
+
+def _epoch_key(key: str) -> str:
+    robot, epoch, _ = parse_submap_key(key)
+    return f"{robot}/{epoch}"
 
 
 def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, title: str) -> dict[str, Any]:
@@ -378,13 +413,13 @@ def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -
         world = _world_global(log, truth, final, 0)
         if world is not None:
             walls = world.inverse().apply(np.asarray(truth.scenario.world.walls))
-    robots = sorted({k.rsplit("/", 1)[0] for k in maps})
-    colors = {k: robots.index(k.rsplit("/", 1)[0]) for k in maps}
+    robots = sorted({parse_submap_key(k)[0] for k in maps})
+    colors = {k: robots.index(parse_submap_key(k)[0]) for k in maps}
     notes = []
     if final is not None and len(final.components) > 1:
         notes.append(
             f"{len(final.components) - 1} other component(s): "
-            + "; ".join(", ".join(c.members) for c in final.components[1:4])
+            + "; ".join(", ".join(sorted({_epoch_key(k) for k in c.members})) for c in final.components[1:4])
         )
     plot_merged(
         path,

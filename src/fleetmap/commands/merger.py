@@ -28,11 +28,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=STEP_SECONDS,
         metavar="S",
-        help="time budget of one step's integrations (at least one): the other pairs of maps wait for the next "
-        f"step, lost robots' promising ones first (0: every pending integration in one step; default {STEP_SECONDS:g})",
+        help="time budget of one step's integrations (at least one): the other pairs of submaps wait for the "
+        f"next step (0: every pending integration in one step; default {STEP_SECONDS:g})",
     )
     add_zenoh_arguments(p)
-    add_config_arguments(p, ["integration", "merge"])
+    add_config_arguments(p, ["integration", "merge", "tracking"])
     p.set_defaults(func=run)
 
 
@@ -52,11 +52,10 @@ def run(args: argparse.Namespace) -> int:
             service.close()
     s = merger.stats
     log.warning(
-        "merger stopped: %d steps (%d began with a lost robot's pair), %d integrations, %d maps; "
-        "%d malformed messages dropped",
+        "merger stopped: %d steps, %d integrations (%d near a prediction), %d submaps; %d malformed messages dropped",
         s.steps,
-        s.lost_first,
         s.integrations,
+        s.near,
         len(merger.graph),
         s.malformed,
     )

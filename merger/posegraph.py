@@ -1,0 +1,546 @@
+"""The fleet's pose graph: submaps chained by each robot's tracking, joined by the paper's integrations.
+
+Nodes are submaps (``<robot>/<epoch>/<submap>``). Edges are of two kinds:
+
+- **links**: a robot's own chain of consecutive submaps, measured by its tracking, with the
+  tracking's covariance (:class:`~fleetmap.shared.messages.SubmapLink`); never rejected;
+- **integrations**: the paper's pose-free integration (Algorithms 1-4) between submaps of
+  different robots, or non-consecutive submaps of one robot (a loop), or, for a submap the fleet
+  has placed, its walls registered near where the graph predicts them
+  (:func:`~fleetmap.shared.integration.align_near`); each with its transformation value, validity
+  and how firmly its walls fix it.
+
+The merge order is read off the graph as in :class:`~fleetmap.merger.graph.MapGraph`: a maximum
+spanning forest (links first, then valid integrations by value), every other valid integration
+checked against its cycle, a tree integration that more cycles accuse than support rejected. The
+cycle check allows what the path can have drifted: the base tolerance for each integration on the
+path, and three standard deviations of what its links' covariances add up to, so a long loop of a
+robot's own submaps closes and a wrong match across a room does not. Each component's poses are
+then refined together by robust least squares over SE(2) (GTSAM's Levenberg-Marquardt: links as
+their covariance says, integrations through a Cauchy loss, the anchor fixed), and an integration
+that still disagrees with the refined poses by more than the cycle tolerance is rejected and the
+component solved again: only edges that agree with the graph count, so one wrong integration cannot
+move a map. Each component is one global map; its walls are the submaps' fused one segment per
+stretch of wall (:class:`~fleetmap.shared.walls.WallMap`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+from fleetmap.merger.graph import (
+    SIGMA_T,
+    Component,
+    Edge,
+    MapGraph,
+    MergeResult,
+    _bfs_order,
+    _culprit,
+    _disagreement,
+    _tree_path,
+    _unite,
+)
+from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.evaluation import prepare, transformation_value
+from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.integration import GridFreeSpace, align_near, is_valid, max_map_violation
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.tracking import ReferenceMap, sample_segments
+from fleetmap.shared.walls import WallMap
+
+log = logging.getLogger(__name__)
+
+CAUCHY_SCALE = 2.0
+"""The Cauchy loss of an integration in the refinement, in standard deviations of its information."""
+MAX_REJECTION_ROUNDS = 5
+"""How many times a solve drops the integrations the refined poses disagree with and solves again."""
+SIGMA_R = 0.01
+"""An integration weighed by its value alone: its rotation's standard deviation at unit weight (rad)."""
+ISOTROPIC_SHARE = 0.01
+"""The share of the value-based weight an integration with known information keeps (no direction is
+entirely free)."""
+
+
+HYPOTHESES = 3
+"""An ambiguous integration proposes its alignment and its next best rivals, this many in all."""
+
+
+def _within(a: Transform2D, b: Transform2D, tol_t: float, tol_r: float) -> bool:
+    dt, dr = _disagreement(a, b)
+    return dt <= tol_t and dr <= tol_r
+
+
+def _chain_of(key: str) -> str:
+    """The chain a node belongs to: a submap's robot epoch (``robot/epoch``), else the node itself."""
+    parts = key.split("/")
+    return "/".join(parts[:2]) if len(parts) == 3 else key
+
+
+def _pose2(t: Transform2D) -> gtsam.Pose2:
+    return gtsam.Pose2(t.x, t.y, t.theta)
+
+
+def _transform(p: gtsam.Pose2) -> Transform2D:
+    return Transform2D.from_array((p.x(), p.y(), p.theta()))
+
+
+class PoseGraph(MapGraph):
+    """Submaps, their links and their integrations; :meth:`solve` gives the global maps."""
+
+    def __init__(
+        self,
+        integration: IntegrationParams | None = None,
+        merge: MergeParams | None = None,
+        tracking: TrackingParams | None = None,
+        anchor: str = "first",
+    ) -> None:
+        super().__init__(integration, merge, anchor)
+        self.tracking = tracking or TrackingParams()
+        self._links: dict[str, Edge] = {}
+        """Links by the later submap's key."""
+        self._link_sources: set[str] = set()
+        """The earlier submap of every link."""
+        self._solution: dict[str, tuple[str, Transform2D]] = {}
+        """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
+        self._references: dict[str, tuple[int, ReferenceMap]] = {}
+        self._verdicts: dict[object, bool] = {}
+        """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
+        self._pair_verdicts: dict[tuple[str, str, int, int], tuple[Transform2D, tuple[float, float]]] = {}
+
+    # -- links -------------------------------------------------------------------------------
+    def put_link(self, a: str, b: str, transform: Transform2D, covariance: Array) -> None:
+        """Submap ``b`` follows ``a``, its frame ``transform`` in a's, as sure as ``covariance``."""
+        cov = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+        try:
+            information = np.linalg.inv(cov)
+        except np.linalg.LinAlgError:
+            raise BadInput(f"link {a}-{b}", "its covariance is singular") from None
+        information = 0.5 * (information + information.T)
+        self._links[b] = Edge(a, b, transform, math.inf, True, information=tuple(information.ravel()), link=True)
+        self._link_sources.add(a)
+
+    def link_to(self, key: str) -> Edge | None:
+        """The link from ``key``'s previous submap to it."""
+        return self._links.get(key)
+
+    @property
+    def links(self) -> list[Edge]:
+        return list(self._links.values())
+
+    def linked(self, a: str, b: str) -> bool:
+        """Whether a link joins the two submaps directly."""
+        la, lb = self._links.get(a), self._links.get(b)
+        return (la is not None and la.a == b) or (lb is not None and lb.a == a)
+
+    def remove_map(self, key: str) -> None:
+        super().remove_map(key)
+        self._links = {b: e for b, e in self._links.items() if key not in (e.a, e.b)}
+        self._link_sources = {e.a for e in self._links.values()}
+        self._references.pop(key, None)
+        self._solution.pop(key, None)
+
+    def _work(self, m: SegmentMap) -> SegmentMap:
+        # a submap's walls are already one segment per stretch of wall (fleetmap.shared.walls)
+        return m
+
+    # -- integrations near a prediction --------------------------------------------------------
+    def reference(self, key: str) -> ReferenceMap:
+        """The registration grid of a node's walls (built once per version)."""
+        node = self._nodes[key]
+        held = self._references.get(key)
+        if held is None or held[0] != node.version:
+            reference = ReferenceMap(self.tracking.voxel_size)
+            reference.insert(sample_segments(node.map.segments, self.tracking.voxel_size))
+            held = self._references[key] = (node.version, reference)
+        return held[1]
+
+    def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
+        """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
+        integration (:func:`~fleetmap.shared.integration.align_near`); the edge replaces any known."""
+        na, nb = self._nodes[a], self._nodes[b]
+        r = align_near(
+            na.map,
+            nb.map,
+            predicted,
+            self.integration,
+            self.tracking,
+            self.reference(a),
+            self._index(a),
+            self._index(b),
+        )
+        transform, information = self._fitted(na, nb, r.transform) if r.valid else (r.transform, None)
+        e = Edge(
+            a,
+            b,
+            transform,
+            r.value,
+            r.valid,
+            0.0,
+            r.seconds,
+            (na.version, nb.version),
+            r.violation,
+            r.solid_violation,
+            information,
+        )
+        self._edges[e.key()] = e
+        return e
+
+    # -- solving -----------------------------------------------------------------------------
+    def solve(self, fuse_maps: bool = True) -> MergeResult:
+        links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
+        order = {k: n.order for k, n in self._nodes.items()}
+        valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
+        valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
+        partial = {k for k, n in self._nodes.items() if not n.map.ordered}
+        disagreeing: set[tuple[str, str]] = set()
+        for _ in range(MAX_REJECTION_ROUNDS):
+            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], partial)
+            components, off = self._refined_components(tree, loops, fuse_maps)
+            if not off:
+                break
+            for e in off:
+                log.info("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
+            disagreeing.update(e.key() for e in off)
+        rejected += [e for e in valid if e.key() in disagreeing and e.valid]
+        poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
+        for c in components:
+            if len(c.members) > 1:
+                poses.update(c.poses)
+        return MergeResult(poses, components, tree, loops, rejected)
+
+    def _forest(
+        self, links: list[Edge], valid: list[Edge], partial: set[str]
+    ) -> tuple[list[Edge], list[Edge], list[Edge]]:
+        """The spanning forest (links first), its loop closures, and the integrations rejected: by
+        the cycle check, by the culprit rule (MapGraph.solve's), and joins that the two groups they
+        join do not bear out once the forest is whole (:meth:`_join_holds` on the two sides of the
+        tree edge: the forest is built greedily, and a join checked when its groups were small
+        may fail against what later joined them). ``partial`` is unused: a join must be borne out
+        by several pairs, which takes the place of MapGraph's bridge rule."""
+        del partial
+        excluded: set[tuple[str, str]] = set()
+        while True:
+            tree, loops, conflicts, adjacency = self._kruskal(links + [e for e in valid if e.key() not in excluded])
+            culprit = _culprit([t for t in tree if not t.link], loops, conflicts, adjacency)
+            if culprit is None:
+                culprit = self._failed_join(tree, adjacency)
+                if culprit is not None:
+                    log.info("rejecting edge %s-%s: the maps it joins do not bear it out", culprit.a, culprit.b)
+            elif culprit is not None:
+                log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
+            if culprit is None:
+                break
+            excluded.add(culprit.key())
+        rejected = conflicts + [e for e in valid if e.key() in excluded]
+        return tree, loops, rejected
+
+    def _failed_join(self, tree: list[Edge], adjacency: dict[str, list[Edge]]) -> Edge | None:
+        """The weakest integration of the forest whose two sides do not bear it out, if any."""
+        joins = sorted((e for e in tree if not e.link), key=lambda e: (e.value, e.key()))
+        if not joins:
+            return None
+        poses: dict[str, Transform2D] = {}
+        for start in self.keys:
+            if start in poses:
+                continue
+            poses[start] = Transform2D.identity()
+            for k in _bfs_order(adjacency, start):
+                for t in adjacency[k]:
+                    if t.b not in poses:
+                        poses[t.b] = poses[k].compose(t.transform)
+        for e in joins:
+            side_b = set(_bfs_order({k: [t for t in v if t.key() != e.key()] for k, v in adjacency.items()}, e.b))
+            side_a = [k for k in _bfs_order(adjacency, e.a) if k not in side_b]
+            if not self._join_holds(e, side_a, sorted(side_b), poses):
+                return e
+        return None
+
+    def _cycle_tolerance(self, path: list[Edge]) -> tuple[float, float]:
+        """What a cycle through ``path`` and the edge closing it may disagree by: the base tolerance
+        for each integration (the closing edge included), and three standard deviations of the
+        drift its links' covariances allow (first order: a link's heading error turns everything
+        after it about its start)."""
+        hops = 1 + sum(1 for e in path if not e.link)
+        base_t, base_r = self._tolerance(hops)
+        end = Transform2D.identity()
+        for e in path:
+            end = end.compose(e.transform)
+        var_t = var_r = 0.0
+        at = Transform2D.identity()
+        for e in path:
+            if e.link and e.information is not None:
+                cov = np.linalg.inv(np.array(e.information).reshape(3, 3))
+                lever = math.hypot(end.x - at.x, end.y - at.y)
+                var_t += 0.5 * (cov[0, 0] + cov[1, 1]) + cov[2, 2] * lever * lever
+                var_r += cov[2, 2]
+            at = at.compose(e.transform)
+        return math.sqrt(base_t**2 + 9.0 * var_t), math.sqrt(base_r**2 + 9.0 * var_r)
+
+    def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
+        """Maximum spanning forest with the cycle check (links never rejected; see the module)."""
+        root = {k: k for k in self._nodes}
+        rel = {k: Transform2D.identity() for k in self._nodes}
+        members = {k: [k] for k in self._nodes}
+        tree: list[Edge] = []
+        loops: list[Edge] = []
+        conflicts: list[Edge] = []
+        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        for e in edges:
+            ra, rb = root[e.a], root[e.b]
+            if not e.valid:
+                # an ambiguous integration: its best alignment and its rivals are hypotheses; a join
+                # takes the one the two groups bear out, if only one; a cycle the one that agrees
+                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: HYPOTHESES - 1])]
+                if ra != rb:
+                    holders = [h for h in hypotheses if self._join_holds(h, members[ra], members[rb], rel)]
+                    if len(holders) != 1:
+                        continue
+                    e = replace(holders[0], valid=True)
+                else:
+                    path = _tree_path(adjacency, e.a, e.b)
+                    tol_t, tol_r = self._cycle_tolerance(path)
+                    predicted = rel[e.a].inverse().compose(rel[e.b])
+                    agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
+                    if len(agreeing) == 1:
+                        loops.append(replace(agreeing[0], valid=True))
+                    continue
+            elif ra != rb and not e.link and not self._join_holds(e, members[ra], members[rb], rel):
+                conflicts.append(e)
+                continue
+            if ra != rb:
+                _unite(e, root, rel, members, tree, adjacency)
+            elif e.link:
+                loops.append(e)
+            else:
+                predicted = rel[e.a].inverse().compose(rel[e.b])
+                tol_t, tol_r = self._cycle_tolerance(_tree_path(adjacency, e.a, e.b))
+                (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
+        return tree, loops, conflicts, adjacency
+
+    def _ambiguous(self, e: Edge) -> bool:
+        """Whether an integration is invalid for its rivals alone (its value and free space would
+        do): its alignment and its rivals' are hypotheses for the forest to test."""
+        if e.valid or e.link or not e.rivals or e.a not in self._nodes or e.b not in self._nodes:
+            return False
+        ma, mb = self._nodes[e.a].map, self._nodes[e.b].map
+        return is_valid(
+            e.value, e.violation, 0.0, ma, mb, self.integration, large=True, solid_violation=e.solid_violation
+        )
+
+    def _join_holds(self, e: Edge, group_a: list[str], group_b: list[str], rel: dict[str, Transform2D]) -> bool:
+        """Whether an integration may join two groups of submaps: the paper's validity rule on the
+        two groups as wholes. Where it puts them, every pair of their submaps that then overlaps
+        is registered near there: a pair that registers validly within the cycle tolerance bears
+        the join out (its value counts for it), a pair that puts ``valid_refute_violation`` m of
+        wall or more where the other saw free space, more than the validity rule allows it,
+        contradicts it (that wall counts against). The join holds if at least ``join_support``
+        pairs bear it out, itself included, and the wall against is within what the validity
+        rule allows the value for (``max_map_violation``). A repetitive building (racks, a
+        corridor that looks the same turned round) matches one pair of submaps wrongly, and the
+        neighbours of the pair often bear that out too; along the two groups, walls then stand
+        where the other robot saw through. The verdict is kept for the edge at its versions and
+        the two groups; as they grow it is found again (each pair's verdict is kept too, so only
+        new pairs cost)."""
+        t = e.transform
+        key = (
+            e.key(),
+            e.versions,
+            round(t.x, 3),
+            round(t.y, 3),
+            round(t.theta, 4),
+            frozenset(group_a),
+            frozenset(group_b),
+        )
+        held = self._verdicts.get(key)
+        if held is not None:
+            return held
+        # every submap of group b in the frame of a's root, as e puts them
+        a_root_from_b_root = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
+        placed_b = {k: a_root_from_b_root.compose(rel[k]) for k in group_b}
+        supports, value, against, overlapping = 0, 0.0, 0.0, 0
+        tol_t, tol_r = self._tolerance(1)
+        for a in group_a:
+            for b in group_b:
+                implied = rel[a].inverse().compose(placed_b[b])
+                if math.hypot(implied.x, implied.y) > self._reach(a) + self._reach(b):
+                    continue
+                overlapping += 1
+                supported, contradicted = self._pair_verdict(a, b, implied, tol_t, tol_r)
+                supports += supported > 0
+                value += supported
+                against += contradicted
+        limit = max_map_violation(value, self.integration) * value
+        required = self.merge.join_support
+        if not (self._chained(group_a) and self._chained(group_b)):
+            # a map no link will ever extend (a map file, a robot's only submap) has only the pairs
+            # it has to bear a join out: the paper's validity of the one integration may be all
+            required = min(required, overlapping)
+        holds = supports >= required and against <= limit
+        log.debug(
+            "join %s-%s (%.1f m): %d pairs bear it out (%.1f m), %.1f m of wall against (at most %.1f): %s",
+            e.a,
+            e.b,
+            e.value,
+            supports,
+            value,
+            against,
+            limit,
+            "kept" if holds else "rejected",
+        )
+        self._verdicts[key] = holds
+        return holds
+
+    def _pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> tuple[float, float]:
+        """What a pair says of ``implied`` (b's frame in a's): (the value it bears it out with, 0 if
+        not; the wall it puts in the other's seen free space there, 0 unless that refutes it).
+        Kept for the pair at its versions while the implied pose stays within a third of the
+        tolerances."""
+        key = (a, b, self.version_of(a), self.version_of(b))
+        held = self._pair_verdicts.get(key)
+        if held is not None:
+            dt, dr = _disagreement(held[0], implied)
+            if dt <= tol_t / 3 and dr <= tol_r / 3:
+                return held[1]
+        verdict = self._found_pair_verdict(a, b, implied, tol_t, tol_r)
+        self._pair_verdicts[key] = (implied, verdict)
+        return verdict
+
+    def _found_pair_verdict(
+        self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float
+    ) -> tuple[float, float]:
+        """:meth:`_pair_verdict` found (the pair's known integration where it is current)."""
+        known = self.edge(a, b) if (a, b) in self._edges or (b, a) in self._edges else None
+        if known is not None and known.valid and known.versions == (self.version_of(a), self.version_of(b)):
+            dt, dr = _disagreement(known.transform, implied)
+            if dt <= tol_t and dr <= tol_r:
+                return known.value, 0.0
+        na, nb = self._nodes[a], self._nodes[b]
+        p = self.integration
+        r = align_near(na.map, nb.map, implied, p, self.tracking, self.reference(a), self._index(a), self._index(b))
+        dt, dr = _disagreement(r.transform, implied)
+        if r.valid and dt <= tol_t and dr <= tol_r:
+            return r.value, 0.0
+        # registered elsewhere (a repetitive building has several valid alignments) or not valid:
+        # what the pair says at the implied pose itself
+        free = GridFreeSpace(self._index(a), self._index(b))
+        at = implied.as_array()
+        prep = prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
+        value = max(transformation_value(prep, at, p, refuse=False), 0.0)
+        violation = float(free.violation(at)[0]) if free.active else 0.0
+        if violation >= p.valid_refute_violation and violation > max_map_violation(value, p) * value:
+            log.debug("pair %s-%s: %.1f m of wall in seen free space against %.1f m matched", a, b, violation, value)
+            return 0.0, violation
+        return 0.0, 0.0
+
+    def _chained(self, group: list[str]) -> bool:
+        """Whether a group holds a submap linked to another (a robot's chain, which grows)."""
+        return any(k in self._links or k in self._link_sources for k in group)
+
+    def _reach(self, key: str) -> float:
+        """How far a node's walls reach from its frame (m)."""
+        node = self._nodes[key]
+        if node.reach is None:
+            seg = node.map.segments
+            node.reach = float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max()) if len(seg) else 0.0
+        return node.reach
+
+    def _refined_components(
+        self, tree: list[Edge], loops: list[Edge], fuse_maps: bool
+    ) -> tuple[list[Component], list[Edge]]:
+        """Each component's poses refined together, and the integrations they disagree with."""
+        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        for e in tree:
+            adjacency[e.a].append(e)
+            adjacency[e.b].append(e.reversed())
+        seen: set[str] = set()
+        out: list[Component] = []
+        off: list[Edge] = []
+        for start in self.keys:
+            if start in seen:
+                continue
+            group = _bfs_order(adjacency, start)
+            seen.update(group)
+            anchor = self._pick_anchor(group)
+            order = _bfs_order(adjacency, anchor)
+            poses = self._initial_poses(anchor, order, adjacency)
+            group_set = set(group)
+            cycle_edges = [e for e in loops if e.a in group_set]
+            if cycle_edges:
+                edges = [e for e in tree if e.a in group_set] + cycle_edges
+                poses = self._optimized(anchor, poses, edges)
+                for e in edges:
+                    if e.link:
+                        continue
+                    dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
+                    tol_t, tol_r = self._tolerance(1)
+                    if dt > tol_t or dr > tol_r:
+                        off.append(e)
+            for k in order:
+                self._solution[k] = (anchor, poses[k])
+            segments = self._walls(order, poses) if fuse_maps else np.zeros((0, 4))
+            out.append(Component(anchor, tuple(order), poses, segments))
+        # the global map first: the component of the most robots' epochs, then of the most submaps
+        out.sort(
+            key=lambda c: (
+                -len({_chain_of(k) for k in c.members}),
+                -len(c.members),
+                -sum(self._nodes[k].map.total_length for k in c.members),
+            )
+        )
+        return out, off
+
+    def _initial_poses(self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, Transform2D]:
+        """The last solve's poses where they were under the same anchor, the tree's elsewhere."""
+        poses = {anchor: Transform2D.identity()}
+        for k in order:
+            for e in adjacency[k]:
+                if e.b in poses:
+                    continue
+                held = self._solution.get(e.b)
+                poses[e.b] = held[1] if held is not None and held[0] == anchor else poses[k].compose(e.transform)
+        return poses
+
+    def _noise(self, e: Edge) -> gtsam.noiseModel.Base:
+        """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
+        it (with a share of its value in every direction), else by its value alone, through a
+        Cauchy loss."""
+        if e.link and e.information is not None:
+            return gtsam.noiseModel.Gaussian.Information(np.array(e.information).reshape(3, 3))
+        w2 = max(e.value, 1e-3)
+        iso = np.diag([w2 / SIGMA_T**2, w2 / SIGMA_T**2, w2 / SIGMA_R**2])
+        information = iso
+        if e.information is not None:
+            candidate = np.array(e.information).reshape(3, 3) / SIGMA_T**2 + ISOTROPIC_SHARE * iso
+            if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
+                information = candidate
+        gaussian = gtsam.noiseModel.Gaussian.Information(information)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_SCALE), gaussian)
+
+    def _optimized(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
+        """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed)."""
+        ids = {k: i for i, k in enumerate(poses)}
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for k, pose in poses.items():
+            values.insert(ids[k], _pose2(pose))
+        graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
+        for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
+            graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self._noise(e)))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(100)
+        params.setRelativeErrorTol(1e-6)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        return {k: _transform(result.atPose2(i)) for k, i in ids.items()}
+
+    def _walls(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
+        """The component's walls: every member's at its pose, one segment per stretch of wall."""
+        walls = WallMap(self.integration.simplify_tolerance)
+        for k in order:
+            walls.add(poses[k].apply(self._nodes[k].map.segments))
+        return walls.segments

@@ -1,0 +1,103 @@
+"""``fleetmap map``: real logs and ROS 2 bags mapped offline in one process (fleetmap.mapping)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.shared.errors import BadInput
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "map",
+        help="map CARMEN logs, ROS 2 bags or ranges JSONL files offline, each one robot",
+        description="Map real logs offline, in one process, with the same agent and merger code as the live "
+        "services: each INPUT is one robot (a CARMEN log, plain or .gz; a ROS 2 bag in MCAP, or its directory; a "
+        "ranges JSONL file); --split K cuts each input into K robots' consecutive pieces that run side by side, "
+        "their clocks starting together. The same inputs give the same outputs. Writes global_map.json, "
+        "global_map.png, report.json, poses.csv (robot,stamp,component,x,y,theta: every scan that got a pose, "
+        "its stamp as the input gives it) and one TUM trajectory per robot (<robot>.tum) into --out.",
+    )
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS 2 bag or a ranges JSONL file")
+    p.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
+    p.add_argument("--split", type=int, default=1, metavar="K", help="cut each input into K robots (default 1)")
+    p.add_argument("--topic", default="/scan", help="ROS 2 bags: the LaserScan topic (default /scan)")
+    p.add_argument(
+        "--range-max",
+        type=float,
+        default=math.inf,
+        metavar="R",
+        help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
+    )
+    p.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
+    p.add_argument("--no-progress", action="store_true")
+    add_config_arguments(p, ["extraction", "integration", "tracking", "merge"])
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fleetmap.mapping import map_logs, read_inputs
+
+    config = config_from_args(args)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise BadInput(str(out), "exists and is not a directory (--out)")
+    pieces = read_inputs(args.inputs, args.split, args.topic, args.range_max)
+    bars: list[object] = []
+
+    def progress(done: int, total: int) -> None:
+        if args.no_progress:
+            return
+        if not bars:
+            from tqdm import tqdm
+
+            bars.append(tqdm(desc="map", unit="scan", total=total, leave=False))
+        bar = bars[0]
+        bar.n = done  # type: ignore[attr-defined]
+        bar.refresh()  # type: ignore[attr-defined]
+
+    try:
+        result = map_logs(pieces, out, config, progress)
+    finally:
+        for bar in bars:
+            bar.close()  # type: ignore[attr-defined]
+    summary = result.report["map"]
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(table(summary))
+    print(f"outputs in {out}/")
+    return 0
+
+
+def table(summary: dict[str, Any]) -> str:
+    """One line per robot, then the totals."""
+    rows = [("robot", "scans", "placed", "epochs", "components", "odometry")]
+    for r in summary["robots"]:
+        comps = ",".join(str(c) for c in r["components"]) or "-"
+        rows.append(
+            (
+                r["robot"],
+                str(r["scans"]),
+                str(r["scans_placed"]),
+                str(r["epochs"]),
+                comps,
+                "yes" if r["odometry"] else "no",
+            )
+        )
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)) for row in rows]
+    share = summary["time_share"]
+    lines.append(
+        f"{summary['submaps']} submaps in {summary['components']} component(s) "
+        f"(largest {summary['largest_component_submaps']}); "
+        f"{summary['integrations']} integrations ({summary['integrations_near']} near a prediction); "
+        f"{summary['seconds']:.1f} s for {summary['duration_s']:.0f} s of log"
+        + (f" ({share:.2f} of its duration)" if share is not None else "")
+    )
+    return "\n".join(lines)

@@ -1,0 +1,291 @@
+"""``fleetmap map``: real logs and bags mapped offline, in one process, by the live services' code.
+
+Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces, no scan in two).
+Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the
+order of their clocks (each piece's clock starting at 0, as a fleet started together); the submaps
+they publish go, as bytes, through one :class:`~fleetmap.merger.service.Merger`, which takes a step
+every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
+is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
+
+Every scan an agent placed gets a global pose: the pose of its submap in its component (the merged
+map it belongs to) composed with its pose in the submap.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
+from fleetmap.merger.service import Merger
+from fleetmap.report import SessionLog, write_outputs
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import LocalMap, Message
+from fleetmap.shared.scans import read_ranges_jsonl
+
+STEP_SECONDS = 2.0
+"""Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
+keeps the graph current without solving it after every submap version)."""
+
+MAX_SPLIT = 64
+
+
+class RangesSource:
+    """The scans of a ranges JSONL file (``../shared/CONTRACTS.md``); no odometry."""
+
+    has_odometry = False
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.name = str(path)
+
+    def __iter__(self) -> Iterator[SourceScan]:
+        for index, scan in enumerate(read_ranges_jsonl(self.path)):
+            yield _checked(self.name, index, scan.stamp, scan)
+
+
+def open_input(
+    path: str | Path, topic: str = "/scan", odometry_topic: str | None = None, range_max: float = math.inf
+) -> ScanSource:
+    """The source of one input, by what it is: a ROS 2 bag (an .mcap file, or a bag directory with
+    one), a ranges JSONL file (.jsonl), else a CARMEN log (plain or .gz)."""
+    p = Path(path)
+    if p.is_dir():
+        bags = sorted(p.glob("*.mcap"))
+        if not bags:
+            raise BadInput(str(path), "is a directory with no .mcap file (a ROS 2 bag in MCAP expected)")
+        if len(bags) > 1:
+            raise BadInput(str(path), f"holds {len(bags)} .mcap files; name one of them")
+        return Ros2BagSource(bags[0], topic, odometry_topic)
+    if not p.exists():
+        raise BadInput(str(path), "no such file")
+    if p.suffix == ".mcap":
+        return Ros2BagSource(p, topic, odometry_topic)
+    if p.name.endswith((".jsonl", ".jsonl.gz")):
+        return RangesSource(p)
+    return CarmenSource(p, range_max=range_max)
+
+
+def robot_name(path: str | Path, taken: set[str]) -> str:
+    """A robot id from an input's file name (``aces.clf.gz`` -> ``aces``), unique among ``taken``."""
+    stem = Path(path).name.split(".")[0].lower()
+    name = re.sub(r"[^a-z0-9_-]+", "-", stem).strip("-_") or "robot"
+    if not name[0].isalpha():
+        name = "r" + name
+    name = name[:24]
+    out, n = name, 2
+    while out in taken:
+        out, n = f"{name}-{n}", n + 1
+    taken.add(out)
+    return out
+
+
+@dataclass
+class Piece:
+    """One robot of the run: consecutive scans of one input."""
+
+    robot: str
+    source: str
+    scans: list[SourceScan]
+    has_odometry: bool
+    stamps: dict[int, float] = field(default_factory=dict)
+    """Each scan's own stamp, by its index (what poses.csv writes)."""
+
+
+def read_inputs(inputs: list[str], split: int, topic: str = "/scan", range_max: float = math.inf) -> list[Piece]:
+    """Every input read whole, cut into ``split`` pieces of consecutive scans."""
+    if not inputs:
+        raise BadInput("INPUT", "give at least one log or bag")
+    if isinstance(split, bool) or not 1 <= split <= MAX_SPLIT:
+        raise BadInput("--split", f"must be an integer from 1 to {MAX_SPLIT}, got {split}")
+    taken: set[str] = set()
+    pieces: list[Piece] = []
+    for path in inputs:
+        source = open_input(path, topic, range_max=range_max)
+        try:
+            scans = list(source)
+        except (OSError, EOFError, UnicodeDecodeError) as exc:
+            raise BadInput(str(path), f"cannot be read to its end ({exc.__class__.__name__}: {exc})") from None
+        if not scans:
+            raise BadInput(str(path), "holds no laser scan")
+        if len(scans) < split:
+            raise BadInput(str(path), f"has {len(scans)} scans: too few to split into {split} robots")
+        base = robot_name(path, taken)
+        cuts = np.array_split(np.arange(len(scans)), split)
+        for k, cut in enumerate(cuts):
+            robot = base if split == 1 else robot_name(f"{base}-{k + 1}", taken)
+            part = scans[int(cut[0]) : int(cut[-1]) + 1]
+            pieces.append(Piece(robot, str(path), part, source.has_odometry, {s.index: s.stamp for s in part}))
+    return pieces
+
+
+@dataclass
+class MapResult:
+    report: dict[str, Any]
+    poses: list[tuple[str, float, int, Transform2D]]
+    """(robot, stamp, component, laser pose in the component's frame) of every placed scan."""
+
+
+def map_logs(
+    pieces: list[Piece],
+    out_dir: str | Path,
+    config: FleetmapConfig,
+    progress: Callable[[int, int], None] | None = None,
+) -> MapResult:
+    """Map the pieces (see the module docstring) and write the outputs into ``out_dir``."""
+    started = time.perf_counter()
+    if config.tracking.odometry == "on":
+        for p in pieces:
+            if not p.has_odometry:
+                raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+    keys = FleetKeys()
+    agents = {p.robot: Agent(p.robot, config, odometry=p.has_odometry) for p in pieces}
+    merger = Merger(keys, config)
+    log = SessionLog()
+    # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
+    timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))
+    total = len(timeline)
+    agent_seconds = merger_seconds = 0.0
+
+    def step(final: bool = False) -> None:
+        nonlocal merger_seconds
+        t0 = time.perf_counter()
+        for o in merger.step(fuse=final):
+            log.add_payload(o.payload)
+        merger_seconds += time.perf_counter() - t0
+
+    def send(messages: list[Message]) -> None:
+        for m in messages:
+            log.add(m)
+            if isinstance(m, LocalMap):
+                merger.receive(keys.localmap(m.robot), m.to_msgpack())
+
+    due = STEP_SECONDS
+    for done, (t, n, i) in enumerate(timeline, 1):
+        while t >= due:
+            if merger.has_work:
+                step()
+            due += STEP_SECONDS
+        piece = pieces[n]
+        s = piece.scans[i]
+        t0 = time.perf_counter()
+        out = agents[piece.robot].add_scan(s.index, s.stamp, s.scan, s.odometry)
+        agent_seconds += time.perf_counter() - t0
+        send(out)
+        if progress is not None and (done % 50 == 0 or done == total):
+            progress(done, total)
+    for p in pieces:
+        send(agents[p.robot].finish())
+    while merger.has_work:
+        step()
+    step(final=True)  # the global map's walls, fused once
+    result = merger.result
+    poses: list[tuple[str, float, int, Transform2D]] = []
+    if result is not None:
+        where = {k: (n, c) for n, c in enumerate(result.components) for k in c.members}
+        stamps = {p.robot: p.stamps for p in pieces}
+        for key, m in sorted(merger.submaps.items()):
+            if m.scan_indices is None or m.scan_poses is None or key not in where:
+                continue
+            n, component = where[key]
+            frame = component.poses[key]
+            for index, pose in zip(m.scan_indices, m.scan_poses, strict=True):
+                stamp = stamps[m.robot].get(int(index))
+                if stamp is not None:
+                    poses.append((m.robot, stamp, n, frame.compose(Transform2D.from_array(pose))))
+    order = {p.robot: n for n, p in enumerate(pieces)}
+    poses.sort(key=lambda x: (order[x[0]], x[1]))
+    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
+    seconds = time.perf_counter() - started
+    report["map"] = _summary(pieces, poses, merger, agents, seconds, agent_seconds, merger_seconds)
+    folder = Path(out_dir)
+    (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_poses_csv(folder / "poses.csv", poses)
+    for p in pieces:
+        write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
+    return MapResult(report, poses)
+
+
+def _summary(
+    pieces: list[Piece],
+    poses: list[tuple[str, float, int, Transform2D]],
+    merger: Merger,
+    agents: dict[str, Agent],
+    seconds: float,
+    agent_seconds: float,
+    merger_seconds: float,
+) -> dict[str, Any]:
+    placed: dict[str, int] = {}
+    components: dict[str, set[int]] = {}
+    for robot, _, n, _ in poses:
+        placed[robot] = placed.get(robot, 0) + 1
+        components.setdefault(robot, set()).add(n)
+    duration = max(p.scans[-1].stamp - p.scans[0].stamp for p in pieces)
+    result = merger.result
+    return {
+        "inputs": sorted({p.source for p in pieces}),
+        "robots": [
+            {
+                "robot": p.robot,
+                "input": p.source,
+                "scans": len(p.scans),
+                "first_stamp": p.scans[0].stamp,
+                "last_stamp": p.scans[-1].stamp,
+                "odometry": p.has_odometry,
+                "epochs": agents[p.robot].counts.epochs,
+                "scans_placed": placed.get(p.robot, 0),
+                "components": sorted(components.get(p.robot, set())),
+            }
+            for p in pieces
+        ],
+        "submaps": len(merger.submaps),
+        "components": 0 if result is None else len(result.components),
+        "largest_component_submaps": 0
+        if result is None or not result.components
+        else len(result.components[0].members),
+        "integrations": merger.stats.integrations,
+        "integrations_near": merger.stats.near,
+        "duration_s": duration,
+        "seconds": seconds,
+        "agent_seconds": agent_seconds,
+        "merger_seconds": merger_seconds,
+        "time_share": seconds / duration if duration > 0 else None,
+    }
+
+
+def write_poses_csv(path: Path, poses: list[tuple[str, float, int, Transform2D]]) -> None:
+    """``robot,stamp,component,x,y,theta`` (``../shared/CONTRACTS.md``), one line per placed scan."""
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["robot", "stamp", "component", "x", "y", "theta"])
+        for robot, stamp, n, pose in poses:
+            w.writerow([robot, repr(stamp), n, f"{pose.x:.6f}", f"{pose.y:.6f}", f"{pose.theta:.6f}"])
+
+
+def write_tum(path: Path, poses: list[tuple[str, float, int, Transform2D]]) -> None:
+    """A robot's trajectory in TUM format (``stamp x y z qx qy qz qw``, as evo reads it): its scans
+    in the component that holds most of them (scans of other components share no frame with them)."""
+    counts: dict[int, int] = {}
+    for _, _, n, _ in poses:
+        counts[n] = counts.get(n, 0) + 1
+    lines = []
+    if counts:
+        main = min(counts, key=lambda n: (-counts[n], n))
+        for _, stamp, n, pose in poses:
+            if n == main:
+                half = 0.5 * pose.theta
+                lines.append(f"{stamp!r} {pose.x:.6f} {pose.y:.6f} 0 0 0 {math.sin(half):.9f} {math.cos(half):.9f}")
+    path.write_text("".join(line + "\n" for line in lines), encoding="utf-8")

@@ -1,0 +1,170 @@
+"""The fleet pose graph on submaps the real agent builds: right merges, one wrong one refused."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from fleetmap.agents.agent import Agent
+from fleetmap.merger.graph import Edge
+from fleetmap.merger.service import Merger
+from fleetmap.scenarios import load_scenario, robot_stream
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import LocalMap, RobotPose, SubmapLink, decode
+
+from tests.helpers import true_local_map
+
+KEYS = FleetKeys("test")
+
+
+@dataclass
+class Fleet:
+    finals: list[LocalMap]
+    """Every robot's final submaps, in stamp order (as a merger receives them)."""
+    truth: dict[str, Transform2D]
+    """The true pose of each submap's frame, by submap key."""
+
+
+@pytest.fixture(scope="module")
+def fleet() -> Fleet:
+    """The default scenario's three robots, each tracked by the real agent (odometry on)."""
+    scenario = load_scenario("department")
+    config = FleetmapConfig()
+    finals: list[tuple[float, int, LocalMap]] = []
+    truth: dict[str, Transform2D] = {}
+    for n, robot in enumerate(scenario.robot_ids):
+        agent = Agent(robot, config)
+        poses: dict[int, Transform2D] = {}
+        out = []
+        for s in robot_stream(scenario, robot):
+            poses[s.index] = s.pose
+            out += agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        out += agent.finish()
+        for m in out:
+            if isinstance(m, LocalMap) and m.final:
+                assert m.frame_scan is not None
+                finals.append((m.stamp, n, m))
+                truth[m.submap_key] = poses[m.frame_scan]
+    finals.sort(key=lambda x: (x[0], x[1]))
+    return Fleet([m for _, _, m in finals], truth)
+
+
+def _merged(messages: list[LocalMap], wrong: Edge | None = None) -> Merger:
+    merger = Merger(KEYS)
+    for m in messages:
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+        merger.step()
+    if wrong is not None:
+        merger.graph.add_edge(wrong)
+        merger._pending.clear()
+        merger._result = merger.graph.solve()
+    while merger.has_work:
+        merger.step()
+    return merger
+
+
+def _aligned(poses: dict[str, Transform2D], truth: dict[str, Transform2D]) -> dict[str, Transform2D]:
+    """``poses`` moved rigidly onto ``truth`` (least squares over the submaps' positions, as evo
+    aligns a trajectory before its absolute error): a map's error, not its frame's."""
+    keys = sorted(poses)
+    p = np.array([[poses[k].x, poses[k].y] for k in keys])
+    q = np.array([[truth[k].x, truth[k].y] for k in keys])
+    pc, qc = p.mean(axis=0), q.mean(axis=0)
+    h = (p - pc).T @ (q - qc)
+    theta = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+    c, s = np.cos(theta), np.sin(theta)
+    shift = qc - np.array([[c, -s], [s, c]]) @ pc
+    move = Transform2D(float(shift[0]), float(shift[1]), theta)
+    return {k: move.compose(poses[k]) for k in keys}
+
+
+def _errors(merger: Merger, truth: dict[str, Transform2D]) -> dict[str, tuple[float, float]]:
+    """Each submap of the largest component: its pose's error against the truth (m, degrees),
+    the component aligned on the truth."""
+    assert merger.result is not None
+    poses = _aligned(dict(merger.result.components[0].poses), truth)
+    out = {}
+    for key, pose in poses.items():
+        dt, dr = pose.distance(truth[key])
+        out[key] = (dt, float(np.degrees(dr)))
+    return out
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_a_fleet_of_submaps_merges_into_one_map_within_centimetres(fleet: Fleet) -> None:
+    merger = _merged(fleet.finals)
+    assert merger.result is not None
+    assert set(merger.result.components[0].members) == set(fleet.truth), "a submap was left out"
+    errors = _errors(merger, fleet.truth)
+    worst = max(errors, key=lambda k: errors[k][0])
+    print(f"mean {np.mean([e[0] for e in errors.values()]):.3f} m")
+    assert np.mean([e[0] for e in errors.values()]) < 0.05
+    assert errors[worst][0] < 0.10 and max(e[1] for e in errors.values()) < 1.0, f"{worst}: {errors[worst]}"
+    # n submaps cost O(n) integrations, not n^2
+    n = len(fleet.finals)
+    assert merger.stats.integrations <= 6 * n < n * (n - 1) // 2 or n < 13
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_one_wrong_integration_moves_no_map(fleet: Fleet) -> None:
+    # The strongest integration there could be, between two robots' submaps that overlap, 3 m
+    # and 30 degrees off the truth: it must not move a single map.
+    by_robot = {m.robot: m.submap_key for m in fleet.finals}
+    a, b = by_robot["r1"], by_robot["r2"]
+    true_ab = fleet.truth[a].inverse().compose(fleet.truth[b])
+    off = true_ab.compose(Transform2D(3.0, 0.0, np.radians(30.0)))
+    wrong = Edge(a, b, off, 1000.0, True, versions=(0, 0))
+    clean = _merged(fleet.finals)
+    merger = _merged(fleet.finals, wrong)
+    assert merger.result is not None and clean.result is not None
+    assert wrong.key() not in {e.key() for e in merger.result.tree + merger.result.loops}
+    # every map where it is without the wrong integration, within 5 cm
+    assert set(merger.result.components[0].members) == set(fleet.truth)
+    moved = _aligned(dict(merger.result.components[0].poses), dict(clean.result.components[0].poses))
+    for key, pose in moved.items():
+        dt, _ = pose.distance(clean.result.components[0].poses[key])
+        assert dt < 0.05, f"{key} moved {dt:.3f} m"
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_the_same_submaps_in_another_order_give_the_same_map(fleet: Fleet) -> None:
+    forward = _merged(fleet.finals)
+    backward = _merged(fleet.finals[::-1])
+    assert forward.result is not None and backward.result is not None
+    one, other = forward.result.components[0], backward.result.components[0]
+    assert set(one.members) == set(other.members) == set(fleet.truth)
+    # the anchors may differ, and the pairs integrated do: the same map, within its accuracy
+    moved = _aligned(dict(other.poses), dict(one.poses))
+    for key, pose in moved.items():
+        dt, dr = pose.distance(one.poses[key])
+        assert dt < 0.05 and np.degrees(dr) < 0.5, f"{key}: {dt:.3f} m, {np.degrees(dr):.2f} deg"
+
+
+def test_a_robot_never_integrated_stays_apart_with_no_pose() -> None:
+    # r2 and r3 map the same stretch of the department; r9 drives past a box in an open field:
+    # three linked submaps that match nobody's walls.
+    box = np.array([[1.0, -0.3, 1.0, 0.3], [1.0, 0.3, 1.4, 0.3], [1.4, 0.3, 1.4, -0.3], [1.4, -0.3, 1.0, -0.3]])
+    cov = (0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.001)
+    merger = Merger(KEYS)
+    for robot in ("r2", "r3"):
+        m, _ = true_local_map("department", robot, 0, 30)
+        merger.receive(KEYS.localmap(robot), m.to_msgpack())
+    for n in range(3):
+        link = None if n == 0 else SubmapLink(n - 1, Transform2D(0.5, 0.0, 0.0), cov)
+        segments = box - [0.5 * n, 0.0, 0.5 * n, 0.0]
+        m = LocalMap("r9", 0, 0, 2.0 + n, segments, 5, Transform2D(), submap=n, final=True, link=link)
+        merger.receive(KEYS.localmap("r9"), m.to_msgpack())
+    out = [decode(o.payload) for o in merger.step()]
+    while merger.has_work:
+        out += [decode(o.payload) for o in merger.step()]
+    assert merger.result is not None
+    fleet = next(c for c in merger.result.components if "r2/0/0" in c.members)
+    assert "r3/0/0" in fleet.members, "the two robots that saw the same walls were not merged"
+    r9 = next(c for c in merger.result.components if "r9/0/0" in c.members)
+    assert set(r9.members) == {"r9/0/0", "r9/0/1", "r9/0/2"}  # its links hold its chain together
+    poses = [m for m in out if isinstance(m, RobotPose) and m.robot == "r9"]
+    assert poses and all(p.pose is None and p.component is None for p in poses)
+    assert merger.robot_pose("r9") == (None, None) and merger.robot_pose("r2")[0] is not None
