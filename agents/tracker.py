@@ -41,7 +41,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.integration import Window, integrate
 from fleetmap.shared.mapfile import SegmentMap
@@ -491,7 +491,7 @@ class Tracker:
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
-            covariance = _link_covariance(reg)
+            covariance = _link_covariance(reg) + _drift_covariance(self.params, previous.path_length)
         walls = WallMap(self.config.integration.simplify_tolerance)
         submap = Submap(
             self.epoch, self._submaps, index, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls
@@ -565,6 +565,14 @@ def _link_covariance(reg: Registration | None) -> Array:
         return floor
     cov = 0.5 * (cov + cov.T) + floor
     return cov
+
+
+def _drift_covariance(params: TrackingParams, distance: float) -> Array:
+    """What tracking adds up over ``distance`` metres driven (a random walk,
+    :attr:`~fleetmap.shared.config.TrackingParams.drift_translation`)."""
+    d = max(distance, 0.0)
+    t, r = params.drift_translation**2 * d, params.drift_rotation**2 * d
+    return np.diag([t, t, r])
 
 
 def _near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:

@@ -76,6 +76,14 @@ def _within(a: Transform2D, b: Transform2D, tol_t: float, tol_r: float) -> bool:
     return dt <= tol_t and dr <= tol_r
 
 
+def _parts(key: str) -> tuple[str | None, str | None, int | None]:
+    """A submap key's robot, epoch and submap number (Nones for a node that is no submap)."""
+    parts = key.split("/")
+    if len(parts) != 3 or not parts[2].isdigit():
+        return None, None, None
+    return parts[0], parts[1], int(parts[2])
+
+
 def _chain_of(key: str) -> str:
     """The chain a node belongs to: a submap's robot epoch (``robot/epoch``), else the node itself."""
     parts = key.split("/")
@@ -104,6 +112,8 @@ class PoseGraph(MapGraph):
         self.tracking = tracking or TrackingParams()
         self._links: dict[str, Edge] = {}
         """Links by the later submap's key."""
+        self._link_covariances: dict[tuple[str, str], Array] = {}
+        """Each link's covariance, both ways round (what a cycle through it may have drifted)."""
         self._link_sources: set[str] = set()
         """The earlier submap of every link."""
         self._solution: dict[str, tuple[str, Transform2D]] = {}
@@ -123,6 +133,7 @@ class PoseGraph(MapGraph):
             raise BadInput(f"link {a}-{b}", "its covariance is singular") from None
         information = 0.5 * (information + information.T)
         self._links[b] = Edge(a, b, transform, math.inf, True, information=tuple(information.ravel()), link=True)
+        self._link_covariances[(a, b)] = self._link_covariances[(b, a)] = cov
         self._link_sources.add(a)
 
     def link_to(self, key: str) -> Edge | None:
@@ -141,6 +152,7 @@ class PoseGraph(MapGraph):
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
         self._links = {b: e for b, e in self._links.items() if key not in (e.a, e.b)}
+        self._link_covariances = {p: c for p, c in self._link_covariances.items() if key not in p}
         self._link_sources = {e.a for e in self._links.values()}
         self._references.pop(key, None)
         self._solution.pop(key, None)
@@ -261,6 +273,28 @@ class PoseGraph(MapGraph):
                 return e
         return None
 
+    def chain_drift(self, a: str, b: str) -> tuple[float, float] | None:
+        """Three standard deviations (m, rad) of the drift between two submaps of one robot's
+        chain, from the covariances of the links between them; None if they are not on one
+        chain (or a link between them is missing)."""
+        ra, ea, sa = _parts(a)
+        rb, eb, sb = _parts(b)
+        if ra is None or (ra, ea) != (rb, eb) or sa is None or sb is None:
+            return None
+        lo, hi = (a, b) if sa < sb else (b, a)
+        path: list[Edge] = []
+        k = hi
+        while k != lo:
+            link = self._links.get(k)
+            if link is None:
+                return None
+            path.append(link)
+            k = link.a
+        path.reverse()
+        tol_t, tol_r = self._cycle_tolerance(path)
+        base_t, base_r = self._tolerance(1)
+        return math.sqrt(max(tol_t**2 - base_t**2, 0.0)), math.sqrt(max(tol_r**2 - base_r**2, 0.0))
+
     def _cycle_tolerance(self, path: list[Edge]) -> tuple[float, float]:
         """What a cycle through ``path`` and the edge closing it may disagree by: the base tolerance
         for each integration (the closing edge included), and three standard deviations of the
@@ -274,8 +308,8 @@ class PoseGraph(MapGraph):
         var_t = var_r = 0.0
         at = Transform2D.identity()
         for e in path:
-            if e.link and e.information is not None:
-                cov = np.linalg.inv(np.array(e.information).reshape(3, 3))
+            cov = self._link_covariances.get((e.a, e.b)) if e.link else None
+            if cov is not None:
                 lever = math.hypot(end.x - at.x, end.y - at.y)
                 var_t += 0.5 * (cov[0, 0] + cov[1, 1]) + cov[2, 2] * lever * lever
                 var_r += cov[2, 2]
@@ -506,7 +540,7 @@ class PoseGraph(MapGraph):
                 poses[e.b] = held[1] if held is not None and held[0] == anchor else poses[k].compose(e.transform)
         return poses
 
-    def _noise(self, e: Edge) -> gtsam.noiseModel.Base:
+    def _noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
         """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
         it (with a share of its value in every direction), else by its value alone, through a
         Cauchy loss."""
@@ -520,23 +554,32 @@ class PoseGraph(MapGraph):
             if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
                 information = candidate
         gaussian = gtsam.noiseModel.Gaussian.Information(information)
+        if not robust:
+            return gaussian
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_SCALE), gaussian)
 
     def _optimized(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
-        """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed)."""
+        """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed),
+        in two rounds, a graduated non-convexity in its simplest form: every edge as a Gaussian
+        first (each integration here agreed with its cycle, so the least-squares solution spreads
+        what a loop corrects along the chain), then from there with the integrations' Cauchy loss
+        (an integration the others outvote weighs little). Started at the spanning tree's poses
+        with the robust loss at once, a loop that corrects a long chain's drift starts far off,
+        weighs next to nothing, and is never taken."""
         ids = {k: i for i, k in enumerate(poses)}
-        graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         for k, pose in poses.items():
             values.insert(ids[k], _pose2(pose))
-        graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
-        for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
-            graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self._noise(e)))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(100)
         params.setRelativeErrorTol(1e-6)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        return {k: _transform(result.atPose2(i)) for k, i in ids.items()}
+        for robust in (False, True):
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
+            for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
+                graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self._noise(e, robust)))
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
 
     def _walls(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
         """The component's walls: every member's at its pose, one segment per stretch of wall."""

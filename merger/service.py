@@ -386,8 +386,20 @@ class Merger:
         if final and self._predicted(key) is not None:
             # its chain is in the graph: the submaps of its component near where the links put it
             # (its own earlier submaps too: a loop), whether or not another robot is there yet
+            beyond = []
             for other, predicted in self._near(key, mine)[: mp.near_candidates]:
-                self._queue.setdefault((other, key), predicted)
+                # registered near the prediction where the robot's own drift between the two
+                # cannot have carried it out of registration's reach; else pose-free (a loop
+                # after a long way round: the search window as wide as the uncertainty), the
+                # most similar such submap only: the paper's integration costs ten registrations
+                if self._within_reach(other, key):
+                    self._queue.setdefault((other, key), predicted)
+                else:
+                    beyond.append(other)
+            if beyond:
+                h = self._histogram(key)
+                best = max(beyond, key=lambda k: (similarity(self._histogram(k), h), k))
+                self._queue.setdefault(_ordered(best, key), None)
             if m.final:
                 self._finals += 1
                 if mp.loop_sweep_every > 0 and self._finals % mp.loop_sweep_every == 0:
@@ -458,6 +470,17 @@ class Merger:
                 out.append((distance, other, there.inverse().compose(here)))
         out.sort(key=lambda x: (x[0], x[1]))
         return [(other, predicted) for _, other, predicted in out]
+
+    def _within_reach(self, a: str, b: str) -> bool:
+        """Whether registration from the predicted pose can find b on a: the drift the links
+        between two submaps of one robot's chain allow (three standard deviations of their
+        covariances, :meth:`~fleetmap.merger.posegraph.PoseGraph.chain_drift`) is within the
+        tracking's correspondence distance and 5 degrees; always for two robots' submaps (their
+        prediction comes through integrations)."""
+        drift = self.graph.chain_drift(a, b)
+        if drift is None:
+            return True
+        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= math.radians(5.0)
 
     def _neighbours(self, a: str, b: str) -> bool:
         """Whether two submaps are within two of each other on one robot's chain (they share

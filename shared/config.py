@@ -414,6 +414,13 @@ class TrackingParams:
     see_through_beams: float = 5.0
     """... and only walls wide enough to span this many of the laser's beams at their range count
     (a thin thing between two beams is not seen through)."""
+    drift_translation: float = 0.02
+    """How a submap link's uncertainty grows with the way between the two submaps' frames (a random
+    walk, m per square root of the metres driven: 5 cm over 6 m): registering on a submap built by
+    tracking carries the submap's own small errors, which add up along a robot's chain of links.
+    The pose graph weighs links by it and lets a loop closure correct what it allows."""
+    drift_rotation: float = 0.004
+    """... and of its heading (rad per square root of the metres driven: 0.56 degrees over 6 m)."""
     kidnap_after: int = 5
     """After this many scans in a row that neither fit the submap nor re-acquire it by pose-free
     integration, the robot has lost its place: a new epoch (a kidnap)."""

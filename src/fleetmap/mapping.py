@@ -36,7 +36,7 @@ from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import LocalMap, Message
 from fleetmap.shared.scans import read_ranges_jsonl
 
-STEP_SECONDS = 2.0
+STEP_SECONDS = 5.0
 """Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
 keeps the graph current without solving it after every submap version)."""
 
