@@ -167,8 +167,8 @@ def test_the_motion_prior_places_a_hallways_ambiguous_scans_where_the_robot_drov
         # scan 3 best turned 0.5 degrees (the transformation value counts overlap within tolerances
         # and is flat there); least squares puts it within 0.01 degrees, for 1 % less value.
         # Keeping only refinements that raise the value, the lane turned 1.9 degrees by scan 8
-        # and drifted 0.36 m by scan 17 (pivot_refine_slack). Since the extraction's vectorised
-        # fit (its segments' ends differ by millimetres), scans 7-8 end 5.4 cm and 1.0 degree off.
+        # and drifted 0.36 m by scan 17 (pivot_refine_slack); refined, scans 7-8 stay within
+        # 5.4 cm and 1.0 degree.
         ("warehouse", "r2", 10, 0.06, 1.2),
     ],
 )
