@@ -84,6 +84,8 @@ def run(name: str, config: FleetmapConfig, step: float) -> None:
         key = keys.localmap(m.robot) if isinstance(m, LocalMap) else keys.prefix
         merger.receive(key, m.to_msgpack())
     take_step()
+    while merger.has_work:  # what a live merger does after the robots stop
+        take_step()
     print(f"{name}: merger {time.perf_counter() - start:.1f} s")
     print(summary_table(build_report(log, make_truth(scenario))), flush=True)
 

@@ -67,6 +67,9 @@ ISOTROPIC_SHARE = 0.01
 entirely free)."""
 
 
+VERDICT_VERSIONS = 5
+"""A pair's verdict on a join is found again once either submap has this many versions more."""
+
 HYPOTHESES = 3
 """An ambiguous integration proposes its alignment and its next best rivals, this many in all."""
 
@@ -121,7 +124,7 @@ class PoseGraph(MapGraph):
         self._references: dict[str, tuple[int, ReferenceMap]] = {}
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
-        self._pair_verdicts: dict[tuple[str, str, int, int], tuple[Transform2D, tuple[float, float]]] = {}
+        self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], tuple[float, float]]] = {}
 
     # -- links -------------------------------------------------------------------------------
     def put_link(self, a: str, b: str, transform: Transform2D, covariance: Array) -> None:
@@ -374,7 +377,8 @@ class PoseGraph(MapGraph):
         the join out (its value counts for it), a pair that puts ``valid_refute_violation`` m of
         wall or more where the other saw free space, more than the validity rule allows it,
         contradicts it (that wall counts against). The join holds if at least ``join_support``
-        pairs bear it out, itself included, and the wall against is within what the validity
+        pairs bear it out, itself included (every pair there is, up to that, where a group can
+        never grow), and the wall against is within what the validity
         rule allows the value for (``max_map_violation``). A repetitive building (racks, a
         corridor that looks the same turned round) matches one pair of submaps wrongly, and the
         neighbours of the pair often bear that out too; along the two groups, walls then stand
@@ -433,16 +437,19 @@ class PoseGraph(MapGraph):
     def _pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> tuple[float, float]:
         """What a pair says of ``implied`` (b's frame in a's): (the value it bears it out with, 0 if
         not; the wall it puts in the other's seen free space there, 0 unless that refutes it).
-        Kept for the pair at its versions while the implied pose stays within a third of the
-        tolerances."""
-        key = (a, b, self.version_of(a), self.version_of(b))
-        held = self._pair_verdicts.get(key)
-        if held is not None:
+        Kept for the pair while the implied pose stays within a third of the tolerances and
+        neither submap grew by ``VERDICT_VERSIONS`` versions (an active submap gains a few scans a
+        version: what its walls bore out they still bear out)."""
+        versions = (self.version_of(a), self.version_of(b))
+        held = self._pair_verdicts.get((a, b))
+        if held is not None and all(
+            0 <= now - then < VERDICT_VERSIONS for now, then in zip(versions, held[1], strict=True)
+        ):
             dt, dr = _disagreement(held[0], implied)
             if dt <= tol_t / 3 and dr <= tol_r / 3:
-                return held[1]
+                return held[2]
         verdict = self._found_pair_verdict(a, b, implied, tol_t, tol_r)
-        self._pair_verdicts[key] = (implied, verdict)
+        self._pair_verdicts[(a, b)] = (implied, versions, verdict)
         return verdict
 
     def _found_pair_verdict(
