@@ -14,6 +14,7 @@ import pytest
 from fleetmap.agents.sources import ScenarioSource
 from fleetmap.shared.geometry import Transform2D
 
+from fleetmap.cli import main
 from tests.agents.test_sources import write_bag
 
 SCANS = 360
@@ -95,13 +96,15 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     assert len(tum) == sum(r["robot"] == "csail-start-1" for r in rows) and len(tum[0].split()) == 8
 
 
-def _one_error_line(done: subprocess.CompletedProcess[str], names: str) -> None:
-    assert done.returncode == 2, done.stderr
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and names in lines[0], done.stderr
+def _one_error_line(capsys: pytest.CaptureFixture[str], args: list[str], names: str) -> None:
+    """``fleetmap map ARGS`` in this process (the CLI's own entry point): exit 2, one line on
+    stderr naming the input."""
+    assert main(["map", *args]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and names in lines[0], lines
 
 
-def test_bad_inputs_exit_2_naming_the_input(tmp_path: Path) -> None:
+def test_bad_inputs_exit_2_naming_the_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # a truncated compressed log
     scans = list(ScenarioSource("department", "r1"))[:20]
     lines = []
@@ -111,17 +114,17 @@ def test_bad_inputs_exit_2_naming_the_input(tmp_path: Path) -> None:
     log = "".join(lines)
     truncated = tmp_path / "cut.clf.gz"
     truncated.write_bytes(gzip.compress(log.encode())[:-200])
-    _one_error_line(fleetmap("map", str(truncated), "--out", str(tmp_path / "a")), str(truncated))
+    _one_error_line(capsys, [str(truncated), "--out", str(tmp_path / "a")], str(truncated))
     # a bag without scans
     bag = tmp_path / "empty.mcap"
     write_bag(bag, [])
-    _one_error_line(fleetmap("map", str(bag), "--out", str(tmp_path / "b")), str(bag))
+    _one_error_line(capsys, [str(bag), "--out", str(tmp_path / "b")], str(bag))
     # an empty directory
     empty = tmp_path / "nothing"
     empty.mkdir()
-    _one_error_line(fleetmap("map", str(empty), "--out", str(tmp_path / "c")), str(empty))
+    _one_error_line(capsys, [str(empty), "--out", str(tmp_path / "c")], str(empty))
     # a log too short for the robots it is to be cut into
     plain = tmp_path / "short.clf"
     plain.write_text(log)
-    _one_error_line(fleetmap("map", str(plain), "--out", str(tmp_path / "d"), "--split", "30"), str(plain))
+    _one_error_line(capsys, [str(plain), "--out", str(tmp_path / "d"), "--split", "30"], str(plain))
     assert not any((tmp_path / d).exists() for d in "abcd")

@@ -20,6 +20,7 @@ from fleetmap.cli import main
 WriteScenario = Callable[..., Path]
 
 
+@pytest.mark.slow  # simulates a whole scenario to files (a few seconds)
 def test_simulate_writes_scans_segments_truth_and_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "sim"
     assert main(["simulate", "department-events", "--out", str(out)]) == 0
