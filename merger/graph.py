@@ -137,8 +137,6 @@ class _Node:
     """The map as integrated and fused: simplified (fleetmap.shared.simplify) unless it is a scan."""
     index: MapIndex | None = None
     """Its grid index for the large-map path, built on first use and kept."""
-    reach: float | None = None
-    """How far its walls reach from its frame (m), found on first use and kept."""
 
 
 @dataclass(frozen=True)
@@ -270,7 +268,7 @@ class MapGraph:
                 return True
             node.map, node.version = segment_map, version
             node.histogram = orientation_histogram(segment_map.segments)
-            node.work, node.index, node.reach = self._work(segment_map), None, None
+            node.work, node.index = self._work(segment_map), None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
                     del self._edges[k]

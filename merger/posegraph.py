@@ -51,6 +51,7 @@ from fleetmap.shared.evaluation import prepare, transformation_value
 from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.integration import GridFreeSpace, align_near, is_valid, max_map_violation
 from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import grid_scores
 from fleetmap.shared.tracking import ReferenceMap, sample_segments
 from fleetmap.shared.walls import WallMap
 
@@ -73,6 +74,9 @@ VERDICT_VERSIONS = 5
 HYPOTHESES = 3
 """An ambiguous integration proposes its alignment and its next best rivals, this many in all."""
 
+LOOKS_KEPT = 200_000
+"""Cheap looks kept (:meth:`PoseGraph._look`); past this many the memo starts again."""
+
 
 def _within(a: Transform2D, b: Transform2D, tol_t: float, tol_r: float) -> bool:
     dt, dr = _disagreement(a, b)
@@ -91,6 +95,20 @@ def _chain_of(key: str) -> str:
     """The chain a node belongs to: a submap's robot epoch (``robot/epoch``), else the node itself."""
     parts = key.split("/")
     return "/".join(parts[:2]) if len(parts) == 3 else key
+
+
+def _tree_poses(keys: Iterable[str], adjacency: dict[str, list[Edge]]) -> dict[str, Transform2D]:
+    """Every node's pose in its tree's frame (the first key of each tree at the origin)."""
+    poses: dict[str, Transform2D] = {}
+    for start in keys:
+        if start in poses:
+            continue
+        poses[start] = Transform2D.identity()
+        for k in _bfs_order(adjacency, start):
+            for t in adjacency[k]:
+                if t.b not in poses:
+                    poses[t.b] = poses[k].compose(t.transform)
+    return poses
 
 
 def _pose2(t: Transform2D) -> gtsam.Pose2:
@@ -125,6 +143,9 @@ class PoseGraph(MapGraph):
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
         self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], tuple[float, float]]] = {}
+        self._discs: dict[str, tuple[int, Array, float]] = {}
+        self._looks: dict[tuple[str, str, int, int, int, int, int], tuple[float, float]] = {}
+        """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre."""
 
     # -- links -------------------------------------------------------------------------------
     def put_link(self, a: str, b: str, transform: Transform2D, covariance: Array) -> None:
@@ -242,7 +263,7 @@ class PoseGraph(MapGraph):
         excluded: set[tuple[str, str]] = set()
         while True:
             tree, loops, conflicts, adjacency = self._kruskal(links + [e for e in valid if e.key() not in excluded])
-            culprit = _culprit([t for t in tree if not t.link], loops, conflicts, adjacency)
+            culprit = self._culprit(tree, loops, conflicts, adjacency)
             if culprit is None:
                 culprit = self._failed_join(tree, adjacency)
                 if culprit is not None:
@@ -255,20 +276,52 @@ class PoseGraph(MapGraph):
         rejected = conflicts + [e for e in valid if e.key() in excluded]
         return tree, loops, rejected
 
+    def _culprit(
+        self, tree: list[Edge], loops: list[Edge], conflicts: list[Edge], adjacency: dict[str, list[Edge]]
+    ) -> Edge | None:
+        """The tree integration that more cycles accuse than support (MapGraph's rule), counting
+        only the accusers that the maps they would join bear out: cut the accused edge, and an
+        accuser joins its two sides; if :meth:`_join_holds` says the two sides do not bear it out,
+        it is no evidence against anything. Two submaps of one robot's chain overlap, so one wrong
+        match of a third submap on both is two accusers that agree with each other, and they
+        would outvote the one right integration they contradict."""
+        joins = [t for t in tree if not t.link]
+        void: set[tuple[str, str]] = set()
+        poses: dict[str, Transform2D] | None = None
+        while True:
+            heard = [e for e in conflicts if e.key() not in void]
+            culprit = _culprit(joins, loops, heard, adjacency)
+            if culprit is None:
+                return None
+            if poses is None:
+                poses = _tree_poses(self.keys, adjacency)
+            cut = {k: [t for t in v if t.key() != culprit.key()] for k, v in adjacency.items()}
+            side_b = set(_bfs_order(cut, culprit.b))
+            side_a = [k for k in _bfs_order(adjacency, culprit.a) if k not in side_b]
+            voided = False
+            for e in heard:
+                if not any(t.key() == culprit.key() for t in _tree_path(adjacency, e.a, e.b)):
+                    continue
+                accuser = e if e.a not in side_b else e.reversed()
+                if not self._join_holds(accuser, side_a, sorted(side_b), poses):
+                    log.info(
+                        "edge %s-%s accuses %s-%s, but the maps it joins do not bear it out",
+                        e.a,
+                        e.b,
+                        culprit.a,
+                        culprit.b,
+                    )
+                    void.add(e.key())
+                    voided = True
+            if not voided:
+                return culprit
+
     def _failed_join(self, tree: list[Edge], adjacency: dict[str, list[Edge]]) -> Edge | None:
         """The weakest integration of the forest whose two sides do not bear it out, if any."""
         joins = sorted((e for e in tree if not e.link), key=lambda e: (e.value, e.key()))
         if not joins:
             return None
-        poses: dict[str, Transform2D] = {}
-        for start in self.keys:
-            if start in poses:
-                continue
-            poses[start] = Transform2D.identity()
-            for k in _bfs_order(adjacency, start):
-                for t in adjacency[k]:
-                    if t.b not in poses:
-                        poses[t.b] = poses[k].compose(t.transform)
+        poses = _tree_poses(self.keys, adjacency)
         for e in joins:
             side_b = set(_bfs_order({k: [t for t in v if t.key() != e.key()] for k, v in adjacency.items()}, e.b))
             side_a = [k for k in _bfs_order(adjacency, e.a) if k not in side_b]
@@ -372,19 +425,26 @@ class PoseGraph(MapGraph):
 
     def _join_holds(self, e: Edge, group_a: list[str], group_b: list[str], rel: dict[str, Transform2D]) -> bool:
         """Whether an integration may join two groups of submaps: the paper's validity rule on the
-        two groups as wholes. Where it puts them, every pair of their submaps that then overlaps
-        is registered near there: a pair that registers validly within the cycle tolerance bears
-        the join out (its value counts for it), a pair that puts ``valid_refute_violation`` m of
-        wall or more where the other saw free space, more than the validity rule allows it,
-        contradicts it (that wall counts against). The join holds if at least ``join_support``
-        pairs bear it out, itself included (every pair there is, up to that, where a group can
-        never grow), and the wall against is within what the validity
-        rule allows the value for (``max_map_violation``). A repetitive building (racks, a
-        corridor that looks the same turned round) matches one pair of submaps wrongly, and the
-        neighbours of the pair often bear that out too; along the two groups, walls then stand
-        where the other robot saw through. The verdict is kept for the edge at its versions and
-        the two groups; as they grow it is found again (each pair's verdict is kept too, so only
-        new pairs cost)."""
+        two groups as wholes. Where it puts them, the pairs of their submaps that then overlap are
+        looked at: a pair that registers validly near there (within the cycle tolerance) bears the
+        join out (its value counts for it); a pair that puts ``valid_refute_violation`` m of wall
+        or more where the other saw free space, more than the validity rule allows it, contradicts
+        it (that wall counts against). The join holds if at least ``join_support`` pairs bear it
+        out, itself included (every pair there is, up to that, where a group can never grow), and
+        the wall against is within what the validity rule allows their value (``max_map_violation``).
+        A repetitive building (racks, a corridor that looks the same turned round) matches one pair
+        of submaps wrongly, and the neighbours of the pair often bear that out too; along the two
+        groups, walls then stand where the other robot saw through.
+
+        Registering every overlapping pair would cost a registration per pair and join, and the
+        groups are whole components: each pair is first looked at cheaply where the join puts it
+        (its grid score: wall on wall, wall in seen free space, :func:`~fleetmap.shared.mapgrid.grid_scores`).
+        A pair the look says refutes the join is registered to make sure (a drifted chain puts
+        walls a little off); then the pairs with the most wall on wall are registered, most first,
+        until enough bear the join out and their value outweighs the wall against, or none is left
+        with ``valid_min_value`` of wall on wall (nothing for a registration to pull on). The
+        verdict is kept for the edge at its versions and the two groups; each pair's is kept too
+        (:meth:`_pair_verdict`)."""
         t = e.transform
         key = (
             e.key(),
@@ -398,33 +458,65 @@ class PoseGraph(MapGraph):
         held = self._verdicts.get(key)
         if held is not None:
             return held
+        p = self.integration
         # every submap of group b in the frame of a's root, as e puts them
         a_root_from_b_root = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
         placed_b = {k: a_root_from_b_root.compose(rel[k]) for k in group_b}
-        supports, value, against, overlapping = 0, 0.0, 0.0, 0
-        tol_t, tol_r = self._tolerance(1)
+        pairs: list[tuple[str, str, Transform2D]] = []
         for a in group_a:
             for b in group_b:
                 implied = rel[a].inverse().compose(placed_b[b])
-                if math.hypot(implied.x, implied.y) > self._reach(a) + self._reach(b):
-                    continue
-                overlapping += 1
-                supported, contradicted = self._pair_verdict(a, b, implied, tol_t, tol_r)
-                supports += supported > 0
-                value += supported
-                against += contradicted
-        limit = max_map_violation(value, self.integration) * value
+                if self._overlap(a, b, implied):
+                    pairs.append((a, b, implied))
+        looks = [self._look(a, b, implied) for a, b, implied in pairs]
+        tol_t, tol_r = self._tolerance(1)
+        supports, value, against = 0, 0.0, 0.0
+        done: set[int] = set()
+
+        def register(i: int) -> None:
+            nonlocal supports, value, against
+            a, b, implied = pairs[i]
+            supported, contradicted = self._pair_verdict(a, b, implied, tol_t, tol_r)
+            supports += supported > 0
+            value += supported
+            against += contradicted
+            done.add(i)
+
         required = self.merge.join_support
         if not (self._chained(group_a) and self._chained(group_b)):
             # a map no link will ever extend (a map file, a robot's only submap) has only the pairs
             # it has to bear a join out: the paper's validity of the one integration may be all
-            required = min(required, overlapping)
+            required = min(required, len(pairs))
+        bearing = sorted(
+            (i for i, look in enumerate(looks) if look[0] >= p.valid_min_value), key=lambda i: -looks[i][0]
+        )
+
+        def refuted() -> bool:
+            # the wall against outweighs what every pair not registered yet could add, at most its
+            # look's wall on wall
+            most = value + sum(looks[i][0] for i in bearing if i not in done)
+            return against > max_map_violation(most, p) * most
+
+        refuting = [i for i, (_, free) in enumerate(looks) if free >= p.valid_refute_violation]
+        for i in sorted(refuting, key=lambda i: -looks[i][1]):
+            if refuted():
+                break
+            register(i)
+        for i in bearing:
+            if refuted() or (supports >= required and against <= max_map_violation(value, p) * value):
+                break
+            if i not in done:
+                register(i)
+        limit = max_map_violation(value, p) * value
         holds = supports >= required and against <= limit
         log.debug(
-            "join %s-%s (%.1f m): %d pairs bear it out (%.1f m), %.1f m of wall against (at most %.1f): %s",
+            "join %s-%s (%.1f m): %d of %d pairs registered, %d bear it out (%.1f m), %.1f m of wall against"
+            " (at most %.1f): %s",
             e.a,
             e.b,
             e.value,
+            len(done),
+            len(pairs),
             supports,
             value,
             against,
@@ -433,6 +525,26 @@ class PoseGraph(MapGraph):
         )
         self._verdicts[key] = holds
         return holds
+
+    def _look(self, a: str, b: str, implied: Transform2D) -> tuple[float, float]:
+        """A cheap look at b's walls where ``implied`` puts them on a's: the wall length on wall
+        and in the other's seen free space (the large-map path's grid score, both ways)."""
+        key = (
+            a,
+            b,
+            self.version_of(a),
+            self.version_of(b),
+            round(implied.x * 100),
+            round(implied.y * 100),
+            round(implied.theta * 1000),
+        )
+        held = self._looks.get(key)
+        if held is None:
+            if len(self._looks) > LOOKS_KEPT:
+                self._looks.clear()
+            hit, free = grid_scores(self._index(a), self._index(b), implied.as_array(), fine=True)
+            held = self._looks[key] = (float(hit[0]), float(free[0]))
+        return held
 
     def _pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> tuple[float, float]:
         """What a pair says of ``implied`` (b's frame in a's): (the value it bears it out with, 0 if
@@ -483,13 +595,24 @@ class PoseGraph(MapGraph):
         """Whether a group holds a submap linked to another (a robot's chain, which grows)."""
         return any(k in self._links or k in self._link_sources for k in group)
 
-    def _reach(self, key: str) -> float:
-        """How far a node's walls reach from its frame (m)."""
+    def _overlap(self, a: str, b: str, implied: Transform2D) -> bool:
+        """Whether b's walls, where ``implied`` puts them in a's frame, can touch a's: the discs
+        about each map's walls (their centre, the farthest end from it) meet."""
+        ca, ra = self._disc(a)
+        cb, rb = self._disc(b)
+        x, y = implied.apply_points(cb[None, :])[0]
+        return math.hypot(x - ca[0], y - ca[1]) <= ra + rb
+
+    def _disc(self, key: str) -> tuple[Array, float]:
+        """The disc about a node's walls: their ends' centroid and the farthest end from it."""
         node = self._nodes[key]
-        if node.reach is None:
-            seg = node.map.segments
-            node.reach = float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max()) if len(seg) else 0.0
-        return node.reach
+        held = self._discs.get(key)
+        if held is None or held[0] != node.version:
+            ends = node.map.segments.reshape(-1, 2)
+            centre = ends.mean(axis=0) if len(ends) else np.zeros(2)
+            radius = float(np.hypot(*(ends - centre).T).max()) if len(ends) else 0.0
+            held = self._discs[key] = (node.version, centre, radius)
+        return held[1], held[2]
 
     def _refined_components(
         self, tree: list[Edge], loops: list[Edge], fuse_maps: bool

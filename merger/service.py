@@ -9,8 +9,9 @@ what lets a recorded session replay to the same map: every step is published as 
 many pairs it integrated, and a replay follows those steps.
 
 **Bounded work per submap.** A submap is integrated when it is final (it never changes again),
-and, while its robot's current epoch is not placed (a robot that joined, or lost its place),
-every ``STALE_VERSIONS`` versions of its active submap. Which pairs:
+and, while its robot's current epoch is not placed and has no final submap yet (a robot that
+just joined, or lost its place), as its active submap grows (each time its version doubles,
+``SEARCH_GROWTH``). Which pairs:
 
 - *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
   robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
@@ -86,8 +87,10 @@ log = logging.getLogger(__name__)
 
 STATE_VERSION = 2
 
-STALE_VERSIONS = 3
-"""An unplaced robot's active submap is integrated again once it has this many more versions."""
+SEARCH_GROWTH = 2
+"""An unplaced robot's active submap is searched again once its version is this many times the
+version last searched: each search sees as much new wall as all before it together, so a submap
+of v versions costs about log(v) searches, not v."""
 
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
@@ -115,7 +118,9 @@ class MergerStats:
     integrations: int = 0
     """Pairs of submaps integrated (pose-free or near a prediction)."""
     near: int = 0
-    """... of which registered near where the graph predicts them."""
+    """... of which registered near where the graph predicts them ..."""
+    idle: int = 0
+    """... and pose-free tries for a robot nobody has placed, taken when nothing else was due."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -127,6 +132,7 @@ class MergerStats:
             "steps": self.steps,
             "integrations": self.integrations,
             "near": self.near,
+            "idle": self.idle,
         }
 
 
@@ -171,6 +177,10 @@ class Merger:
         self._finals = 0
         """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
         self._far_tries: dict[str, int] = {}
+        self._finished_epochs: set[str] = set()
+        """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
+        self._idle: set[tuple[str, str]] = set()
+        """Queued pairs that :meth:`_idle_pairs` chose."""
         """Pose-free integrations queued for each submap with other components' submaps."""
         self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
@@ -329,6 +339,8 @@ class Merger:
         if m.viewpoints is not None and len(m.viewpoints):
             segment_map = with_viewpoints(segment_map, m.viewpoints)
         self.graph.put_map(key, segment_map, m.version, keep_edges=True)
+        if m.final:
+            self._finished_epochs.add(f"{m.robot}/{m.epoch}")
         if m.link is not None:
             previous = f"{m.robot}/{m.epoch}/{m.link.submap}"
             self.graph.put_link(previous, key, m.link.transform, m.link.covariance_matrix)
@@ -378,7 +390,12 @@ class Merger:
         placed = self._placed_epoch(f"{m.robot}/{m.epoch}")
         last = self._scheduled.get(key)
         final = m.final and (last is None or last < m.version)
-        searching = current and not placed and (last is None or m.version - last >= STALE_VERSIONS)
+        searching = (
+            current
+            and not placed
+            and f"{m.robot}/{m.epoch}" not in self._finished_epochs
+            and (last is None or m.version >= SEARCH_GROWTH * max(last, 1))
+        )
         if not (final or searching):
             return
         self._scheduled[key] = m.version
@@ -406,8 +423,18 @@ class Merger:
                     sweep = self._far(key, mine, within=True)[:1]
                     for other in sweep:
                         self._queue.setdefault(_ordered(other, key), None)
-        for other in self._far(key, mine, within=False)[: mp.far_candidates]:
-            self._queue_far(key, other)
+        if not self._in_global_map(key):
+            # the global map's own submaps are not searched for the others: each of theirs
+            # searches it, and one direction is enough
+            for other in self._far(key, mine, within=False)[: mp.far_candidates]:
+                self._queue_far(key, other)
+
+    def _in_global_map(self, key: str) -> bool:
+        """Whether a submap (or its predecessor, for a new one) is in the largest component, the
+        global map, together with another epoch."""
+        link = self.graph.link_to(key)
+        index = self._where.get(key, self._where.get(link.a) if link is not None else None)
+        return index == 0 and len(self._epochs_in[0]) > 1
 
     def _queue_far(self, key: str, other: str) -> None:
         pair = _ordered(other, key)
@@ -436,6 +463,7 @@ class Merger:
                 others = self._far(key, mine, within=False)
                 if others:
                     self._queue_far(key, others[0])
+                    self._idle.add(_ordered(others[0], key))
                     queued += 1
                     break
                 self._far_tries[key] = budget  # none left
@@ -528,6 +556,9 @@ class Merger:
         a, b = pair
         if a not in self.graph or b not in self.graph:
             return None
+        if pair in self._idle:
+            self._idle.discard(pair)
+            self.stats.idle += 1
         if predicted is not None:
             self.stats.near += 1
             return self.graph.align_pair(a, b, predicted)

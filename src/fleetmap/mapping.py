@@ -233,7 +233,11 @@ def _summary(
     for robot, _, n, _ in poses:
         placed[robot] = placed.get(robot, 0) + 1
         components.setdefault(robot, set()).add(n)
-    duration = max(p.scans[-1].stamp - p.scans[0].stamp for p in pieces)
+    session = max(p.scans[-1].stamp - p.scans[0].stamp for p in pieces)
+    inputs: dict[str, list[float]] = {}
+    for p in pieces:
+        inputs.setdefault(p.source, []).extend((p.scans[0].stamp, p.scans[-1].stamp))
+    duration = sum(max(stamps) - min(stamps) for stamps in inputs.values())
     result = merger.result
     return {
         "inputs": sorted({p.source for p in pieces}),
@@ -258,7 +262,9 @@ def _summary(
         else len(result.components[0].members),
         "integrations": merger.stats.integrations,
         "integrations_near": merger.stats.near,
+        "integrations_idle": merger.stats.idle,
         "duration_s": duration,
+        "session_s": session,
         "seconds": seconds,
         "agent_seconds": agent_seconds,
         "merger_seconds": merger_seconds,
