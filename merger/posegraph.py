@@ -367,17 +367,19 @@ class PoseGraph(MapGraph):
             path.append(link)
             k = link.a
         path.reverse()
-        tol_t, tol_r = self._cycle_tolerance(path)
-        base_t, base_r = self._tolerance(1)
-        return math.sqrt(max(tol_t**2 - base_t**2, 0.0)), math.sqrt(max(tol_r**2 - base_r**2, 0.0))
+        return self._drift(path)
 
     def _cycle_tolerance(self, path: list[Edge]) -> tuple[float, float]:
         """What a cycle through ``path`` and the edge closing it may disagree by: the base tolerance
-        for each integration (the closing edge included), and three standard deviations of the
-        drift its links' covariances allow (first order: a link's heading error turns everything
-        after it about its start)."""
-        hops = 1 + sum(1 for e in path if not e.link)
-        base_t, base_r = self._tolerance(hops)
+        for each integration (the closing edge included), and the drift of its links (:meth:`_drift`)."""
+        base_t, base_r = self._tolerance(1 + sum(1 for e in path if not e.link))
+        drift_t, drift_r = self._drift(path)
+        return math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)
+
+    def _drift(self, path: list[Edge]) -> tuple[float, float]:
+        """Three standard deviations (m, rad) of what the links on ``path`` can have drifted, from
+        their covariances (first order: a link's heading error turns everything after it about
+        its start)."""
         end = Transform2D.identity()
         for e in path:
             end = end.compose(e.transform)
@@ -390,7 +392,7 @@ class PoseGraph(MapGraph):
                 var_t += 0.5 * (cov[0, 0] + cov[1, 1]) + cov[2, 2] * lever * lever
                 var_r += cov[2, 2]
             at = at.compose(e.transform)
-        return math.sqrt(base_t**2 + 9.0 * var_t), math.sqrt(base_r**2 + 9.0 * var_r)
+        return 3.0 * math.sqrt(var_t), 3.0 * math.sqrt(var_r)
 
     def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
         """Maximum spanning forest with the cycle check (links never rejected; see the module)."""
@@ -506,12 +508,11 @@ class PoseGraph(MapGraph):
                 if not self._overlap(a, b, implied):
                     continue
                 path = [_turned(t) for t in reversed(to_a.get(a, []))] + [e] + to_b.get(b, [])
-                tol_t, tol_r = self._cycle_tolerance(path)
-                base_t, base_r = self._tolerance(1 + sum(1 for t in path if not t.link))
-                if tol_t**2 - base_t**2 <= reach_t**2 and tol_r**2 - base_r**2 <= reach_r**2:
+                drift_t, drift_r = self._drift(path)
+                if drift_t <= reach_t and drift_r <= reach_r:
                     # farther along the groups, the chains' drift hides the pair from registration:
                     # it can neither bear the join out nor refute it
-                    pairs.append((a, b, implied, tol_t, tol_r))
+                    pairs.append((a, b, implied, *self._cycle_tolerance(path)))
         looks = [self._look(a, b, implied) for a, b, implied, _, _ in pairs]
         supports, value, against = 0, 0.0, 0.0
         done: set[int] = set()

@@ -177,11 +177,11 @@ class Merger:
         self._finals = 0
         """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
         self._far_tries: dict[str, int] = {}
+        """Pose-free integrations queued for each submap with other components' submaps."""
         self._finished_epochs: set[str] = set()
         """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
         self._idle: set[tuple[str, str]] = set()
         """Queued pairs that :meth:`_idle_pairs` chose."""
-        """Pose-free integrations queued for each submap with other components' submaps."""
         self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
         self._where: dict[str, int] = {}
@@ -717,6 +717,7 @@ class Merger:
         except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException, BadMessage) as exc:
             raise BadInput(source, f"cannot load the merger state: {exc}") from None
         self.graph, self.submaps, self._robots = fresh.graph, fresh.submaps, robots
+        self._finished_epochs = fresh._finished_epochs
         self.seq, self.stamp, self._finals = seq, stamp, finals
         self._queue, self._scheduled, self._last_out = pairs, scheduled, last_out
         self._far_tries = far_tries

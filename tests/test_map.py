@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import gzip
+import json
 import math
 import subprocess
 import sys
@@ -94,6 +95,11 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     assert np.mean(errors[False] + errors[True]) < 0.10 and max(errors[True]) < 0.5, errors
     tum = (first / "csail-start-1.tum").read_text().splitlines()
     assert len(tum) == sum(r["robot"] == "csail-start-1" for r in rows) and len(tum[0].split()) == 8
+    # the time is reported against the log's own duration; the two halves play as a session half as long
+    summary = json.loads((first / "report.json").read_text())["map"]
+    assert summary["duration_s"] == pytest.approx(float(stamps[-1]) - float(stamps[0]))
+    assert summary["session_s"] < 0.6 * summary["duration_s"]
+    assert summary["time_share"] == pytest.approx(summary["seconds"] / summary["duration_s"])
 
 
 def _one_error_line(capsys: pytest.CaptureFixture[str], args: list[str], names: str) -> None:
