@@ -105,13 +105,16 @@ def test_a_merger_killed_and_restarted_ends_with_the_uninterrupted_map(tmp_path:
     ref = sorted(a)[0]
     ra, rb = _relative(a, ref), _relative(b, ref)
     # A live merger integrates the pairs its time allows: the two runs' graphs differ by a few
-    # pairs of submaps, so each map is as right as the other (each within a few centimetres of
-    # the truth), not the same to the millimetre.
+    # pairs of submaps, so each map is as right as the other (each submap within about 0.10 m of
+    # the truth), not the same to the millimetre: two runs can differ by twice that.
     for key in a:
         dt, dr = ra[key].distance(rb[key])
-        assert dt < 0.10 and math.degrees(dr) < 1.0, f"{key}: {dt:.4f} m {math.degrees(dr):.3f} deg"
+        assert dt < 0.20 and math.degrees(dr) < 1.0, f"{key}: {dt:.4f} m {math.degrees(dr):.3f} deg"
     restart_report = json.loads((runs["restart"] / "report.json").read_text())
     calm_report = json.loads((runs["calm"] / "report.json").read_text())
+    for name, report in (("restart", restart_report), ("calm", calm_report)):
+        for key, m in report["maps"].items():
+            assert m["placed"] and m["error_m"] < 0.15 and m["error_deg"] < 1.5, f"{name} {key}: {m}"
     # ... and as accurate: both within the few centimetres a live run of the department reaches
     # (a live merger's pairs depend on its timing, so the two means differ by a centimetre or two)
     assert restart_report["map_error_mean_m"] < 0.06 and calm_report["map_error_mean_m"] < 0.06
