@@ -127,7 +127,8 @@ def _tree_paths(adjacency: dict[str, list[Edge]], start: str) -> dict[str, list[
 
 
 def _turned(e: Edge) -> Edge:
-    """An edge the other way round, for a path (its transform inverted; nothing else needed)."""
+    """An edge the other way round, for a path: its transform inverted and nothing else (what a
+    path's drift reads; :meth:`Edge.reversed` also carries the information over, at a cost)."""
     return replace(e, a=e.b, b=e.a, transform=e.transform.inverse())
 
 
@@ -200,6 +201,10 @@ class PoseGraph(MapGraph):
         self._link_sources = {e.a for e in self._links.values()}
         self._references.pop(key, None)
         self._solution.pop(key, None)
+        self._discs.pop(key, None)
+        # what its pairs said is kept by version, and a map put back starts at its versions again
+        self._pair_verdicts = {p: v for p, v in self._pair_verdicts.items() if key not in p}
+        self._looks = {k: v for k, v in self._looks.items() if key not in k[:2]}
 
     def _work(self, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.walls)
