@@ -1,4 +1,4 @@
-"""Where an agent's scans come from: a simulated robot, a CARMEN log, or a ROS 2 bag in MCAP.
+"""Where an agent's scans come from: a simulated robot, a CARMEN log, or a ROS bag.
 
 Every source yields :class:`SourceScan` ``(index, stamp, scan)`` in order, with the robot's
 odometry at the scan where it has some; ``stamp`` is in seconds and paces a live agent. No true
@@ -11,7 +11,8 @@ Odometry, per source (``has_odometry`` says whether there is any):
 - **CARMEN**: the ODOM lines, interpolated at the scan's stamp (by file order where the stamps do
   not increase: logs whose times are rounded or missing); without ODOM lines, the odometry pose
   written on the laser line (FLASER/RLASER odom_x, odom_y, odom_theta; ROBOTLASER1's laser pose).
-- **ROS 2 bag**: nav_msgs/Odometry on a topic (found by type, or named), else the tf transform
+- **ROS bag** (rosbag2 directory, .mcap, .db3; ROS 1 .bag): nav_msgs/Odometry on a topic (found
+  by type, or named), else the tf transform
   from the odometry frame to the robot's base (on /tf), interpolated at the scan's stamp; the
   laser's mounting (base to laser, on /tf_static) is applied when the bag has it.
 - **Scenario**: the simulator's wheel odometry (:mod:`fleetmap.scenarios.odometry`): it drifts,
@@ -28,6 +29,7 @@ import math
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -38,9 +40,11 @@ from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.scans import OdometryReading, RangeScan, read_carmen, read_carmen_lines, read_carmen_odometry
-from mcap.exceptions import InvalidMagic, McapError
-from mcap.reader import McapReader, make_reader
-from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
+from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
+from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, TypesysError, get_typestore
 
 LASER_SCAN_SCHEMAS = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
 """How a ROS 2 bag names the sensor_msgs/LaserScan schema (the first is what ros2 bag writes)."""
@@ -212,79 +216,105 @@ class OdometryTrack:
 
 
 class Ros2BagSource:
-    """sensor_msgs/LaserScan messages of one topic of a ROS 2 bag in MCAP, in log time order.
+    """sensor_msgs/LaserScan messages of one topic of a ROS bag, in log time order: a rosbag2
+    directory (``metadata.yaml`` and its .mcap or .db3 files), one .mcap or .db3 file of one, or a
+    ROS 1 .bag. Read with the ``rosbags`` library: no ROS install.
 
-    Read with mcap-ros2-support: no ROS install. The stamp is the message header's, or the log
-    time where the header has none; readings below ``range_min`` are no return, as in ROS.
+    ``topic`` names the LaserScan topic; without it, the bag's one LaserScan topic (``/scan`` where
+    there are several). The stamp is the message header's, or the log time where the header has
+    none; readings below ``range_min`` are no return, as in ROS.
     """
 
-    def __init__(self, path: str | Path, topic: str = "/scan", odometry_topic: str | None = None) -> None:
-        self.path = _existing_file(path, "an MCAP file")
+    def __init__(self, path: str | Path, topic: str | None = None, odometry_topic: str | None = None) -> None:
+        self.path = _existing_bag(path)
+        self._types: dict[str, str] = self._guard(self._topic_types)
+        topics = ", ".join(f"{t} ({ty})" for t, ty in sorted(self._types.items())) or "none"
+        lasers = [t for t, ty in sorted(self._types.items()) if ty in LASER_SCAN_SCHEMAS]
+        if topic is None:
+            if not lasers:
+                raise BadInput(str(path), f"no sensor_msgs/LaserScan topic in the bag (its topics: {topics})")
+            if len(lasers) > 1 and "/scan" not in lasers:
+                listed = ", ".join(lasers)
+                raise BadInput(str(path), f"has {len(lasers)} LaserScan topics ({listed}): name one (--topic)")
+            topic = "/scan" if "/scan" in lasers else lasers[0]
+        elif topic not in self._types:
+            raise BadInput(str(path), f"no topic {topic!r} in the bag (its topics: {topics})")
+        elif self._types[topic] not in LASER_SCAN_SCHEMAS:
+            raise BadInput(str(path), f"topic {topic!r} carries {self._types[topic]}, not sensor_msgs/LaserScan")
         self.topic = topic
         self.odometry_topic = odometry_topic
         self.name = f"{path} {topic}"
-        self._schemas: dict[str, str] = {}
-        with self.path.open("rb") as stream:
-            summary = self._guard(lambda: make_reader(stream).get_summary())
-        if summary is None:
-            return  # a bag without a summary section: the topic shows when reading
-        schemas = {c.topic: summary.schemas.get(c.schema_id) for c in summary.channels.values()}
-        self._schemas = {t: sc.name for t, sc in schemas.items() if sc is not None}
-        if topic not in schemas:
-            listed = ", ".join(sorted(schemas)) or "none"
-            raise BadInput(str(path), f"no topic {topic!r} in the bag (its topics: {listed})")
-        schema = schemas[topic]
-        if schema is None or schema.name not in LASER_SCAN_SCHEMAS:
-            kind = "no schema" if schema is None else schema.name
-            raise BadInput(str(path), f"topic {topic!r} carries {kind}, not sensor_msgs/LaserScan")
-        if odometry_topic is not None and self._schemas.get(odometry_topic) not in ODOMETRY_SCHEMAS:
-            found = [t for t, name in sorted(self._schemas.items()) if name in ODOMETRY_SCHEMAS]
+        if odometry_topic is not None and self._types.get(odometry_topic) not in ODOMETRY_SCHEMAS:
+            found = [t for t, name in sorted(self._types.items()) if name in ODOMETRY_SCHEMAS]
             raise BadInput(
                 str(path),
                 f"topic {odometry_topic!r} is not nav_msgs/Odometry (odometry topics: {', '.join(found) or 'none'})",
             )
 
+    def _reader(self) -> AnyReader:
+        # the message definitions a bag carries decode it; a .db3 bag written before ROS 2 Iron
+        # carries none, and Humble's standard messages do
+        return AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+
+    def _topic_types(self) -> dict[str, str]:
+        with self._reader() as reader:
+            return {c.topic: c.msgtype for c in reader.connections}
+
     @property
     def has_odometry(self) -> bool:
         """Whether the bag has nav_msgs/Odometry (the named topic, or any) or a tf topic."""
-        return any(name in ODOMETRY_SCHEMAS + TF_SCHEMAS for name in self._schemas.values())
+        return any(name in ODOMETRY_SCHEMAS + TF_SCHEMAS for name in self._types.values())
+
+    def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time in ns, message) of ``topics``, in log time order; a bag that cannot be
+        read is :class:`BadInput` naming it, wherever it fails."""
+        reader = self._guard(self._reader)
+        self._guard(reader.open)
+        try:
+            connections = [c for c in reader.connections if c.topic in topics]
+            messages = reader.messages(connections=connections)
+            while True:
+                item = self._guard(lambda: next(messages, None))
+                if item is None:
+                    return
+                connection, log_time, raw = item
+                message = self._guard(partial(reader.deserialize, raw, connection.msgtype))
+                yield connection.topic, log_time, message
+        finally:
+            reader.close()
 
     def _odometry(self) -> OdometryTrack | None:
         """The robot's odometry over the bag: the named nav_msgs/Odometry topic, else the first one,
         else tf's odom -> base transforms; with the laser's mounting from /tf_static when there."""
-        odom_topics = [t for t, name in sorted(self._schemas.items()) if name in ODOMETRY_SCHEMAS]
+        odom_topics = [t for t, name in sorted(self._types.items()) if name in ODOMETRY_SCHEMAS]
         topic = self.odometry_topic or (odom_topics[0] if odom_topics else None)
-        tf_topics = [t for t, name in sorted(self._schemas.items()) if name in TF_SCHEMAS]
+        tf_topics = [t for t, name in sorted(self._types.items()) if name in TF_SCHEMAS]
         if topic is None and not tf_topics:
             return None
         readings: list[OdometryReading] = []
         mounting: dict[str, Transform2D] = {}
         base: str | None = None
-        with self.path.open("rb") as stream:
-            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
-            wanted = [t for t in [topic, *tf_topics] if t is not None]
-            decoded = reader.iter_decoded_messages(topics=wanted, log_time_order=True)
-            for _schema, channel, message, ros in self._guard(lambda: list(decoded)):
-                if channel.topic == topic:
-                    stamp = _stamp_of(ros.header.stamp, message.log_time)
-                    pose = ros.pose.pose
-                    readings.append(OdometryReading(len(readings), stamp, _planar(pose.position, pose.orientation)))
-                    base = base or ros.child_frame_id
-                elif topic is None or channel.topic.endswith("tf_static"):
-                    for t in ros.transforms:
-                        planar = _planar(t.transform.translation, t.transform.rotation)
-                        parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
-                        if channel.topic.endswith("tf_static"):
-                            mounting[f"{parent}>{child}"] = Transform2D(*planar)
-                        elif (
-                            topic is None
-                            and parent in ODOMETRY_FRAMES
-                            and child in BASE_FRAMES
-                            and (base is None or child == base)
-                        ):
-                            base = child
-                            stamp = _stamp_of(t.header.stamp, message.log_time)
-                            readings.append(OdometryReading(len(readings), stamp, planar))
+        for name, log_time, ros in self._decoded([t for t in [topic, *tf_topics] if t is not None]):
+            if name == topic:
+                stamp = _stamp_of(ros.header.stamp, log_time)
+                pose = ros.pose.pose
+                readings.append(OdometryReading(len(readings), stamp, _planar(pose.position, pose.orientation)))
+                base = base or ros.child_frame_id
+            elif topic is None or name.endswith("tf_static"):
+                for t in ros.transforms:
+                    planar = _planar(t.transform.translation, t.transform.rotation)
+                    parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
+                    if name.endswith("tf_static"):
+                        mounting[f"{parent}>{child}"] = Transform2D(*planar)
+                    elif (
+                        topic is None
+                        and parent in ODOMETRY_FRAMES
+                        and child in BASE_FRAMES
+                        and (base is None or child == base)
+                    ):
+                        base = child
+                        stamp = _stamp_of(t.header.stamp, log_time)
+                        readings.append(OdometryReading(len(readings), stamp, planar))
         if len(readings) < 2:
             return None
         track = OdometryTrack(readings)
@@ -292,41 +322,39 @@ class Ros2BagSource:
         return track
 
     def _laser_frame(self) -> str:
-        with self.path.open("rb") as stream:
-            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
-            for item in reader.iter_decoded_messages(topics=[self.topic]):
-                return str(item[3].header.frame_id).lstrip("/")
+        for _, _, msg in self._decoded([self.topic]):
+            return str(msg.header.frame_id).lstrip("/")
         return ""
 
     def _guard(self, read: Any) -> Any:
         try:
             return read()
-        except InvalidMagic:
-            raise BadInput(str(self.path), "not an MCAP file") from None
-        except (McapError, struct.error, ValueError, EOFError, NotImplementedError) as exc:
-            raise BadInput(str(self.path), f"not a readable ROS 2 MCAP bag: {exc}"[:300]) from None
+        except BadInput:
+            raise
+        except (
+            AnyReaderError,
+            Rosbag2ReaderError,
+            Rosbag1ReaderError,
+            SerdeError,
+            TypesysError,
+            struct.error,
+            ValueError,
+            KeyError,
+            IndexError,
+            EOFError,
+            OSError,
+            NotImplementedError,
+        ) as exc:
+            raise BadInput(str(self.path), f"not a readable ROS bag: {exc}"[:300]) from None
 
     def __iter__(self) -> Iterator[SourceScan]:
         yielded = 0
         track = self._odometry()
-        with self.path.open("rb") as stream:
-            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
-            for index, (message, ros_msg) in enumerate(self._messages(reader)):
-                yielded += 1
-                yield self._scan(index, message.log_time, ros_msg, track)
+        for index, (_, log_time, msg) in enumerate(self._decoded([self.topic])):
+            yielded += 1
+            yield self._scan(index, log_time, msg, track)
         if not yielded:
             raise BadInput(str(self.path), f"no sensor_msgs/LaserScan message on topic {self.topic!r}")
-
-    def _messages(self, reader: McapReader) -> Iterator[tuple[Any, Any]]:
-        decoded = reader.iter_decoded_messages(topics=[self.topic], log_time_order=True)
-        while True:
-            item = self._guard(lambda: next(decoded, None))
-            if item is None:
-                return
-            schema, _channel, message, ros_msg = item
-            if schema is None or schema.name not in LASER_SCAN_SCHEMAS:
-                raise BadInput(str(self.path), f"topic {self.topic!r} does not carry sensor_msgs/LaserScan")
-            yield message, ros_msg
 
     def _scan(self, index: int, log_time_ns: int, msg: Any, track: OdometryTrack | None = None) -> SourceScan:
         stamp = _stamp_of(msg.header.stamp, log_time_ns)
@@ -341,6 +369,24 @@ class Ros2BagSource:
             if track.mounting is not None:
                 odometry = odometry.compose(track.mounting)  # the laser's pose, not the base's
         return _checked(self.name, index, stamp, scan, odometry)
+
+
+BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+"""The files a ROS bag is: rosbag2's two storages, and ROS 1's bag."""
+
+
+def _existing_bag(path: str | Path) -> Path:
+    """A bag's path: a file with a bag's suffix, or a rosbag2 directory (with ``metadata.yaml``)."""
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(str(path), "no such file or directory")
+    if p.is_dir():
+        if not (p / "metadata.yaml").is_file():
+            raise BadInput(str(path), "is a directory without metadata.yaml, not a rosbag2 bag")
+        return p
+    if p.suffix not in BAG_SUFFIXES:
+        raise BadInput(str(path), f"is not a ROS bag (a rosbag2 directory, or a {', '.join(BAG_SUFFIXES)} file)")
+    return p
 
 
 def _stamp_of(header_stamp: Any, log_time_ns: int) -> float:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -19,6 +20,8 @@ from typing import IO, Any
 import numpy as np
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Array
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -75,8 +78,18 @@ def _floats(tokens: list[str], source: str) -> Array:
         raise BadInput(source, "expected numbers") from None
 
 
+FLASER_TAIL = (7, 9)
+"""Fields after a FLASER/RLASER line's ranges: x y theta odom_x odom_y odom_theta ipc_timestamp,
+then ipc_hostname logger_timestamp in logs written since 2002 (every log of ../shared/data)."""
+ROBOTLASER_TAIL = (12, 14)
+"""Fields after a ROBOTLASER1 line's remissions: laser pose, robot pose, tv, rv, the two safety
+distances, turn axis, timestamp, then hostname and logger timestamp."""
+
+
 def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | None:
-    """One CARMEN log line as a scan, or None for lines that carry no laser data."""
+    """One CARMEN log line as a scan, or None for lines that carry no laser data. A line that is
+    cut, or whose fields do not add up to what it declares (181 ranges declared, 300 written),
+    raises :class:`BadInput` naming ``source`` (the caller's ``path:line``)."""
     tokens = line.split()
     if not tokens:
         return None
@@ -86,8 +99,7 @@ def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | N
             n = int(tokens[1])
             ranges = _floats(tokens[2 : 2 + n], source)
             rest = tokens[2 + n :]
-            if len(ranges) != n or len(rest) < 7:
-                raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
+            _check_tail(kind, n, len(ranges), len(rest), FLASER_TAIL, source)
             pose = _floats(rest[0:6], source)
             stamp = float(rest[6])
             angle_min, inc = half_circle_angles(n)
@@ -100,8 +112,7 @@ def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | N
             ranges = _floats(tokens[9 : 9 + n], source)
             n_rem = int(tokens[9 + n])
             rest = tokens[10 + n + n_rem :]
-            if len(ranges) != n or len(rest) < 12:
-                raise BadInput(source, f"{kind} line is truncated ({len(tokens)} fields)")
+            _check_tail(kind, n, len(ranges), len(rest), ROBOTLASER_TAIL, source)
             pose = _floats(rest[0:3], source)
             stamp = float(rest[11])
             xyz = (pose[0], pose[1], pose[2])
@@ -109,6 +120,18 @@ def parse_carmen_line(line: str, source: str, range_max: float) -> RangeScan | N
     except (IndexError, ValueError):
         raise BadInput(source, f"malformed {kind} line") from None
     return None
+
+
+def _check_tail(kind: str, declared: int, read: int, tail: int, expected: tuple[int, int], source: str) -> None:
+    """Whether a laser line holds what it declares: its ranges, then ``expected`` fields."""
+    if declared < 1:
+        raise BadInput(source, f"{kind} line declares {declared} ranges")
+    if read < declared or tail < expected[0]:
+        raise BadInput(source, f"{kind} line is cut short ({declared} ranges declared)")
+    if tail > expected[1]:
+        raise BadInput(
+            source, f"{kind} line declares {declared} ranges but holds {declared + tail - expected[1]} numbers or more"
+        )
 
 
 def read_carmen(path: str | Path, range_max: float = math.inf) -> Iterator[RangeScan]:
@@ -122,22 +145,47 @@ def read_carmen(path: str | Path, range_max: float = math.inf) -> Iterator[Range
 
 
 def read_carmen_lines(path: str | Path, range_max: float = math.inf) -> Iterator[tuple[int, RangeScan]]:
-    """:func:`read_carmen` with each scan's line number."""
+    """:func:`read_carmen` with each scan's line number. A laser line that is cut or does not add
+    up (:func:`parse_carmen_line`) is skipped with one warning naming its line (a logger that
+    crashed leaves a cut last line); a log whose laser lines are all bad is an error."""
     p = _carmen_file(path)
-    found_any = False
+    good = bad = 0
+    first_bad: BadInput | None = None
     with _open_text(p) as fh:
         try:
             for lineno, line in enumerate(fh, 1):
                 if not line.startswith(("FLASER", "RLASER", "ROBOTLASER")):
                     continue
-                scan = parse_carmen_line(line, f"{path}:{lineno}", range_max)
+                try:
+                    scan = parse_carmen_line(line, f"{path}:{lineno}", range_max)
+                except BadInput as exc:
+                    bad += 1
+                    first_bad = first_bad or exc
+                    _warn_once(p, lineno, f"{exc}: line skipped")
+                    continue
                 if scan is not None:
-                    found_any = True
+                    good += 1
                     yield lineno, scan
         except (OSError, EOFError) as exc:
             raise BadInput(str(path), f"cannot read (corrupt or truncated file?): {exc}") from None
-    if not found_any:
+    if not good and first_bad is not None:
+        raise BadInput(str(path), f"none of its {bad} laser lines can be read (the first: {first_bad})")
+    if not good:
         raise BadInput(str(path), "no FLASER, RLASER or ROBOTLASER1 lines: not a CARMEN laser log")
+
+
+_warned: set[tuple[str, float, int]] = set()
+
+
+def _warn_once(path: Path, lineno: int, message: str) -> None:
+    """Warn of a bad line once, however often the log is read (a source reads it more than once)."""
+    try:
+        key = (str(path.resolve()), path.stat().st_mtime, lineno)
+    except OSError:
+        key = (str(path), 0.0, lineno)
+    if key not in _warned:
+        _warned.add(key)
+        log.warning("%s", message)
 
 
 @dataclass(frozen=True)

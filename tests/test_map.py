@@ -13,10 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.agents.sources import ScenarioSource
+from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.geometry import Transform2D
+from rosbags.rosbag2 import StoragePlugin
 
 from fleetmap.cli import main
-from tests.agents.test_sources import write_bag
+from tests.agents.test_sources import write_bag, write_scans_rosbag2
 
 SCANS = 360
 
@@ -134,3 +136,55 @@ def test_bad_inputs_exit_2_naming_the_input(tmp_path: Path, capsys: pytest.Captu
     plain.write_text(log)
     _one_error_line(capsys, [str(plain), "--out", str(tmp_path / "d"), "--split", "30"], str(plain))
     assert not any((tmp_path / d).exists() for d in "abcd")
+
+
+def test_a_log_whose_logger_crashed_mid_line_maps_with_one_warning(tmp_path: Path) -> None:
+    # the last line cut where the logger died: every whole scan is mapped, and the user is told once
+    # which line was skipped
+    scans = list(ScenarioSource("department", "r1"))[:30]
+    lines = [
+        f"FLASER {len(s.scan.ranges)} {' '.join(f'{r:.3f}' for r in s.scan.ranges)} 0 0 0 0 0 0 "
+        f"{s.stamp:.6f} host {s.stamp:.6f}\n"
+        for s in scans
+    ]
+    log = tmp_path / "crashed.clf"
+    log.write_text("".join(lines) + lines[0][:200])
+    run = fleetmap("map", str(log), "--out", str(tmp_path / "out"), "--no-progress")
+    assert run.returncode == 0, run.stderr
+    warnings = [line for line in run.stderr.splitlines() if "WARNING" in line]
+    assert len(warnings) == 1 and f"{log}:31" in warnings[0] and "cut short" in warnings[0], run.stderr
+    with (tmp_path / "out" / "poses.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 30
+
+
+@pytest.mark.slow
+def test_a_rosbag2_directory_its_mcap_and_a_db3_bag_map_alike(tmp_path: Path) -> None:
+    # a simulated robot's scans and odometry recorded as ros2 bag record leaves them, in both of
+    # rosbag2's storages: the directory, its .mcap file alone and the .db3 bag give one map, every
+    # scan placed, within centimetres of the scenario's truth
+    scans = list(ScenarioSource("department", "r1"))[:120]
+    write_scans_rosbag2(tmp_path / "mcap_bag", StoragePlugin.MCAP, scans)
+    write_scans_rosbag2(tmp_path / "db3_bag", StoragePlugin.SQLITE3, scans)
+    (mcap_file,) = (tmp_path / "mcap_bag").glob("*.mcap")
+    (db3_file,) = (tmp_path / "db3_bag").glob("*.db3")
+    poses = {}
+    for name, bag in [("dir", tmp_path / "mcap_bag"), ("mcap", mcap_file), ("db3", db3_file)]:
+        run = fleetmap("map", str(bag), "--out", str(tmp_path / name), "--no-progress")
+        assert run.returncode == 0, run.stderr
+        with (tmp_path / name / "poses.csv").open() as fh:
+            rows = list(csv.DictReader(fh))
+        poses[name] = [(row["stamp"], row["x"], row["y"], row["theta"]) for row in rows]
+    assert len(poses["dir"]) == 120
+    assert poses["dir"] == poses["mcap"] == poses["db3"]
+    # the stamps are the bag's own, and the trajectory is the one the simulator drove (its best
+    # rigid fit: the map's frame is the robot's own first pose)
+    assert [float(row[0]) for row in poses["dir"]] == pytest.approx([1.7e9 + s.stamp for s in scans], abs=1e-6)
+    mapped = np.array([[float(x), float(y)] for _, x, y, _ in poses["dir"]])
+    true = np.array([[p.x, p.y] for p in [s.pose for s in robot_stream(load_scenario("department"), "r1")][:120]])
+    a, b = mapped - mapped.mean(axis=0), true - true.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    rotation = (u @ vt).T
+    if np.linalg.det(rotation) < 0:
+        rotation = (u @ np.diag([1.0, -1.0]) @ vt).T
+    errors = np.hypot(*((a @ rotation.T) - b).T)
+    assert errors.mean() < 0.08 and errors.max() < 0.2, (errors.mean(), errors.max())

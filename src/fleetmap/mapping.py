@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
+from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
 from fleetmap.merger.service import Merger
 from fleetmap.report import SessionLog, write_outputs
 from fleetmap.shared.config import FleetmapConfig
@@ -58,21 +58,24 @@ class RangesSource:
 
 
 def open_input(
-    path: str | Path, topic: str = "/scan", odometry_topic: str | None = None, range_max: float = math.inf
+    path: str | Path, topic: str | None = None, odometry_topic: str | None = None, range_max: float = math.inf
 ) -> ScanSource:
-    """The source of one input, by what it is: a ROS 2 bag (an .mcap file, or a bag directory with
-    one), a ranges JSONL file (.jsonl), else a CARMEN log (plain or .gz)."""
+    """The source of one input, by what it is: a ROS bag (a rosbag2 directory, an .mcap, .db3 or
+    ROS 1 .bag file, or a directory holding one such file), a ranges JSONL file (.jsonl), else a
+    CARMEN log (plain or .gz)."""
     p = Path(path)
     if p.is_dir():
-        bags = sorted(p.glob("*.mcap"))
+        if (p / "metadata.yaml").is_file():
+            return Ros2BagSource(p, topic, odometry_topic)
+        bags = sorted(f for f in p.iterdir() if f.suffix in BAG_SUFFIXES)
         if not bags:
-            raise BadInput(str(path), "is a directory with no .mcap file (a ROS 2 bag in MCAP expected)")
+            raise BadInput(str(path), "is a directory with no ROS bag (no metadata.yaml, .mcap, .db3 or .bag file)")
         if len(bags) > 1:
-            raise BadInput(str(path), f"holds {len(bags)} .mcap files; name one of them")
+            raise BadInput(str(path), f"holds {len(bags)} bag files and no metadata.yaml; name one of them")
         return Ros2BagSource(bags[0], topic, odometry_topic)
     if not p.exists():
         raise BadInput(str(path), "no such file")
-    if p.suffix == ".mcap":
+    if p.suffix in BAG_SUFFIXES:
         return Ros2BagSource(p, topic, odometry_topic)
     if p.name.endswith((".jsonl", ".jsonl.gz")):
         return RangesSource(p)
@@ -105,7 +108,13 @@ class Piece:
     """Each scan's own stamp, by its index (what poses.csv writes)."""
 
 
-def read_inputs(inputs: list[str], split: int, topic: str = "/scan", range_max: float = math.inf) -> list[Piece]:
+def read_inputs(
+    inputs: list[str],
+    split: int,
+    topic: str | None = None,
+    range_max: float = math.inf,
+    odometry_topic: str | None = None,
+) -> list[Piece]:
     """Every input read whole, cut into ``split`` pieces of consecutive scans."""
     if not inputs:
         raise BadInput("INPUT", "give at least one log or bag")
@@ -114,7 +123,7 @@ def read_inputs(inputs: list[str], split: int, topic: str = "/scan", range_max: 
     taken: set[str] = set()
     pieces: list[Piece] = []
     for path in inputs:
-        source = open_input(path, topic, range_max=range_max)
+        source = open_input(path, topic, odometry_topic, range_max)
         try:
             scans = list(source)
         except (OSError, EOFError, UnicodeDecodeError) as exc:

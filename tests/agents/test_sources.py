@@ -7,11 +7,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScenarioSource
+from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScenarioSource, SourceScan
 from fleetmap.scenarios import robot_stream
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from mcap_ros2.writer import Writer
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Rosbag2Writer
+from rosbags.typesys import Stores, get_typestore
 
 LASER_SCAN_MSGDEF = """\
 std_msgs/Header header
@@ -145,6 +148,7 @@ def test_ros2_readings_below_range_min_are_no_return(tmp_path):
         (lambda tmp: CarmenSource(tmp / "missing.log"), "no such file"),
         (lambda tmp: CarmenSource(tmp, 0), "is not a file"),
         (lambda tmp: Ros2BagSource(tmp / "missing.mcap"), "no such file"),
+        (lambda tmp: Ros2BagSource(tmp), "is a directory without metadata.yaml, not a rosbag2 bag"),
     ],
 )
 def test_bad_sources_are_refused_when_made(tmp_path, make, says):
@@ -162,20 +166,25 @@ def test_a_carmen_slice_past_the_end_says_how_long_the_log_is(carmen_log):
 def test_a_bag_without_the_topic_names_the_topics_it_has(tmp_path):
     bag = tmp_path / "robot.mcap"
     write_bag(bag, [(1.0, [1.0, 2.0])], topic="/front/scan")
-    with pytest.raises(BadInput, match=r"no topic '/scan' in the bag \(its topics: /front/scan\)"):
-        Ros2BagSource(bag)
-    assert len(list(Ros2BagSource(bag, "/front/scan"))) == 1
+    with pytest.raises(BadInput, match=r"no topic '/scan' in the bag \(its topics: /front/scan \(sensor_msgs"):
+        Ros2BagSource(bag, "/scan")
+    # found by its type where none is named
+    assert Ros2BagSource(bag).topic == "/front/scan" and len(list(Ros2BagSource(bag))) == 1
 
 
 def test_an_empty_bag_and_a_file_that_is_no_bag_are_refused(tmp_path):
     empty = tmp_path / "empty.mcap"
     write_bag(empty, [])
-    with pytest.raises(BadInput, match="no topic '/scan'"):
+    with pytest.raises(BadInput, match=r"no sensor_msgs/LaserScan topic in the bag \(its topics: none\)"):
         Ros2BagSource(empty)
     text = tmp_path / "notes.mcap"
     text.write_text("not a bag\n")
-    with pytest.raises(BadInput, match="not an MCAP file"):
+    with pytest.raises(BadInput, match=r"notes\.mcap: not a readable ROS bag"):
         Ros2BagSource(text)
+    csv = tmp_path / "notes.csv"
+    csv.write_text("a,b\n")
+    with pytest.raises(BadInput, match=r"notes.csv: is not a ROS bag"):
+        Ros2BagSource(csv)
 
 
 def test_a_topic_of_another_type_is_refused(tmp_path):
@@ -186,6 +195,8 @@ def test_a_topic_of_another_type_is_refused(tmp_path):
         writer.write_message("/scan", schema, {"data": "hello"}, log_time=1)
         writer.finish()
     with pytest.raises(BadInput, match="carries std_msgs/msg/String, not sensor_msgs/LaserScan"):
+        Ros2BagSource(bag, "/scan")
+    with pytest.raises(BadInput, match=r"no sensor_msgs/LaserScan topic in the bag \(its topics: /scan \(std_msgs"):
         Ros2BagSource(bag)
 
 
@@ -355,3 +366,120 @@ def test_a_ros2_bag_without_odometry_says_so(tmp_path):
     assert not source.has_odometry and next(iter(source)).odometry is None
     with pytest.raises(BadInput, match="is not nav_msgs/Odometry"):
         Ros2BagSource(bag, odometry_topic="/odom")
+
+
+def write_rosbag2(path: Path, storage: StoragePlugin, laser_topics: tuple[str, ...] = ("/scan",)) -> None:
+    """The scans and odometry of :func:`write_robot_bag` (nav_msgs/Odometry on /odom) as a rosbag2
+    directory written by ``rosbags`` in ``storage`` (what ``ros2 bag record`` leaves)."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    with Rosbag2Writer(path, version=9, storage_plugin=storage) as writer:
+        odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store)
+        lasers = [writer.add_connection(t, "sensor_msgs/msg/LaserScan", typestore=store) for t in laser_topics]
+
+        def header(t: float, frame: str) -> object:
+            sec = int(t)
+            return T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](sec, round((t - sec) * 1e9)), frame)
+
+        vector = T["geometry_msgs/msg/Vector3"]
+        for k in range(60):
+            t = 50.0 + 0.02 * k
+            q = _quaternion(0.5 * (t - 50.0))
+            pose = T["geometry_msgs/msg/Pose"](
+                T["geometry_msgs/msg/Point"](t - 50.0, 0.0, 0.0), T["geometry_msgs/msg/Quaternion"](**q)
+            )
+            twist = T["geometry_msgs/msg/Twist"](vector(1.0, 0.0, 0.0), vector(0.0, 0.0, 0.5))
+            message = T["nav_msgs/msg/Odometry"](
+                header(t, "odom"),
+                "base_link",
+                T["geometry_msgs/msg/PoseWithCovariance"](pose, np.zeros(36)),
+                T["geometry_msgs/msg/TwistWithCovariance"](twist, np.zeros(36)),
+            )
+            writer.write(odom, round(t * 1e9), store.serialize_cdr(message, "nav_msgs/msg/Odometry"))
+        for t in [50.1 + 0.1 * k for k in range(5)]:
+            ranges = np.array([2.0 + 0.01 * i for i in range(181)], dtype=np.float32)
+            scan = T["sensor_msgs/msg/LaserScan"](
+                header(t, "laser"),
+                -math.pi / 2,
+                math.pi / 2,
+                math.pi / 180,
+                0.0,
+                0.1,
+                0.1,
+                8.0,
+                ranges,
+                np.zeros(0, dtype=np.float32),
+            )
+            for laser in lasers:
+                writer.write(laser, round(t * 1e9), store.serialize_cdr(scan, "sensor_msgs/msg/LaserScan"))
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3], ids=["mcap", "db3"])
+def test_a_rosbag2_directory_and_its_own_file_give_the_same_scans_and_odometry(tmp_path, storage):
+    bag = tmp_path / "robot"
+    write_rosbag2(bag, storage)
+    (file,) = [f for f in bag.iterdir() if f.suffix in (".mcap", ".db3")]
+    from_dir, from_file = list(Ros2BagSource(bag)), list(Ros2BagSource(file))
+    assert len(from_dir) == len(from_file) == 5
+    for a, b in zip(from_dir, from_file, strict=True):
+        assert a.stamp == b.stamp and a.index == b.index
+        np.testing.assert_array_equal(a.scan.ranges, b.scan.ranges)
+        # nav_msgs/Odometry at the scan's stamp (no /tf_static here: the base is the laser)
+        base = Transform2D(a.stamp - 50.0, 0.0, 0.5 * (a.stamp - 50.0))
+        assert a.odometry.distance(base)[0] < 1e-3 and a.odometry.distance(base)[1] < 1e-3
+        assert b.odometry.distance(a.odometry)[0] < 1e-9
+    assert from_dir[2].scan.ranges[10] == pytest.approx(2.1)
+
+
+def test_a_bag_with_several_laser_topics_takes_scan_or_asks_for_one(tmp_path):
+    both = tmp_path / "both"
+    write_rosbag2(both, StoragePlugin.MCAP, ("/scan", "/rear/scan"))
+    assert Ros2BagSource(both).topic == "/scan"
+    assert Ros2BagSource(both, "/rear/scan").topic == "/rear/scan"
+    two = tmp_path / "two"
+    write_rosbag2(two, StoragePlugin.MCAP, ("/front/scan", "/rear/scan"))
+    with pytest.raises(BadInput, match=r"has 2 LaserScan topics \(/front/scan, /rear/scan\): name one \(--topic\)"):
+        Ros2BagSource(two)
+
+
+def write_scans_rosbag2(path: Path, storage: StoragePlugin, scans: list[SourceScan], epoch: float = 1.7e9) -> None:
+    """A robot's scans as ``ros2 bag record`` would leave them (written by ``rosbags``): each as
+    sensor_msgs/LaserScan on /scan and its odometry as nav_msgs/Odometry on /odom, stamped
+    ``epoch`` seconds on."""
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    with Rosbag2Writer(path, version=9, storage_plugin=storage) as writer:
+        odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store)
+        laser = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
+        vector = T["geometry_msgs/msg/Vector3"]
+        for s in scans:
+            t = epoch + s.stamp
+            sec = int(t)
+            stamp = T["builtin_interfaces/msg/Time"](sec, round((t - sec) * 1e9))
+            pose = T["geometry_msgs/msg/Pose"](
+                T["geometry_msgs/msg/Point"](s.odometry.x, s.odometry.y, 0.0),
+                T["geometry_msgs/msg/Quaternion"](**_quaternion(s.odometry.theta)),
+            )
+            twist = T["geometry_msgs/msg/Twist"](vector(0.0, 0.0, 0.0), vector(0.0, 0.0, 0.0))
+            message = T["nav_msgs/msg/Odometry"](
+                T["std_msgs/msg/Header"](stamp, "odom"),
+                "base_link",
+                T["geometry_msgs/msg/PoseWithCovariance"](pose, np.zeros(36)),
+                T["geometry_msgs/msg/TwistWithCovariance"](twist, np.zeros(36)),
+            )
+            writer.write(odom, round(t * 1e9), store.serialize_cdr(message, "nav_msgs/msg/Odometry"))
+            n = len(s.scan.ranges)
+            ranges = np.where(np.isfinite(s.scan.ranges), s.scan.ranges, np.inf).astype(np.float32)
+            scan = T["sensor_msgs/msg/LaserScan"](
+                T["std_msgs/msg/Header"](stamp, "base_link"),
+                s.scan.angle_min,
+                s.scan.angle_min + (n - 1) * s.scan.angle_increment,
+                s.scan.angle_increment,
+                0.0,
+                0.2,
+                0.05,
+                s.scan.range_max,
+                ranges,
+                np.zeros(0, dtype=np.float32),
+            )
+            writer.write(laser, round(t * 1e9), store.serialize_cdr(scan, "sensor_msgs/msg/LaserScan"))

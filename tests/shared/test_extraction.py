@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -170,10 +171,28 @@ def test_a_flaser_lines_beams_are_a_lasers_steps_from_the_right(
     assert math.isclose(scan.angle_increment, math.radians(step_degrees))
 
 
-def test_carmen_reader_names_the_line_of_a_truncated_record(tmp_path: Path) -> None:
+def test_a_cut_or_inconsistent_carmen_line_is_skipped_with_one_warning_naming_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # a logger that crashed mid-line, and a line that declares 181 ranges and holds 300
     path = tmp_path / "bad.clf"
-    path.write_text(_flaser_line([2.0] * 181, 1.0) + "FLASER 181 1.0 2.0\n")
-    with pytest.raises(BadInput, match=r"bad.clf:2"):
+    good = [_flaser_line([2.0] * 181, float(t)) for t in range(3)]
+    overfull = f"FLASER 181 {' '.join(['2.0'] * 300)} 1 2 0.5 1 2 0.5 9.0 host 9.0\n"
+    path.write_text(good[0] + overfull + good[1] + good[2] + "FLASER 181 1.0 2.0")
+    with caplog.at_level(logging.WARNING):
+        scans = list(read_carmen(path))
+        again = list(read_carmen(path))  # read twice (a source does): still one warning a line
+    assert [s.stamp for s in scans] == [s.stamp for s in again] == [0.0, 1.0, 2.0]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 2, warnings
+    assert "bad.clf:2" in warnings[0] and "declares 181 ranges but holds" in warnings[0]
+    assert "bad.clf:5" in warnings[1] and "cut short" in warnings[1]
+
+
+def test_a_carmen_log_whose_laser_lines_are_all_bad_is_an_error(tmp_path: Path) -> None:
+    path = tmp_path / "bad.clf"
+    path.write_text("FLASER 181 1.0 2.0\nFLASER x\n")
+    with pytest.raises(BadInput, match=r"bad.clf: none of its 2 laser lines can be read"):
         list(read_carmen(path))
 
 

@@ -42,7 +42,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     given = source.add_mutually_exclusive_group(required=True)
     given.add_argument("--scenario", metavar="NAME_OR_FILE", help="a bundled scenario name or a scenario .toml")
     given.add_argument("--carmen", metavar="FILE", help="a CARMEN log (plain or .gz)")
-    given.add_argument("--ros2-bag", metavar="FILE", help="a ROS 2 bag in MCAP with sensor_msgs/LaserScan")
+    given.add_argument(
+        "--ros2-bag",
+        metavar="BAG",
+        help="a ROS bag with sensor_msgs/LaserScan: a rosbag2 directory, its .mcap or .db3 file, or a ROS 1 .bag",
+    )
     source.add_argument("--start", type=int, default=0, metavar="N", help="CARMEN: first scan (default 0)")
     source.add_argument("--stop", type=int, default=None, metavar="M", help="CARMEN: stop before scan M (default: end)")
     source.add_argument("--step", type=int, default=1, metavar="K", help="CARMEN: every K-th scan (default 1)")
@@ -53,7 +57,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="R",
         help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
     )
-    source.add_argument("--topic", default="/scan", help="ROS 2 bag: the LaserScan topic (default /scan)")
+    source.add_argument(
+        "--topic",
+        default=None,
+        help="ROS bag: the sensor_msgs/LaserScan topic (default: the bag's one LaserScan topic, /scan if several)",
+    )
     source.add_argument(
         "--odometry-topic",
         default=None,
@@ -91,7 +99,7 @@ def make_source(args: argparse.Namespace) -> ScanSource:
     """The source the flags name (files are checked here, before the agent goes on the bus)."""
     if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
         raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
-    if args.ros2_bag is None and (args.topic != "/scan" or args.odometry_topic is not None):
+    if args.ros2_bag is None and (args.topic is not None or args.odometry_topic is not None):
         raise BadInput("--topic/--odometry-topic", "apply to --ros2-bag only")
     if args.scenario is not None:
         return ScenarioSource(args.scenario, args.robot)

@@ -17,16 +17,27 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "map",
         help="map CARMEN logs, ROS 2 bags or ranges JSONL files offline, each one robot",
         description="Map real logs offline, in one process, with the same agent and merger code as the live "
-        "services: each INPUT is one robot (a CARMEN log, plain or .gz; a ROS 2 bag in MCAP, or its directory; a "
+        "services: each INPUT is one robot (a CARMEN log, plain or .gz; a ROS bag: a rosbag2 directory, .mcap "
+        "or .db3 file, or a ROS 1 .bag; a "
         "ranges JSONL file); --split K cuts each input into K robots' consecutive pieces that run side by side, "
         "their clocks starting together. The same inputs give the same outputs. Writes global_map.json, "
         "global_map.png, report.json, poses.csv (robot,stamp,component,x,y,theta: every scan that got a pose, "
         "its stamp as the input gives it) and one TUM trajectory per robot (<robot>.tum) into --out.",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS 2 bag or a ranges JSONL file")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS bag or a ranges JSONL file")
     p.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
     p.add_argument("--split", type=int, default=1, metavar="K", help="cut each input into K robots (default 1)")
-    p.add_argument("--topic", default="/scan", help="ROS 2 bags: the LaserScan topic (default /scan)")
+    p.add_argument(
+        "--topic",
+        default=None,
+        help="ROS bags: the sensor_msgs/LaserScan topic (default: the bag's one LaserScan topic, /scan if several)",
+    )
+    p.add_argument(
+        "--odometry-topic",
+        default=None,
+        metavar="TOPIC",
+        help="ROS bags: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
+    )
     p.add_argument(
         "--range-max",
         type=float,
@@ -47,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise BadInput(str(out), "exists and is not a directory (--out)")
-    pieces = read_inputs(args.inputs, args.split, args.topic, args.range_max)
+    pieces = read_inputs(args.inputs, args.split, args.topic, args.range_max, args.odometry_topic)
     bars: list[object] = []
 
     def progress(done: int, total: int) -> None:
