@@ -184,6 +184,8 @@ class Merger:
         """Queued pairs that :meth:`_idle_pairs` chose."""
         self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
+        self._unfused = False
+        """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
         self._where: dict[str, int] = {}
         self._epoch_where: dict[str, int] = {}
         self._epochs_in: list[set[str]] = []
@@ -269,8 +271,10 @@ class Merger:
         """Take the submaps received since the last step into the graph, integrate the pairs due
         (all of them, ``limit`` of them as a replay repeats a live step, or until ``enough()`` says
         the step took long enough), solve, and return the messages to publish. With ``fuse``
-        False the global map's walls are left out (an offline run fuses them once, at its end)."""
-        if not self.has_work:
+        False the global map's walls are left out (an offline run fuses them once, at its end: a
+        step with ``fuse`` after one without solves again, work or none, to publish them)."""
+        refuse = fuse and self._unfused and not self.has_work
+        if not self.has_work and not refuse:
             return []
         batch = list(self._pending.values())
         self._pending.clear()
@@ -278,7 +282,7 @@ class Merger:
             self._enter(m)
         for m in batch:
             self._schedule(m)
-        if not self._queue:
+        if not self._queue and not refuse:
             self._idle_pairs()
         new_edges: list[Edge] = []
         taken = 0
@@ -301,6 +305,7 @@ class Merger:
             said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
             out.append(Outgoing(self.keys.edges, said.to_msgpack()))
         self._result = self.graph.solve(fuse_maps=fuse)
+        self._unfused = not fuse
         self._index_result()
         self._global = self._global_map(self._result)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))

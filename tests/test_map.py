@@ -16,9 +16,11 @@ from fleetmap.agents.sources import ScenarioSource
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.geometry import Transform2D
 from rosbags.rosbag2 import StoragePlugin
+from scipy.spatial import cKDTree
 
 from fleetmap.cli import main
 from tests.agents.test_sources import write_bag, write_scans_rosbag2
+from tests.shared.test_occupancy import read_map_server
 
 SCANS = 360
 
@@ -188,3 +190,23 @@ def test_a_rosbag2_directory_its_mcap_and_a_db3_bag_map_alike(tmp_path: Path) ->
         rotation = (u @ np.diag([1.0, -1.0]) @ vt).T
     errors = np.hypot(*((a @ rotation.T) - b).T)
     assert errors.mean() < 0.08 and errors.max() < 0.2, (errors.mean(), errors.max())
+    # map.yaml + map.pgm as nav2's map_server reads them: the occupied cells lie on the
+    # department's walls, and no free cell does
+    cells, origin, resolution = read_map_server(tmp_path / "dir" / "map.yaml")
+    walls = load_scenario("department").world.walls
+    t = np.linspace(0.0, 1.0, 400)[:, None]
+    on_walls = cKDTree(np.vstack([w[0:2] + t * (w[2:4] - w[0:2]) for w in walls]))
+
+    def to_world(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        centre = np.column_stack([origin[0] + (cols + 0.5) * resolution, origin[1] + (rows + 0.5) * resolution])
+        return (centre - mapped.mean(axis=0)) @ rotation.T + true.mean(axis=0)
+
+    # global_map.json holds the fused walls, on the department's
+    fused = np.asarray(json.loads((tmp_path / "dir" / "global_map.json").read_text())["segments"]).reshape(-1, 2)
+    assert len(fused) > 100
+    assert np.median(on_walls.query((fused - mapped.mean(axis=0)) @ rotation.T + true.mean(axis=0))[0]) < 0.05
+    occupied = on_walls.query(to_world(*np.nonzero(cells == 100)))[0]
+    free = on_walls.query(to_world(*np.nonzero(cells == 0)))[0]
+    assert len(occupied) > 1000 and len(free) > 20 * len(occupied)
+    assert np.mean(occupied < 0.15) > 0.9, np.mean(occupied < 0.15)
+    assert np.mean(free < resolution / 2) < 0.02, np.mean(free < resolution / 2)  # a wall through the cell

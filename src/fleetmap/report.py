@@ -41,6 +41,7 @@ from fleetmap.shared.messages import (
     Scan,
     decode,
 )
+from fleetmap.shared.occupancy import Beams, OccupancyGrid, occupancy_grid, write_map_server
 
 FALSE_RELOCALIZATION_M = 1.0
 """A relocalization farther than this from the truth is a false one."""
@@ -391,14 +392,51 @@ def _epoch_key(key: str) -> str:
 
 
 def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, title: str) -> dict[str, Any]:
-    """Write global_map.json, global_map.png and report.json into ``out_dir``; return the report."""
+    """Write global_map.json, global_map.png, map.pgm + map.yaml and report.json into ``out_dir``;
+    return the report."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = build_report(log, truth)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     (out / "global_map.json").write_text(json.dumps(global_map_json(log)) + "\n", encoding="utf-8")
+    write_map_server(occupancy_of(log), out)
     plot_session(log, truth, out / "global_map.png", title)
     return report
+
+
+def placed_beams(log: SessionLog) -> list[Beams]:
+    """Every scan of the largest component that carried its raw ranges, at its pose in the global
+    map (its submap's pose composed with its pose in the submap; a scan in two overlapping
+    submaps counts once, from the first)."""
+    final = log.final
+    main = final.components[0] if final is not None and final.components else None
+    if main is None:
+        return []
+    out: list[Beams] = []
+    seen: set[tuple[str, int]] = set()
+    for key in sorted(main.poses):
+        m = log.local_maps.get(key)
+        if m is None or m.scan_indices is None or m.scan_poses is None:
+            continue
+        frame = main.poses[key]
+        for index, pose in zip(m.scan_indices, m.scan_poses, strict=True):
+            at = (m.robot, int(index))
+            ranges = log.ranges.get(at)
+            if ranges is None or at in seen:
+                continue
+            seen.add(at)
+            placed = frame.compose(Transform2D.from_array(pose))
+            out.append(Beams(placed, ranges.angle_min, ranges.angle_increment, ranges.range_max, ranges.ranges))
+    return out
+
+
+def occupancy_of(log: SessionLog) -> OccupancyGrid:
+    """The largest component's occupancy grid (:mod:`fleetmap.shared.occupancy`): free along its
+    placed scans' beams, occupied on its fused walls."""
+    final = log.final
+    main = final.components[0] if final is not None and final.components else None
+    walls = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
+    return occupancy_grid(placed_beams(log), walls)
 
 
 def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -> None:

@@ -21,7 +21,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "or .db3 file, or a ROS 1 .bag; a "
         "ranges JSONL file); --split K cuts each input into K robots' consecutive pieces that run side by side, "
         "their clocks starting together. The same inputs give the same outputs. Writes global_map.json, "
-        "global_map.png, report.json, poses.csv (robot,stamp,component,x,y,theta: every scan that got a pose, "
+        "global_map.png, map.pgm + map.yaml "
+        "(the occupancy grid map_server loads), report.json, poses.csv "
+        "(robot,stamp,component,x,y,theta: every scan that got a pose, "
         "its stamp as the input gives it) and one TUM trajectory per robot (<robot>.tum) into --out.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS bag or a ranges JSONL file")

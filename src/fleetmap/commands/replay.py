@@ -18,7 +18,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="replay a recorded session offline to the same map",
         description="Feed the local maps of SESSION.mcap through a fresh merger (following the live merger's "
         "recorded steps, so the map is identical), as fast as possible or at --speed, and write global_map.json, "
-        "global_map.png and report.json into --out. --from/--to (seconds from the start of the recording) and "
+        "global_map.png, map.pgm + map.yaml "
+        "(the occupancy grid map_server loads) and report.json into --out. "
+        "--from/--to (seconds from the start of the recording) and "
         "--robots replay part of it. A recording cut short by a crash replays up to its last complete chunk.",
     )
     p.add_argument("session", metavar="SESSION.mcap")

@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run a live multi-robot session of a scenario (the main job)",
         description="Start a zenoh router, the recorder, the merger and one agent process per robot on "
         "loopback, play the scenario (robots joining, leaving, crashing, kidnapped; merger restarts), and write "
-        "DIR/session.mcap, global_map.json, global_map.png, report.json, config.toml and scenario.toml.",
+        "DIR/session.mcap, global_map.json, global_map.png, map.pgm + map.yaml "
+        "(the occupancy grid map_server loads), report.json, config.toml and scenario.toml.",
     )
     p.add_argument(
         "scenario", nargs="?", default=DEFAULT_SCENARIO, help=f"bundled name or file (default {DEFAULT_SCENARIO})"

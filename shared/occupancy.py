@@ -1,0 +1,170 @@
+"""The global map as an occupancy grid, and the map_server files every ROS planner loads.
+
+nav2's ``map_server`` (and ROS 1's) reads a map as an image and a YAML file beside it: ``map.pgm``
+(one byte a cell, the top row the farthest north) and ``map.yaml`` (``image``, ``resolution``,
+``origin`` of the lower-left pixel, ``negate``, ``occupied_thresh``, ``free_thresh``, ``mode``). A
+pixel ``p`` is read as occupancy ``(255 - p) / 255``: above ``occupied_thresh`` occupied, below
+``free_thresh`` free, unknown between (trinary). The values written are ``map_saver``'s own: 0
+occupied, 254 free, 205 unknown, with thresholds 0.65 and 0.196, so a map saved here loads as one
+``map_saver`` wrote.
+
+The cells (:func:`occupancy_grid`): free where a laser beam passed on its way to the wall it hit
+(each placed scan's raw ranges, cast from the scan's pose in the global map; a beam with no return
+says nothing, as in gmapping and slam_toolbox, and neither does one whose end is on no wall of the
+map: a passer-by, a reflection, or a log's no-return reading not named as one), occupied on the
+global map's walls (its fused segments: what the merge found, not the raw returns of clutter that
+moved), unknown elsewhere.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from fleetmap.shared.geometry import Array, Transform2D, lengths
+from scipy.ndimage import binary_dilation
+
+FREE, OCCUPIED, UNKNOWN = 0, 100, -1
+"""Cell values, as nav_msgs/OccupancyGrid has them."""
+PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN = 254, 0, 205
+"""Pixel values, as map_saver writes them."""
+OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
+"""map_saver's thresholds: 205 reads as 0.196, which is not below ``FREE_THRESH``: unknown."""
+MARGIN_CELLS = 2
+"""Unknown cells kept round what was seen."""
+HIT_TOLERANCE = 0.15
+"""How far (m) a beam's end may lie from the map's walls and still be a hit on them: the walls are
+fused from many scans at their optimized poses, each a few centimetres off the raw return."""
+
+
+@dataclass(frozen=True)
+class Beams:
+    """One scan's raw readings and where it was taken in the map (beam i at ``angle_min + i *
+    angle_increment`` in the laser's frame; a reading that is not finite, <= 0 or >= ``range_max``
+    is no return)."""
+
+    pose: Transform2D
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges: Array
+
+
+@dataclass(frozen=True)
+class OccupancyGrid:
+    """Cells ``(rows, cols)`` of ``resolution`` m, row 0 the southernmost; ``origin`` is the
+    south-west corner of cell (0, 0) in the map frame."""
+
+    cells: Array
+    origin: tuple[float, float]
+    resolution: float
+
+    def cell_of(self, points: Array) -> tuple[Array, Array, Array]:
+        """(row, col, inside) of points ``(n, 2)``."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        col = np.floor((p[:, 0] - self.origin[0]) / self.resolution).astype(np.int64)
+        row = np.floor((p[:, 1] - self.origin[1]) / self.resolution).astype(np.int64)
+        inside = (row >= 0) & (row < self.cells.shape[0]) & (col >= 0) & (col < self.cells.shape[1])
+        return row, col, inside
+
+
+def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.05) -> OccupancyGrid:
+    """The grid of the module docstring: free along every beam that ended on a wall, up to a cell
+    short of its end; occupied on ``walls`` ``(n, 4)``; unknown elsewhere. It spans the walls."""
+    if not resolution > 0:
+        raise ValueError(f"resolution must be positive, got {resolution}")
+    walls = np.asarray(walls, dtype=np.float64).reshape(-1, 4)
+    origins, ends = [], []
+    for s in scans:
+        r = np.asarray(s.ranges, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            hit = np.isfinite(r) & (r > 0) & (r < s.range_max)
+        if not hit.any():
+            continue
+        a = s.angle_min + s.angle_increment * np.flatnonzero(hit) + s.pose.theta
+        ends.append(np.column_stack([s.pose.x + r[hit] * np.cos(a), s.pose.y + r[hit] * np.sin(a)]))
+        origins.append(np.repeat([[s.pose.x, s.pose.y]], int(hit.sum()), axis=0))
+    start = np.vstack(origins) if origins else np.zeros((0, 2))
+    end = np.vstack(ends) if ends else np.zeros((0, 2))
+    corners = np.vstack([start[:1], walls.reshape(-1, 2)])  # every beam that counts ends on a wall
+    if len(corners) == 0:
+        return OccupancyGrid(np.full((1, 1), UNKNOWN, dtype=np.int8), (0.0, 0.0), resolution)
+    low = np.floor(corners.min(axis=0) / resolution) - MARGIN_CELLS
+    high = np.floor(corners.max(axis=0) / resolution) + MARGIN_CELLS + 1
+    shape = (int(high[1] - low[1]), int(high[0] - low[0]))
+    grid = OccupancyGrid(
+        np.full(shape, UNKNOWN, dtype=np.int8), (float(low[0] * resolution), float(low[1] * resolution)), resolution
+    )
+    occupied = np.zeros(shape, dtype=bool)
+    for points in _along_walls(walls, resolution):
+        row, col, inside = grid.cell_of(points)
+        occupied[row[inside], col[inside]] = True
+    # a beam frees its path only if it ended on a wall of the map: one that hit a passer-by, a
+    # reading of the sensor's no-return value, or a reflection says nothing of the cells it crossed
+    near = binary_dilation(occupied, iterations=max(1, round(HIT_TOLERANCE / resolution)))
+    row, col, inside = grid.cell_of(end)
+    on_wall = np.zeros(len(end), dtype=bool)
+    on_wall[inside] = near[row[inside], col[inside]]
+    _mark(grid, _along_beams(start[on_wall], end[on_wall], resolution), FREE)
+    grid.cells[occupied] = OCCUPIED
+    return grid
+
+
+def _along_beams(start: Array, end: Array, resolution: float, chunk: int = 200_000) -> Iterable[Array]:
+    """Points every half cell along each beam, up to a cell short of its end, a chunk of beams at a time."""
+    step = resolution / 2
+    for i in range(0, len(start), chunk):
+        s, e = start[i : i + chunk], end[i : i + chunk]
+        length = np.hypot(*(e - s).T)
+        count = np.maximum(np.floor((length - resolution) / step).astype(np.int64), 0)
+        owner = np.repeat(np.arange(len(s)), count)
+        if len(owner) == 0:
+            continue
+        first = np.cumsum(count) - count
+        k = np.arange(len(owner)) - np.repeat(first, count)
+        f = (k * step / np.maximum(length[owner], 1e-12))[:, None]
+        yield s[owner] + f * (e[owner] - s[owner])
+
+
+def _along_walls(walls: Array, resolution: float) -> Iterable[Array]:
+    """Points every half cell along each wall, its ends included."""
+    if len(walls) == 0:
+        return
+    count = np.ceil(lengths(walls) / (resolution / 2)).astype(np.int64) + 1
+    owner = np.repeat(np.arange(len(walls)), count)
+    first = np.cumsum(count) - count
+    f = ((np.arange(len(owner)) - np.repeat(first, count)) / np.maximum(count[owner] - 1, 1))[:, None]
+    yield walls[owner, 0:2] + f * (walls[owner, 2:4] - walls[owner, 0:2])
+
+
+def _mark(grid: OccupancyGrid, chunks: Iterable[Array], value: int) -> None:
+    for points in chunks:
+        row, col, inside = grid.cell_of(points)
+        grid.cells[row[inside], col[inside]] = value
+
+
+def write_map_server(grid: OccupancyGrid, folder: str | Path, name: str = "map") -> tuple[Path, Path]:
+    """``name.pgm`` and ``name.yaml`` in ``folder`` as map_saver writes them (module docstring)."""
+    folder = Path(folder)
+    pixels = np.full(grid.cells.shape, PGM_UNKNOWN, dtype=np.uint8)
+    pixels[grid.cells == FREE] = PGM_FREE
+    pixels[grid.cells == OCCUPIED] = PGM_OCCUPIED
+    image = np.ascontiguousarray(pixels[::-1])  # the image's first row is the grid's northernmost
+    pgm, yaml = folder / f"{name}.pgm", folder / f"{name}.yaml"
+    rows, cols = image.shape
+    pgm.write_bytes(
+        f"P5\n# fleetmap occupancy grid, {grid.resolution} m/pixel\n{cols} {rows}\n255\n".encode() + image.tobytes()
+    )
+    yaml.write_text(
+        f"image: {pgm.name}\n"
+        "mode: trinary\n"
+        f"resolution: {grid.resolution}\n"
+        f"origin: [{grid.origin[0]:.6f}, {grid.origin[1]:.6f}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {OCCUPIED_THRESH}\n"
+        f"free_thresh: {FREE_THRESH}\n",
+        encoding="utf-8",
+    )
+    return pgm, yaml
