@@ -404,30 +404,47 @@ def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, tit
     return report
 
 
-def placed_beams(log: SessionLog) -> list[Beams]:
-    """Every scan of the largest component that carried its raw ranges, at its pose in the global
-    map (its submap's pose composed with its pose in the submap; a scan in two overlapping
+def placed_scans(log: SessionLog) -> dict[tuple[str, int], tuple[int, Transform2D]]:
+    """Every scan of the largest component, by (robot, index): its epoch and its laser pose in the
+    global map (its submap's pose composed with its pose in the submap; a scan in two overlapping
     submaps counts once, from the first)."""
     final = log.final
     main = final.components[0] if final is not None and final.components else None
+    out: dict[tuple[str, int], tuple[int, Transform2D]] = {}
     if main is None:
-        return []
-    out: list[Beams] = []
-    seen: set[tuple[str, int]] = set()
+        return out
     for key in sorted(main.poses):
         m = log.local_maps.get(key)
         if m is None or m.scan_indices is None or m.scan_poses is None:
             continue
         frame = main.poses[key]
         for index, pose in zip(m.scan_indices, m.scan_poses, strict=True):
-            at = (m.robot, int(index))
-            ranges = log.ranges.get(at)
-            if ranges is None or at in seen:
-                continue
-            seen.add(at)
-            placed = frame.compose(Transform2D.from_array(pose))
-            out.append(Beams(placed, ranges.angle_min, ranges.angle_increment, ranges.range_max, ranges.ranges))
+            out.setdefault((m.robot, int(index)), (m.epoch, frame.compose(Transform2D.from_array(pose))))
     return out
+
+
+def placed_beams(log: SessionLog) -> list[Beams]:
+    """The raw ranges of every placed scan that carried them (:func:`placed_scans`), at its pose."""
+    out: list[Beams] = []
+    for at, (_, pose) in sorted(placed_scans(log).items()):
+        r = log.ranges.get(at)
+        if r is not None:
+            out.append(Beams(pose, r.angle_min, r.angle_increment, r.range_max, r.ranges))
+    return out
+
+
+def robot_paths(log: SessionLog) -> dict[str, Array]:
+    """Each robot's placed laser positions ``(n, 2)`` in scan order, a NaN row where its epoch
+    changes (a kidnapped robot does not drive from where it was taken to where it was put)."""
+    rows: dict[str, list[tuple[float, float]]] = {}
+    last: dict[str, int] = {}
+    for (robot, _), (epoch, pose) in sorted(placed_scans(log).items()):
+        path = rows.setdefault(robot, [])
+        if robot in last and last[robot] != epoch:
+            path.append((math.nan, math.nan))
+        last[robot] = epoch
+        path.append((pose.x, pose.y))
+    return {robot: np.asarray(xy, dtype=np.float64) for robot, xy in rows.items()}
 
 
 def occupancy_of(log: SessionLog) -> OccupancyGrid:
@@ -451,8 +468,7 @@ def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -
         world = _world_global(log, truth, final, 0)
         if world is not None:
             walls = world.inverse().apply(np.asarray(truth.scenario.world.walls))
-    robots = sorted({parse_submap_key(k)[0] for k in maps})
-    colors = {k: robots.index(parse_submap_key(k)[0]) for k in maps}
+    groups = {k: parse_submap_key(k)[0] for k in maps}
     notes = []
     if final is not None and len(final.components) > 1:
         notes.append(
@@ -467,7 +483,8 @@ def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -
         fused=np.asarray(main.segments) if main is not None else None,
         notes=notes,
         title=title,
-        colors=colors,
+        groups=groups,
+        paths=robot_paths(log),
     )
 
 
