@@ -154,3 +154,21 @@ def test_every_command_is_listed_and_a_misspelt_one_is_refused_naming_them() -> 
     with pytest.raises(SystemExit) as done:
         main(["-v", "integrate", "--help"])
     assert done.value.code == 0
+
+
+@pytest.mark.parametrize(
+    ("command", "flag", "says"),
+    [
+        ("merger", "--state", "does not exist (--state)"),
+        ("record", "--out", "does not exist (--out)"),
+    ],
+)
+def test_a_service_told_to_write_into_a_missing_folder_exits_2_before_it_starts(
+    tmp_path: Path, command: str, flag: str, says: str
+) -> None:
+    # checked at start (under restart: unless-stopped, a service that dies at its first write
+    # crash-loops), before any zenoh session opens
+    target = tmp_path / "nowhere" / "file"
+    r = fleetmap(command, flag, str(target), "--listen", "tcp/127.0.0.1:1")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and str(target) in lines[0] and says in lines[0], r.stderr

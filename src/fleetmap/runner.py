@@ -188,6 +188,7 @@ class Session:
                     "record",
                     "--out",
                     str(out / "session.mcap"),
+                    "--overwrite",  # the run's own folder: a new run replaces its outputs
                     "--config",
                     str(config_file),
                     "--scenario",

@@ -333,3 +333,28 @@ def test_a_killed_recorder_leaves_a_file_with_everything_but_its_last_second(tmp
     messages = [(m.topic, m.payload) for m in reader.messages()]
     assert [m for m in messages if not m[0].startswith(("fleet/t/alive/", "fleet/t/services/"))] == fed
     assert reader.report.warning is not None
+
+
+@pytest.mark.slow
+def test_a_recorder_restarted_twice_leaves_three_readable_files(tmp_path):
+    # what docker's restart: unless-stopped does to a recorder that dies: every start gets a file of
+    # its own beside the last, and each holds what was published while it ran
+    out = tmp_path / "session.mcap"
+    feeds = [fleet_traffic(robots=1, scans=k + 1) for k in range(3)]
+    for fed in feeds:
+        endpoint = free_loopback_endpoint()
+        process = start_record(out, endpoint)
+        try:
+            publish_to_recorder(endpoint, fed)
+            process.send_signal(signal.SIGTERM)
+            _, stderr = process.communicate(timeout=WAIT)
+        finally:
+            process.kill()
+        assert process.returncode == 0, stderr
+    files = [out, tmp_path / "session-1.mcap", tmp_path / "session-2.mcap"]
+    assert sorted(tmp_path.iterdir()) == sorted(files)
+    for path, fed in zip(files, feeds, strict=True):
+        reader = RecordingReader(path)
+        assert reader.complete
+        messages = [(m.topic, m.payload) for m in reader.messages()]
+        assert [m for m in messages if not m[0].startswith(("fleet/t/alive/", "fleet/t/services/"))] == fed

@@ -32,7 +32,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "SIGINT or SIGTERM (or --duration), then finishes the file and prints messages per topic. The "
         "file is flushed every half second, so a crash loses at most about a second.",
     )
-    p.add_argument("--out", required=True, metavar="FILE", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="FILE",
+        help="the MCAP file to write; if it exists, the next free numbered one beside it (session-1.mcap, ...): "
+        "a restarted recorder never overwrites a recording",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
     p.add_argument("--config", metavar="FILE", help="the fleet's TOML config, stored in the file (default: defaults)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument(
@@ -51,7 +58,9 @@ def run(args: argparse.Namespace) -> int:
     options = zenoh_options_from_args(args)
     config = zenoh_config(options)
     fleet_config = load_config(args.config)
-    out = Path(args.out)
+    out = recording_path(Path(args.out), args.overwrite)
+    if out != Path(args.out):
+        print(f"{args.out} exists: recording to {out}", file=sys.stderr)
     metadata = {
         "fleetmap.session": {
             "fleet": options.fleet,
@@ -85,3 +94,19 @@ def run(args: argparse.Namespace) -> int:
     if summary.total_malformed:
         print(f"{summary.total_malformed} malformed messages recorded raw (no Foxglove view)")
     return 0
+
+
+def recording_path(out: Path, overwrite: bool = False) -> Path:
+    """Where to record: ``out``, or where it exists (and ``overwrite`` is not given) the first of
+    ``<stem>-1<suffix>``, ``<stem>-2<suffix>``, ... that does not: a recorder that restarts
+    (``restart: unless-stopped``) starts a new file beside the last. Its folder must exist."""
+    if not out.parent.is_dir():
+        raise BadInput(str(out), f"its folder {out.parent} does not exist (--out)")
+    if out.is_dir():
+        raise BadInput(str(out), "is a directory (--out names the MCAP file)")
+    if overwrite or not out.exists():
+        return out
+    n = 1
+    while (candidate := out.with_name(f"{out.stem}-{n}{out.suffix}")).exists():
+        n += 1
+    return candidate
