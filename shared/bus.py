@@ -52,6 +52,14 @@ LOGGED_ERRORS = 10
 LOG_EVERY = 1000
 
 
+FIRST_RETRY = 0.5
+"""Seconds before a service tries a router that did not answer again; each wait doubles ..."""
+LAST_RETRY = 8.0
+"""... up to this."""
+UNREACHABLE = "Unable to connect"
+"""What zenoh says when no --connect endpoint answers (retried; anything else fails at once)."""
+
+
 class BusError(FleetmapError):
     """The bus cannot do what was asked: the session could not open, or it is closed."""
 
@@ -247,10 +255,27 @@ class ZenohBus(_BusBase):
     def open(cls, options: ZenohOptions | zenoh.Config) -> ZenohBus:
         """Open a session from the shared flags (or a ready zenoh.Config)."""
         config = zenoh_config(options) if isinstance(options, ZenohOptions) else options
-        try:
-            session = zenoh.open(config)
-        except zenoh.ZError as exc:
-            raise BusError(f"cannot open a zenoh session ({describe(config)}): {_short(exc)}") from None
+        wait = options.connect_wait if isinstance(options, ZenohOptions) and options.connect else 0.0
+        deadline = time.monotonic() + wait
+        pause = FIRST_RETRY
+        while True:
+            try:
+                session = zenoh.open(config)
+                break
+            except zenoh.ZError as exc:
+                left = deadline - time.monotonic()
+                if left <= 0 or UNREACHABLE not in str(exc) or not isinstance(options, ZenohOptions):
+                    raise BusError(f"cannot open a zenoh session ({describe(config)}): {_short(exc)}") from None
+                pause = min(pause, left)
+                log.warning(
+                    "nothing answers at %s yet; trying again in %.1f s (for %.0f s more, --connect-wait)",
+                    ", ".join(options.connect),
+                    pause,
+                    left,
+                )
+                time.sleep(pause)  # nothing else to do until the router answers
+                pause = min(2 * pause, LAST_RETRY)
+                config = zenoh_config(options)  # a zenoh.Config is consumed by zenoh.open
         log.info("zenoh session %s open: %s", session.zid(), describe(config))
         return cls(session)
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +43,8 @@ LEASE_MS = 2000
 """A session that stops answering for this long is considered gone (its liveliness tokens leave)."""
 KEEP_ALIVE = 4
 """Keep-alive messages per lease period."""
+CONNECT_WAIT = 60.0
+"""Seconds a service keeps trying its ``--connect`` endpoints at start (``--connect-wait``)."""
 
 
 @dataclass(frozen=True)
@@ -53,18 +56,23 @@ class ZenohOptions:
     listen: tuple[str, ...] = ()
     config_file: str | None = None
     fleet: str = DEFAULT_FLEET
+    connect_wait: float = CONNECT_WAIT
+    """How long (s) to keep trying the ``connect`` endpoints when none answers at start (a router
+    that is not up yet); 0: fail at once."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
             raise BadInput("--mode", f"expected one of {', '.join(MODES)}, got {self.mode!r}")
         check_name(self.fleet, "--fleet")
+        if not (self.connect_wait >= 0 and math.isfinite(self.connect_wait)):
+            raise BadInput("--connect-wait", f"must be a number of seconds, 0 or more, got {self.connect_wait}")
 
     @property
     def keys(self) -> FleetKeys:
         return FleetKeys(self.fleet)
 
     def with_mode(self, mode: str) -> ZenohOptions:
-        return ZenohOptions(mode, self.connect, self.listen, self.config_file, self.fleet)
+        return ZenohOptions(mode, self.connect, self.listen, self.config_file, self.fleet, self.connect_wait)
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True, fleet: bool = True) -> None:
@@ -86,6 +94,14 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True, f
         metavar="ENDPOINT",
         help=f"endpoint to listen on (repeatable; peers default to {LOOPBACK_ANY_PORT}, routers to {DEFAULT_ENDPOINT})",
     )
+    group.add_argument(
+        "--connect-wait",
+        type=float,
+        default=CONNECT_WAIT,
+        metavar="S",
+        help="keep trying --connect for up to S seconds at start, backing off, while nothing answers (a router "
+        f"not up yet); 0: fail at once (default {CONNECT_WAIT:g})",
+    )
     group.add_argument("--zenoh-config", metavar="FILE", default=None, help="a zenoh config file (json5)")
     if fleet:
         group.add_argument(
@@ -103,6 +119,7 @@ def zenoh_options_from_args(args: argparse.Namespace) -> ZenohOptions:
         listen=tuple(getattr(args, "listen", ()) or ()),
         config_file=getattr(args, "zenoh_config", None),
         fleet=getattr(args, "fleet", DEFAULT_FLEET),
+        connect_wait=getattr(args, "connect_wait", CONNECT_WAIT),
     )
 
 

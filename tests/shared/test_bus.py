@@ -7,6 +7,7 @@ connecting to it; the slow ones run the other side in a child process and kill i
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -376,3 +377,13 @@ def test_clients_talk_through_a_fleetmap_router_that_stops_on_sigterm():
     finally:
         router.kill()
         router.wait()
+
+
+def test_a_client_whose_router_never_answers_says_so_then_gives_up(caplog: pytest.LogCaptureFixture) -> None:
+    endpoint = free_loopback_endpoint()  # nothing listens there
+    with caplog.at_level(logging.WARNING), pytest.raises(BusError, match="Unable to connect"):
+        ZenohBus.open(ZenohOptions(mode="client", connect=(endpoint,), connect_wait=1.0))
+    waits = [r.getMessage() for r in caplog.records if "nothing answers" in r.getMessage()]
+    assert waits and all(endpoint in w for w in waits)
+    with pytest.raises(BadInput, match="--connect-wait"):
+        ZenohOptions(connect_wait=-1.0)
