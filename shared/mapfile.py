@@ -20,6 +20,10 @@ from fleetmap.shared.geometry import Array, lengths
 
 MIN_SEGMENT_LENGTH = 1e-6
 """Segments shorter than this (m) are zero-length: a map file containing one is rejected."""
+MAX_COORDINATE = 1e6
+"""No coordinate of a map lies farther than this (m, a thousand kilometres) from its origin: a laser
+map spans a building or a site; beyond, a number is a unit or encoding mistake (and its squares
+overflow)."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,10 @@ def as_segments(value: Any, source: str, *, allow_empty: bool = False) -> Array:
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise BadInput(source, f"segment {i} has a NaN or infinite coordinate: {arr[i].tolist()}")
+    far = (np.abs(arr) > MAX_COORDINATE).any(axis=1)
+    if far.any():
+        i = int(np.flatnonzero(far)[0])
+        raise BadInput(source, f"segment {i} lies beyond {MAX_COORDINATE:g} m of the origin: {arr[i].tolist()}")
     short = lengths(arr) < MIN_SEGMENT_LENGTH
     if short.any():
         i = int(np.flatnonzero(short)[0])

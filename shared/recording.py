@@ -369,9 +369,16 @@ class RecordingReader:
         return ReadReport(self.source, self.complete, self._messages, self._bytes_read, self._size)
 
     def messages(
-        self, *, topics: Iterable[str] | None = None, start_time: int | None = None, end_time: int | None = None
+        self,
+        *,
+        topics: Iterable[str] | None = None,
+        start_time: int | None = None,
+        end_time: int | None = None,
+        warn: bool = True,
     ) -> Iterator[RecordedMessage]:
-        """Raw messages with ``start_time <= log_time < end_time`` (ns), on ``topics`` if given."""
+        """Raw messages with ``start_time <= log_time < end_time`` (ns), on ``topics`` if given; a
+        recording that ends abruptly is logged at WARNING once read (unless ``warn`` is False: the
+        caller says it, ``report.warning``)."""
         self._messages = 0
         wanted = set(topics) if topics is not None else None
         records = self._indexed() if self.complete else self._streamed()
@@ -384,7 +391,7 @@ class RecordingReader:
                 continue
             self._messages += 1
             yield RecordedMessage(channel.topic, message.data, message.log_time, message.publish_time, message.sequence)
-        if not self.complete:
+        if not self.complete and warn:
             log.warning("%s", self.report.warning)
 
     def _indexed(self) -> Iterator[tuple[Channel, Message]]:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,6 +134,9 @@ def _insert(config: zenoh.Config, key: str, value: Any, source: str) -> None:
 def _first_line(exc: Exception) -> str:
     """zenoh's error text without the Rust source locations it appends."""
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    inner = re.search(r'msg: "([^"]*)', text)  # a Rust error structure: Json5Err(Message { msg: "..." ... })
+    if inner:
+        text = inner.group(1)
     return text.split(" at /")[0][:300]
 
 

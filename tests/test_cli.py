@@ -172,3 +172,22 @@ def test_a_service_told_to_write_into_a_missing_folder_exits_2_before_it_starts(
     r = fleetmap(command, flag, str(target), "--listen", "tcp/127.0.0.1:1")
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and str(target) in lines[0] and says in lines[0], r.stderr
+
+
+def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path) -> None:
+    # no exception names, no Rust error structures, no numpy warnings: one line naming the fault
+    (tmp_path / "a-file").write_text("")
+    huge = tmp_path / "huge.json"
+    huge.write_text(json.dumps({"segments": [[0, 0, 1e308, 0], [0, 1, 2, 3]], "ordered": False}))
+    scan = str(EXAMPLES / "scan_a.json")
+    cases = [
+        (["merge", scan, scan.replace("_a", "_b"), "--plot", str(tmp_path / "nowhere" / "g.png")], "does not exist"),
+        (["run", "--out", str(tmp_path / "a-file" / "run")], "cannot be made a folder (--out)"),
+        (["router", "--listen", "bogus"], "--listen bogus: Endpoints must be of the form"),
+        (["integrate", str(huge), scan], "segment 0 lies beyond 1e+06 m of the origin"),
+    ]
+    for args, says in cases:
+        r = fleetmap(*args)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and says in lines[0], (args, r.stderr)
+        assert "Error" not in lines[0] and "Warning" not in lines[0] and "Message {" not in lines[0], lines[0]

@@ -28,6 +28,7 @@ from fleetmap.shared.config import FleetmapConfig, apply_overrides
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode
+from fleetmap.shared.outputs import output_folder
 from fleetmap.shared.recording import RecordedMessage, RecordingReader
 
 log = logging.getLogger(__name__)
@@ -102,10 +103,8 @@ def replay(
         raise BadInput(source, "no such file")
     with RecordingReader(path) as reader:
         meta = reader.metadata()
-        recorded = list(reader.messages())
+        recorded = list(reader.messages(warn=False))
         warning = reader.report.warning
-    if warning:
-        log.warning("%s", warning)
     fleet = meta.get("fleetmap.session", {}).get("fleet", "default")
     keys = FleetKeys(fleet)
     config = opts.config or _metadata_config(meta)
@@ -127,6 +126,17 @@ def replay(
             decoded.append((m, decode(m.payload)))
         except BadMessage:
             session.malformed += 1
+    if not decoded:
+        why = f" ({warning.removeprefix(source + ': ')})" if warning else ""
+        raise BadInput(source, f"holds no fleetmap message of fleet {fleet!r}{why}")
+    if warning:
+        log.warning("%s", warning)
+    if opts.robots is not None:
+        present = {r for _, msg in decoded if (r := getattr(msg, "robot", None)) is not None}
+        if missing := sorted(opts.robots - present):
+            listed = ", ".join(sorted(present)) or "none"
+            raise BadInput("--robots", f"no robot {', '.join(missing)} in {source} (its robots: {listed})")
+    output_folder(out_dir, "--out")
     # A merger restored from its state publishes its last step again (Merger.where_it_stands):
     # the same bytes, fed once.
     steps: list[MergerStep] = []

@@ -81,6 +81,19 @@ def test_bad_replay_inputs_exit_2(tmp_path: Path) -> None:
     assert r.returncode == 2 and "junk.mcap" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
+def test_a_replay_of_nothing_or_of_robots_not_there_exits_2_with_one_line(live: Path, tmp_path: Path) -> None:
+    # the first 100 bytes of a real recording: a valid start, no message
+    stub = tmp_path / "stub.mcap"
+    stub.write_bytes((live / "session.mcap").read_bytes()[:100])
+    r = fleetmap("replay", str(stub), "--out", str(tmp_path / "a"))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "stub.mcap: holds no fleetmap message" in lines[0], r.stderr
+    r = fleetmap("replay", str(live / "session.mcap"), "--out", str(tmp_path / "b"), "--robots", "r1,nosuch")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "no robot nosuch" in lines[0] and "r1, r2, r3" in lines[0]
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
 def _relative(poses: dict[str, Transform2D], ref: str) -> dict[str, Transform2D]:
     base = poses[ref].inverse()
     return {k: base.compose(p) for k, p in poses.items()}

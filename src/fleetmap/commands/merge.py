@@ -14,6 +14,7 @@ from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.mapfile import SegmentMap, read_map
+from fleetmap.shared.outputs import output_file
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,6 +40,9 @@ def _pose(t: Transform2D | None) -> dict[str, float] | None:
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
+    for path, flag in ((args.out, "--out"), (args.plot, "--plot")):
+        if path:
+            output_file(path, flag)
     names: list[str] = list(args.maps)
     if len(set(names)) != len(names):
         raise BadInput("command line", "the same map file is given twice")

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 
 from fleetmap.merger.service import STEP_SECONDS, Merger, MergerService
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import add_config_arguments, config_from_args
-from fleetmap.shared.errors import BadInput
+from fleetmap.shared.outputs import output_file
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -43,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     options = zenoh_options_from_args(args)
     merger = Merger(options.keys, config)
     if args.state:
-        check_state_path(Path(args.state))
+        output_file(args.state, "--state")
     if args.state and Path(args.state).exists():
         merger.load_state(args.state)
         log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
@@ -64,17 +63,3 @@ def run(args: argparse.Namespace) -> int:
         s.malformed,
     )
     return 0
-
-
-def check_state_path(path: Path) -> None:
-    """A state file the merger can write after every step: checked at start, not at its first
-    step (a merger that dies there under ``restart: unless-stopped`` crash-loops)."""
-    if path.is_dir():
-        raise BadInput(str(path), "is a directory (--state names the file)")
-    folder = path.parent
-    if not folder.is_dir():
-        raise BadInput(str(path), f"its folder {folder} does not exist (--state)")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise BadInput(str(path), f"its folder {folder} is not writable (--state)")
-    if path.exists() and not os.access(path, os.R_OK):
-        raise BadInput(str(path), "cannot be read (--state)")

@@ -15,6 +15,7 @@ from fleetmap.scenarios import load_scenario
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import load_config
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.outputs import output_file
 from fleetmap.shared.recording import RecordingWriter, config_metadata
 from fleetmap.shared.zenoh_config import describe, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
@@ -100,10 +101,7 @@ def recording_path(out: Path, overwrite: bool = False) -> Path:
     """Where to record: ``out``, or where it exists (and ``overwrite`` is not given) the first of
     ``<stem>-1<suffix>``, ``<stem>-2<suffix>``, ... that does not: a recorder that restarts
     (``restart: unless-stopped``) starts a new file beside the last. Its folder must exist."""
-    if not out.parent.is_dir():
-        raise BadInput(str(out), f"its folder {out.parent} does not exist (--out)")
-    if out.is_dir():
-        raise BadInput(str(out), "is a directory (--out names the MCAP file)")
+    output_file(out, "--out")
     if overwrite or not out.exists():
         return out
     n = 1

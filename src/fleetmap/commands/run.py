@@ -11,6 +11,7 @@ from fleetmap.runner import Session
 from fleetmap.scenarios import DEFAULT_SCENARIO, load_scenario
 from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.outputs import output_folder
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     if not args.speed > 0:
         raise BadInput("--speed", f"must be positive, got {args.speed}")
-    out = Path(args.out) if args.out else Path("runs") / scenario.name
+    out = output_folder(Path(args.out) if args.out else Path("runs") / scenario.name, "--out")
     session = Session(scenario, out, config, speed=args.speed, fleet=args.fleet, progress=not args.no_progress)
     report = session.run()
     if args.json:
