@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import subprocess
@@ -191,3 +192,20 @@ def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and says in lines[0], (args, r.stderr)
         assert "Error" not in lines[0] and "Warning" not in lines[0] and "Message {" not in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_reads_usage_first_and_says_what_each_flag_is(command: str) -> None:
+    parser = build_parser(command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    text = sub.format_help()
+    usage = text.split("\n\n")[0]
+    assert usage.startswith(f"usage: fleetmap {command}") and usage.endswith("[options]") and len(usage) < 200, usage
+    for action in sub._actions:
+        if action.option_strings and not isinstance(action, argparse._HelpAction):
+            assert action.help and not action.help.startswith("default"), (command, action.option_strings)
+    if command == "run":
+        from fleetmap.scenarios.loader import list_scenarios
+
+        flat = " ".join(text.split())
+        assert all(name in flat for name in list_scenarios())

@@ -37,7 +37,32 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name)
         else:
             importlib.import_module(f"fleetmap.commands.{name}").register(sub)
+            short_usage(sub.choices[name])
     return parser
+
+
+def short_usage(p: argparse.ArgumentParser) -> None:
+    """A usage line a person can read: the positionals, the required options, then [options] (the
+    command's dozens of algorithm parameters are listed, grouped, below it)."""
+    parts = [p.prog]
+    grouped: set[argparse.Action] = set()
+    for group in p._mutually_exclusive_groups:
+        if group.required:
+            grouped.update(group._group_actions)
+            parts.append(
+                "("
+                + " | ".join(f"{a.option_strings[-1]} {a.metavar or a.dest.upper()}" for a in group._group_actions)
+                + ")"
+            )
+    for a in p._actions:
+        if a in grouped or isinstance(a, argparse._HelpAction):
+            continue
+        if not a.option_strings:
+            name = str(a.metavar or a.dest)
+            parts.append({"+": f"{name} [{name} ...]", "?": f"[{name}]", "*": f"[{name} ...]"}.get(str(a.nargs), name))
+        elif a.required:
+            parts.append(f"{a.option_strings[-1]} {a.metavar or a.dest.upper()}")
+    p.usage = " ".join([*parts, "[options]"])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

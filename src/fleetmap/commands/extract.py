@@ -23,7 +23,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         '{"stamp", "segments": [[x1, y1, x2, y2], ...], "ordered": true}.',
     )
     p.add_argument("input", help="a CARMEN log (plain or .gz) or a ranges JSONL file")
-    p.add_argument("--format", choices=("carmen", "ranges-jsonl"), required=True)
+    p.add_argument(
+        "--format",
+        choices=("carmen", "ranges-jsonl"),
+        required=True,
+        help="what the input is: a CARMEN log, or ranges JSONL (one range scan per line)",
+    )
     p.add_argument("--out", required=True, help="output JSONL file ('-' for stdout)")
     p.add_argument(
         "--range-max",

@@ -26,29 +26,31 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(robot,stamp,component,x,y,theta: every scan that got a pose, "
         "its stamp as the input gives it) and one TUM trajectory per robot (<robot>.tum) into --out.",
     )
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS bag or a ranges JSONL file")
-    p.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
-    p.add_argument("--split", type=int, default=1, metavar="K", help="cut each input into K robots (default 1)")
-    p.add_argument(
+    given = p.add_argument_group("input")
+    given.add_argument("inputs", nargs="+", metavar="INPUT", help="a CARMEN log, a ROS bag or a ranges JSONL file")
+    given.add_argument("--split", type=int, default=1, metavar="K", help="cut each input into K robots (default 1)")
+    given.add_argument(
         "--topic",
         default=None,
         help="ROS bags: the sensor_msgs/LaserScan topic (default: the bag's one LaserScan topic, /scan if several)",
     )
-    p.add_argument(
+    given.add_argument(
         "--odometry-topic",
         default=None,
         metavar="TOPIC",
         help="ROS bags: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
     )
-    p.add_argument(
+    given.add_argument(
         "--range-max",
         type=float,
         default=math.inf,
         metavar="R",
         help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
     )
-    p.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
-    p.add_argument("--no-progress", action="store_true")
+    made = p.add_argument_group("output")
+    made.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
+    made.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
+    made.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p, ["extraction", "integration", "tracking", "merge"])
     p.set_defaults(func=run)
 

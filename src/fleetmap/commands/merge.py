@@ -26,7 +26,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "paper's methods (IV) for maps given in sequence order. Poses are in the frame of the anchor map.",
     )
     p.add_argument("maps", nargs="+", metavar="MAP", help="map files (JSON)")
-    p.add_argument("--order", choices=("unknown", "sequential", "tree", "pivot"), default="unknown")
+    p.add_argument(
+        "--order",
+        choices=("unknown", "sequential", "tree", "pivot"),
+        default="unknown",
+        help="unknown: the map graph finds the merge order (default); or the paper's sequential, tree or pivot "
+        "merging of the maps in the order given",
+    )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--out", metavar="GLOBAL.json", help="write the merged map (largest component) with poses")
     p.add_argument("--plot", metavar="GLOBAL.png", help="draw the merged map, each input map in its colour")

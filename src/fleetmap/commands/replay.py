@@ -24,13 +24,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--robots replay part of it. A recording cut short by a crash replays up to its last complete chunk.",
     )
     p.add_argument("session", metavar="SESSION.mcap")
-    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--out", required=True, metavar="DIR", help="the output folder (made if needed)")
     p.add_argument("--speed", type=float, default=0.0, help="0 (default): as fast as possible; 1: recorded pace")
     p.add_argument("--from", dest="start", type=float, default=None, metavar="T", help="seconds from the start")
     p.add_argument("--to", dest="stop", type=float, default=None, metavar="T", help="seconds from the start")
     p.add_argument("--robots", default=None, help="comma-separated robot names, e.g. r1,r3")
     p.add_argument("--json", action="store_true", help="print report.json instead of the summary")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_arguments(p, ["integration", "merge"])
     p.set_defaults(func=run)
 

@@ -9,6 +9,7 @@ from pathlib import Path
 from fleetmap.report import summary_table
 from fleetmap.runner import Session
 from fleetmap.scenarios import DEFAULT_SCENARIO, load_scenario
+from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.outputs import output_folder
@@ -24,7 +25,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(the occupancy grid map_server loads), report.json, config.toml and scenario.toml.",
     )
     p.add_argument(
-        "scenario", nargs="?", default=DEFAULT_SCENARIO, help=f"bundled name or file (default {DEFAULT_SCENARIO})"
+        "scenario",
+        nargs="?",
+        default=DEFAULT_SCENARIO,
+        help=f"a bundled scenario ({', '.join(list_scenarios())}) or a scenario .toml (default {DEFAULT_SCENARIO})",
     )
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default runs/<scenario>)")
     p.add_argument("--speed", type=float, default=2.0, help="scenario seconds per wall second (default 2)")
