@@ -46,7 +46,7 @@ from fleetmap.shared.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.recording import RecordingWriter, foxglove_views, seconds_to_ns
+from fleetmap.shared.recording import FoxgloveScene, RecordingWriter, seconds_to_ns
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +158,7 @@ class Recorder:
         self._keys = keys
         self._flush_interval_ns = int(flush_interval * 1e9)
         self._foxglove = foxglove
+        self._scene = FoxgloveScene()
         self._lock = threading.Lock()
         self._counts = _Counts()
         self._last_log_time = 0
@@ -247,7 +248,7 @@ class Recorder:
         return self._last_log_time
 
     def _write_views(self, message: Message, key: str, log_time: int, publish_time: int) -> None:
-        for view in foxglove_views(message, key):
+        for view in self._scene.views(message, key):
             self._writer.write_foxglove(view.topic, view.schema, view.data, log_time, publish_time)
             self._counts.foxglove += 1
 

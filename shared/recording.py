@@ -35,17 +35,20 @@ import numpy as np
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, RobotPose, Scan
+from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, Scan
 from fleetmap.shared.messages import Message as FleetMessage
 from foxglove import Schema
 from foxglove.messages import (
     Color,
     FrameTransform,
+    LaserScan,
     LinePrimitive,
     LinePrimitiveLineType,
     Log,
     LogLevel,
     Point3,
+    Pose,
+    PosesInFrame,
     Quaternion,
     SceneEntity,
     SceneEntityDeletion,
@@ -76,6 +79,14 @@ MAGIC = b"\x89MCAP0\r\n"
 SCENE_UPDATE: Schema = SceneUpdate.get_schema()
 FRAME_TRANSFORM: Schema = FrameTransform.get_schema()
 LOG: Schema = Log.get_schema()
+LASER_SCAN: Schema = LaserScan.get_schema()
+POSES_IN_FRAME: Schema = PosesInFrame.get_schema()
+ROOT_FRAME = "fleet"
+"""The frame every other reaches: component 0's frame sits on it, the other components beside it."""
+COMPONENT_GAP = 5.0
+"""Metres between components laid side by side in the root frame (their relation is unknown)."""
+PATH_POSES = 1000
+"""The most poses a robot's drawn path holds (evenly thinned beyond)."""
 
 PALETTE = (
     (0.12, 0.47, 0.71),
@@ -244,9 +255,34 @@ def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
                 robot_color(message.robot, 0.5),
                 1.0,
             )
-            return [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
+            views = [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
+            if message.ranges is not None:
+                r = message.ranges
+                n = len(r.ranges)
+                with np.errstate(invalid="ignore"):
+                    seen = np.where(np.isfinite(r.ranges) & (r.ranges > 0) & (r.ranges < r.range_max), r.ranges, np.nan)
+                laser = LaserScan(
+                    timestamp=_timestamp(message.stamp),
+                    frame_id=message.robot,
+                    pose=_pose3(Transform2D()),
+                    start_angle=r.angle_min,
+                    end_angle=r.angle_min + (n - 1) * r.angle_increment,
+                    ranges=seen.tolist(),
+                    intensities=[],
+                )
+                views.append(FoxgloveView(topic + "/laser", LASER_SCAN, laser.encode()))
+            if message.submap is not None and message.pose is not None:
+                # the robot's frame hangs on the submap that placed its scan (global -> submap -> robot)
+                parent = f"{message.robot}/{message.epoch}/{message.submap}"
+                views.append(
+                    FoxgloveView(
+                        TF_TOPIC, FRAME_TRANSFORM, _frame_transform(parent, message.robot, message.pose, message.stamp)
+                    )
+                )
+            return views
         case LocalMap():
-            entity = _entity(message.key, message.key, message.stamp, message.segments, robot_color(message.robot), 2.0)
+            frame = message.submap_key
+            entity = _entity(frame, frame, message.stamp, message.segments, robot_color(message.robot), 2.0)
             return [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
         case GlobalMap():
             white = Color(r=0.9, g=0.9, b=0.9, a=1.0)
@@ -257,19 +293,85 @@ def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
             # components merge and reorder: drop the previous global map's entities first
             drop = SceneEntityDeletion(timestamp=_timestamp(message.stamp), type=SceneEntityDeletionType.All)
             views = [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(deletions=[drop], entities=entities).encode())]
+            for i, offset in enumerate(_side_by_side(message)):
+                data = _frame_transform(ROOT_FRAME, component_frame(i), offset, message.stamp)
+                views.append(FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data))
             for i, component in enumerate(message.components):
                 for member, pose in component.poses.items():
                     data = _frame_transform(component_frame(i), member, pose, message.stamp)
                     views.append(FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data))
             return views
-        case RobotPose(pose=Transform2D() as pose, component=int() as component):
-            data = _frame_transform(component_frame(component), message.robot, pose, message.stamp)
-            return [FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data)]
         case FleetEvent():
             text = f"{message.kind} {message.robot or ''} {message.detail}".strip()
             entry = Log(timestamp=_timestamp(message.stamp), level=LogLevel.Info, message=text, name="fleetmap")
             return [FoxgloveView(topic, LOG, entry.encode())]
-    return []  # an unknown pose (never drawn as a guess) and merge edges have no view
+    # a robot's pose is drawn by its scans (its frame on its submap's); merge edges have no view
+    return []
+
+
+def _pose3(pose: Transform2D) -> Pose:
+    half = pose.theta / 2.0
+    return Pose(
+        position=Vector3(x=pose.x, y=pose.y, z=0.0),
+        orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)),
+    )
+
+
+def _side_by_side(message: GlobalMap) -> list[Transform2D]:
+    """Where each component's frame sits in the root frame: the first at its origin, each other to
+    the right of the one before, ``COMPONENT_GAP`` apart (how they relate is not known: that is why
+    they are separate)."""
+    out: list[Transform2D] = []
+    right = 0.0
+    for i, c in enumerate(message.components):
+        seg = np.asarray(c.segments).reshape(-1, 2)
+        low, high = (float(seg[:, 0].min()), float(seg[:, 0].max())) if len(seg) else (0.0, 0.0)
+        x = 0.0 if i == 0 else right + COMPONENT_GAP - low
+        out.append(Transform2D(x, 0.0, 0.0))
+        right = x + high
+    return out
+
+
+class FoxgloveScene:
+    """The Foxglove views of a session's messages in bus order (:func:`foxglove_views`), and what
+    takes the session so far: each robot's path in its component (``PosesInFrame`` on
+    ``/foxglove/<fleet>/paths/<robot>``), drawn at every global map from the scans its submaps
+    hold, at their submaps' poses there."""
+
+    def __init__(self) -> None:
+        self._tables: dict[str, tuple[Array, Array]] = {}
+
+    def views(self, message: FleetMessage, key: str) -> list[FoxgloveView]:
+        out = foxglove_views(message, key)
+        if isinstance(message, LocalMap) and message.scan_indices is not None and message.scan_poses is not None:
+            self._tables[message.submap_key] = (np.asarray(message.scan_indices), np.asarray(message.scan_poses))
+        elif isinstance(message, GlobalMap):
+            prefix = key.rsplit("/", 2)[0] if key.count("/") >= 2 else key
+            out += self._paths(message, prefix)
+        return out
+
+    def _paths(self, message: GlobalMap, prefix: str) -> list[FoxgloveView]:
+        paths: dict[tuple[str, int], dict[int, Transform2D]] = {}
+        for i, component in enumerate(message.components):
+            for member, frame in component.poses.items():
+                table = self._tables.get(member)
+                if table is None:
+                    continue
+                robot = member.split("/", 1)[0]
+                placed = paths.setdefault((robot, i), {})
+                for index, pose in zip(table[0].tolist(), table[1], strict=True):
+                    placed.setdefault(int(index), frame.compose(Transform2D.from_array(pose)))
+        out = []
+        for (robot, i), placed in sorted(paths.items()):
+            order = sorted(placed)
+            keep = order[:: max(1, -(-len(order) // PATH_POSES))]
+            drawn = PosesInFrame(
+                timestamp=_timestamp(message.stamp),
+                frame_id=component_frame(i),
+                poses=[_pose3(placed[k]) for k in keep],
+            )
+            out.append(FoxgloveView(f"{FOXGLOVE_PREFIX}{prefix}/paths/{robot}", POSES_IN_FRAME, drawn.encode()))
+        return out
 
 
 # --- reader ---

@@ -7,11 +7,16 @@ import json
 import math
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
 from fleetmap.scenarios import load_scenario, scenario_to_toml
 from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.recording import ROOT_FRAME
+from mcap.reader import make_reader
+
+from tests.protobuf_wire import Schema
 
 pytestmark = pytest.mark.slow
 
@@ -132,3 +137,30 @@ def test_a_merger_killed_and_restarted_ends_with_the_uninterrupted_map(tmp_path:
     # (a live merger's pairs depend on its timing, so the two means differ by a centimetre or two)
     assert restart_report["map_error_mean_m"] < 0.06 and calm_report["map_error_mean_m"] < 0.06
     assert set(restart_report["maps"]) == set(calm_report["maps"]), "no local map is lost"
+
+
+def test_every_foxglove_channel_of_a_live_recording_decodes_and_every_frame_reaches_the_root(live: Path) -> None:
+    parent: dict[str, str] = {}
+    frames: set[str] = set()
+    schemas: Counter[str] = Counter()
+    with (live / "session.mcap").open("rb") as stream:
+        for schema, channel, message in make_reader(stream).iter_messages():
+            if channel.message_encoding != "protobuf":
+                continue
+            assert schema is not None
+            decoded = Schema(schema.data).decode(schema.name, message.data)
+            schemas[schema.name] += 1
+            if schema.name == "foxglove.FrameTransform":
+                parent[decoded["child_frame_id"]] = decoded["parent_frame_id"]
+            frames.update(e["frame_id"] for e in decoded.get("entities", []))
+            if decoded.get("frame_id"):
+                frames.add(decoded["frame_id"])
+    assert {"foxglove.SceneUpdate", "foxglove.LaserScan", "foxglove.PosesInFrame", "foxglove.FrameTransform"} <= set(
+        schemas
+    ), schemas
+    assert {"r1", "r2", "r3", "global"} <= frames
+    for frame in frames:
+        chain = [frame]
+        while chain[-1] != ROOT_FRAME:
+            assert chain[-1] in parent and len(chain) < 20, chain
+            chain.append(parent[chain[-1]])

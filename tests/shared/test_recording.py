@@ -10,11 +10,23 @@ import pytest
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import Component, FleetEvent, GlobalMap, LocalMap, MergeEdge, RobotPose, Scan
+from fleetmap.shared.messages import (
+    Component,
+    FleetEvent,
+    GlobalMap,
+    LaserRanges,
+    LocalMap,
+    MergeEdge,
+    RobotPose,
+    Scan,
+)
 from fleetmap.shared.recording import (
     FRAME_TRANSFORM,
+    POSES_IN_FRAME,
+    ROOT_FRAME,
     SCENE_UPDATE,
     TF_TOPIC,
+    FoxgloveScene,
     RecordingReader,
     RecordingWriter,
     config_metadata,
@@ -186,7 +198,7 @@ def test_scans_and_local_maps_are_line_lists_in_their_own_frames():
     assert line.get("type") == 2  # LINE_LIST: every two points are one segment
     assert points(line) == [(0.0, 0.0), (2.0, 0.0), (2.0, 0.0), (2.0, 1.5)]
     local_entity = views[1][2]["entities"][0]
-    assert local_entity["frame_id"] == "r1/0" and local_entity["id"] == "r1/0"
+    assert local_entity["frame_id"] == "r1/0/0" and local_entity["id"] == "r1/0/0"  # the submap's own frame
 
 
 def test_a_global_map_draws_its_components_and_places_its_local_maps():
@@ -202,7 +214,7 @@ def test_a_global_map_draws_its_components_and_places_its_local_maps():
         ("component/1", "global/1"),
     ]
     transforms = {v["child_frame_id"]: v for t, s, v in views[1:] if t == TF_TOPIC and s == FRAME_TRANSFORM.name}
-    assert set(transforms) == {"r1/0", "r2/0", "r3/0"}
+    assert set(transforms) == {"global", "global/1", "r1/0", "r2/0", "r3/0"}
     placed = transforms["r2/0"]
     assert placed["parent_frame_id"] == "global"
     assert placed["translation"] == {"x": 1.0, "y": 2.0}
@@ -211,15 +223,56 @@ def test_a_global_map_draws_its_components_and_places_its_local_maps():
     assert transforms["r3/0"]["parent_frame_id"] == "global/1"
 
 
-def test_robot_poses_are_frame_transforms_and_unknown_poses_are_not_drawn():
-    known = RobotPose("r2", 1, 30.0, Transform2D(-1.0, 0.5, 0.0), 1)
-    unknown = RobotPose("r3", 0, 30.0, None, None)
-    views = decoded_views([(known, "fleet/t/robots/r2/pose"), (unknown, "fleet/t/robots/r3/pose")])
-    assert len(views) == 1
-    topic, schema, transform = views[0]
-    assert (topic, schema) == (TF_TOPIC, "foxglove.FrameTransform")
-    assert (transform["parent_frame_id"], transform["child_frame_id"]) == ("global/1", "r2")
-    assert transform["translation"] == {"x": -1.0, "y": 0.5}
+def test_a_scan_draws_its_beams_and_hangs_the_robots_frame_on_its_submap():
+    ranges = LaserRanges(-math.pi / 2, math.pi / 2, 8.0, np.array([1.0, np.nan, 9.0]))
+    scan = Scan("r1", 0, 3, 12.5, SEGMENTS, ranges, submap=2, pose=Transform2D(0.5, -0.25, 0.1))
+    views = decoded_views([(scan, "fleet/t/robots/r1/scan")])
+    assert [(t, s) for t, s, _ in views] == [
+        ("/foxglove/fleet/t/robots/r1/scan", "foxglove.SceneUpdate"),
+        ("/foxglove/fleet/t/robots/r1/scan/laser", "foxglove.LaserScan"),
+        (TF_TOPIC, "foxglove.FrameTransform"),
+    ]
+    laser = views[1][2]
+    assert laser["frame_id"] == "r1" and laser["start_angle"] == pytest.approx(-math.pi / 2)
+    assert laser["end_angle"] == pytest.approx(math.pi / 2)
+    assert laser["ranges"][0] == 1.0 and all(math.isnan(r) for r in laser["ranges"][1:])  # no return: not drawn
+    link = views[2][2]
+    assert (link["parent_frame_id"], link["child_frame_id"]) == ("r1/0/2", "r1")
+    assert link["translation"] == {"x": 0.5, "y": -0.25}
+    # a robot's pose message adds nothing: its frame is where its scans put it
+    assert decoded_views([(RobotPose("r2", 1, 30.0, Transform2D(-1.0, 0.5, 0.0), 1), "fleet/t/robots/r2/pose")]) == []
+
+
+def test_every_frame_of_a_session_reaches_the_root_and_each_robot_has_its_path():
+    table = {"scan_indices": np.array([0, 1]), "scan_stamps": np.array([1.0, 1.1]), "scan_poses": np.zeros((2, 3))}
+    maps = [LocalMap(r, 0, 0, 1.0, SEGMENTS, 2, Transform2D(), **table) for r in ("r1", "r2", "r3")]  # type: ignore[arg-type]
+    together = Component(
+        "r1/0/0", ("r1/0/0", "r2/0/0"), {"r1/0/0": Transform2D(), "r2/0/0": Transform2D(1.0, 2.0, 0.0)}, SEGMENTS
+    )
+    alone = Component("r3/0/0", ("r3/0/0",), {"r3/0/0": Transform2D()}, SEGMENTS)
+    scene = FoxgloveScene()
+    views = [v for m in maps for v in scene.views(m, f"fleet/t/robots/{m.robot}/localmap")]
+    views += scene.views(GlobalMap(1, 2.0, (together, alone)), "fleet/t/merger/globalmap")
+    parent = {}
+    frames = set()
+    for view in views:
+        decoded = Schema(view.schema.data).decode(view.schema.name, view.data)
+        if view.schema.name == "foxglove.FrameTransform":
+            parent[decoded["child_frame_id"]] = decoded["parent_frame_id"]
+        frames.update(e["frame_id"] for e in decoded.get("entities", []))
+        if "frame_id" in decoded:
+            frames.add(decoded["frame_id"])
+    for frame in frames:
+        seen = [frame]
+        while seen[-1] != ROOT_FRAME:
+            assert seen[-1] in parent and len(seen) < 10, seen
+            seen.append(parent[seen[-1]])
+    # the lone component sits beside the first, not on it
+    assert parent["global/1"] == ROOT_FRAME
+    paths = {v.topic: v for v in views if v.schema.name == "foxglove.PosesInFrame"}
+    assert set(paths) == {f"/foxglove/fleet/t/paths/{r}" for r in ("r1", "r2", "r3")}
+    r2 = Schema(POSES_IN_FRAME.data).decode("foxglove.PosesInFrame", paths["/foxglove/fleet/t/paths/r2"].data)
+    assert r2["frame_id"] == "global" and r2["poses"][0]["position"] == {"x": 1.0, "y": 2.0}
 
 
 def test_events_are_log_lines_and_edges_have_no_view():
