@@ -220,6 +220,11 @@ class Recorder:
         """Finish the file (indexes and summary); later feeds are counted as late and dropped."""
         with self._lock:
             if not self._finished:
+                if self._foxglove:
+                    now = self._log_time(self._last_log_time)
+                    for view in self._scene.final_views():
+                        self._writer.write_foxglove(view.topic, view.schema, view.data, now, now)
+                        self._counts.foxglove += 1
                 self._finished = True
                 self._writer.finish()
         return self.summary()

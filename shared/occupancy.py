@@ -18,7 +18,7 @@ moved), unknown elsewhere.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,3 +168,22 @@ def write_map_server(grid: OccupancyGrid, folder: str | Path, name: str = "map")
         encoding="utf-8",
     )
     return pgm, yaml
+
+
+def placed_scans(
+    submap_poses: Mapping[str, Transform2D], tables: Mapping[str, tuple[Array, Array]]
+) -> dict[tuple[str, int], tuple[str, Transform2D]]:
+    """Each scan of the placed submaps, by (robot, index): the submap it is taken from and its pose
+    in the submaps' frame (the submap's pose composed with the scan's in the submap, ``tables``:
+    submap key -> (scan indices, scan poses)); a scan in two overlapping submaps counts once, from
+    the first in key order."""
+    out: dict[tuple[str, int], tuple[str, Transform2D]] = {}
+    for key in sorted(submap_poses):
+        table = tables.get(key)
+        if table is None:
+            continue
+        robot = key.split("/", 1)[0]
+        frame = submap_poses[key]
+        for index, pose in zip(np.asarray(table[0]).tolist(), np.asarray(table[1]), strict=True):
+            out.setdefault((robot, int(index)), (key, frame.compose(Transform2D.from_array(pose))))
+    return out

@@ -35,17 +35,21 @@ import numpy as np
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.messages import FleetEvent, GlobalMap, LocalMap, Scan
+from fleetmap.shared.messages import FleetEvent, GlobalMap, LaserRanges, LocalMap, Scan
 from fleetmap.shared.messages import Message as FleetMessage
+from fleetmap.shared.occupancy import Beams, occupancy_grid, placed_scans
 from foxglove import Schema
 from foxglove.messages import (
     Color,
     FrameTransform,
+    Grid,
     LaserScan,
     LinePrimitive,
     LinePrimitiveLineType,
     Log,
     LogLevel,
+    PackedElementField,
+    PackedElementFieldNumericType,
     Point3,
     Pose,
     PosesInFrame,
@@ -55,6 +59,7 @@ from foxglove.messages import (
     SceneEntityDeletionType,
     SceneUpdate,
     Timestamp,
+    Vector2,
     Vector3,
 )
 from mcap.exceptions import McapError
@@ -81,6 +86,7 @@ FRAME_TRANSFORM: Schema = FrameTransform.get_schema()
 LOG: Schema = Log.get_schema()
 LASER_SCAN: Schema = LaserScan.get_schema()
 POSES_IN_FRAME: Schema = PosesInFrame.get_schema()
+GRID: Schema = Grid.get_schema()
 ROOT_FRAME = "fleet"
 """The frame every other reaches: component 0's frame sits on it, the other components beside it."""
 COMPONENT_GAP = 5.0
@@ -336,41 +342,68 @@ class FoxgloveScene:
     """The Foxglove views of a session's messages in bus order (:func:`foxglove_views`), and what
     takes the session so far: each robot's path in its component (``PosesInFrame`` on
     ``/foxglove/<fleet>/paths/<robot>``), drawn at every global map from the scans its submaps
-    hold, at their submaps' poses there."""
+    hold, at their submaps' poses there; and, when the recording is finished, the largest
+    component's occupancy grid (``foxglove.Grid`` on ``/foxglove/<fleet>/grid``,
+    :mod:`fleetmap.shared.occupancy`)."""
 
     def __init__(self) -> None:
         self._tables: dict[str, tuple[Array, Array]] = {}
+        self._ranges: dict[tuple[str, int], LaserRanges] = {}
+        self._last: tuple[GlobalMap, str] | None = None
 
     def views(self, message: FleetMessage, key: str) -> list[FoxgloveView]:
         out = foxglove_views(message, key)
         if isinstance(message, LocalMap) and message.scan_indices is not None and message.scan_poses is not None:
             self._tables[message.submap_key] = (np.asarray(message.scan_indices), np.asarray(message.scan_poses))
+        elif isinstance(message, Scan) and message.ranges is not None:
+            self._ranges[(message.robot, message.index)] = message.ranges
         elif isinstance(message, GlobalMap):
             prefix = key.rsplit("/", 2)[0] if key.count("/") >= 2 else key
+            self._last = (message, prefix)
             out += self._paths(message, prefix)
         return out
 
+    def final_views(self) -> list[FoxgloveView]:
+        """The views of the whole session (its occupancy grid), once it is over."""
+        if self._last is None or not self._last[0].components:
+            return []
+        message, prefix = self._last
+        main = message.components[0]
+        beams = [
+            Beams(pose, r.angle_min, r.angle_increment, r.range_max, r.ranges)
+            for at, (_, pose) in sorted(placed_scans(main.poses, self._tables).items())
+            if (r := self._ranges.get(at)) is not None
+        ]
+        grid = occupancy_grid(beams, np.asarray(main.segments))
+        cols = grid.cells.shape[1]
+        drawn = Grid(
+            timestamp=_timestamp(message.stamp),
+            frame_id=component_frame(0),
+            pose=_pose3(Transform2D(grid.origin[0], grid.origin[1], 0.0)),
+            column_count=cols,
+            cell_size=Vector2(x=grid.resolution, y=grid.resolution),
+            row_stride=cols,
+            cell_stride=1,
+            fields=[PackedElementField(name="occupancy", offset=0, type=PackedElementFieldNumericType.Int8)],
+            data=grid.cells.astype(np.int8).tobytes(),
+        )
+        return [FoxgloveView(f"{FOXGLOVE_PREFIX}{prefix}/grid", GRID, drawn.encode())]
+
     def _paths(self, message: GlobalMap, prefix: str) -> list[FoxgloveView]:
-        paths: dict[tuple[str, int], dict[int, Transform2D]] = {}
-        for i, component in enumerate(message.components):
-            for member, frame in component.poses.items():
-                table = self._tables.get(member)
-                if table is None:
-                    continue
-                robot = member.split("/", 1)[0]
-                placed = paths.setdefault((robot, i), {})
-                for index, pose in zip(table[0].tolist(), table[1], strict=True):
-                    placed.setdefault(int(index), frame.compose(Transform2D.from_array(pose)))
         out = []
-        for (robot, i), placed in sorted(paths.items()):
-            order = sorted(placed)
-            keep = order[:: max(1, -(-len(order) // PATH_POSES))]
-            drawn = PosesInFrame(
-                timestamp=_timestamp(message.stamp),
-                frame_id=component_frame(i),
-                poses=[_pose3(placed[k]) for k in keep],
-            )
-            out.append(FoxgloveView(f"{FOXGLOVE_PREFIX}{prefix}/paths/{robot}", POSES_IN_FRAME, drawn.encode()))
+        for i, component in enumerate(message.components):
+            paths: dict[str, dict[int, Transform2D]] = {}
+            for (robot, index), (_, pose) in placed_scans(component.poses, self._tables).items():
+                paths.setdefault(robot, {})[index] = pose
+            for robot, placed in sorted(paths.items()):
+                order = sorted(placed)
+                keep = order[:: max(1, -(-len(order) // PATH_POSES))]
+                drawn = PosesInFrame(
+                    timestamp=_timestamp(message.stamp),
+                    frame_id=component_frame(i),
+                    poses=[_pose3(placed[k]) for k in keep],
+                )
+                out.append(FoxgloveView(f"{FOXGLOVE_PREFIX}{prefix}/paths/{robot}", POSES_IN_FRAME, drawn.encode()))
         return out
 
 

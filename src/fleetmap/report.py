@@ -42,6 +42,7 @@ from fleetmap.shared.messages import (
     decode,
 )
 from fleetmap.shared.occupancy import Beams, OccupancyGrid, occupancy_grid, write_map_server
+from fleetmap.shared.occupancy import placed_scans as scan_places
 
 FALSE_RELOCALIZATION_M = 1.0
 """A relocalization farther than this from the truth is a false one."""
@@ -406,21 +407,17 @@ def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, tit
 
 def placed_scans(log: SessionLog) -> dict[tuple[str, int], tuple[int, Transform2D]]:
     """Every scan of the largest component, by (robot, index): its epoch and its laser pose in the
-    global map (its submap's pose composed with its pose in the submap; a scan in two overlapping
-    submaps counts once, from the first)."""
+    global map (:func:`fleetmap.shared.occupancy.placed_scans`)."""
     final = log.final
     main = final.components[0] if final is not None and final.components else None
-    out: dict[tuple[str, int], tuple[int, Transform2D]] = {}
     if main is None:
-        return out
-    for key in sorted(main.poses):
-        m = log.local_maps.get(key)
-        if m is None or m.scan_indices is None or m.scan_poses is None:
-            continue
-        frame = main.poses[key]
-        for index, pose in zip(m.scan_indices, m.scan_poses, strict=True):
-            out.setdefault((m.robot, int(index)), (m.epoch, frame.compose(Transform2D.from_array(pose))))
-    return out
+        return {}
+    tables = {
+        k: (m.scan_indices, m.scan_poses)
+        for k, m in log.local_maps.items()
+        if m.scan_indices is not None and m.scan_poses is not None
+    }
+    return {at: (parse_submap_key(key)[1], pose) for at, (key, pose) in scan_places(main.poses, tables).items()}
 
 
 def placed_beams(log: SessionLog) -> list[Beams]:

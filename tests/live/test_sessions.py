@@ -155,9 +155,9 @@ def test_every_foxglove_channel_of_a_live_recording_decodes_and_every_frame_reac
             frames.update(e["frame_id"] for e in decoded.get("entities", []))
             if decoded.get("frame_id"):
                 frames.add(decoded["frame_id"])
-    assert {"foxglove.SceneUpdate", "foxglove.LaserScan", "foxglove.PosesInFrame", "foxglove.FrameTransform"} <= set(
-        schemas
-    ), schemas
+    wanted = {"SceneUpdate", "LaserScan", "PosesInFrame", "FrameTransform", "Grid", "Log"}
+    assert {f"foxglove.{name}" for name in wanted} <= set(schemas), schemas
+    assert schemas["foxglove.Grid"] == 1  # the occupancy grid, once the recording is finished
     assert {"r1", "r2", "r3", "global"} <= frames
     for frame in frames:
         chain = [frame]
