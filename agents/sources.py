@@ -25,11 +25,11 @@ yields no scan at all. Files are checked when the source is made, before an agen
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from functools import partial
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -45,6 +45,8 @@ from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
 from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_typestore
+
+log = logging.getLogger(__name__)
 
 LASER_SCAN_SCHEMAS = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
 """How a ROS 2 bag names the sensor_msgs/LaserScan schema (the first is what ros2 bag writes)."""
@@ -273,12 +275,34 @@ class Ros2BagSource:
         try:
             connections = [c for c in reader.connections if c.topic in topics]
             messages = reader.messages(connections=connections)
+            count = 0
             while True:
                 item = self._guard(lambda: next(messages, None))
                 if item is None:
                     return
                 connection, log_time, raw = item
-                message = self._guard(partial(reader.deserialize, raw, connection.msgtype))
+                count += 1
+                try:
+                    message = reader.deserialize(raw, connection.msgtype)
+                except (
+                    AnyReaderError,
+                    SerdeError,
+                    TypesysError,
+                    struct.error,
+                    ValueError,
+                    KeyError,
+                    IndexError,
+                ) as exc:
+                    # one message cut or garbled: skipped, said once, as a CARMEN log's bad line
+                    log.warning(
+                        "%s: message %d on %s (log time %.3f s) cannot be decoded (%s): skipped",
+                        self.path,
+                        count,
+                        connection.topic,
+                        log_time * 1e-9,
+                        str(exc)[:120],
+                    )
+                    continue
                 yield connection.topic, log_time, message
         finally:
             reader.close()
@@ -350,9 +374,18 @@ class Ros2BagSource:
     def __iter__(self) -> Iterator[SourceScan]:
         yielded = 0
         track = self._odometry()
+        skipped = 0
         for index, (_, log_time, msg) in enumerate(self._decoded([self.topic])):
+            try:
+                scan = self._scan(index, log_time, msg, track)
+            except BadInput as exc:
+                skipped += 1
+                log.warning("%s: skipped", exc)
+                continue
             yielded += 1
-            yield self._scan(index, log_time, msg, track)
+            yield scan
+        if not yielded and skipped:
+            raise BadInput(str(self.path), f"none of its {skipped} LaserScan messages on {self.topic!r} can be used")
         if not yielded:
             raise BadInput(str(self.path), f"no sensor_msgs/LaserScan message on topic {self.topic!r}")
 

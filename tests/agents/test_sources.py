@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -483,3 +484,36 @@ def write_scans_rosbag2(path: Path, storage: StoragePlugin, scans: list[SourceSc
                 np.zeros(0, dtype=np.float32),
             )
             writer.write(laser, round(t * 1e9), store.serialize_cdr(scan, "sensor_msgs/msg/LaserScan"))
+
+
+def test_a_garbled_or_impossible_scan_in_a_bag_is_skipped_with_a_warning_naming_it(tmp_path, caplog):
+    # a message cut short (a recorder that died while writing it) and one whose beams have no angle
+    # step: each skipped and said once; every other scan read
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    T = store.types
+    bag = tmp_path / "robot"
+
+    def scan(t: float, increment: float) -> bytes:
+        header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](int(t), 0), "laser")
+        ranges = np.full(181, 2.0, dtype=np.float32)
+        msg = T["sensor_msgs/msg/LaserScan"](
+            header, -math.pi / 2, math.pi / 2, increment, 0.0, 0.1, 0.1, 8.0, ranges, np.zeros(0, np.float32)
+        )
+        return bytes(store.serialize_cdr(msg, "sensor_msgs/msg/LaserScan"))
+
+    with Rosbag2Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        laser = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
+        for t in range(1, 6):
+            data = scan(float(t), math.pi / 180)
+            if t == 2:
+                data = data[:40]
+            if t == 4:
+                data = scan(float(t), 0.0)
+            writer.write(laser, t * 10**9, data)
+    with caplog.at_level(logging.WARNING):
+        scans = list(Ros2BagSource(bag))
+    assert [s.stamp for s in scans] == [1.0, 3.0, 5.0]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 2, warnings
+    assert "message 2 on /scan" in warnings[0] and "cannot be decoded" in warnings[0]
+    assert "bad beam angles" in warnings[1] and "skipped" in warnings[1]
