@@ -284,15 +284,7 @@ class Ros2BagSource:
                 count += 1
                 try:
                     message = reader.deserialize(raw, connection.msgtype)
-                except (
-                    AnyReaderError,
-                    SerdeError,
-                    TypesysError,
-                    struct.error,
-                    ValueError,
-                    KeyError,
-                    IndexError,
-                ) as exc:
+                except UNDECODABLE as exc:
                     # one message cut or garbled: skipped, said once, as a CARMEN log's bad line
                     log.warning(
                         "%s: message %d on %s (log time %.3f s) cannot be decoded (%s): skipped",
@@ -355,20 +347,7 @@ class Ros2BagSource:
             return read()
         except BadInput:
             raise
-        except (
-            AnyReaderError,
-            Rosbag2ReaderError,
-            Rosbag1ReaderError,
-            SerdeError,
-            TypesysError,
-            struct.error,
-            ValueError,
-            KeyError,
-            IndexError,
-            EOFError,
-            OSError,
-            NotImplementedError,
-        ) as exc:
+        except (*UNDECODABLE, Rosbag2ReaderError, Rosbag1ReaderError, EOFError, OSError, NotImplementedError) as exc:
             raise BadInput(str(self.path), f"not a readable ROS bag: {exc}"[:300]) from None
 
     def __iter__(self) -> Iterator[SourceScan]:
@@ -404,6 +383,8 @@ class Ros2BagSource:
         return _checked(self.name, index, stamp, scan, odometry)
 
 
+UNDECODABLE = (AnyReaderError, SerdeError, TypesysError, struct.error, ValueError, KeyError, IndexError)
+"""What rosbags raises for a message it cannot decode."""
 BAG_SUFFIXES = (".mcap", ".db3", ".bag")
 """The files a ROS bag is: rosbag2's two storages, and ROS 1's bag."""
 
