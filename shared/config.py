@@ -24,6 +24,7 @@ import dataclasses
 import functools
 import inspect
 import itertools
+import logging
 import math
 import re
 import textwrap
@@ -39,6 +40,8 @@ Heuristic = Literal["all", "consecutive", "random", "histogram", "auto"]
 HEURISTICS: tuple[str, ...] = get_args(Heuristic)
 FrontEnd = Literal["tracking", "pivot"]
 Odometry = Literal["auto", "on", "off"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -325,14 +328,6 @@ class MergeParams:
     translation nearly free. On the maps fused from orebro's corrected poses, an edge 0.29 m off
     along a corridor pulled a map 0.23 m off, against the cycle of three edges that placed it
     right (``benchmarks/merge.py --local-maps truth``)."""
-    carried_max_ambiguity: float = 0.25
-    """An integration of a robot's new epoch with its previous one that puts the new epoch's first
-    scan farther from the previous epoch's last placed scan than the robot drives in four of its
-    longest steps there (plus ``witness_translation``) says the robot was carried (a kidnap). The live
-    merger takes that as valid only if no clearly different transformation scores more than this
-    fraction of its score (fleetmap; 1: no stricter than any other pair). An epoch that broke
-    mid-lane in a warehouse matches its own previous epoch two racks back at 0.39, 7 m behind
-    where the robot was a scan before; the bundled kidnap back into a robot's own map scores 0.13."""
 
 
 @dataclass(frozen=True)
@@ -518,6 +513,11 @@ def _field_types(cls: type) -> dict[str, Any]:
     return get_type_hints(cls)
 
 
+RETIRED: dict[str, frozenset[str]] = {"merge": frozenset({"carried_max_ambiguity"})}
+"""Parameters the code no longer reads: a config file or a recording's config that names one still
+loads (it is ignored, said at INFO)."""
+
+
 def apply_overrides(config: FleetmapConfig, overrides: Mapping[str, Mapping[str, Any]], source: str) -> FleetmapConfig:
     """Return ``config`` with ``{section: {field: value}}`` applied; unknown names are errors."""
     sections: dict[str, Any] = {}
@@ -531,6 +531,9 @@ def apply_overrides(config: FleetmapConfig, overrides: Mapping[str, Mapping[str,
         current = getattr(config, section)
         changes = {}
         for name, value in values.items():
+            if name in RETIRED.get(section, ()):
+                log.info("%s: [%s] %s is retired and ignored", source, section, name)
+                continue
             if name not in types:
                 raise ConfigError(f"{source}: [{section}] {name}", f"unknown parameter (known: {', '.join(types)})")
             changes[name] = _coerce(section, name, types[name], value, source)
