@@ -182,7 +182,7 @@ class Recorder:
             if message is None:
                 self._malformed(key, problem)
             elif self._foxglove:
-                self._write_views(message, key, log_time, publish_time)
+                self._write_views(message, key, log_time)
             self._maybe_flush(receive_time_ns)
 
     def feed_presence(self, key: str, joined: bool, receive_time_ns: int) -> None:
@@ -203,7 +203,7 @@ class Recorder:
             self._counts.messages[key] += 1
             self._counts.payload_bytes[key] += len(payload)
             if self._foxglove:
-                self._write_views(event, self._keys.events, log_time, log_time)
+                self._write_views(event, self._keys.events, log_time)
             self._maybe_flush(receive_time_ns)
 
     def tick(self, now_ns: int) -> bool:
@@ -222,7 +222,7 @@ class Recorder:
             if not self._finished:
                 if self._foxglove:
                     now = self._log_time(self._last_log_time)
-                    for view in self._scene.final_views():
+                    for view in self._scene.final_views(now * 1e-9):
                         self._writer.write_foxglove(view.topic, view.schema, view.data, now, now)
                         self._counts.foxglove += 1
                 self._finished = True
@@ -252,9 +252,10 @@ class Recorder:
             self._pending_since = int(receive_time_ns)
         return self._last_log_time
 
-    def _write_views(self, message: Message, key: str, log_time: int, publish_time: int) -> None:
-        for view in self._scene.views(message, key):
-            self._writer.write_foxglove(view.topic, view.schema, view.data, log_time, publish_time)
+    def _write_views(self, message: Message, key: str, log_time: int) -> None:
+        # the views are on the recording's clock, their log time (the raw channel keeps the stamp)
+        for view in self._scene.views(message, key, log_time * 1e-9):
+            self._writer.write_foxglove(view.topic, view.schema, view.data, log_time, log_time)
             self._counts.foxglove += 1
 
     def _malformed(self, key: str, problem: str) -> None:

@@ -248,15 +248,19 @@ def _frame_transform(parent: str, child: str, pose: Transform2D, stamp: float) -
     ).encode()
 
 
-def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
-    """What a person sees of ``message`` (received on ``key``) in Foxglove; pure."""
+def foxglove_views(message: FleetMessage, key: str, at: float | None = None) -> list[FoxgloveView]:
+    """What a person sees of ``message`` (received on ``key``) in Foxglove; pure. ``at`` (s) stamps
+    the views, by default the message's own stamp: a recorder stamps them with their log time, so
+    that Foxglove finds every view and every frame on the one clock it plays the file by (a
+    simulated robot's stamps start at 0, a real one's are its own clock)."""
     topic = FOXGLOVE_PREFIX + key
+    stamp = message.stamp if at is None else at
     match message:
         case Scan():
             entity = _entity(
                 f"scan/{message.robot}",
                 message.robot,
-                message.stamp,
+                stamp,
                 message.segments,
                 robot_color(message.robot, 0.5),
                 1.0,
@@ -268,7 +272,7 @@ def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
                 with np.errstate(invalid="ignore"):
                     seen = np.where(np.isfinite(r.ranges) & (r.ranges > 0) & (r.ranges < r.range_max), r.ranges, np.nan)
                 laser = LaserScan(
-                    timestamp=_timestamp(message.stamp),
+                    timestamp=_timestamp(stamp),
                     frame_id=message.robot,
                     pose=_pose3(Transform2D()),
                     start_angle=r.angle_min,
@@ -282,34 +286,34 @@ def foxglove_views(message: FleetMessage, key: str) -> list[FoxgloveView]:
                 parent = f"{message.robot}/{message.epoch}/{message.submap}"
                 views.append(
                     FoxgloveView(
-                        TF_TOPIC, FRAME_TRANSFORM, _frame_transform(parent, message.robot, message.pose, message.stamp)
+                        TF_TOPIC, FRAME_TRANSFORM, _frame_transform(parent, message.robot, message.pose, stamp)
                     )
                 )
             return views
         case LocalMap():
             frame = message.submap_key
-            entity = _entity(frame, frame, message.stamp, message.segments, robot_color(message.robot), 2.0)
+            entity = _entity(frame, frame, stamp, message.segments, robot_color(message.robot), 2.0)
             return [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(entities=[entity]).encode())]
         case GlobalMap():
             white = Color(r=0.9, g=0.9, b=0.9, a=1.0)
             entities = [
-                _entity(f"component/{i}", component_frame(i), message.stamp, c.segments, white, 2.0)
+                _entity(f"component/{i}", component_frame(i), stamp, c.segments, white, 2.0)
                 for i, c in enumerate(message.components)
             ]
             # components merge and reorder: drop the previous global map's entities first
-            drop = SceneEntityDeletion(timestamp=_timestamp(message.stamp), type=SceneEntityDeletionType.All)
+            drop = SceneEntityDeletion(timestamp=_timestamp(stamp), type=SceneEntityDeletionType.All)
             views = [FoxgloveView(topic, SCENE_UPDATE, SceneUpdate(deletions=[drop], entities=entities).encode())]
             for i, offset in enumerate(_side_by_side(message)):
-                data = _frame_transform(ROOT_FRAME, component_frame(i), offset, message.stamp)
+                data = _frame_transform(ROOT_FRAME, component_frame(i), offset, stamp)
                 views.append(FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data))
             for i, component in enumerate(message.components):
                 for member, pose in component.poses.items():
-                    data = _frame_transform(component_frame(i), member, pose, message.stamp)
+                    data = _frame_transform(component_frame(i), member, pose, stamp)
                     views.append(FoxgloveView(TF_TOPIC, FRAME_TRANSFORM, data))
             return views
         case FleetEvent():
             text = f"{message.kind} {message.robot or ''} {message.detail}".strip()
-            entry = Log(timestamp=_timestamp(message.stamp), level=LogLevel.Info, message=text, name="fleetmap")
+            entry = Log(timestamp=_timestamp(stamp), level=LogLevel.Info, message=text, name="fleetmap")
             return [FoxgloveView(topic, LOG, entry.encode())]
     # a robot's pose is drawn by its scans (its frame on its submap's); merge edges have no view
     return []
@@ -351,8 +355,9 @@ class FoxgloveScene:
         self._ranges: dict[tuple[str, int], LaserRanges] = {}
         self._last: tuple[GlobalMap, str] | None = None
 
-    def views(self, message: FleetMessage, key: str) -> list[FoxgloveView]:
-        out = foxglove_views(message, key)
+    def views(self, message: FleetMessage, key: str, at: float | None = None) -> list[FoxgloveView]:
+        """:func:`foxglove_views`, and the paths at a global map (stamped ``at`` too)."""
+        out = foxglove_views(message, key, at)
         if isinstance(message, LocalMap) and message.scan_indices is not None and message.scan_poses is not None:
             self._tables[message.submap_key] = (np.asarray(message.scan_indices), np.asarray(message.scan_poses))
         elif isinstance(message, Scan) and message.ranges is not None:
@@ -360,11 +365,12 @@ class FoxgloveScene:
         elif isinstance(message, GlobalMap):
             prefix = key.rsplit("/", 2)[0] if key.count("/") >= 2 else key
             self._last = (message, prefix)
-            out += self._paths(message, prefix)
+            out += self._paths(message, prefix, message.stamp if at is None else at)
         return out
 
-    def final_views(self) -> list[FoxgloveView]:
-        """The views of the whole session (its occupancy grid), once it is over."""
+    def final_views(self, at: float | None = None) -> list[FoxgloveView]:
+        """The views of the whole session (its occupancy grid), once it is over (stamped ``at``,
+        by default the last global map's stamp)."""
         if self._last is None or not self._last[0].components:
             return []
         message, prefix = self._last
@@ -377,7 +383,7 @@ class FoxgloveScene:
         grid = occupancy_grid(beams, np.asarray(main.segments))
         cols = grid.cells.shape[1]
         drawn = Grid(
-            timestamp=_timestamp(message.stamp),
+            timestamp=_timestamp(message.stamp if at is None else at),
             frame_id=component_frame(0),
             pose=_pose3(Transform2D(grid.origin[0], grid.origin[1], 0.0)),
             column_count=cols,
@@ -389,7 +395,7 @@ class FoxgloveScene:
         )
         return [FoxgloveView(f"{FOXGLOVE_PREFIX}{prefix}/grid", GRID, drawn.encode())]
 
-    def _paths(self, message: GlobalMap, prefix: str) -> list[FoxgloveView]:
+    def _paths(self, message: GlobalMap, prefix: str, stamp: float) -> list[FoxgloveView]:
         out = []
         for i, component in enumerate(message.components):
             paths: dict[str, dict[int, Transform2D]] = {}
@@ -399,7 +405,7 @@ class FoxgloveScene:
                 order = sorted(placed)
                 keep = order[:: max(1, -(-len(order) // PATH_POSES))]
                 drawn = PosesInFrame(
-                    timestamp=_timestamp(message.stamp),
+                    timestamp=_timestamp(stamp),
                     frame_id=component_frame(i),
                     poses=[_pose3(placed[k]) for k in keep],
                 )

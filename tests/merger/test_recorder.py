@@ -40,6 +40,7 @@ from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
 from mcap.reader import make_reader
 
 from tests.bus_helpers import WAIT, Inbox, bus_pair, open_zenoh
+from tests.protobuf_wire import Schema
 
 KEYS = FleetKeys("t")
 SECOND = 10**9
@@ -358,3 +359,26 @@ def test_a_recorder_restarted_twice_leaves_three_readable_files(tmp_path):
         assert reader.complete
         messages = [(m.topic, m.payload) for m in reader.messages()]
         assert [m for m in messages if not m[0].startswith(("fleet/t/alive/", "fleet/t/services/"))] == fed
+
+
+def test_the_foxglove_views_are_on_the_recordings_clock_and_the_raw_channel_keeps_the_stamp():
+    # a simulated robot stamps from 0 (1970 to Foxglove), the recording's log times are wall clock:
+    # a view stamped with its message's stamp would never meet its frames on Foxglove's timeline
+    stream = io.BytesIO()
+    recorder = Recorder(RecordingWriter(stream), KEYS)
+    wall = 1_764_000_000 * SECOND  # November 2025
+    for i, (key, payload) in enumerate(fleet_traffic(robots=1, scans=2)):
+        recorder.feed(key, payload, wall + i * 1000)
+    recorder.finish()
+    seen = 0
+    for schema, channel, message in make_reader(io.BytesIO(stream.getvalue())).iter_messages():
+        if channel.message_encoding == "protobuf":
+            assert message.publish_time == message.log_time
+            decoded = Schema(schema.data).decode(schema.name, message.data)
+            stamps = [decoded.get("timestamp")] + [e.get("timestamp") for e in decoded.get("entities", [])]
+            for ts in filter(None, stamps):
+                assert abs(ts.get("seconds", 0) * 10**9 + ts.get("nanos", 0) - message.log_time) < 1000  # 1 us
+                seen += 1
+        elif channel.topic.endswith("/scan"):
+            assert message.publish_time < wall // 2  # the scan's own stamp, seconds after 1970
+    assert seen > 5
