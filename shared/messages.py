@@ -222,7 +222,8 @@ def _ranges_array(schema: str, name: str, value: Any) -> Array:
         array = np.frombuffer(raw, dtype="<f4")
     elif isinstance(value, (np.ndarray, list, tuple)):
         try:
-            array = np.asarray(value, dtype=np.float32)
+            with np.errstate(over="ignore"):  # a reading beyond float32 (3.4e38 m) is no return: inf
+                array = np.asarray(value, dtype=np.float32)
         except (TypeError, ValueError):
             raise BadMessage(schema, name, "expected a list of numbers") from None
         if array.ndim != 1:

@@ -209,3 +209,12 @@ def test_help_reads_usage_first_and_says_what_each_flag_is(command: str) -> None
 
         flat = " ".join(text.split())
         assert all(name in flat for name in list_scenarios())
+
+
+def test_absurd_but_finite_ranges_map_without_numpy_warnings(tmp_path: Path) -> None:
+    # readings of 1e308 m (beyond float32: no return) among real ones
+    scan = {"stamp": 1.0, "angle_min": -1.5, "angle_increment": 0.01, "range_max": 1e308}
+    scans = tmp_path / "huge.jsonl"
+    scans.write_text(json.dumps({**scan, "ranges": [1e308] * 100 + [2.0] * 200}) + "\n")
+    r = fleetmap("map", str(scans), "--out", str(tmp_path / "out"), "--no-progress")
+    assert r.returncode == 0 and "Warning" not in r.stderr, r.stderr
