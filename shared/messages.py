@@ -48,6 +48,9 @@ MAX_MAPS = 100_000
 MAX_TEXT = 256
 """The longest string field (characters)."""
 MAX_INT = 2**63 - 1
+MAX_KEY_NUMBER = 10**18 - 1
+"""The largest epoch or submap number: what a map key ``<robot>/<epoch>/<submap>`` holds
+(:data:`fleetmap.shared.keys.MAP_KEY_PATTERN`, 18 digits)."""
 
 EVENT_KINDS = frozenset(
     {
@@ -96,17 +99,17 @@ def _map_key(schema: str, name: str, value: Any) -> str:
     return value
 
 
-def _count(schema: str, name: str, value: Any) -> int:
-    """A non-negative integer (epoch, version, index, sequence number)."""
+def _count(schema: str, name: str, value: Any, most: int = MAX_INT) -> int:
+    """A non-negative integer (epoch, version, index, sequence number), at most ``most``."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise BadMessage(schema, name, f"expected a non-negative integer, got {type(value).__name__}")
-    if not 0 <= value <= MAX_INT:
-        raise BadMessage(schema, name, f"expected a non-negative integer, got {value}")
+    if not 0 <= value <= most:
+        raise BadMessage(schema, name, f"expected an integer from 0 to {most}, got {value}")
     return int(value)
 
 
-def _optional_count(schema: str, name: str, value: Any) -> int | None:
-    return None if value is None else _count(schema, name, value)
+def _optional_count(schema: str, name: str, value: Any, most: int = MAX_INT) -> int | None:
+    return None if value is None else _count(schema, name, value, most)
 
 
 def _number(schema: str, name: str, value: Any, *, minimum: float | None = None) -> float:
@@ -327,7 +330,7 @@ class EpochLink:
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
-        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "epoch", _count(s, "epoch", self.epoch, MAX_KEY_NUMBER))
         _set(self, "reason", _text(s, "reason", self.reason))
         _set(self, "transform", _optional_transform(s, "transform", self.transform))
 
@@ -348,7 +351,7 @@ class SubmapLink:
 
     def __post_init__(self) -> None:
         s = self.SCHEMA
-        _set(self, "submap", _count(s, "submap", self.submap))
+        _set(self, "submap", _count(s, "submap", self.submap, MAX_KEY_NUMBER))
         _set(self, "transform", _transform(s, "transform", self.transform))
         _set(self, "covariance", _covariance(s, "covariance", self.covariance))
 
@@ -514,13 +517,13 @@ class Scan(WireMessage):
     def __post_init__(self) -> None:
         s = self.SCHEMA
         _set(self, "robot", _robot(s, "robot", self.robot))
-        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "epoch", _count(s, "epoch", self.epoch, MAX_KEY_NUMBER))
         _set(self, "index", _count(s, "index", self.index))
         _set(self, "stamp", _stamp(s, "stamp", self.stamp))
         _set(self, "segments", _segments(s, "segments", self.segments))
         if self.ranges is not None:
             _set(self, "ranges", _part(LaserRanges, s, "ranges", self.ranges))
-        _set(self, "submap", _optional_count(s, "submap", self.submap))
+        _set(self, "submap", _optional_count(s, "submap", self.submap, MAX_KEY_NUMBER))
         _set(self, "pose", _optional_transform(s, "pose", self.pose))
         _set(self, "odometry", _optional_transform(s, "odometry", self.odometry))
         if (self.submap is None) != (self.pose is None):
@@ -578,7 +581,7 @@ class LocalMap(WireMessage):
     def __post_init__(self) -> None:
         s = self.SCHEMA
         _set(self, "robot", _robot(s, "robot", self.robot))
-        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "epoch", _count(s, "epoch", self.epoch, MAX_KEY_NUMBER))
         _set(self, "version", _count(s, "version", self.version))
         _set(self, "stamp", _stamp(s, "stamp", self.stamp))
         _set(self, "segments", _segments(s, "segments", self.segments))
@@ -591,7 +594,7 @@ class LocalMap(WireMessage):
             if link.epoch >= self.epoch:
                 raise BadMessage(s, "previous_epoch_link.epoch", f"{link.epoch} is not before epoch {self.epoch}")
             _set(self, "previous_epoch_link", link)
-        _set(self, "submap", _count(s, "submap", self.submap))
+        _set(self, "submap", _count(s, "submap", self.submap, MAX_KEY_NUMBER))
         _set(self, "final", _flag(s, "final", self.final))
         _set(self, "frame_scan", _optional_count(s, "frame_scan", self.frame_scan))
         if self.link is not None:
@@ -725,7 +728,7 @@ class RobotPose(WireMessage):
     def __post_init__(self) -> None:
         s = self.SCHEMA
         _set(self, "robot", _robot(s, "robot", self.robot))
-        _set(self, "epoch", _count(s, "epoch", self.epoch))
+        _set(self, "epoch", _count(s, "epoch", self.epoch, MAX_KEY_NUMBER))
         _set(self, "stamp", _stamp(s, "stamp", self.stamp))
         _set(self, "pose", _optional_transform(s, "pose", self.pose))
         _set(self, "component", _optional_count(s, "component", self.component))
@@ -814,7 +817,7 @@ def unpack(data: bytes) -> dict[str, Any]:
     if "schema" not in raw:
         raise BadMessage("message", "schema", "missing")
     schema = raw["schema"]
-    if schema not in MESSAGE_TYPES:
+    if not isinstance(schema, str) or schema not in MESSAGE_TYPES:
         raise BadMessage("message", "schema", f"{str(schema)[:64]!r} is not a fleetmap message schema")
     version = raw.get("v")
     cls = MESSAGE_TYPES[schema]
@@ -826,4 +829,10 @@ def unpack(data: bytes) -> dict[str, Any]:
 def decode(data: bytes) -> Message:
     """The message of a payload, every field validated; BadMessage names what is wrong."""
     raw = unpack(data)
-    return MESSAGE_TYPES[raw["schema"]]._from_wire(raw)
+    try:
+        return MESSAGE_TYPES[raw["schema"]]._from_wire(raw)
+    except BadMessage:
+        raise
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError, IndexError, RecursionError) as exc:
+        # a field of a shape no check foresaw: still a bad message, never a dead service
+        raise BadMessage(raw["schema"], None, f"malformed: {type(exc).__name__}: {exc}"[:200]) from None

@@ -74,9 +74,14 @@ def test_a_flood_of_malformed_messages_is_counted_and_changes_nothing(maps) -> N
         noisy.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack()[: 10 + k])  # truncated
     bad_robot = maps["r1"][0].to_msgpack().replace(b"r1", b"R!")
     noisy.receive(KEYS.localmap("r1"), bad_robot)
+    # the 16 bytes that killed the merger (a schema that is a list), and a local map whose epoch no
+    # map key can name (it passed validation, then killed the step that built the global map)
+    noisy.receive(KEYS.localmap("r1"), msgpack.packb({"schema": [], "v": 1}))
+    wire = msgpack.unpackb(maps["r1"][0].to_msgpack())
+    noisy.receive(KEYS.localmap("r1"), msgpack.packb({**wire, "epoch": 10**18}))
     a = _feed(clean, [maps["r1"][0], maps["r2"][0]])
     b = _feed(noisy, [maps["r1"][0], maps["r2"][0]])
-    assert noisy.stats.malformed == 601
+    assert noisy.stats.malformed == 603
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
 
 
