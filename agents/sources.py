@@ -39,6 +39,7 @@ from fleetmap.scenarios.loader import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.messages import MAX_STAMP
 from fleetmap.shared.scans import OdometryReading, RangeScan, read_carmen, read_carmen_lines, read_carmen_odometry
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
@@ -92,6 +93,8 @@ def _checked(source: str, index: int, stamp: float, scan: RangeScan, odometry: T
     where = f"{source}: scan {index}"
     if not math.isfinite(stamp) or stamp < 0:
         raise BadInput(where, f"stamp {stamp} is not a finite non-negative number of seconds")
+    if stamp > MAX_STAMP:
+        raise BadInput(where, f"stamp {stamp:g} s is after the year 2262 (a clock in milliseconds?)")
     if not (math.isfinite(scan.angle_min) and math.isfinite(scan.angle_increment)) or scan.angle_increment == 0:
         raise BadInput(where, f"bad beam angles (angle_min {scan.angle_min}, increment {scan.angle_increment})")
     if not scan.range_max > 0:

@@ -48,6 +48,10 @@ MAX_MAPS = 100_000
 MAX_TEXT = 256
 """The longest string field (characters)."""
 MAX_INT = 2**63 - 1
+MAX_STAMP = (2**63 - 1) / 1e9
+"""The latest stamp (s since 1970, in 2262): what signed 64-bit nanoseconds hold, as MCAP's log and
+publish times and ROS's time do. A clock in milliseconds (1.7e12) is past it: a recording could not
+hold its messages, and a merger would keep that stamp for good."""
 MAX_KEY_NUMBER = 10**18 - 1
 """The largest epoch or submap number: what a map key ``<robot>/<epoch>/<submap>`` holds
 (:data:`fleetmap.shared.keys.MAP_KEY_PATTERN`, 18 digits)."""
@@ -124,7 +128,10 @@ def _number(schema: str, name: str, value: Any, *, minimum: float | None = None)
 
 
 def _stamp(schema: str, name: str, value: Any) -> float:
-    return _number(schema, name, value, minimum=0.0)
+    stamp = _number(schema, name, value, minimum=0.0)
+    if stamp > MAX_STAMP:
+        raise BadMessage(schema, name, f"{stamp:g} s is after the year 2262 (a clock in milliseconds?)")
+    return stamp
 
 
 def _flag(schema: str, name: str, value: Any) -> bool:
@@ -610,6 +617,8 @@ class LocalMap(WireMessage):
             stamps = _float_rows(s, "scan_stamps", _column(self.scan_stamps), "stamp", "stamp", MAX_SEGMENTS)[:, 0]
             if len(stamps) and stamps.min() < 0:
                 raise BadMessage(s, "scan_stamps", f"stamp {float(stamps.min())} is negative")
+            if len(stamps) and stamps.max() > MAX_STAMP:
+                raise BadMessage(s, "scan_stamps", f"stamp {float(stamps.max()):g} s is after the year 2262")
             poses = _float_rows(s, "scan_poses", self.scan_poses, "x, y, theta", "pose", MAX_SEGMENTS)
             if not len(indices) == len(stamps) == len(poses):
                 raise BadMessage(

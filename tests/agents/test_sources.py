@@ -517,3 +517,10 @@ def test_a_garbled_or_impossible_scan_in_a_bag_is_skipped_with_a_warning_naming_
     assert len(warnings) == 2, warnings
     assert "message 2 on /scan" in warnings[0] and "cannot be decoded" in warnings[0]
     assert "bad beam angles" in warnings[1] and "skipped" in warnings[1]
+
+
+def test_a_log_whose_clock_is_in_milliseconds_is_refused_naming_the_scan(tmp_path):
+    log = tmp_path / "ms.log"
+    log.write_text(flaser_line([2.0] * 181, 1.7e12))
+    with pytest.raises(BadInput, match=r"scan 0: stamp 1.7e\+12 s is after the year 2262"):
+        list(CarmenSource(log))

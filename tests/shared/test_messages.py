@@ -278,6 +278,7 @@ def test_too_many_segments_are_refused_before_decoding_them():
         ("robot", 7, "expected a robot id (string), got int"),
         ("epoch", -1, "expected an integer from 0 to 999999999999999999, got -1"),
         ("epoch", 10**18, "expected an integer from 0 to 999999999999999999, got 1000000000000000000"),
+        ("stamp", 1.7e12, "after the year 2262 (a clock in milliseconds?)"),
         ("epoch", 1.5, "expected a non-negative integer, got float"),
         ("epoch", True, "expected a non-negative integer, got bool"),
         ("version", "3", "expected a non-negative integer, got str"),
