@@ -37,8 +37,10 @@ from fleetmap.shared.keys import MAP_KEY_PATTERN, NAME_PATTERN
 from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH
 from fleetmap.shared.scans import RangeScan
 
-MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
-"""Payloads larger than this are refused before they are unpacked."""
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+"""Payloads larger than this are refused before they are unpacked: the largest message fleetmap
+sends, a global map of ``MAX_SEGMENTS`` packed segments, is 6.4 MB. (At 64 MiB, one payload of small
+integers unpacked into 4.6 GB of Python objects in every subscriber.)"""
 MAX_SEGMENTS = 200_000
 """The most segments one message carries (a global map: all its components together)."""
 MAX_BEAMS = 100_000
@@ -818,7 +820,17 @@ def unpack(data: bytes) -> dict[str, Any]:
     if len(data) > MAX_PAYLOAD_BYTES:
         raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
     try:
-        raw = msgpack.unpackb(data, raw=False, strict_map_key=True)
+        raw = msgpack.unpackb(
+            data,
+            raw=False,
+            strict_map_key=True,
+            # checked against each header before anything is allocated
+            max_array_len=4 * MAX_SEGMENTS,
+            max_map_len=MAX_MAPS + 64,
+            max_str_len=64 * 1024,
+            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_ext_len=0,
+        )
     except (msgpack.UnpackException, ValueError) as exc:
         raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
     if not isinstance(raw, dict):

@@ -13,6 +13,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys, map_key, parse_map_key
 from fleetmap.shared.messages import (
+    MAX_PAYLOAD_BYTES,
     MAX_SEGMENTS,
     BadMessage,
     Component,
@@ -517,3 +518,15 @@ def test_any_valid_local_map_round_trips_exactly(rows, version):
     assert back.version == version
     np.testing.assert_array_equal(back.segments, segments)
     assert back.to_msgpack() == message.to_msgpack()
+
+
+def test_a_payload_that_would_blow_up_when_unpacked_is_refused_from_its_header():
+    # a big payload, and a small one declaring millions of msgpack items: refused before anything of
+    # that size is allocated (at 64 MiB, 4.6 GB of Python objects in every subscriber)
+    with pytest.raises(BadMessage, match=f"is more than {MAX_PAYLOAD_BYTES}"):
+        decode(b"\x00" * (MAX_PAYLOAD_BYTES + 1))
+    huge_array = b"\x81\xa8segments\xdd" + (50_000_000).to_bytes(4, "big")  # map {segments: array32(5e7)}
+    with pytest.raises(BadMessage, match="exceeds max_array_len"):
+        decode(huge_array)
+    with pytest.raises(BadMessage, match="not msgpack"):
+        decode(b"\x91" * 100_000 + b"\x00")  # nested 100,000 deep
