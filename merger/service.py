@@ -92,6 +92,8 @@ SEARCH_GROWTH = 2
 version last searched: each search sees as much new wall as all before it together, so a submap
 of v versions costs about log(v) searches, not v."""
 
+STOP_SECONDS = 5.0
+"""How long a stopping merger keeps integrating what is queued (the rest waits in its state file)."""
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -240,6 +242,11 @@ class Merger:
     @property
     def pending(self) -> int:
         return len(self._pending)
+
+    @property
+    def backlog(self) -> int:
+        """Submaps received and pairs queued that no step has taken yet."""
+        return len(self._pending) + len(self._queue)
 
     @property
     def has_work(self) -> bool:
@@ -855,11 +862,18 @@ class MergerService:
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
-        # At the stop: what arrived, then every pair still queued (what arrives from now on is
-        # not taken, so this ends): nothing is left unintegrated.
+        # At the stop: what arrived is taken in, and the pairs still queued are integrated for up to
+        # STOP_SECONDS (a container is killed ten seconds after its SIGTERM). What is left stays in
+        # the state file for the next start; without one it is lost, and said so.
         self._drain()
-        while self._step():
+        deadline = time.monotonic() + STOP_SECONDS
+        self._step()  # takes every map received into the graph (and so into the state file)
+        while time.monotonic() < deadline and self._step():
             pass
+        left = self.merger.backlog
+        if left:
+            kept = f"kept in {self.state_file} for the next start" if self.state_file else "lost (no --state)"
+            log.warning("stopping with %d integrations or maps not yet taken in: %s", left, kept)
 
     def close(self) -> None:
         try:

@@ -217,3 +217,38 @@ def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # typ
     assert leave[0].kind == "leave"
     assert "r1/0/0" in merger.global_map.components[0].members
     assert math.isfinite(merger.global_map.stamp)
+
+
+@pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
+def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps, tmp_path, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
+    # SIGTERM with pairs queued: the service takes every received map in and stops (a container is
+    # killed ten seconds after SIGTERM); the next start finishes the job to the same map
+    import threading
+
+    import fleetmap.merger.service as service
+    from fleetmap.shared.bus import InMemoryBus
+
+    monkeypatch.setattr(service, "STOP_SECONDS", 0.0)
+    state = tmp_path / "merger.state"
+    merger = Merger(KEYS)
+    svc = service.MergerService(InMemoryBus(), merger, state_file=state, step_seconds=1e-6)
+    for r in ("r1", "r2", "r3"):
+        merger.receive(KEYS.localmap(r), maps[r][0].to_msgpack())
+    stop = threading.Event()
+    stop.set()
+    with caplog.at_level("WARNING"):
+        svc.run(stop)
+    assert merger.backlog > 0 and f"kept in {state}" in caplog.text
+    restored = Merger(KEYS)
+    restored.load_state(state)
+    assert set(restored.graph.keys) == {"r1/0/0", "r2/0/0", "r3/0/0"}  # nothing received was lost
+    while restored.has_work:
+        restored.step()
+    whole = Merger(KEYS)
+    _feed(whole, [maps[r][0] for r in ("r1", "r2", "r3")])
+    while whole.has_work:
+        whole.step()
+    assert len(restored.global_map.components) == len(whole.global_map.components) == 1
+    for key, pose in whole.global_map.components[0].poses.items():
+        other = restored.global_map.components[0].poses[key]
+        assert pose.distance(other)[0] < 0.02 and pose.distance(other)[1] < 0.01
