@@ -259,12 +259,7 @@ class Merger:
         if self._result is None or len(self._result.components) < 2:
             return False
         budget = self.config.merge.far_budget
-        return any(
-            self._far_tries.get(k, 0) < budget
-            for i, c in enumerate(self._result.components)
-            if len(self._epochs_in[i]) <= 1
-            for k in c.members
-        )
+        return any(self._far_tries.get(k, 0) < budget for k in self._idle_candidates())
 
     @property
     def queued(self) -> int:
@@ -464,12 +459,12 @@ class Merger:
             return 0
         budget = self.config.merge.far_budget
         queued = 0
-        for i, component in enumerate(self._result.components):
-            if len(self._epochs_in[i]) > 1:
-                continue
-            mine = set(component.members)
-            finals = [k for k in component.members if self.submaps[k].final] or list(component.members)
-            for key in sorted(finals, key=lambda k: (self._far_tries.get(k, 0), k)):
+        by_component: dict[int, list[str]] = {}
+        for key in self._idle_candidates():
+            by_component.setdefault(self._where[key], []).append(key)
+        for i, candidates in sorted(by_component.items()):
+            mine = set(self._result.components[i].members)
+            for key in sorted(candidates, key=lambda k: (self._far_tries.get(k, 0), k)):
                 if self._far_tries.get(key, 0) >= budget:
                     continue
                 others = self._far(key, mine, within=False)
@@ -480,6 +475,21 @@ class Merger:
                     break
                 self._far_tries[key] = budget  # none left
         return queued
+
+    def _idle_candidates(self) -> list[str]:
+        """The submaps the idle search tries (:meth:`_idle_pairs`), whose tries :attr:`_searching`
+        counts (they must be the same, or a step with nothing to queue would have work for ever):
+        of each component merged with no other epoch, its final submaps, or all of them if none is
+        final yet."""
+        if self._result is None:
+            return []
+        out: list[str] = []
+        for i, component in enumerate(self._result.components):
+            if len(self._epochs_in[i]) > 1:
+                continue
+            finals = [k for k in component.members if self.submaps[k].final]
+            out += finals or list(component.members)
+        return out
 
     def _component_members(self, key: str) -> set[str]:
         """The submaps in ``key``'s component, by the last solve and its links."""

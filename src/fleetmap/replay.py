@@ -146,6 +146,10 @@ def replay(
             fed.add(m.payload)
             steps.append(msg)
     live = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap)), None)
+    # the live map a replay is compared with: the last one whose step the recording holds (a
+    # recorder killed between a step's global map and its MergerStep kept the map, not the step)
+    stepped = {step.seq for step in steps}
+    compared = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap) and msg.seq in stepped), None)
     exact = bool(steps) and not partial
 
     def wanted(msg: Any) -> bool:
@@ -166,6 +170,7 @@ def replay(
                 session.malformed += 1
 
     inputs: list[str] = []
+    at_live: GlobalMap | None = None
     pace = _Pacer(opts.speed)
     if exact:
         by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
@@ -182,6 +187,8 @@ def replay(
                 merger.receive(keys.localmap(robot), found[0].payload)
                 inputs.append(f"{key}@{version}")
             take(merger.step(limit=step.integrations))
+            if compared is not None and step.seq == compared.seq:
+                at_live = merger.global_map  # the step that published the live map compared with
             if progress:
                 progress(n + 1, len(steps))
         while merger.has_work:  # a recording that ends before the live merger caught up
@@ -201,7 +208,9 @@ def replay(
         "exact": exact,
         "steps": merger.stats.steps,
         "local_maps_fed": len(inputs),
-        "matches_live": same_global_map(live, merger.global_map) if exact else None,
+        # against the map of the step that published the live one: a recording cut by a crash may
+        # hold maps no recorded step took, which the replay goes on to integrate after it
+        "matches_live": same_global_map(compared, at_live or merger.global_map) if exact else None,
         "warning": warning,
     }
     from fleetmap.runner import _write_json
