@@ -238,14 +238,18 @@ def _entity(entity_id: str, frame: str, stamp: float, segments: Array, color: Co
 
 
 def _frame_transform(parent: str, child: str, pose: Transform2D, stamp: float) -> bytes:
-    half = pose.theta / 2.0
     return FrameTransform(
         timestamp=_timestamp(stamp),
         parent_frame_id=parent,
         child_frame_id=child,
         translation=Vector3(x=pose.x, y=pose.y, z=0.0),
-        rotation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)),
+        rotation=_yaw(pose.theta),
     ).encode()
+
+
+def _yaw(theta: float) -> Quaternion:
+    """The rotation by ``theta`` about the vertical."""
+    return Quaternion(x=0.0, y=0.0, z=math.sin(theta / 2.0), w=math.cos(theta / 2.0))
 
 
 def foxglove_views(message: FleetMessage, key: str, at: float | None = None) -> list[FoxgloveView]:
@@ -320,11 +324,7 @@ def foxglove_views(message: FleetMessage, key: str, at: float | None = None) -> 
 
 
 def _pose3(pose: Transform2D) -> Pose:
-    half = pose.theta / 2.0
-    return Pose(
-        position=Vector3(x=pose.x, y=pose.y, z=0.0),
-        orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)),
-    )
+    return Pose(position=Vector3(x=pose.x, y=pose.y, z=0.0), orientation=_yaw(pose.theta))
 
 
 def _side_by_side(message: GlobalMap) -> list[Transform2D]:
@@ -377,8 +377,8 @@ class FoxgloveScene:
         main = message.components[0]
         beams = [
             Beams(pose, r.angle_min, r.angle_increment, r.range_max, r.ranges)
-            for at, (_, pose) in sorted(placed_scans(main.poses, self._tables).items())
-            if (r := self._ranges.get(at)) is not None
+            for scan, (_, pose) in sorted(placed_scans(main.poses, self._tables).items())
+            if (r := self._ranges.get(scan)) is not None
         ]
         grid = occupancy_grid(beams, np.asarray(main.segments))
         cols = grid.cells.shape[1]

@@ -157,6 +157,7 @@ def test_every_command_is_listed_and_a_misspelt_one_is_refused_naming_them() -> 
     assert done.value.code == 0
 
 
+@pytest.mark.slow  # runs fleetmap processes
 @pytest.mark.parametrize(
     ("command", "flag", "says"),
     [
@@ -175,6 +176,7 @@ def test_a_service_told_to_write_into_a_missing_folder_exits_2_before_it_starts(
     assert r.returncode == 2 and len(lines) == 1 and str(target) in lines[0] and says in lines[0], r.stderr
 
 
+@pytest.mark.slow  # runs fleetmap processes
 def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path) -> None:
     # no exception names, no Rust error structures, no numpy warnings: one line naming the fault
     (tmp_path / "a-file").write_text("")
@@ -211,6 +213,7 @@ def test_help_reads_usage_first_and_says_what_each_flag_is(command: str) -> None
         assert all(name in flat for name in list_scenarios())
 
 
+@pytest.mark.slow  # runs fleetmap processes
 def test_absurd_but_finite_ranges_map_without_numpy_warnings(tmp_path: Path) -> None:
     # readings of 1e308 m (beyond float32: no return) among real ones
     scan = {"stamp": 1.0, "angle_min": -1.5, "angle_increment": 0.01, "range_max": 1e308}

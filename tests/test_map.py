@@ -140,6 +140,7 @@ def test_bad_inputs_exit_2_naming_the_input(tmp_path: Path, capsys: pytest.Captu
     assert not any((tmp_path / d).exists() for d in "abcd")
 
 
+@pytest.mark.slow  # runs fleetmap processes
 def test_a_log_whose_logger_crashed_mid_line_maps_with_one_warning(tmp_path: Path) -> None:
     # the last line cut where the logger died: every whole scan is mapped, and the user is told once
     # which line was skipped

@@ -34,6 +34,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import LocalMap, Message
+from fleetmap.shared.occupancy import placed_scans
 from fleetmap.shared.scans import read_ranges_jsonl
 
 STEP_SECONDS = 5.0
@@ -204,17 +205,17 @@ def map_logs(
     result = merger.result
     poses: list[tuple[str, float, int, Transform2D]] = []
     if result is not None:
-        where = {k: (n, c) for n, c in enumerate(result.components) for k in c.members}
         stamps = {p.robot: p.stamps for p in pieces}
-        for key, m in sorted(merger.submaps.items()):
-            if m.scan_indices is None or m.scan_poses is None or key not in where:
-                continue
-            n, component = where[key]
-            frame = component.poses[key]
-            for index, pose in zip(m.scan_indices, m.scan_poses, strict=True):
-                stamp = stamps[m.robot].get(int(index))
+        tables = {
+            k: (m.scan_indices, m.scan_poses)
+            for k, m in merger.submaps.items()
+            if m.scan_indices is not None and m.scan_poses is not None
+        }
+        for n, component in enumerate(result.components):
+            for (robot, index), (_, pose) in placed_scans(component.poses, tables).items():
+                stamp = stamps[robot].get(index)
                 if stamp is not None:
-                    poses.append((m.robot, stamp, n, frame.compose(Transform2D.from_array(pose))))
+                    poses.append((robot, stamp, n, pose))
     order = {p.robot: n for n, p in enumerate(pieces)}
     poses.sort(key=lambda x: (order[x[0]], x[1]))
     report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))

@@ -97,6 +97,12 @@ class SessionLog:
     def final(self) -> GlobalMap | None:
         return self.global_maps[-1] if self.global_maps else None
 
+    @property
+    def main(self) -> Component | None:
+        """The largest component of the final global map, if any."""
+        final = self.final
+        return final.components[0] if final is not None and final.components else None
+
     def robots(self) -> list[str]:
         names = set(self.scans) | {m.robot for m in self.local_maps.values()}
         return sorted(names)
@@ -374,8 +380,7 @@ def _overlap_stamp(log: SessionLog, truth: Truth, event: Kidnap) -> float | None
 def global_map_json(log: SessionLog) -> dict[str, Any]:
     """global_map.json: the largest component as a map file, with the pose of every epoch's frame
     (``<robot>/<epoch>``, ``../shared/CONTRACTS.md``) and of every submap (or null)."""
-    final = log.final
-    main = final.components[0] if final is not None and final.components else None
+    main = log.main
     segments = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
     out = SegmentMap(segments.round(6), ordered=False, oriented=True).to_json_dict()
     submaps = sorted(set(log.local_maps) | (set(main.members) if main is not None else set()))
@@ -408,8 +413,7 @@ def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, tit
 def placed_scans(log: SessionLog) -> dict[tuple[str, int], tuple[int, Transform2D]]:
     """Every scan of the largest component, by (robot, index): its epoch and its laser pose in the
     global map (:func:`fleetmap.shared.occupancy.placed_scans`)."""
-    final = log.final
-    main = final.components[0] if final is not None and final.components else None
+    main = log.main
     if main is None:
         return {}
     tables = {
@@ -447,8 +451,7 @@ def robot_paths(log: SessionLog) -> dict[str, Array]:
 def occupancy_of(log: SessionLog) -> OccupancyGrid:
     """The largest component's occupancy grid (:mod:`fleetmap.shared.occupancy`): free along its
     placed scans' beams, occupied on its fused walls."""
-    final = log.final
-    main = final.components[0] if final is not None and final.components else None
+    main = log.main
     walls = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
     return occupancy_grid(placed_beams(log), walls)
 
@@ -457,7 +460,7 @@ def plot_session(log: SessionLog, truth: Truth | None, path: Path, title: str) -
     from fleetmap.merger.plot import plot_merged
 
     final = log.final
-    main = final.components[0] if final is not None and final.components else None
+    main = log.main
     maps: dict[str, Array] = {k: np.asarray(m.segments) for k, m in sorted(log.local_maps.items())}
     poses: dict[str, Transform2D | None] = {k: (main.poses.get(k) if main is not None else None) for k in maps}
     walls = None

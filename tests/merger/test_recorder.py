@@ -294,18 +294,26 @@ def publish_to_recorder(endpoint: str, fed: list[tuple[str, bytes]]) -> None:
         assert wait_until_recorded(bus, KEYS, Counter(key for key, _ in fed), WAIT)
 
 
-@pytest.mark.slow
-def test_fleetmap_record_stops_on_sigterm_with_a_complete_file_and_a_summary(tmp_path):
-    out, endpoint = tmp_path / "session.mcap", free_loopback_endpoint()
+def record_until_sigterm(out: Path, fed: list[tuple[str, bytes]]) -> str:
+    """``fleetmap record --out OUT`` until it has recorded ``fed``, then SIGTERM: its stdout (it
+    must exit 0)."""
+    endpoint = free_loopback_endpoint()
     process = start_record(out, endpoint)
     try:
-        fed = fleet_traffic() + MALFORMED
         publish_to_recorder(endpoint, fed)
         process.send_signal(signal.SIGTERM)
         stdout, stderr = process.communicate(timeout=WAIT)
     finally:
         process.kill()
     assert process.returncode == 0, stderr
+    return stdout
+
+
+@pytest.mark.slow
+def test_fleetmap_record_stops_on_sigterm_with_a_complete_file_and_a_summary(tmp_path):
+    out = tmp_path / "session.mcap"
+    fed = fleet_traffic() + MALFORMED
+    stdout = record_until_sigterm(out, fed)
     reader = RecordingReader(out)
     assert reader.complete
     counts = reader.topic_counts()
@@ -343,15 +351,7 @@ def test_a_recorder_restarted_twice_leaves_three_readable_files(tmp_path):
     out = tmp_path / "session.mcap"
     feeds = [fleet_traffic(robots=1, scans=k + 1) for k in range(3)]
     for fed in feeds:
-        endpoint = free_loopback_endpoint()
-        process = start_record(out, endpoint)
-        try:
-            publish_to_recorder(endpoint, fed)
-            process.send_signal(signal.SIGTERM)
-            _, stderr = process.communicate(timeout=WAIT)
-        finally:
-            process.kill()
-        assert process.returncode == 0, stderr
+        record_until_sigterm(out, fed)
     files = [out, tmp_path / "session-1.mcap", tmp_path / "session-2.mcap"]
     assert sorted(tmp_path.iterdir()) == sorted(files)
     for path, fed in zip(files, feeds, strict=True):

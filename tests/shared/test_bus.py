@@ -379,6 +379,7 @@ def test_clients_talk_through_a_fleetmap_router_that_stops_on_sigterm():
         router.wait()
 
 
+@pytest.mark.slow  # waits on a real zenoh connection
 def test_a_client_whose_router_never_answers_says_so_then_gives_up(caplog: pytest.LogCaptureFixture) -> None:
     endpoint = free_loopback_endpoint()  # nothing listens there
     with caplog.at_level(logging.WARNING), pytest.raises(BusError, match="Unable to connect"):
