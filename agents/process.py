@@ -117,13 +117,13 @@ class _FleetEvents:
 
 
 def message_key(keys: FleetKeys, message: Message) -> str:
-    """Where an agent publishes a message: its scan, local map or the fleet's events key."""
+    """Where an agent publishes a message: its scan, local map or events key."""
     if isinstance(message, Scan):
         return keys.scan(message.robot)
     if isinstance(message, LocalMap):
         return keys.localmap(message.robot)
-    if isinstance(message, FleetEvent):
-        return keys.events
+    if isinstance(message, FleetEvent) and message.robot is not None:
+        return keys.robot_events(message.robot)
     raise TypeError(f"an agent does not publish {type(message).__name__}")
 
 

@@ -65,6 +65,7 @@ EXPECTED: dict[str, tuple[type[Message], ...]] = {
     "edges": (MergeEdge,),
     "steps": (MergerStep,),
     "events": (FleetEvent,),
+    "robot_events": (FleetEvent,),
     "state": (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent),
 }
 """The message types each kind of key carries; a payload of another type is malformed there."""

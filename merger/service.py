@@ -67,7 +67,7 @@ from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys, parse_submap_key
+from fleetmap.shared.keys import ROBOT_KINDS, FleetKeys, parse_submap_key
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import with_viewpoints
 from fleetmap.shared.messages import (
@@ -78,6 +78,7 @@ from fleetmap.shared.messages import (
     LocalMap,
     MergeEdge,
     MergerStep,
+    Message,
     RobotPose,
     Scan,
     decode,
@@ -114,6 +115,9 @@ class MergerStats:
     """Malformed messages per 'schema field' (what was wrong)."""
     ignored: int = 0
     """Well-formed messages not meant for the merger on the key they came on."""
+    foreign: int = 0
+    """Messages naming another robot than the robot of their key (a robot speaking for another),
+    dropped whatever the router allowed."""
     stale: int = 0
     """Submap versions older than (or as old as) the version already held."""
     steps: int = 0
@@ -130,6 +134,7 @@ class MergerStats:
             "malformed": self.malformed,
             "malformed_reasons": dict(self.malformed_reasons),
             "ignored": self.ignored,
+            "foreign": self.foreign,
             "stale": self.stale,
             "steps": self.steps,
             "integrations": self.integrations,
@@ -204,6 +209,8 @@ class Merger:
                 log.warning("dropped a malformed message on %s: %s (%d so far)", key, exc, self.stats.malformed)
             return []
         self.stats.received[message.SCHEMA] += 1
+        if not self._robots_own(key, message):
+            return []
         if isinstance(message, LocalMap):
             if key != self.keys.localmap(message.robot):
                 self.stats.ignored += 1
@@ -216,6 +223,29 @@ class Merger:
         else:
             self.stats.ignored += 1
         return []
+
+    def _robots_own(self, key: str, message: Message) -> bool:
+        """Whether a message on a robot's key is that robot's; else it is dropped and counted
+        (defence in depth: a router's access control holds a robot to its own keys, but only
+        where one is configured)."""
+        try:
+            parsed = self.keys.parse(key)
+        except BadInput:
+            return True  # not a fleet key: the kind checks below decide
+        robot = getattr(message, "robot", None)
+        if parsed.kind not in ROBOT_KINDS or robot == parsed.robot:
+            return True
+        self.stats.foreign += 1
+        if self.stats.foreign <= 20 or self.stats.foreign % 1000 == 0:
+            log.warning(
+                "dropped a %s naming robot %r on robot %r's key %s (%d so far)",
+                message.SCHEMA,
+                robot,
+                parsed.robot,
+                key,
+                self.stats.foreign,
+            )
+        return False
 
     def _robot(self, name: str) -> _Robot:
         return self._robots.setdefault(name, _Robot())
@@ -805,6 +835,7 @@ class MergerService:
         keys = self.keys
         self._handles.append(self.bus.subscribe(keys.all_localmaps, self._on_message))
         self._handles.append(self.bus.subscribe(keys.all_scans, self._on_message))
+        self._handles.append(self.bus.subscribe(keys.all_robot_events, self._on_message))
         self._handles.append(self.bus.subscribe(keys.events, self._on_message))
         self._handles.append(self.bus.declare_queryable(keys.state, self._on_query))
         self._handles.append(

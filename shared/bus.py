@@ -17,6 +17,7 @@ the data. A router with access control must allow query and reply on ``fleetmap/
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -255,7 +256,7 @@ class ZenohBus(_BusBase):
     def open(cls, options: ZenohOptions | zenoh.Config) -> ZenohBus:
         """Open a session from the shared flags (or a ready zenoh.Config)."""
         config = zenoh_config(options) if isinstance(options, ZenohOptions) else options
-        wait = options.connect_wait if isinstance(options, ZenohOptions) and options.connect else 0.0
+        wait = options.connect_wait if isinstance(options, ZenohOptions) and _connects(config) else 0.0
         deadline = time.monotonic() + wait
         pause = FIRST_RETRY
         while True:
@@ -268,8 +269,9 @@ class ZenohBus(_BusBase):
                     raise BusError(f"cannot open a zenoh session ({describe(config)}): {_short(exc)}") from None
                 pause = min(pause, left)
                 log.warning(
-                    "nothing answers at %s yet; trying again in %.1f s (for %.0f s more, --connect-wait)",
-                    ", ".join(options.connect),
+                    "nothing answers at %s yet (or it refuses these credentials); trying again in %.1f s (for %.0f s "
+                    "more, --connect-wait)",
+                    describe(config).get("connect/endpoints", "the --connect endpoints"),
                     pause,
                     left,
                 )
@@ -441,6 +443,17 @@ class ZenohBus(_BusBase):
         for publisher in publishers:
             publisher.undeclare()
         self.session.close()
+
+
+def _connects(config: zenoh.Config) -> bool:
+    """Whether a session of ``config`` connects somewhere (from the flags or its config file)."""
+    try:
+        endpoints = json.loads(config.get_json("connect/endpoints"))
+    except (zenoh.ZError, ValueError):
+        return False
+    if isinstance(endpoints, dict):  # per mode: {"router": [...], "peer": [...], "client": [...]}
+        return any(endpoints.values())
+    return bool(endpoints)
 
 
 def _answer_barrier(query: zenoh.Query) -> None:

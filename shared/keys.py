@@ -6,17 +6,20 @@ conventions)::
     fleet/<fleet>/robots/<robot>/scan        Scan
     fleet/<fleet>/robots/<robot>/localmap    LocalMap
     fleet/<fleet>/robots/<robot>/pose        RobotPose
+    fleet/<fleet>/robots/<robot>/events      FleetEvent said by the robot (a new epoch)
     fleet/<fleet>/merger/globalmap           GlobalMap
     fleet/<fleet>/merger/edges               MergeEdge
     fleet/<fleet>/merger/steps               MergerStep (the versions the merger took in, and the pairs it integrated)
     fleet/<fleet>/merger/state               queryable: the current global state
-    fleet/<fleet>/events                     FleetEvent
+    fleet/<fleet>/events                     FleetEvent said by the merger (join, leave, requests)
     fleet/<fleet>/recorder/stats             queryable: what the recorder has recorded so far
     fleet/<fleet>/alive/<robot>              liveliness token: the robot is up
     fleet/<fleet>/services/<service>         liveliness token: a service (merger, recorder) is up
 
 Robot ids and fleet names have one format, ``^[a-z][a-z0-9_-]{0,31}$``: short, lower case, safe
-in a key expression (no ``/``, ``*``, ``$`` or ``?``) and in a file name. A local map is named by
+in a key expression (no ``/``, ``*``, ``$`` or ``?``) and in a file name. A robot writes only
+under its own ``robots/<robot>/`` and ``alive/<robot>`` keys, so a router's access control can hold
+it to them (:mod:`fleetmap.shared.security`). A local map is named by
 its *map key* ``<robot>/<epoch>``, the node name of the merger's map graph.
 """
 
@@ -39,11 +42,24 @@ leading zeros."""
 DEFAULT_FLEET = "default"
 
 KeyKind = Literal[
-    "scan", "localmap", "pose", "globalmap", "edges", "steps", "state", "events", "alive", "services", "recorder_stats"
+    "scan",
+    "localmap",
+    "pose",
+    "robot_events",
+    "globalmap",
+    "edges",
+    "steps",
+    "state",
+    "events",
+    "alive",
+    "services",
+    "recorder_stats",
 ]
 KEY_KINDS: tuple[str, ...] = get_args(KeyKind)
-ROBOT_KINDS = ("scan", "localmap", "pose")
-"""Kinds whose key names a robot: ``fleet/<fleet>/robots/<robot>/<kind>``."""
+ROBOT_LEAVES: dict[str, KeyKind] = {"scan": "scan", "localmap": "localmap", "pose": "pose", "events": "robot_events"}
+"""The last part of a robot's key ``fleet/<fleet>/robots/<robot>/<leaf>``, and the kind it names."""
+ROBOT_KINDS: tuple[KeyKind, ...] = tuple(ROBOT_LEAVES.values())
+"""Kinds whose key names a robot; a message on such a key must be that robot's."""
 
 
 def check_name(value: object, what: str) -> str:
@@ -121,6 +137,14 @@ class FleetKeys:
     def pose(self, robot: str) -> str:
         return f"{self.prefix}/robots/{check_name(robot, 'robot')}/pose"
 
+    def robot_events(self, robot: str) -> str:
+        """Where a robot says things about itself (a new epoch): its own key, not the fleet's."""
+        return f"{self.prefix}/robots/{check_name(robot, 'robot')}/events"
+
+    @property
+    def all_robot_events(self) -> str:
+        return f"{self.prefix}/robots/*/events"
+
     @property
     def all_scans(self) -> str:
         return f"{self.prefix}/robots/*/scan"
@@ -154,6 +178,8 @@ class FleetKeys:
 
     @property
     def events(self) -> str:
+        """The merger's events (join, leave, relocalized, requests to the robots); robots' own
+        events of older recordings are here too."""
         return f"{self.prefix}/events"
 
     @property
@@ -184,8 +210,8 @@ class FleetKeys:
             raise BadInput("key", f"{str(key)[:128]!r} is not under {head}")
         parts = key[len(head) :].split("/")
         match parts:
-            case ["robots", robot, kind] if kind in ROBOT_KINDS and NAME_PATTERN.fullmatch(robot):
-                return ParsedKey(kind, robot)  # type: ignore[arg-type]  # kind is one of ROBOT_KINDS
+            case ["robots", robot, leaf] if leaf in ROBOT_LEAVES and NAME_PATTERN.fullmatch(robot):
+                return ParsedKey(ROBOT_LEAVES[leaf], robot)
             case ["merger", "globalmap"]:
                 return ParsedKey("globalmap")
             case ["merger", "edges"]:

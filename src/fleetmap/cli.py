@@ -15,7 +15,20 @@ from collections.abc import Sequence
 from fleetmap import __version__
 from fleetmap.shared.errors import BadInput, FleetmapError
 
-COMMANDS = ("extract", "integrate", "merge", "map", "simulate", "run", "replay", "agent", "merger", "record", "router")
+COMMANDS = (
+    "extract",
+    "integrate",
+    "merge",
+    "map",
+    "simulate",
+    "run",
+    "replay",
+    "agent",
+    "merger",
+    "record",
+    "router",
+    "secure",
+)
 """Modules of fleetmap.commands, in the order ``--help`` lists them."""
 
 log = logging.getLogger("fleetmap")

@@ -34,6 +34,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import FleetmapError
 from fleetmap.shared.messages import BadMessage, LocalMap, MergerStep, decode
 from fleetmap.shared.recording import RecordingReader
+from fleetmap.shared.security import write_fleet_security
 from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 log = logging.getLogger(__name__)
@@ -146,8 +147,15 @@ class Session:
     speed: float = 2.0
     fleet: str = "run"
     progress: bool = True
+    secure: bool = False
+    """Authentication and access control: every process logs in to the router with its own
+    credentials from ``fleetmap secure`` (written into ``out_dir/secure``), and may do only what its
+    role may."""
+    tls: bool = False
+    """With ``secure``: over mutual TLS."""
     python: str = sys.executable
     children: list[_Child] = field(default_factory=list)
+    _zenoh: Callable[[str], list[str]] = field(init=False, repr=False)
 
     def _fleetmap(self, *args: str) -> list[str]:
         return [self.python, "-m", "fleetmap", *args]
@@ -170,11 +178,16 @@ class Session:
         state_file = out / "merger.state"
         state_file.unlink(missing_ok=True)
         endpoint = free_loopback_endpoint()
-        common = ["--connect", endpoint, "--mode", "client", "--fleet", self.fleet]
+        if self.tls:
+            endpoint = endpoint.replace("tcp/", "tls/")
+        self._zenoh = self._zenoh_args(endpoint)
         started = time.monotonic()
         try:
-            self._child("router", "router", "--listen", endpoint)
-            options = ZenohOptions(mode="client", connect=(endpoint,), fleet=self.fleet)
+            self._child("router", "router", *self._zenoh("router"))
+            if self.secure:
+                options = ZenohOptions(config_file=str(out / "secure" / "viewer.json5"), fleet=self.fleet)
+            else:
+                options = ZenohOptions(mode="client", connect=(endpoint,), fleet=self.fleet)
             _wait(lambda: _port_open(endpoint), READY_TIMEOUT, "the zenoh router")
             with ZenohBus.open(options) as bus:
                 keys = options.keys
@@ -193,16 +206,17 @@ class Session:
                     str(config_file),
                     "--scenario",
                     str(scenario_file),
-                    *common,
+                    *self._zenoh("recorder"),
                 )
                 _wait(lambda: "recorder" in watch.services or not record.running, READY_TIMEOUT, "the recorder")
-                merger_args = ("merger", "--state", str(state_file), "--config", str(config_file), *common)
+                merger_args: tuple[str, ...] = ("merger", "--state", str(state_file), "--config", str(config_file))
+                merger_args += tuple(self._zenoh("merger"))
                 merger = self._child("merger", *merger_args)
                 _wait(lambda: "merger" in watch.services or not merger.running, READY_TIMEOUT, "the merger")
                 for c in (record, merger):
                     if not c.running:
                         raise SessionError(f"the {c.name} did not start (see {c.log_path})")
-                merger = self._play(scenario_file, config_file, common, merger_args, merger)
+                merger = self._play(scenario_file, config_file, merger_args, merger)
                 _wait(watch.caught_up, CATCH_UP_TIMEOUT, "the merger to integrate every local map", watch.changed)
                 with watch.lock:
                     expected = dict(watch.counts)
@@ -227,9 +241,22 @@ class Session:
         _write_json(out / "report.json", report)
         return report
 
-    def _play(
-        self, scenario_file: Path, config_file: Path, common: list[str], merger_args: tuple[str, ...], merger: _Child
-    ) -> _Child:
+    def _zenoh_args(self, endpoint: str) -> Callable[[str], list[str]]:
+        """The zenoh flags of each role's process (``router``, ``merger``, ``recorder`` or a robot)."""
+        if not self.secure:
+            return lambda role: (
+                ["--listen", endpoint]
+                if role == "router"
+                else ["--connect", endpoint, "--mode", "client", "--fleet", self.fleet]
+            )
+        folder = self.out_dir / "secure"
+        robots = [r.id for r in self.scenario.robots]
+        write_fleet_security(folder, self.fleet, robots, listen=[endpoint], tls=self.tls)
+        return lambda role: (
+            ["--zenoh-config", str(folder / f"{role}.json5")] + ([] if role == "router" else ["--fleet", self.fleet])
+        )
+
+    def _play(self, scenario_file: Path, config_file: Path, merger_args: tuple[str, ...], merger: _Child) -> _Child:
         """Start the agents and play the events on the scenario clock; returns the current merger."""
         sc = self.scenario
         actions: list[tuple[float, int, str, Any]] = []
@@ -265,7 +292,7 @@ class Session:
                         str(self.speed),
                         "--config",
                         str(config_file),
-                        *common,
+                        *self._zenoh(robot),
                     )
                 elif what == "leave":
                     agents[robot].signal(signal.SIGTERM)

@@ -180,6 +180,20 @@ def test_a_state_whose_edge_information_is_no_weight_is_refused_by_name(tmp_path
     assert str(path) in str(caught.value)
 
 
+def test_a_robot_speaking_for_another_is_dropped_and_counted(maps) -> None:  # type: ignore[no-untyped-def]
+    clean, spoofed = Merger(KEYS), Merger(KEYS)
+    r1_map = maps["r1"][0]
+    # r2 publishes r1's map (a newer version, its segments moved) on its own key, and a scan and an
+    # epoch event naming r1 on its own keys: whatever a router let through, none of it counts
+    forged = LocalMap("r1", 0, 99, r1_map.stamp, r1_map.segments + 5.0, r1_map.scans, r1_map.pose)
+    spoofed.receive(KEYS.localmap("r2"), forged.to_msgpack())
+    spoofed.receive(KEYS.robot_events("r2"), FleetEvent("epoch", "r1", 1.0, "{}").to_msgpack())
+    assert spoofed.stats.foreign == 2 and spoofed.pending == 0
+    a = _feed(clean, [r1_map, maps["r2"][0]])
+    b = _feed(spoofed, [r1_map, maps["r2"][0]])
+    assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
+
+
 def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     first, _ = true_local_map("department", "r1", 0, 6, version=0)

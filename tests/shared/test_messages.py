@@ -414,6 +414,7 @@ def test_keys_build_and_parse_back():
         (keys.scan("r1"), "scan", "r1"),
         (keys.localmap("r_2"), "localmap", "r_2"),
         (keys.pose("r3"), "pose", "r3"),
+        (keys.robot_events("r3"), "robot_events", "r3"),
         (keys.globalmap, "globalmap", None),
         (keys.edges, "edges", None),
         (keys.state, "state", None),

@@ -33,6 +33,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", default=None, metavar="DIR", help="output folder (default runs/<scenario>)")
     p.add_argument("--speed", type=float, default=2.0, help="scenario seconds per wall second (default 2)")
     p.add_argument("--fleet", default="run", help="fleet name on the bus (default 'run')")
+    p.add_argument(
+        "--secure",
+        action="store_true",
+        help="with authentication and access control: each process logs in with its own credentials "
+        "(fleetmap secure, written into DIR/secure) and may do only what its role may",
+    )
+    p.add_argument("--tls", action="store_true", help="with --secure: over mutual TLS")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json instead of the summary")
     add_config_arguments(p, ["extraction", "integration", "merge"])
@@ -45,7 +52,18 @@ def run(args: argparse.Namespace) -> int:
     if not args.speed > 0:
         raise BadInput("--speed", f"must be positive, got {args.speed}")
     out = output_folder(Path(args.out) if args.out else Path("runs") / scenario.name, "--out")
-    session = Session(scenario, out, config, speed=args.speed, fleet=args.fleet, progress=not args.no_progress)
+    if args.tls and not args.secure:
+        raise BadInput("--tls", "goes with --secure")
+    session = Session(
+        scenario,
+        out,
+        config,
+        speed=args.speed,
+        fleet=args.fleet,
+        progress=not args.no_progress,
+        secure=args.secure,
+        tls=args.tls,
+    )
     report = session.run()
     if args.json:
         print(json.dumps(report, indent=2))
