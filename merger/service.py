@@ -93,8 +93,6 @@ SEARCH_GROWTH = 2
 version last searched: each search sees as much new wall as all before it together, so a submap
 of v versions costs about log(v) searches, not v."""
 
-STOP_SECONDS = 5.0
-"""How long a stopping merger keeps integrating what is queued (the rest waits in its state file)."""
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -118,6 +116,9 @@ class MergerStats:
     foreign: int = 0
     """Messages naming another robot than the robot of their key (a robot speaking for another),
     dropped whatever the router allowed."""
+    refused: Counter[str] = field(default_factory=Counter)
+    """Messages and pairs refused by a limit (``merge.max_submap_segments``, ``max_robots``,
+    ``max_queued_pairs``), per limit."""
     stale: int = 0
     """Submap versions older than (or as old as) the version already held."""
     steps: int = 0
@@ -135,6 +136,7 @@ class MergerStats:
             "malformed_reasons": dict(self.malformed_reasons),
             "ignored": self.ignored,
             "foreign": self.foreign,
+            "refused": dict(self.refused),
             "stale": self.stale,
             "steps": self.steps,
             "integrations": self.integrations,
@@ -209,7 +211,7 @@ class Merger:
                 log.warning("dropped a malformed message on %s: %s (%d so far)", key, exc, self.stats.malformed)
             return []
         self.stats.received[message.SCHEMA] += 1
-        if not self._robots_own(key, message):
+        if not self._robots_own(key, message) or not self._room_for(getattr(message, "robot", None)):
             return []
         if isinstance(message, LocalMap):
             if key != self.keys.localmap(message.robot):
@@ -247,6 +249,32 @@ class Merger:
             )
         return False
 
+    def _room_for(self, robot: str | None) -> bool:
+        """Whether the merger may keep track of ``robot`` (one it knows, or one more under the limit)."""
+        if robot is None or robot in self._robots or len(self._robots) < self.config.merge.max_robots:
+            return True
+        self._refuse("max_robots", f"a message of robot {robot!r}, {len(self._robots)} robots known")
+        return False
+
+    def _refuse(self, limit: str, what: str) -> None:
+        """Count (and log, the first times) something a limit of ``merge`` refused."""
+        self.stats.refused[limit] += 1
+        n = self.stats.refused[limit]
+        if n <= 10 or n % 1000 == 0:
+            flag = "--" + limit.replace("_", "-")
+            value = getattr(self.config.merge, limit)
+            log.warning("refused %s: more than %s %s allows (%d refused so far)", what, flag, value, n)
+
+    def _enqueue(self, pair: tuple[str, str], predicted: Transform2D | None) -> bool:
+        """Queue a pair to integrate (once); False if it was queued already or the queue is full."""
+        if pair in self._queue:
+            return False
+        if len(self._queue) >= self.config.merge.max_queued_pairs:
+            self._refuse("max_queued_pairs", f"pair {pair[0]} {pair[1]}, {len(self._queue)} queued")
+            return False
+        self._queue[pair] = predicted
+        return True
+
     def _robot(self, name: str) -> _Robot:
         return self._robots.setdefault(name, _Robot())
 
@@ -260,10 +288,16 @@ class Merger:
         if len(m.segments) == 0:
             self.stats.ignored += 1
             return
+        if len(m.segments) > self.config.merge.max_submap_segments:
+            self._refuse("max_submap_segments", f"submap {key} of {len(m.segments)} segments")
+            return
+        self._robot(m.robot)  # known from its first map (max_robots counts it)
         self._pending[key] = m
 
     def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
         """A robot's liveliness token appeared or went: a join or leave event. Its maps stay."""
+        if not self._room_for(robot):
+            return []
         r = self._robot(robot)
         r.present = present
         kind = "join" if present else "leave"
@@ -272,6 +306,11 @@ class Merger:
     @property
     def pending(self) -> int:
         return len(self._pending)
+
+    @property
+    def waiting(self) -> list[str]:
+        """The submaps received that no step has taken into the graph yet."""
+        return list(self._pending)
 
     @property
     def backlog(self) -> int:
@@ -447,19 +486,19 @@ class Merger:
                 # after a long way round: the search window as wide as the uncertainty), the
                 # most similar such submap only: the paper's integration costs ten registrations
                 if self._within_reach(other, key):
-                    self._queue.setdefault((other, key), predicted)
+                    self._enqueue((other, key), predicted)
                 else:
                     beyond.append(other)
             if beyond:
                 h = self._histogram(key)
                 best = max(beyond, key=lambda k: (similarity(self._histogram(k), h), k))
-                self._queue.setdefault(_ordered(best, key), None)
+                self._enqueue(_ordered(best, key), None)
             if m.final:
                 self._finals += 1
                 if mp.loop_sweep_every > 0 and self._finals % mp.loop_sweep_every == 0:
                     sweep = self._far(key, mine, within=True)[:1]
                     for other in sweep:
-                        self._queue.setdefault(_ordered(other, key), None)
+                        self._enqueue(_ordered(other, key), None)
         if not self._in_global_map(key):
             # the global map's own submaps are not searched for the others: each of theirs
             # searches it, and one direction is enough
@@ -474,9 +513,7 @@ class Merger:
         return index == 0 and len(self._epochs_in[0]) > 1
 
     def _queue_far(self, key: str, other: str) -> None:
-        pair = _ordered(other, key)
-        if pair not in self._queue:
-            self._queue[pair] = None
+        if self._enqueue(_ordered(other, key), None):
             self._far_tries[key] = self._far_tries.get(key, 0) + 1
 
     def _idle_pairs(self) -> int:
@@ -666,7 +703,8 @@ class Merger:
     # -- state file ------------------------------------------------------------------------
     def save_state(self, path: str | Path) -> None:
         """Everything needed to resume: the submaps (as received, in the order they entered the
-        graph), the integrations, the robots, the queue, the last step's messages.
+        graph), the integrations, the robots, the queue, the submaps received and not yet taken in,
+        the last step's messages.
 
         Written to a temporary file and renamed, so a merger killed while saving leaves the
         previous state whole."""
@@ -705,6 +743,7 @@ class Merger:
             "edges": edges,
             "robots": robots,
             "queue": [[a, b, None if t is None else [t.x, t.y, t.theta]] for (a, b), t in self._queue.items()],
+            "pending": [m.to_msgpack() for m in self._pending.values()],
             "scheduled": self._scheduled,
             "finals": self._finals,
             "far_tries": self._far_tries,
@@ -762,6 +801,9 @@ class Merger:
             for a, b, t in state.get("queue", []):
                 if a in fresh.graph and b in fresh.graph:
                     pairs[(str(a), str(b))] = None if t is None else Transform2D(*t)
+            pending = [decode(bytes(payload)) for payload in state.get("pending", [])]
+            if not all(isinstance(m, LocalMap) for m in pending):
+                raise ValueError("a saved pending submap is not a LocalMap")
             scheduled = {str(k): int(v) for k, v in state.get("scheduled", {}).items()}
             far_tries = {str(k): int(v) for k, v in state.get("far_tries", {}).items()}
             last_out = [Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])]
@@ -773,6 +815,7 @@ class Merger:
         self.seq, self.stamp, self._finals = seq, stamp, finals
         self._queue, self._scheduled, self._last_out = pairs, scheduled, last_out
         self._far_tries = far_tries
+        self._pending = {m.submap_key: m for m in pending if isinstance(m, LocalMap)}
         if len(self.graph):
             self._result = self.graph.solve()
             self._index_result()
@@ -903,14 +946,12 @@ class MergerService:
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
-        # At the stop: what arrived is taken in, and the pairs still queued are integrated for up to
-        # STOP_SECONDS (a container is killed ten seconds after its SIGTERM). What is left stays in
-        # the state file for the next start; without one it is lost, and said so.
+        # At the stop (SIGTERM), whatever the queue: what arrived is taken off the bus and saved with
+        # the queue, not integrated, so the service ends within a step. It waits in the state file
+        # for the next start; without one it is lost, and said so.
         self._drain()
-        deadline = time.monotonic() + STOP_SECONDS
-        self._step()  # takes every map received into the graph (and so into the state file)
-        while time.monotonic() < deadline and self._step():
-            pass
+        if self.state_file is not None:
+            self.merger.save_state(self.state_file)
         left = self.merger.backlog
         if left:
             kept = f"kept in {self.state_file} for the next start" if self.state_file else "lost (no --state)"

@@ -321,6 +321,16 @@ class MergeParams:
     witness tolerances (``witness_translation``, ``witness_rotation``) is not a polish and is not
     kept. The edge keeps the value, violation and rivals of the integration (the fit moves it a
     few centimetres or tenths of a degree)."""
+    max_submap_segments: int = 5000
+    """The merger refuses a submap of more segments than this (dropped, logged and counted): one
+    integration's time grows with the segments (about a millisecond per segment here, so about 5 s
+    at this limit), and an agent's submaps hold tens to a few hundred."""
+    max_robots: int = 256
+    """The merger keeps track of at most this many robots; messages of one more are dropped, logged
+    and counted (a flood of made-up robots cannot queue work without end)."""
+    max_queued_pairs: int = 20000
+    """Pairs of submaps waiting to be integrated, at most; a pair due beyond it is dropped, logged and
+    counted (each new submap queues a few, ``near_candidates`` + ``far_candidates`` + 2)."""
     edge_information: bool = True
     """When the poses of a component are refined together, an edge weighs as firmly as its walls fix
     each direction of its transform (fleetmap; the normal matrix of its least-squares fit on the

@@ -192,6 +192,31 @@ def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path
         assert maps.items[0][1] == killed.global_map.to_msgpack()
 
 
+def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_loses_nothing(tmp_path: Path) -> None:
+    from fleetmap.merger.service import Merger
+
+    keys = bus_keys()
+    state = tmp_path / "merger.state"
+    sent = []
+    with router_session(tmp_path) as (bus, _, common, procs):
+        maps = Inbox()
+        bus.subscribe(keys.globalmap, maps)
+        merger = start(procs, "merger", *common, "--state", str(state), log=tmp_path / "merger.log")
+        assert bus.wait_for_subscribers(keys.localmap("r1"), WAIT)
+        for robot in ("r1", "r2", "r3"):
+            for epoch, first in enumerate(range(0, 32, 8)):
+                m = true_local_map("department", robot, first, first + 8, epoch=epoch)[0]
+                bus.publish(keys.localmap(robot), m.to_msgpack())
+                sent.append(m.submap_key)
+        assert maps.wait_for(1, WAIT)  # it is integrating
+        merger.send_signal(signal.SIGTERM)
+        # docker stop kills a container 10 s after its SIGTERM
+        assert merger.wait(10) == 0
+    restored = Merger(keys)
+    restored.load_state(state)
+    assert set(restored.graph.keys) | set(restored.waiting) == set(sent)
+
+
 def bus_keys():  # type: ignore[no-untyped-def]
     from fleetmap.shared.keys import FleetKeys
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from fleetmap.merger.service import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
+from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
@@ -194,6 +195,25 @@ def test_a_robot_speaking_for_another_is_dropped_and_counted(maps) -> None:  # t
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
 
 
+def test_limits_refuse_oversized_submaps_extra_robots_and_queue_overflow_and_count_them(maps) -> None:  # type: ignore[no-untyped-def]
+    small = min(len(maps[r][0].segments) for r in ("r1", "r2", "r3"))
+    limits = MergeParams(max_submap_segments=small, max_robots=3, max_queued_pairs=1)
+    merger = Merger(KEYS, FleetmapConfig(merge=limits))
+    big = max(("r1", "r2", "r3"), key=lambda r: len(maps[r][0].segments))
+    merger.receive(KEYS.localmap(big), maps[big][0].to_msgpack())
+    assert merger.pending == 0 and merger.stats.refused["max_submap_segments"] == 1
+    for robot, source in (("r1", "r1"), ("r2", "r2"), ("r3", "r3"), ("r4", "r1")):
+        m = maps[source][0]
+        clipped = LocalMap(robot, 0, 1, m.stamp, m.segments[:small], m.scans, m.pose)
+        merger.receive(KEYS.localmap(robot), clipped.to_msgpack())
+    assert merger.pending == 3 and merger.stats.refused["max_robots"] == 1
+    assert merger.presence("r9", True, 1.0) == [] and merger.stats.refused["max_robots"] == 2
+    # three robots' first submaps search each other: three pairs due, one queued (a refused pair may be due again)
+    merger.step(limit=0)
+    assert merger.queued == 1 and merger.stats.refused["max_queued_pairs"] >= 2
+    assert {k.split("/")[0] for c in merger.global_map.components for k in c.members} == {"r1", "r2", "r3"}
+
+
 def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     first, _ = true_local_map("department", "r1", 0, 6, version=0)
@@ -234,15 +254,14 @@ def test_presence_is_published_and_maps_stay_after_a_leave(maps) -> None:  # typ
 
 
 @pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
-def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps, tmp_path, monkeypatch, caplog) -> None:  # type: ignore[no-untyped-def]
-    # SIGTERM with pairs queued: the service takes every received map in and stops (a container is
-    # killed ten seconds after SIGTERM); the next start finishes the job to the same map
+def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps, tmp_path, caplog) -> None:  # type: ignore[no-untyped-def]
+    # SIGTERM with maps received and none integrated: the service saves them and stops at once,
+    # whatever its queue; the next start finishes the job to the same map
     import threading
 
     import fleetmap.merger.service as service
     from fleetmap.shared.bus import InMemoryBus
 
-    monkeypatch.setattr(service, "STOP_SECONDS", 0.0)
     state = tmp_path / "merger.state"
     merger = Merger(KEYS)
     svc = service.MergerService(InMemoryBus(), merger, state_file=state, step_seconds=1e-6)
@@ -255,7 +274,7 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     assert merger.backlog > 0 and f"kept in {state}" in caplog.text
     restored = Merger(KEYS)
     restored.load_state(state)
-    assert set(restored.graph.keys) == {"r1/0/0", "r2/0/0", "r3/0/0"}  # nothing received was lost
+    assert restored.pending == 3 and merger.stats.steps == 0  # nothing received was lost, nothing was integrated
     while restored.has_work:
         restored.step()
     whole = Merger(KEYS)

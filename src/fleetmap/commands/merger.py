@@ -54,12 +54,16 @@ def run(args: argparse.Namespace) -> int:
         finally:
             service.close()
     s = merger.stats
+    refused = ", ".join(f"{n} by --{limit.replace('_', '-')}" for limit, n in sorted(s.refused.items()))
     log.warning(
-        "merger stopped: %d steps, %d integrations (%d near a prediction), %d submaps; %d malformed messages dropped",
+        "merger stopped: %d steps, %d integrations (%d near a prediction), %d submaps; %d malformed messages "
+        "dropped, %d naming another robot than their key's%s",
         s.steps,
         s.integrations,
         s.near,
         len(merger.graph),
         s.malformed,
+        s.foreign,
+        f"; refused {refused}" if refused else "",
     )
     return 0
