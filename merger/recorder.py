@@ -165,6 +165,8 @@ class Recorder:
         self._last_log_time = 0
         self._pending_since: int | None = None
         self._finished = False
+        self._latest: dict[str, tuple[int, bytes]] = {}
+        """The newest version of every submap recorded: (version, payload)."""
         for name, data in (metadata or {}).items():
             writer.add_metadata(name, data)
 
@@ -184,7 +186,17 @@ class Recorder:
                 self._malformed(key, problem)
             elif self._foxglove:
                 self._write_views(message, key, log_time)
+            if isinstance(message, LocalMap) and key == self._keys.localmap(message.robot):
+                held = self._latest.get(message.submap_key)
+                if held is None or message.version > held[0]:
+                    self._latest[message.submap_key] = (message.version, payload)
             self._maybe_flush(receive_time_ns)
+
+    def latest_maps(self) -> list[bytes]:
+        """The newest version of every submap recorded, as received (what a restarted merger
+        recalls: the maps of robots that finished while it was down)."""
+        with self._lock:
+            return [payload for _, payload in self._latest.values()]
 
     def feed_presence(self, key: str, joined: bool, receive_time_ns: int) -> None:
         """Record a liveliness token appearing (``joined``) or disappearing, as a FleetEvent."""
@@ -309,6 +321,7 @@ class RecorderService:
         )
         self._ticker.start()
         self._handles.append(self.bus.declare_queryable(self.keys.recorder_stats, self._stats))
+        self._handles.append(self.bus.declare_queryable(self.keys.recorder_maps, lambda _: self.recorder.latest_maps()))
         self._handles.append(self.bus.declare_liveliness(self.keys.service("recorder")))
         log.info("recording %s", self.keys.everything)
 

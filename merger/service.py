@@ -93,6 +93,8 @@ SEARCH_GROWTH = 2
 version last searched: each search sees as much new wall as all before it together, so a submap
 of v versions costs about log(v) searches, not v."""
 
+RECALL_SECONDS = 5.0
+"""How long a starting merger waits for the recorder's maps (no recorder: no wait)."""
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -896,6 +898,19 @@ class MergerService:
         # map of every epoch.
         self._publish(self.merger.where_it_stands())
         self.bus.publish(keys.events, FleetEvent("republish_request", None, now).to_msgpack())
+        # ... and the recorder for the newest version of every submap it recorded: robots that
+        # finished while the merger was down cannot answer (versions it holds are stale, dropped)
+        recalled = 0
+        for payload in self.bus.query(keys.recorder_maps, timeout=RECALL_SECONDS):
+            try:
+                robot = LocalMap.from_msgpack(payload).robot
+            except BadMessage:
+                self.merger.stats.malformed += 1
+                continue
+            self._inbox.put((keys.localmap(robot), payload))
+            recalled += 1
+        if recalled:
+            log.info("recalled %d submaps from the recorder", recalled)
 
     def _on_message(self, key: str, payload: bytes) -> None:
         self._inbox.put((key, payload))

@@ -38,8 +38,8 @@ MSGPACK = "application/msgpack"
 
 Callback = Callable[[str, bytes], None]
 """``callback(key, payload)`` for a subscription."""
-QueryHandler = Callable[[str], bytes]
-"""``handler(selector) -> payload`` answering a query."""
+QueryHandler = Callable[[str], "bytes | list[bytes]"]
+"""``handler(selector) -> payload`` answering a query (a list: one reply per payload)."""
 PresenceCallback = Callable[[str], None]
 """``callback(key)`` for a liveliness token that appears or disappears."""
 
@@ -354,7 +354,8 @@ class ZenohBus(_BusBase):
                     log.exception("queryable %s failed on %s", key, selector)
                     query.reply_err(f"{type(exc).__name__}: {exc}"[:500].encode())
                     return
-                query.reply(key, payload, encoding=zenoh.Encoding(MSGPACK))
+                for one in _replies(payload):
+                    query.reply(key, one, encoding=zenoh.Encoding(MSGPACK))
 
         return self._track(self.session.declare_queryable(key, on_query, complete=True))
 
@@ -443,6 +444,10 @@ class ZenohBus(_BusBase):
         for publisher in publishers:
             publisher.undeclare()
         self.session.close()
+
+
+def _replies(answer: bytes | list[bytes]) -> list[bytes]:
+    return [bytes(a) for a in answer] if isinstance(answer, list) else [bytes(answer)]
 
 
 def _connects(config: zenoh.Config) -> bool:
@@ -550,7 +555,7 @@ class InMemoryBus(_BusBase):
         out = []
         for bus, handler in targets:
             try:
-                out.append(bytes(handler(selector)))
+                out += _replies(handler(selector))
             except Exception:  # as over zenoh: a failing handler is an error reply, not an exception here
                 bus.stats.callback_errors += 1
                 self.stats.query_errors += 1

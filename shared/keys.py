@@ -13,6 +13,7 @@ conventions)::
     fleet/<fleet>/merger/state               queryable: the current global state
     fleet/<fleet>/events                     FleetEvent said by the merger (join, leave, requests)
     fleet/<fleet>/recorder/stats             queryable: what the recorder has recorded so far
+    fleet/<fleet>/recorder/maps              queryable: the newest version of every submap recorded
     fleet/<fleet>/alive/<robot>              liveliness token: the robot is up
     fleet/<fleet>/services/<service>         liveliness token: a service (merger, recorder) is up
 
@@ -54,6 +55,7 @@ KeyKind = Literal[
     "alive",
     "services",
     "recorder_stats",
+    "recorder_maps",
 ]
 KEY_KINDS: tuple[str, ...] = get_args(KeyKind)
 ROBOT_LEAVES: dict[str, KeyKind] = {"scan": "scan", "localmap": "localmap", "pose": "pose", "events": "robot_events"}
@@ -187,6 +189,12 @@ class FleetKeys:
         """The recorder's queryable: messages recorded so far, per topic."""
         return f"{self.prefix}/recorder/stats"
 
+    @property
+    def recorder_maps(self) -> str:
+        """The recorder's queryable: the newest version of every submap it recorded, one reply each
+        (what a restarted merger recalls of robots that finished while it was down)."""
+        return f"{self.prefix}/recorder/maps"
+
     def alive(self, robot: str) -> str:
         """The liveliness token a robot holds while it is up."""
         return f"{self.prefix}/alive/{check_name(robot, 'robot')}"
@@ -224,6 +232,8 @@ class FleetKeys:
                 return ParsedKey("events")
             case ["recorder", "stats"]:
                 return ParsedKey("recorder_stats")
+            case ["recorder", "maps"]:
+                return ParsedKey("recorder_maps")
             case ["alive", robot] if NAME_PATTERN.fullmatch(robot):
                 return ParsedKey("alive", robot)
             case ["services", name] if NAME_PATTERN.fullmatch(name):

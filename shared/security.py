@@ -10,9 +10,10 @@ Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
 - robot ``rX``: put under ``P/robots/rX/**`` only; hold the liveliness token ``P/alive/rX`` only;
   read the merger's outputs (``P/merger/**``) and the fleet events (``P/events``).
 - ``merger``: read every robot (``P/robots/**``, ``P/alive/*``) and the fleet events; put under
-  ``P/merger/**`` and on ``P/events``; answer ``P/merger/state``; hold ``P/services/merger``.
-- ``recorder``: read everything under ``P``; answer ``P/recorder/stats``; hold
-  ``P/services/recorder``.
+  ``P/merger/**`` and on ``P/events``; answer ``P/merger/state``; hold ``P/services/merger``;
+  ask the recorder for the maps it kept (``P/recorder/maps``).
+- ``recorder``: read everything under ``P``; answer ``P/recorder/stats`` and ``P/recorder/maps``;
+  hold ``P/services/recorder``.
 - ``viewer`` (Foxglove bridges, dashboards, ``fleetmap run``'s own watcher): read everything under
   ``P``; query the merger's state and the recorder's statistics.
 
@@ -110,11 +111,19 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         _rule("merger-state-in", "ingress", ["declare_queryable", "reply"], [f"{p}/merger/state"]),
         _rule("merger-state-out", "egress", ["query"], [f"{p}/merger/state"]),
         _rule("merger-token", "ingress", ["liveliness_token"], [f"{p}/services/merger"]),
+        # a restarted merger recalls the maps the recorder kept (robots that finished while it was down)
+        _rule("merger-recall-in", "ingress", ["query"], [f"{p}/recorder/maps"]),
+        _rule("merger-recall-out", "egress", ["reply"], [f"{p}/recorder/maps"]),
         # the recorder
         _rule("recorder-read-in", "ingress", READ, [f"{p}/**"]),
         _rule("recorder-read-out", "egress", ["put"], [f"{p}/**"]),
-        _rule("recorder-stats-in", "ingress", ["declare_queryable", "reply"], [f"{p}/recorder/stats"]),
-        _rule("recorder-stats-out", "egress", ["query"], [f"{p}/recorder/stats"]),
+        _rule(
+            "recorder-stats-in",
+            "ingress",
+            ["declare_queryable", "reply"],
+            [f"{p}/recorder/stats", f"{p}/recorder/maps"],
+        ),
+        _rule("recorder-stats-out", "egress", ["query"], [f"{p}/recorder/stats", f"{p}/recorder/maps"]),
         _rule("recorder-token", "ingress", ["liveliness_token"], [f"{p}/services/recorder"]),
         # viewers
         _rule("viewer-read-in", "ingress", READ, [f"{p}/**"]),

@@ -217,6 +217,40 @@ def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_l
     assert set(restored.graph.keys) | set(restored.waiting) == set(sent)
 
 
+def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_down(tmp_path: Path) -> None:
+    from fleetmap.merger.recorder import wait_until_recorded
+    from fleetmap.shared.messages import LocalMap, MergerStep
+
+    keys = bus_keys()
+    state = str(tmp_path / "merger.state")
+    with router_session(tmp_path) as (bus, _, common, procs):
+        services, steps = Inbox(), Inbox()
+        bus.subscribe_liveliness(keys.all_services, services, lambda k: None)
+        bus.subscribe(keys.steps, steps)
+        start(procs, "record", "--out", str(tmp_path / "s.mcap"), *common, log=tmp_path / "recorder.log")
+        merger = start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
+        assert services.wait_for(2, WAIT)
+        first = true_local_map("department", "r1", 0, 8)[0]
+        bus.publish(keys.localmap("r1"), first.to_msgpack())
+        assert steps.wait_for(1, WAIT)
+        merger.kill()  # down, while r1 sends its final version and r2 maps and finishes
+        merger.wait(WAIT)
+        whole = true_local_map("department", "r1", 0, 16)[0]
+        final = LocalMap("r1", 0, 1, whole.stamp, whole.segments, whole.scans, whole.pose, final=True)
+        other = true_local_map("department", "r2", 0, 16)[0]
+        for m in (final, other):
+            bus.publish(keys.localmap(m.robot), m.to_msgpack())
+        assert wait_until_recorded(bus, keys, {keys.localmap("r1"): 2, keys.localmap("r2"): 1}, WAIT)
+        start(procs, "merger", *common, "--state", state, log=tmp_path / "merger-2.log")
+
+        # nobody is left to answer its republish request: the recorder's copies are all it gets
+        def taken(got: list[tuple[object, ...]]) -> set[tuple[str, int]]:
+            decoded = [MergerStep.from_msgpack(payload) for _, payload in got]  # type: ignore[arg-type]
+            return {pair for step in decoded for pair in zip(step.maps, step.versions, strict=True)}
+
+        assert steps.wait_until(lambda got: {("r1/0/0", 1), ("r2/0/0", 0)} <= taken(got), WAIT)
+
+
 def bus_keys():  # type: ignore[no-untyped-def]
     from fleetmap.shared.keys import FleetKeys
 
