@@ -22,6 +22,7 @@ is the order the recorder saw. The file is flushed when its oldest unflushed mes
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -81,6 +82,10 @@ class RecorderSummary:
     foxglove_messages: int
     late: int = 0
     """Messages that arrived after the file was finished (dropped)."""
+    lost: int = 0
+    """Messages the file could not take (a write failed: disk full), and those buffered with them."""
+    error: str = ""
+    """Why the recorder stopped writing ("" while it writes)."""
 
     SCHEMA: ClassVar[str] = "fleetmap.RecorderStats"
 
@@ -111,12 +116,15 @@ class RecorderSummary:
                 raise BadMessage(cls.SCHEMA, name, "expected a map of topic to count")
             counts[name] = table
         numbers = {}
-        for name in ("foxglove_messages", "late"):
-            value = raw.get(name)
+        for name in ("foxglove_messages", "late", "lost"):
+            value = raw.get(name, 0)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise BadMessage(cls.SCHEMA, name, "expected a count")
             numbers[name] = value
-        return cls(counts["messages"], counts["payload_bytes"], counts["malformed"], **numbers)
+        error = raw.get("error", "")
+        if not isinstance(error, str):
+            raise BadMessage(cls.SCHEMA, "error", "expected a string")
+        return cls(counts["messages"], counts["payload_bytes"], counts["malformed"], **numbers, error=error)
 
     @property
     def total_malformed(self) -> int:
@@ -131,6 +139,8 @@ class RecorderSummary:
         rows.append(("total", self.total, sum(self.payload_bytes.values()), self.total_malformed))
         lines = [f"{'topic':<{width}} {'messages':>9} {'bytes':>12} {'malformed':>9}"]
         lines += [f"{t:<{width}} {n:>9} {size:>12} {bad:>9}" for t, n, size, bad in rows]
+        if self.error:
+            lines.append(f"NOT RECORDED: {self.lost} messages ({self.error})")
         return "\n".join(lines)
 
 
@@ -141,6 +151,11 @@ class _Counts:
     malformed: Counter[str] = field(default_factory=Counter)
     foxglove: int = 0
     late: int = 0
+    lost: int = 0
+    unflushed: Counter[str] = field(default_factory=Counter)
+    """Raw messages per topic written since the last flush (lost with it if the flush fails) ..."""
+    unflushed_bytes: Counter[str] = field(default_factory=Counter)
+    """... and their payload bytes."""
 
 
 class Recorder:
@@ -165,6 +180,8 @@ class Recorder:
         self._last_log_time = 0
         self._pending_since: int | None = None
         self._finished = False
+        self.error = ""
+        """Why the file stopped taking messages (a write failed: disk full); "" while it writes."""
         self._latest: dict[str, tuple[int, bytes]] = {}
         """The newest version of every submap recorded: (version, payload)."""
         for name, data in (metadata or {}).items():
@@ -174,23 +191,28 @@ class Recorder:
         """Record one payload received on ``key``; never raises for a bad payload."""
         message, problem = self._check(key, payload)
         with self._lock:
-            if self._finished:
-                self._counts.late += 1
-                return
-            log_time = self._log_time(receive_time_ns)
-            publish_time = seconds_to_ns(message.stamp) if message is not None else log_time
-            self._writer.write_raw(key, payload, log_time, publish_time)
-            self._counts.messages[key] += 1
-            self._counts.payload_bytes[key] += len(payload)
-            if message is None:
-                self._malformed(key, problem)
-            elif self._foxglove:
-                self._write_views(message, key, log_time)
             if isinstance(message, LocalMap) and key == self._keys.localmap(message.robot):
                 held = self._latest.get(message.submap_key)
                 if held is None or message.version > held[0]:
                     self._latest[message.submap_key] = (message.version, payload)
-            self._maybe_flush(receive_time_ns)
+            if self._finished:
+                self._counts.late += 1
+                return
+            if self.error:
+                self._counts.lost += 1
+                return
+            log_time = self._log_time(receive_time_ns)
+            publish_time = seconds_to_ns(message.stamp) if message is not None else log_time
+            try:
+                self._writer.write_raw(key, payload, log_time, publish_time)
+                self._counted(key, len(payload))
+                if message is None:
+                    self._malformed(key, problem)
+                elif self._foxglove:
+                    self._write_views(message, key, log_time)
+                self._maybe_flush(receive_time_ns)
+            except OSError as exc:
+                self._fail(exc)
 
     def latest_maps(self) -> list[bytes]:
         """The newest version of every submap recorded, as received (what a restarted merger
@@ -211,36 +233,73 @@ class Recorder:
             if self._finished:
                 self._counts.late += 1
                 return
+            if self.error:
+                self._counts.lost += 1
+                return
             log_time = self._log_time(receive_time_ns)
-            self._writer.write_raw(key, payload, log_time, log_time, source="liveliness")
-            self._counts.messages[key] += 1
-            self._counts.payload_bytes[key] += len(payload)
-            if self._foxglove:
-                self._write_views(event, self._keys.events, log_time)
-            self._maybe_flush(receive_time_ns)
+            try:
+                self._writer.write_raw(key, payload, log_time, log_time, source="liveliness")
+                self._counted(key, len(payload))
+                if self._foxglove:
+                    self._write_views(event, self._keys.events, log_time)
+                self._maybe_flush(receive_time_ns)
+            except OSError as exc:
+                self._fail(exc)
 
     def tick(self, now_ns: int) -> bool:
         """Flush if the oldest unflushed message is ``flush_interval`` old; whether it flushed."""
         with self._lock:
-            return not self._finished and self._maybe_flush(now_ns)
+            if self._finished or self.error:
+                return False
+            try:
+                return self._maybe_flush(now_ns)
+            except OSError as exc:
+                self._fail(exc)
+                return False
 
     def summary(self) -> RecorderSummary:
         with self._lock:
             c = self._counts
-            return RecorderSummary(dict(c.messages), dict(c.payload_bytes), dict(c.malformed), c.foxglove, c.late)
+            messages = {k: n for k, n in c.messages.items() if n}
+            sizes = {k: n for k, n in c.payload_bytes.items() if k in messages}
+            return RecorderSummary(messages, sizes, dict(c.malformed), c.foxglove, c.late, c.lost, self.error)
 
     def finish(self) -> RecorderSummary:
         """Finish the file (indexes and summary); later feeds are counted as late and dropped."""
         with self._lock:
             if not self._finished:
-                if self._foxglove:
-                    now = self._log_time(self._last_log_time)
-                    for view in self._scene.final_views(now * 1e-9):
-                        self._writer.write_foxglove(view.topic, view.schema, view.data, now, now)
-                        self._counts.foxglove += 1
                 self._finished = True
-                self._writer.finish()
+                try:
+                    if self._foxglove and not self.error:
+                        now = self._log_time(self._last_log_time)
+                        for view in self._scene.final_views(now * 1e-9):
+                            self._writer.write_foxglove(view.topic, view.schema, view.data, now, now)
+                            self._counts.foxglove += 1
+                    self._writer.finish()
+                    self._flushed()
+                except OSError as exc:
+                    self._fail(exc)
         return self.summary()
+
+    def _counted(self, key: str, size: int) -> None:
+        c = self._counts
+        c.messages[key] += 1
+        c.payload_bytes[key] += size
+        c.unflushed[key] += 1
+        c.unflushed_bytes[key] += size
+
+    def _fail(self, exc: OSError) -> None:
+        """A write failed (disk full, file too large, device gone): the file takes nothing more. The
+        messages buffered since the last flush are lost with it and counted so, not as recorded."""
+        c = self._counts
+        c.messages.subtract(c.unflushed)
+        c.payload_bytes.subtract(c.unflushed_bytes)
+        c.lost += c.unflushed.total()
+        self._flushed()
+        first = not self.error
+        self.error = f"cannot write the recording: {exc.strerror or exc}"
+        if first:
+            log.error("%s; recording STOPPED, later messages are lost (%d so far)", self.error, c.lost)
 
     # --- inside the lock, or pure ---
 
@@ -283,8 +342,17 @@ class Recorder:
         if self._pending_since is None or now_ns - self._pending_since < self._flush_interval_ns:
             return False
         self._writer.flush()
+        self._flushed()
         self._pending_since = None
         return True
+
+    def _flushed(self) -> None:
+        self._counts.unflushed.clear()
+        self._counts.unflushed_bytes.clear()
+
+
+ERROR_EVERY = 10.0
+"""Seconds between the ERROR lines of a recorder that cannot write."""
 
 
 class RecorderService:
@@ -305,6 +373,7 @@ class RecorderService:
         self._clock = clock
         self._tick_period = tick_period
         self._handles: list[Handle] = []
+        self._token: Handle | None = None
         self._stop = threading.Event()
         self._ticker = threading.Thread(target=self._tick_loop, name="recorder-flush", daemon=True)
 
@@ -322,7 +391,7 @@ class RecorderService:
         self._ticker.start()
         self._handles.append(self.bus.declare_queryable(self.keys.recorder_stats, self._stats))
         self._handles.append(self.bus.declare_queryable(self.keys.recorder_maps, lambda _: self.recorder.latest_maps()))
-        self._handles.append(self.bus.declare_liveliness(self.keys.service("recorder")))
+        self._token = self.bus.declare_liveliness(self.keys.service("recorder"))
         log.info("recording %s", self.keys.everything)
 
     def _stats(self, selector: str) -> bytes:
@@ -332,8 +401,19 @@ class RecorderService:
         self.recorder.feed(key, payload, self._clock())
 
     def _tick_loop(self) -> None:
+        said = -math.inf
         while not self._stop.wait(self._tick_period):
             self.recorder.tick(self._clock())
+            if self.recorder.error:
+                # loud: the recorder's presence goes (its token means "recording now"), and it says so
+                # every ERROR_EVERY seconds; it still answers queries (the maps it kept, its counts)
+                if self._token is not None:
+                    self._token.close()
+                    self._token = None
+                if time.monotonic() - said >= ERROR_EVERY:
+                    said = time.monotonic()
+                    summary = self.recorder.summary()
+                    log.error("NOT RECORDING: %s; %d messages lost so far", summary.error, summary.lost)
 
     def stop(self) -> RecorderSummary:
         """Stop listening and finish the file."""
@@ -343,6 +423,9 @@ class RecorderService:
         self._stop.set()
         if self._ticker.is_alive():
             self._ticker.join()
+        if self._token is not None:
+            self._token.close()
+            self._token = None
         return self.recorder.finish()
 
     def __enter__(self) -> Self:

@@ -95,6 +95,8 @@ of v versions costs about log(v) searches, not v."""
 
 RECALL_SECONDS = 5.0
 """How long a starting merger waits for the recorder's maps (no recorder: no wait)."""
+STATE_ERROR_EVERY = 10.0
+"""Seconds between the ERROR lines of a merger that cannot save its state."""
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -753,11 +755,15 @@ class Merger:
         }
         p = Path(path)
         tmp = p.with_name(p.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            fh.write(msgpack.packb(state, use_bin_type=True))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
+        try:
+            with open(tmp, "wb") as fh:
+                fh.write(msgpack.packb(state, use_bin_type=True))
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, p)
+        except OSError:
+            tmp.unlink(missing_ok=True)  # a half-written state would only take the space a retry needs
+            raise
 
     def load_state(self, path: str | Path) -> None:
         """Restore a state written by :meth:`save_state` (the graph is rebuilt from its submaps and
@@ -871,6 +877,9 @@ class MergerService:
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
         self.step_seconds = step_seconds
+        self.state_errors = 0
+        """Failed writes of the state file (disk full)."""
+        self._state_error_said = -math.inf
         self.clock = clock
         self._inbox: queue.SimpleQueue[tuple[str, bytes | bool]] = queue.SimpleQueue()
         self._handles: list[Handle] = []
@@ -951,10 +960,30 @@ class MergerService:
             return time.monotonic() >= deadline
 
         out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
-        if self.state_file is not None:
-            self.merger.save_state(self.state_file)
+        self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
         self._publish(out)
+        return True
+
+    def _save(self) -> bool:
+        """Save the state file, if any; a failed write (disk full) is said loudly and the merger goes
+        on serving from memory (the previous state file stays whole); whether it was saved."""
+        if self.state_file is None:
+            return False
+        try:
+            self.merger.save_state(self.state_file)
+        except OSError as exc:
+            self.state_errors += 1
+            if self.state_errors == 1 or time.monotonic() - self._state_error_said >= STATE_ERROR_EVERY:
+                self._state_error_said = time.monotonic()
+                log.error(
+                    "cannot save the state to %s: %s (%d failed saves); merging goes on, a restart would resume "
+                    "from the last saved state",
+                    self.state_file,
+                    exc.strerror or exc,
+                    self.state_errors,
+                )
+            return False
         return True
 
     def run(self, stop: threading.Event) -> None:
@@ -965,11 +994,10 @@ class MergerService:
         # the queue, not integrated, so the service ends within a step. It waits in the state file
         # for the next start; without one it is lost, and said so.
         self._drain()
-        if self.state_file is not None:
-            self.merger.save_state(self.state_file)
+        saved = self._save()
         left = self.merger.backlog
         if left:
-            kept = f"kept in {self.state_file} for the next start" if self.state_file else "lost (no --state)"
+            kept = f"kept in {self.state_file} for the next start" if saved else "lost (no --state, or it failed)"
             log.warning("stopping with %d integrations or maps not yet taken in: %s", left, kept)
 
     def close(self) -> None:

@@ -64,7 +64,8 @@ from foxglove.messages import (
 )
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata
+from mcap.records import Attachment, Channel, Message, Metadata
+from mcap.records import Schema as McapSchema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -470,6 +471,20 @@ class _ExactReader:
         return data
 
 
+@dataclass(frozen=True)
+class RecoverReport:
+    """What :meth:`RecordingReader.recover` rewrote."""
+
+    source: str
+    messages: int
+    """Messages on every channel (raw and Foxglove views)."""
+    channels: int
+    bytes_read: int
+    """Bytes of the source up to its last complete record ..."""
+    size: int
+    """... of its size."""
+
+
 class RecordingReader:
     """The raw messages of a recording, from a finished file or one a crash cut short.
 
@@ -568,6 +583,35 @@ class RecordingReader:
                     log.warning("%s: messages out of log-time order; replaying them in file order", self.source)
                 last_log_time = max(last_log_time, record.log_time)
                 yield channels[record.channel_id], record
+
+    def recover(self, target: IO[bytes]) -> RecoverReport:
+        """Rewrite every complete record of this file into ``target`` as a finished MCAP file, with
+        indexes and a summary, so any reader opens it (as ``mcap recover`` and ``ros2 bag reindex``
+        do): schemas, channels (Foxglove views included), messages with their times and sequence
+        numbers, metadata and attachments. A finished file is copied the same way."""
+        writer = Writer(target, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
+        writer.start(profile=PROFILE, library=f"fleetmap {__version__} (recovered)")
+        schemas: dict[int, int] = {0: 0}
+        channels: dict[int, int] = {}
+        messages = 0
+        for record in self._records(emit_chunks=False):
+            if isinstance(record, McapSchema):
+                schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel) and record.schema_id in schemas:
+                channels[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schemas[record.schema_id], dict(record.metadata)
+                )
+            elif isinstance(record, Message) and record.channel_id in channels:
+                writer.add_message(
+                    channels[record.channel_id], record.log_time, record.data, record.publish_time, record.sequence
+                )
+                messages += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, dict(record.metadata))
+            elif isinstance(record, Attachment):
+                writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
+        writer.finish()
+        return RecoverReport(self.source, messages, len(channels), self._bytes_read, self._size)
 
     def metadata(self) -> dict[str, dict[str, str]]:
         """Every metadata record of the file, by name (the recorder's config and session)."""

@@ -23,6 +23,7 @@ COMMANDS = (
     "simulate",
     "run",
     "replay",
+    "recover",
     "agent",
     "merger",
     "record",

@@ -12,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -249,6 +249,66 @@ def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_d
             return {pair for step in decoded for pair in zip(step.maps, step.versions, strict=True)}
 
         assert steps.wait_until(lambda got: {("r1/0/0", 1), ("r2/0/0", 0)} <= taken(got), WAIT)
+
+
+def _small_disk(size: int) -> Callable[[], None]:
+    """In the child: files may grow to ``size`` bytes at most; a write past that fails as on a full
+    disk (EFBIG: Python ignores SIGXFSZ)."""
+    import resource
+
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+
+
+def test_a_full_disk_is_said_loudly_and_the_services_keep_serving(tmp_path: Path) -> None:
+    from fleetmap.merger.recorder import query_recorder_stats
+    from fleetmap.shared.messages import LocalMap
+
+    keys = bus_keys()
+    with router_session(tmp_path) as (bus, _, common, procs):
+        services, maps = Inbox(), Inbox()
+        bus.subscribe_liveliness(keys.all_services, services, services)
+        bus.subscribe(keys.globalmap, maps)
+        for name, args, room in (
+            ("recorder", ("record", "--out", str(tmp_path / "s.mcap")), 20_000),
+            ("merger", ("merger", "--state", str(tmp_path / "merger.state")), 20_000),
+        ):
+            log = open(tmp_path / f"{name}.log", "wb")  # noqa: SIM115 - closed by the OS at exit
+            child = subprocess.Popen(fleetmap_cmd(*args, *common), stdout=log, stderr=log, preexec_fn=_small_disk(room))
+            procs.append(child)
+        assert services.wait_for(2, WAIT)
+        recorder, merger = procs[-2], procs[-1]
+        # local maps until neither the recording nor the state fits any more
+        sent: list[LocalMap] = []
+        shapes = [
+            true_local_map("department", r, e * 10, e * 10 + 20, epoch=e)[0] for r in ("r1", "r2", "r3") for e in (0, 1)
+        ]
+        for version in range(20):
+            for m in shapes:
+                v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose)
+                bus.publish(keys.localmap(v.robot), v.to_msgpack())
+                sent.append(v)
+        bus.flush()
+        stats = None
+        deadline = time.monotonic() + WAIT
+        while time.monotonic() < deadline:
+            stats = query_recorder_stats(bus, keys)
+            if stats is not None and stats.error:
+                break
+            threading.Event().wait(0.2)
+        assert stats is not None and "File too large" in stats.error and stats.lost > 0
+        # loud: its presence went, and it says why; it still answers, the newest maps included
+        assert services.wait_until(lambda got: [k for (k,) in got].count(keys.service("recorder")) == 2, WAIT)
+        newest = {m.submap_key: m.version for m in sent}
+        recalled = [LocalMap.from_msgpack(p) for p in bus.query(keys.recorder_maps, timeout=5.0)]
+        assert {m.submap_key: m.version for m in recalled} == newest
+        assert maps.wait_for(1, WAIT) and merger.poll() is None and recorder.poll() is None
+        for p in (recorder, merger):
+            p.send_signal(signal.SIGTERM)
+        assert recorder.wait(WAIT) == 1 and merger.wait(WAIT) == 0
+    assert "NOT RECORDING" in (tmp_path / "recorder.log").read_text()
+    assert "cannot save the state" in (tmp_path / "merger.log").read_text()
+    with RecordingReader(tmp_path / "s.mcap") as reader:
+        assert 0 < sum(1 for _ in reader.messages()) <= stats.total
 
 
 def bus_keys():  # type: ignore[no-untyped-def]

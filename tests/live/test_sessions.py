@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from fleetmap.scenarios import load_scenario, scenario_to_toml
 from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.recording import ROOT_FRAME
+from fleetmap.shared.recording import ROOT_FRAME, RecordingReader
 from mcap.reader import make_reader
 
 from tests.protobuf_wire import Schema
@@ -78,6 +78,32 @@ def test_a_recording_cut_short_replays_up_to_its_last_complete_chunk(live: Path,
     assert "ends abruptly" in r.stdout and "messages" in r.stdout
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["replay"]["warning"] and report["replay"]["local_maps_fed"] > 0
+
+
+def test_a_recording_cut_by_sigkill_is_recovered_into_a_file_any_reader_opens(live: Path, tmp_path: Path) -> None:
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    data = (live / "session.mcap").read_bytes()
+    cut, fixed = tmp_path / "cut.mcap", tmp_path / "fixed.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    with open(cut, "rb") as f, pytest.raises(McapError):  # the ordinary reader refuses a cut file
+        list(make_reader(f).iter_messages())
+    r = fleetmap("recover", str(cut), str(fixed))
+    assert r.returncode == 0, r.stderr[-3000:]
+    with RecordingReader(cut) as reader:
+        raw = [(m.topic, m.payload, m.log_time) for m in reader.messages(warn=False)]
+    with open(fixed, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        got = list(reader.iter_messages(log_time_order=False))
+        metadata = {m.name for m in reader.iter_metadata()}
+    assert [(c.topic, m.data, m.log_time) for _, c, m in got if c.message_encoding == "msgpack"] == raw
+    assert any(c.message_encoding == "protobuf" and s is not None for s, c, _ in got)  # Foxglove views kept
+    assert "fleetmap.session" in metadata and f"{len(got)} messages" in r.stdout
+    again = fleetmap("recover", str(cut), str(fixed))
+    assert again.returncode == 2 and "--overwrite" in again.stderr
 
 
 def test_bad_replay_inputs_exit_2(tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from fleetmap.merger.recorder import (
@@ -26,6 +27,7 @@ from fleetmap.shared.bus import Bus
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.keys import FleetKeys
 from fleetmap.shared.messages import (
+    BadMessage,
     Component,
     FleetEvent,
     GlobalMap,
@@ -37,10 +39,13 @@ from fleetmap.shared.messages import (
 )
 from fleetmap.shared.recording import RecordingReader, RecordingWriter
 from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from tests.bus_helpers import WAIT, Inbox, bus_pair, open_zenoh
 from tests.protobuf_wire import Schema
+from tests.shared.test_messages import FIELD_VALUES
 
 KEYS = FleetKeys("t")
 SECOND = 10**9
@@ -179,6 +184,62 @@ def test_a_message_is_on_disk_within_the_flush_interval_of_its_arrival():
     recorder.feed(KEYS.scan("r0"), scan, 11 * SECOND + SECOND // 2)  # a busy bus flushes as it goes
     assert on_disk() == 3
     assert not recorder.tick(12 * SECOND)  # nothing new to flush
+
+
+FIELDS = ["messages", "payload_bytes", "malformed", "foxglove_messages", "late", "lost", "error"]
+
+
+def _stats_payload(fields: dict) -> bytes:  # type: ignore[type-arg]
+    """A recorder stats answer with some fields replaced by anything."""
+    whole = msgpack.unpackb(RecorderSummary({"a": 1}, {"a": 2}, {}, 0).to_msgpack())
+    return msgpack.packb({**whole, **fields}, use_bin_type=True)
+
+
+class FullDisk(io.BytesIO):
+    """A file on a disk that fills up after ``room`` bytes: writes then fail with ENOSPC."""
+
+    def __init__(self, room: int) -> None:
+        super().__init__()
+        self.room = room
+
+    def write(self, data) -> int:  # type: ignore[no-untyped-def, override]
+        if self.tell() + len(data) > self.room:
+            raise OSError(28, "No space left on device")
+        return super().write(data)
+
+
+def test_a_full_disk_stops_the_recording_loudly_and_counts_only_what_the_file_holds(caplog):
+    fed = fleet_traffic(robots=3, scans=40)
+    stream = FullDisk(room=6000)
+    recorder = Recorder(RecordingWriter(stream), KEYS, flush_interval=0.0)  # a flush after every message
+    with caplog.at_level("ERROR"):
+        for i, (key, payload) in enumerate(fed):
+            recorder.feed(key, payload, SECOND + i * 1000)
+        summary = recorder.finish()
+    assert "No space left on device" in summary.error and "recording STOPPED" in caplog.text
+    held = list(RecordingReader(io.BytesIO(stream.getvalue())).messages())
+    assert 0 < len(held) < len(fed)
+    # what the counts say was recorded is what the file holds; the rest is counted lost
+    assert summary.total == len(held) and summary.total + summary.lost == len(fed)
+    assert [(m.topic, m.payload) for m in held] == fed[: len(held)]
+    assert sum(summary.payload_bytes.values()) == sum(len(m.payload) for m in held)
+    assert "NOT RECORDED" in summary.table()
+    # the maps it heard are still there for a restarted merger to recall
+    newest = {}
+    for key, payload in fed:
+        if key.endswith("/localmap"):
+            newest[key] = payload
+    assert sorted(recorder.latest_maps()) == sorted(newest.values())
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=256) | st.dictionaries(st.sampled_from(FIELDS), FIELD_VALUES, max_size=8).map(_stats_payload))
+def test_any_stats_answer_decodes_or_raises_bad_message(payload: bytes) -> None:
+    try:
+        summary = RecorderSummary.from_msgpack(payload)
+    except BadMessage:
+        return
+    assert isinstance(summary.total, int) and isinstance(summary.table(), str)
 
 
 def test_nothing_is_fed_after_finish():

@@ -52,6 +52,46 @@ def global_map() -> GlobalMap:
     return GlobalMap(7, 140.5, (first, second))
 
 
+def final_local_map() -> LocalMap:
+    """A final submap with its link, scan table and viewpoints (every optional field set)."""
+    m = local_map()
+    return LocalMap(
+        m.robot,
+        m.epoch,
+        m.version,
+        m.stamp,
+        m.segments,
+        2,
+        m.pose,
+        submap=3,
+        final=True,
+        link=SubmapLink(2, Transform2D(4.0, 0.5, 0.1), (1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-5)),
+        scan_indices=np.array([4, 5]),
+        scan_stamps=np.array([129.0, 130.0]),
+        scan_poses=np.array([[0.0, 0.0, 0.0], [0.5, -1.0, 0.25]]),
+    )
+
+
+def edge() -> MergeEdge:
+    return MergeEdge("r1/0/0", "r2/0/1", 1.0, -2.0, 0.5, 12.5, True, 140.0)
+
+
+def robot_pose() -> RobotPose:
+    return RobotPose("r1", 2, 140.0, Transform2D(1.0, 2.0, 3.0), 0)
+
+
+def event() -> FleetEvent:
+    return FleetEvent("epoch", "r1", 12.0, '{"epoch": 2, "first_scan": 40}')
+
+
+def step() -> MergerStep:
+    return MergerStep(9, 140.0, ("r1/2/3", "r2/0/0"), (5, 0), integrations=4, queued=2)
+
+
+DECODERS = [scan, local_map, final_local_map, global_map, edge, robot_pose, event, step]
+"""A message of every schema, for the fuzz tests."""
+
+
 def wire(message: object) -> dict:
     return msgpack.unpackb(message.to_msgpack(), raw=False)  # type: ignore[attr-defined]
 
@@ -485,9 +525,9 @@ FIELD_VALUES = st.recursive(
 )
 
 
-@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
-    st.sampled_from([scan, local_map, global_map]),
+    st.sampled_from(DECODERS),
     st.dictionaries(st.text(min_size=1, max_size=12), FIELD_VALUES, max_size=3),
     st.data(),
 )

@@ -94,6 +94,11 @@ def run(args: argparse.Namespace) -> int:
     print(summary.table())
     if summary.total_malformed:
         print(f"{summary.total_malformed} malformed messages recorded raw (no Foxglove view)")
+    if summary.error:
+        log.error(
+            "%s: %s; %d messages lost (fleetmap recover rewrites what the file holds)", out, summary.error, summary.lost
+        )
+        return 1
     return 0
 
 
