@@ -53,6 +53,12 @@ log = logging.getLogger(__name__)
 
 FLUSH_INTERVAL = 0.5
 """Seconds a received message may wait in memory before its chunk is written."""
+KEY_RATE = 4e6
+"""Bytes per second one key may write into the recording in the long run (``--max-key-rate``):
+a robot's scans with their raw beams and its submaps come to tens of kB/s; a flood on one key is
+cut to this, each message it drops counted."""
+KEY_BURST = 64e6
+"""... and in one burst (a merger's state answered at once, a robot republishing every submap)."""
 TICK_PERIOD = 0.1
 """How often the service checks whether to flush (s)."""
 LOGGED_MALFORMED = 20
@@ -84,6 +90,8 @@ class RecorderSummary:
     """Messages that arrived after the file was finished (dropped)."""
     lost: int = 0
     """Messages the file could not take (a write failed: disk full), and those buffered with them."""
+    throttled: int = 0
+    """Messages dropped because their key wrote faster than ``--max-key-rate`` allows."""
     error: str = ""
     """Why the recorder stopped writing ("" while it writes)."""
 
@@ -116,7 +124,7 @@ class RecorderSummary:
                 raise BadMessage(cls.SCHEMA, name, "expected a map of topic to count")
             counts[name] = table
         numbers = {}
-        for name in ("foxglove_messages", "late", "lost"):
+        for name in ("foxglove_messages", "late", "lost", "throttled"):
             value = raw.get(name, 0)
             if not isinstance(value, int) or isinstance(value, bool):
                 raise BadMessage(cls.SCHEMA, name, "expected a count")
@@ -139,6 +147,8 @@ class RecorderSummary:
         rows.append(("total", self.total, sum(self.payload_bytes.values()), self.total_malformed))
         lines = [f"{'topic':<{width}} {'messages':>9} {'bytes':>12} {'malformed':>9}"]
         lines += [f"{t:<{width}} {n:>9} {size:>12} {bad:>9}" for t, n, size, bad in rows]
+        if self.throttled:
+            lines.append(f"not recorded: {self.throttled} messages of keys writing faster than --max-key-rate")
         if self.error:
             lines.append(f"NOT RECORDED: {self.lost} messages ({self.error})")
         return "\n".join(lines)
@@ -152,6 +162,7 @@ class _Counts:
     foxglove: int = 0
     late: int = 0
     lost: int = 0
+    throttled: int = 0
     unflushed: Counter[str] = field(default_factory=Counter)
     """Raw messages per topic written since the last flush (lost with it if the flush fails) ..."""
     unflushed_bytes: Counter[str] = field(default_factory=Counter)
@@ -169,6 +180,8 @@ class Recorder:
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         flush_interval: float = FLUSH_INTERVAL,
         foxglove: bool = True,
+        key_rate: float = KEY_RATE,
+        key_burst: float = KEY_BURST,
     ) -> None:
         self._writer = writer
         self._keys = keys
@@ -183,6 +196,9 @@ class Recorder:
         self.error = ""
         """Why the file stopped taking messages (a write failed: disk full); "" while it writes."""
         self._latest: dict[str, tuple[int, bytes]] = {}
+        self._key_rate, self._key_burst = key_rate, key_burst
+        self._buckets: dict[str, tuple[float, int]] = {}
+        """Per key: the bytes it may still write now, and when that was worked out (ns)."""
         """The newest version of every submap recorded: (version, payload)."""
         for name, data in (metadata or {}).items():
             writer.add_metadata(name, data)
@@ -191,6 +207,8 @@ class Recorder:
         """Record one payload received on ``key``; never raises for a bad payload."""
         message, problem = self._check(key, payload)
         with self._lock:
+            if not self._admit(key, len(payload), receive_time_ns):
+                return
             if isinstance(message, LocalMap) and key == self._keys.localmap(message.robot):
                 held = self._latest.get(message.submap_key)
                 if held is None or message.version > held[0]:
@@ -262,7 +280,9 @@ class Recorder:
             c = self._counts
             messages = {k: n for k, n in c.messages.items() if n}
             sizes = {k: n for k, n in c.payload_bytes.items() if k in messages}
-            return RecorderSummary(messages, sizes, dict(c.malformed), c.foxglove, c.late, c.lost, self.error)
+            return RecorderSummary(
+                messages, sizes, dict(c.malformed), c.foxglove, c.late, c.lost, c.throttled, self.error
+            )
 
     def finish(self) -> RecorderSummary:
         """Finish the file (indexes and summary); later feeds are counted as late and dropped."""
@@ -280,6 +300,22 @@ class Recorder:
                 except OSError as exc:
                     self._fail(exc)
         return self.summary()
+
+    def _admit(self, key: str, size: int, now_ns: int) -> bool:
+        """Whether ``key`` may write ``size`` more bytes now (a token bucket: ``key_rate`` bytes/s,
+        ``key_burst`` at once); a message it may not is dropped and counted."""
+        if self._key_rate <= 0:
+            return True
+        tokens, since = self._buckets.get(key, (self._key_burst, now_ns))
+        tokens = min(self._key_burst, tokens + max(now_ns - since, 0) * 1e-9 * self._key_rate)
+        admitted = size <= tokens
+        self._buckets[key] = (tokens - size if admitted else tokens, now_ns)
+        if not admitted:
+            self._counts.throttled += 1
+            n = self._counts.throttled
+            if n <= 10 or n % 1000 == 0:
+                log.warning("dropped a message of %d bytes on %s: faster than --max-key-rate (%d so far)", size, key, n)
+        return admitted
 
     def _counted(self, key: str, size: int) -> None:
         c = self._counts

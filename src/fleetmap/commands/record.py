@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import datetime
 import logging
+import math
 import sys
 import time
 from pathlib import Path
 
 from fleetmap import __version__
-from fleetmap.merger.recorder import Recorder, RecorderService
+from fleetmap.merger.recorder import KEY_BURST, KEY_RATE, Recorder, RecorderService
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import load_config
@@ -49,11 +50,22 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the scenario being run (TOML), stored in the file so a replay can score against its truth",
     )
     p.add_argument("--no-foxglove", action="store_true", help="raw channels only (no Foxglove views)")
+    p.add_argument(
+        "--max-key-rate",
+        type=float,
+        default=KEY_RATE / 1e6,
+        metavar="MB/S",
+        help=f"a key that writes faster than this in the long run (bursts of {KEY_BURST / 1e6:g} MB pass) has "
+        f"its messages dropped and counted: one flooding publisher cannot fill the disk; 0: no limit "
+        f"(default {KEY_RATE / 1e6:g})",
+    )
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if not (args.max_key_rate >= 0 and math.isfinite(args.max_key_rate)):
+        raise BadInput("--max-key-rate", f"must be 0 (no limit) or a number of MB/s, got {args.max_key_rate}")
     if args.duration is not None and not args.duration > 0:
         raise BadInput("--duration", f"must be a positive number of seconds, got {args.duration}")
     options = zenoh_options_from_args(args)
@@ -78,7 +90,13 @@ def run(args: argparse.Namespace) -> int:
         metadata["fleetmap.scenario"] = {"toml": Path(args.scenario).read_text(encoding="utf-8")}
     with ZenohBus.open(config) as bus:
         writer = RecordingWriter(out)
-        recorder = Recorder(writer, options.keys, metadata=metadata, foxglove=not args.no_foxglove)
+        recorder = Recorder(
+            writer,
+            options.keys,
+            metadata=metadata,
+            foxglove=not args.no_foxglove,
+            key_rate=args.max_key_rate * 1e6,
+        )
         service = RecorderService(bus, recorder, options.keys)
         started = time.monotonic()
         with stop_on_signals() as stop:
