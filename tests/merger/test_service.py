@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -139,13 +141,17 @@ def test_a_merger_killed_before_publishing_its_step_says_where_it_stands_when_re
     assert other.where_it_stands() == []
 
 
-def _three_robots_stepped() -> Merger:
+@functools.cache
+def _three_robots_state() -> bytes:
+    """The state file of a merger that stepped once with three robots' first maps."""
     merger = Merger(KEYS)
     for r in ("r1", "r2", "r3"):
         m = true_local_map("department", r, 0, 8)[0]
         merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
     merger.step()
-    return merger
+    with tempfile.TemporaryDirectory() as folder:
+        merger.save_state(Path(folder) / "merger.state")
+        return (Path(folder) / "merger.state").read_bytes()
 
 
 def _rewrite_edges(path: Path, change: Callable[[dict], None]) -> None:
@@ -158,7 +164,7 @@ def _rewrite_edges(path: Path, change: Callable[[dict], None]) -> None:
 def test_a_state_file_of_an_older_merger_is_refused_by_name(tmp_path) -> None:  # type: ignore[no-untyped-def]
     # Version 1 held whole-epoch local maps, not submaps: nothing in it carries over.
     path = tmp_path / "merger.state"
-    _three_robots_stepped().save_state(path)
+    path.write_bytes(_three_robots_state())
     state = msgpack.unpackb(path.read_bytes(), raw=False)
     state["v"] = 1
     path.write_bytes(msgpack.packb(state, use_bin_type=True))
@@ -174,7 +180,7 @@ def test_a_state_whose_edge_information_is_no_weight_is_refused_by_name(tmp_path
     # NaN, a matrix that is not positive semidefinite or not symmetric, or not 3x3: the merger
     # would fail at its first step on every step after; it refuses the file instead, naming it.
     path = tmp_path / "merger.state"
-    _three_robots_stepped().save_state(path)
+    path.write_bytes(_three_robots_state())
     _rewrite_edges(path, lambda e: e.update(information=information))
     with pytest.raises(BadInput, match="information") as caught:
         Merger(KEYS).load_state(path)
