@@ -69,7 +69,7 @@ def measure(n: int, speed: float, out: Path, mode: str = "open") -> dict[str, fl
             if isinstance(msg, Scan):
                 scans.append(m.log_time)
             elif isinstance(msg, LocalMap):
-                arrived.setdefault((msg.key, msg.version), m.log_time)
+                arrived.setdefault((msg.submap_key, msg.version), m.log_time)
             elif isinstance(msg, MergerStep):
                 for key, version in zip(msg.maps, msg.versions, strict=True):
                     if (key, version) in arrived:

@@ -7,11 +7,13 @@ security).
 
 Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
 
-- robot ``rX``: put under ``P/robots/rX/**`` only; hold the liveliness token ``P/alive/rX`` only;
-  read the merger's outputs (``P/merger/**``) and the fleet events (``P/events``).
+- robot ``rX``: put under ``P/robots/rX/**`` only, its global pose ``P/robots/rX/pose`` excepted
+  (the merger's); hold the liveliness token ``P/alive/rX`` only; read the merger's outputs
+  (``P/merger/**``, its own global pose) and the fleet events (``P/events``).
 - ``merger``: read every robot (``P/robots/**``, ``P/alive/*``) and the fleet events; put under
-  ``P/merger/**`` and on ``P/events``; answer ``P/merger/state``; hold ``P/services/merger``;
-  ask the recorder for the maps it kept (``P/recorder/maps``).
+  ``P/merger/**``, on ``P/events`` and on every robot's global pose ``P/robots/*/pose``; answer
+  ``P/merger/state``; hold ``P/services/merger``; ask the recorder for the maps it kept
+  (``P/recorder/maps``).
 - ``recorder``: read everything under ``P``; answer ``P/recorder/stats`` and ``P/recorder/maps``;
   hold ``P/services/recorder``.
 - ``viewer`` (Foxglove bridges, dashboards, ``fleetmap run``'s own watcher): read everything under
@@ -99,6 +101,8 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         # robots read the merger's outputs and the fleet events
         _rule("robot-read-in", "ingress", ["declare_subscriber"], [f"{p}/merger/**", f"{p}/events"]),
         _rule("robot-read-out", "egress", ["put"], [f"{p}/merger/**", f"{p}/events"]),
+        # a robot's global pose is the merger's to say (an explicit deny outranks the robot's own keys)
+        {**_rule("robot-no-pose", "ingress", ["put"], [f"{p}/robots/*/pose"]), "permission": "deny"},
         # the merger
         _rule(
             "merger-read-in",
@@ -107,7 +111,7 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
             [f"{p}/robots/**", f"{p}/events", f"{p}/alive/**"],
         ),
         _rule("merger-read-out", "egress", ["put"], [f"{p}/robots/**", f"{p}/events"]),
-        _rule("merger-write", "ingress", ["put"], [f"{p}/merger/**", f"{p}/events"]),
+        _rule("merger-write", "ingress", ["put"], [f"{p}/merger/**", f"{p}/events", f"{p}/robots/*/pose"]),
         _rule("merger-state-in", "ingress", ["declare_queryable", "reply"], [f"{p}/merger/state"]),
         _rule("merger-state-out", "egress", ["query"], [f"{p}/merger/state"]),
         _rule("merger-token", "ingress", ["liveliness_token"], [f"{p}/services/merger"]),
@@ -138,7 +142,7 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
             "rules": ["barrier-in", "barrier-out", "declarations-out"],
             "subjects": [s["id"] for s in subjects],
         },
-        {"id": "robots-read", "rules": ["robot-read-in", "robot-read-out"], "subjects": robots},
+        {"id": "robots-read", "rules": ["robot-read-in", "robot-read-out", "robot-no-pose"], "subjects": robots},
         {
             "id": "merger",
             "rules": [r["id"] for r in rules if r["id"].startswith("merger-")],
@@ -155,8 +159,15 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         # a robot's own keys: its scans, local maps, poses and events, and its presence
         rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], [f"{p}/robots/{robot}/**"]))
         rules.append(_rule(f"robot-{robot}-token", "ingress", ["liveliness_token"], [f"{p}/alive/{robot}"]))
+        # ... and where the merger puts it
+        rules.append(_rule(f"robot-{robot}-pose-in", "ingress", ["declare_subscriber"], [f"{p}/robots/{robot}/pose"]))
+        rules.append(_rule(f"robot-{robot}-pose-out", "egress", ["put"], [f"{p}/robots/{robot}/pose"]))
         policies.append(
-            {"id": f"robot-{robot}", "rules": [f"robot-{robot}-write", f"robot-{robot}-token"], "subjects": [robot]}
+            {
+                "id": f"robot-{robot}",
+                "rules": [f"robot-{robot}-{r}" for r in ("write", "token", "pose-in", "pose-out")],
+                "subjects": [robot],
+            }
         )
     return {
         "enabled": True,

@@ -103,6 +103,7 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
             wire = msgpack.unpackb(r1_map.to_msgpack())
             rogue.publish(KEYS.localmap("r1"), msgpack.packb({**wire, "version": 2**62}))
             rogue.publish(KEYS.scan("r1"), b"forged scan")
+            rogue.publish(KEYS.pose("r2"), b"forged pose")  # its own key, but the merger's to say
             rogue.publish(KEYS.globalmap, GlobalMap(10**9, 9e9, ()).to_msgpack())
             rogue.publish(KEYS.events, FleetEvent("republish_request", None, 1.0).to_msgpack())
             token = rogue.declare_liveliness(KEYS.alive("r1"))
@@ -122,7 +123,9 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
             assert all(isinstance(m, GlobalMap) and m.stamp < 9e9 for m in merged)
             assert merged[-1].component_of("r1/0/0") is not None
         assert [p for k, p in seen.items if k == KEYS.localmap("r1")] == [r1_map.to_msgpack()]
+        assert KEYS.pose("r1") in {k for k, _ in seen.items}  # the merger puts every robot's global pose
         assert KEYS.scan("r1") not in {k for k, _ in seen.items}
+        assert not any(p == b"forged pose" for _, p in seen.items)
         events = [decode(p) for k, p in seen.items if k == KEYS.events]
         assert not any(isinstance(e, FleetEvent) and e.stamp == 1.0 for e in events)
         assert alive.items == [(KEYS.alive("r2"),), (KEYS.alive("r1"),)]
@@ -134,7 +137,7 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
         assert recorder.wait(WAIT) == 0
     with RecordingReader(recording) as reader:
         messages = [(m.topic, m.payload) for m in reader.messages()]
-    assert not any(p == b"forged scan" for _, p in messages)
+    assert not any(p in (b"forged scan", b"forged pose") for _, p in messages)
     localmaps = [decode(p) for t, p in messages if t == KEYS.localmap("r1")]
     assert [m.version for m in localmaps] == [r1_map.version]
     assert all(decode(p).stamp < 9e9 for t, p in messages if t == KEYS.globalmap)
