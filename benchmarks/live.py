@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.messages import BadMessage, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.recording import RecordingReader
 from results import write_section
 
+from fleetmap.report import merge_latencies
 from fleetmap.runner import Session
 
 MODES = {"open": {}, "auth": {"secure": True}, "tls": {"secure": True, "tls": True}}
@@ -55,26 +55,17 @@ def measure(n: int, speed: float, out: Path, mode: str = "open") -> dict[str, fl
     report = session.run()
     wall = time.monotonic() - start
     scans: list[int] = []
-    arrived: dict[tuple[str, int], int] = {}
-    latency: list[float] = []
+    timed: list[tuple[bytes, int]] = []
     total = size = 0
     with RecordingReader(out / "session.mcap") as reader:
         for m in reader.messages():
             total += 1
             size += len(m.payload)
-            try:
-                msg = decode(m.payload)
-            except BadMessage:  # not a fleetmap message: counted above, nothing more
-                continue
-            if isinstance(msg, Scan):
+            timed.append((m.payload, m.log_time))
+            if m.topic.endswith("/scan"):
                 scans.append(m.log_time)
-            elif isinstance(msg, LocalMap):
-                arrived.setdefault((msg.submap_key, msg.version), m.log_time)
-            elif isinstance(msg, MergerStep):
-                for key, version in zip(msg.maps, msg.versions, strict=True):
-                    if (key, version) in arrived:
-                        latency.append((m.log_time - arrived[(key, version)]) / 1e9)
             last = m.log_time
+    latency = merge_latencies(timed)
     span = (max(scans) - min(scans)) / 1e9 if len(scans) > 1 else float("nan")
     catch_up = (last - max(scans)) / 1e9 if scans else float("nan")
     return {

@@ -425,14 +425,14 @@ class MapGraph:
                 culprit = _culprit(tree, loops, conflicts, adjacency)
                 if culprit is None:
                     break
-                log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
+                log.debug("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
                 excluded.add(culprit.key())
             found = _weak_bridges(tree + loops, self.merge.bridge_min_value, partial)
             if not found:
                 break
             weak.update(found)
         for e in weak.values():
-            log.info(
+            log.debug(
                 "rejecting edge %s-%s: no cycle checks it and its value %.1f m is under %.1f m",
                 e.a,
                 e.b,

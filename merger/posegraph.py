@@ -266,7 +266,7 @@ class PoseGraph(MapGraph):
             if not off:
                 break
             for e in off:
-                log.info("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
+                log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
             disagreeing.update(e.key() for e in off)
         rejected += [e for e in valid if e.key() in disagreeing and e.valid]
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
@@ -292,9 +292,9 @@ class PoseGraph(MapGraph):
             if culprit is None:
                 culprit = self._failed_join(tree, adjacency)
                 if culprit is not None:
-                    log.info("rejecting edge %s-%s: the maps it joins do not bear it out", culprit.a, culprit.b)
+                    log.debug("rejecting edge %s-%s: the maps it joins do not bear it out", culprit.a, culprit.b)
             elif culprit is not None:
-                log.info("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
+                log.debug("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
             if culprit is None:
                 break
             excluded.add(culprit.key())
@@ -329,7 +329,7 @@ class PoseGraph(MapGraph):
                     continue
                 accuser = e if e.a not in side_b else e.reversed()
                 if not self._join_holds(accuser, side_a, sorted(side_b), poses, adjacency):
-                    log.info(
+                    log.debug(
                         "edge %s-%s accuses %s-%s, but the maps it joins do not bear it out",
                         e.a,
                         e.b,

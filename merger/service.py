@@ -52,7 +52,7 @@ import os
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -97,6 +97,10 @@ RECALL_SECONDS = 5.0
 """How long a starting merger waits for the recorder's maps (no recorder: no wait)."""
 STATE_ERROR_EVERY = 10.0
 """Seconds between the ERROR lines of a merger that cannot save its state."""
+STATUS_SECONDS = 5.0
+"""Seconds between the live merger's status lines (INFO)."""
+STATUS_WINDOW = 60.0
+"""The status line's latency covers the submaps merged in this many last seconds."""
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -310,6 +314,15 @@ class Merger:
     @property
     def pending(self) -> int:
         return len(self._pending)
+
+    @property
+    def robots(self) -> list[str]:
+        """Every robot the merger knows, by name."""
+        return sorted(self._robots)
+
+    def robot_epoch(self, robot: str) -> int:
+        """A known robot's current epoch."""
+        return self._robots[robot].epoch
 
     @property
     def waiting(self) -> list[str]:
@@ -877,6 +890,15 @@ class MergerService:
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
         self.step_seconds = step_seconds
+        self._arrived: dict[str, float] = {}
+        """When each submap waiting to be taken in first arrived (monotonic s)."""
+        self._latencies: deque[tuple[float, float]] = deque()
+        """(when, seconds from arrival to the global map) of the submaps taken in the last minute."""
+        self._placed: dict[str, tuple[int | None, int]] = {}
+        """Per robot: its component after the last step (None: not placed) and its epoch."""
+        self._ever_placed: set[tuple[str, int]] = set()
+        """(robot, epoch) placed at some step."""
+        self._components = 0
         self.state_errors = 0
         """Failed writes of the state file (disk full)."""
         self._state_error_said = -math.inf
@@ -943,6 +965,8 @@ class MergerService:
                 self._publish(self.merger.presence(robot, item, self.clock()))
             else:
                 self._publish(self.merger.receive(key, item))
+                for waiting in self.merger.waiting:
+                    self._arrived.setdefault(waiting, time.monotonic())
 
     def run_once(self) -> bool:
         """Take what arrived and step if there is work (a local map pending, or pairs of maps to
@@ -963,7 +987,47 @@ class MergerService:
         self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
         self._publish(out)
+        self._note_step()
         return True
+
+    def _note_step(self) -> None:
+        """After a step: how long the submaps it took had waited (received -> in the global map),
+        and, at INFO, robots placed, lost or relocalized and components merged."""
+        now = time.monotonic()
+        waiting = set(self.merger.waiting)
+        for key in [k for k in self._arrived if k not in waiting]:
+            self._latencies.append((now, now - self._arrived.pop(key)))
+        while self._latencies and now - self._latencies[0][0] > STATUS_WINDOW:
+            self._latencies.popleft()
+        for robot in self.merger.robots:
+            pose, component = self.merger.robot_pose(robot)
+            epoch = self.merger.robot_epoch(robot)
+            was = self._placed.get(robot)
+            if was is not None and epoch > was[1]:
+                log.info("robot %s lost its place (epoch %d): searching", robot, epoch)
+            if pose is not None and (robot, epoch) not in self._ever_placed:
+                self._ever_placed.add((robot, epoch))
+                log.info("robot %s %s in component %d", robot, "relocalized" if epoch else "placed", component)
+            self._placed[robot] = (component, epoch)
+        components = len(self.merger.global_map.components)
+        if components < self._components:
+            log.info("maps merged: %d components now", components)
+        self._components = components
+
+    def status(self) -> str:
+        """One line: robots, submaps, components, work waiting, and the latency of the last minute."""
+        placed = sum(1 for c, _ in self._placed.values() if c is not None)
+        lat = sorted(d for _, d in self._latencies)
+        latency = (
+            f"latency median {lat[len(lat) // 2]:.1f} s, p95 {lat[min(len(lat) - 1, int(0.95 * len(lat)))]:.1f} s"
+            if lat
+            else "no submap merged in the last minute"
+        )
+        return (
+            f"{len(self.merger.robots)} robots ({placed} placed), {len(self.merger.graph)} submaps, "
+            f"{len(self.merger.global_map.components)} components, {self.merger.queued} pairs queued, "
+            f"{self.merger.pending} submaps waiting; {latency}"
+        )
 
     def _save(self) -> bool:
         """Save the state file, if any; a failed write (disk full) is said loudly and the merger goes
@@ -987,9 +1051,13 @@ class MergerService:
         return True
 
     def run(self, stop: threading.Event) -> None:
+        said = time.monotonic()
         while not stop.is_set():
             if not self.run_once():
                 stop.wait(self.tick)
+            if time.monotonic() - said >= STATUS_SECONDS:
+                said = time.monotonic()
+                log.info("status: %s", self.status())
         # At the stop (SIGTERM), whatever the queue: what arrived is taken off the bus and saved with
         # the queue, not integrated, so the service ends within a step. It waits in the state file
         # for the next start; without one it is lost, and said so.

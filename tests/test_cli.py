@@ -221,3 +221,23 @@ def test_absurd_but_finite_ranges_map_without_numpy_warnings(tmp_path: Path) -> 
     scans.write_text(json.dumps({**scan, "ranges": [1e308] * 100 + [2.0] * 200}) + "\n")
     r = fleetmap("map", str(scans), "--out", str(tmp_path / "out"), "--no-progress")
     assert r.returncode == 0 and "Warning" not in r.stderr, r.stderr
+
+
+def test_verbosity_flags_are_taken_anywhere_on_the_line(tmp_path: Path) -> None:
+    import logging
+
+    from fleetmap.cli import _verbosity
+
+    assert _verbosity(["merger", "-v", "--fleet", "x", "-vv"]) == (["merger", "--fleet", "x"], 3)
+    assert _verbosity(["-q", "record", "--out", "f", "--", "-v"]) == (["record", "--out", "f", "--", "-v"], -1)
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        root.handlers.clear()  # basicConfig configures only a root logger without handlers
+        out = tmp_path / "map.json"
+        out.write_text('{"segments": [[0, 0, 1, 0]], "ordered": false}')
+        assert main(["merge", str(out), "--json", "-qq"]) == 0
+        assert logging.getLogger().level == logging.CRITICAL
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)

@@ -44,7 +44,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Pose-free segment maps for robot fleets (Amigoni, Gasparini & Gini 2006).",
     )
     parser.add_argument("--version", action="version", version=f"fleetmap {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug); anywhere on the line"
+    )
+    parser.add_argument(
+        "-q", "--quiet", action="count", default=0, help="less log output (-qq: errors only); anywhere on the line"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         if command in COMMANDS and name != command:
@@ -79,12 +84,36 @@ def short_usage(p: argparse.ArgumentParser) -> None:
     p.usage = " ".join([*parts, "[options]"])
 
 
+SERVICES = ("agent", "merger", "record", "router")
+"""Commands that run until stopped: they log at INFO by default."""
+VERBOSITY = {"-v": 1, "--verbose": 1, "-vv": 2, "-vvv": 3, "-q": -1, "--quiet": -1, "-qq": -2}
+
+
+def _verbosity(argv: list[str]) -> tuple[list[str], int]:
+    """``argv`` without its -v/-q flags (accepted anywhere before a ``--``), and how much louder
+    they make the log (negative: quieter)."""
+    out: list[str] = []
+    louder = 0
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            return out + argv[i:], louder
+        if arg in VERBOSITY:
+            louder += VERBOSITY[arg]
+        else:
+            out.append(arg)
+    return out, louder
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv, louder = _verbosity(list(sys.argv[1:] if argv is None else argv))
     # The global options take no value, so the first word that is not an option is the command.
     command = next((a for a in argv if not a.startswith("-")), None)
     args = build_parser(command).parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
+    louder += args.verbose - args.quiet
+    # services say what they do (robots joining, maps merging, a status line) at INFO; commands
+    # that run once say only what went wrong
+    base = logging.INFO if command in SERVICES else logging.WARNING
+    level = min(max(base - 10 * louder, logging.DEBUG), logging.CRITICAL)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     try:
         return int(args.func(args) or 0)

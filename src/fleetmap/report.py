@@ -36,6 +36,7 @@ from fleetmap.shared.messages import (
     GlobalMap,
     LaserRanges,
     LocalMap,
+    MergerStep,
     Message,
     RobotPose,
     Scan,
@@ -135,6 +136,37 @@ class Truth:
             return self.truth.pose(robot, index)
         except (KeyError, IndexError, ValueError):
             return None
+
+
+def merge_latencies(messages: Iterable[tuple[bytes, int]]) -> list[float]:
+    """Seconds from each submap version's arrival at the recorder to the arrival of the merger step
+    that took it into the global map, from a recording's (payload, log time) in log-time order.
+    Versions a newer one replaced before the merger took them are not counted: the merger takes
+    the newest (that is the point of coalescing)."""
+    arrived: dict[tuple[str, int], int] = {}
+    out: list[float] = []
+    for payload, log_time in messages:
+        try:
+            message = decode(payload)
+        except BadMessage:
+            continue
+        if isinstance(message, LocalMap):
+            arrived.setdefault((message.submap_key, message.version), log_time)
+        elif isinstance(message, MergerStep):
+            for key, version in zip(message.maps, message.versions, strict=True):
+                if (key, version) in arrived:
+                    out.append((log_time - arrived.pop((key, version))) / 1e9)
+    return out
+
+
+def latency_figures(latencies: list[float]) -> dict[str, float | None]:
+    """``merge_latency_median_s`` and ``merge_latency_p95_s`` of report.json (None: no submap)."""
+    if not latencies:
+        return {"merge_latency_median_s": None, "merge_latency_p95_s": None}
+    return {
+        "merge_latency_median_s": float(np.median(latencies)),
+        "merge_latency_p95_s": float(np.percentile(latencies, 95)),
+    }
 
 
 def make_truth(scenario: Scenario | None) -> Truth | None:
@@ -501,6 +533,11 @@ def summary_table(report: dict[str, Any]) -> str:
         f"coverage           {fmt(report['coverage'], ' %', 100.0, 1)}",
         f"components         {len(report['components'])}",
     ]
+    if report.get("merge_latency_median_s") is not None:
+        lines.append(
+            f"merge latency      median {report['merge_latency_median_s']:.2f} s, "
+            f"p95 {report['merge_latency_p95_s']:.2f} s (submap received -> in the global map)"
+        )
     wrong = report.get("maps_merged_wrongly")
     if wrong is not None:
         lines.append(f"maps merged wrongly {len(wrong)}" + (f" ({', '.join(wrong)})" if wrong else ""))

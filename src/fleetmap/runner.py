@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from fleetmap.merger.recorder import wait_until_recorded
-from fleetmap.report import log_from_recording, make_truth, write_outputs
+from fleetmap.report import latency_figures, log_from_recording, make_truth, merge_latencies, write_outputs
 from fleetmap.scenarios import Scenario, scenario_to_toml
 from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
 from fleetmap.shared.bus import ZenohBus
@@ -231,9 +231,11 @@ class Session:
         reader = RecordingReader(out / "session.mcap")
         with reader:
             session = log_from_recording(((m.topic, m.payload) for m in reader.messages()), options.keys)
+            latencies = merge_latencies((m.payload, m.log_time) for m in reader.messages(warn=False))
             counts = reader.topic_counts()
         report = write_outputs(session, make_truth(self.scenario), out, f"fleetmap run: {self.scenario.name}")
         report["seconds"] = seconds
+        report.update(latency_figures(latencies))
         report["messages_seen"] = sum(expected.values())
         # Of the messages the runner saw on each topic, how many the recording holds.
         report["messages_recorded"] = sum(min(counts.get(k, 0), n) for k, n in expected.items())

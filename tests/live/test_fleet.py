@@ -64,6 +64,7 @@ def run_department(out: Path, *flags: str) -> dict:  # type: ignore[type-arg]
     assert r.returncode == 0, r.stderr[-3000:]
     report: dict = json.loads((out / "report.json").read_text())  # type: ignore[type-arg]
     assert report["robots_total"] == 3 and report["robots_placed"] == 3
+    assert 0 < report["merge_latency_median_s"] <= report["merge_latency_p95_s"]
     assert report["map_error_mean_m"] is not None and report["map_error_mean_m"] <= 0.05
     return report
 
