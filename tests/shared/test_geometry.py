@@ -13,6 +13,7 @@ from fleetmap.shared.geometry import (
     segments_intersect,
     transform_segments_batch,
     wrap_angle,
+    wrap_scalar,
 )
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -114,3 +115,14 @@ def test_point_segment_distance_is_zero_on_the_segment_and_positive_off_it(x: fl
     d = float(point_segment_distance(np.array([x, y]), seg))
     expected = math.hypot(x - min(max(x, 0.0), 1.0), y)
     assert math.isclose(d, expected, abs_tol=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(allow_nan=True, allow_infinity=True) | st.integers(-40, 40).map(lambda k: k * math.pi))
+def test_the_scalar_wrap_is_the_array_wrap_bit_for_bit(a: float) -> None:
+    with np.errstate(invalid="ignore"):
+        expected = float(wrap_angle(a))
+    got = wrap_scalar(a)
+    assert (math.isnan(got) and math.isnan(expected)) or (
+        got == expected and math.copysign(1, got) == math.copysign(1, expected)
+    )
