@@ -66,6 +66,7 @@ def test_every_scan_is_published_once_in_order_with_its_readings_pose_and_odomet
     assert (scans[0].submap, scans[0].pose) == (0, Transform2D())
 
 
+@pytest.mark.slow  # tracks a whole simulated path
 def test_a_robot_with_drifting_odometry_is_tracked_within_5cm_over_its_whole_path(office_r3, office_r3_run):
     (worst_m, worst_deg), messages = office_r3_run
     assert worst_m < 0.05 and worst_deg < 0.5, (worst_m, worst_deg)

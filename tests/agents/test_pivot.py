@@ -21,6 +21,9 @@ from fleetmap.shared.scans import read_carmen
 from tests.agents.conftest import blocked, epoch_events, kidnap_index, pivot, run, source_scans
 from tests.helpers import sparse
 
+# the paper's front end builds maps from every scan of whole simulated paths: with the slow tests
+pytestmark = pytest.mark.slow
+
 
 def local_maps(messages, epoch=None):
     return [m for m in messages if isinstance(m, LocalMap) and (epoch is None or m.epoch == epoch)]

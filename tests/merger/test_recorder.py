@@ -232,7 +232,8 @@ def test_a_full_disk_stops_the_recording_loudly_and_counts_only_what_the_file_ho
     assert sorted(recorder.latest_maps()) == sorted(newest.values())
 
 
-@settings(max_examples=100, deadline=None)
+@pytest.mark.slow  # a fuzz test
+@settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=256) | st.dictionaries(st.sampled_from(FIELDS), FIELD_VALUES, max_size=8).map(_stats_payload))
 def test_any_stats_answer_decodes_or_raises_bad_message(payload: bytes) -> None:
     try:

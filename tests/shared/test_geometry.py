@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from fleetmap.shared.geometry import (
     Transform2D,
     matching_value,
@@ -117,6 +118,7 @@ def test_point_segment_distance_is_zero_on_the_segment_and_positive_off_it(x: fl
     assert math.isclose(d, expected, abs_tol=1e-9)
 
 
+@pytest.mark.slow  # a fuzz test
 @settings(max_examples=300, deadline=None)
 @given(st.floats(allow_nan=True, allow_infinity=True) | st.integers(-40, 40).map(lambda k: k * math.pi))
 def test_the_scalar_wrap_is_the_array_wrap_bit_for_bit(a: float) -> None:

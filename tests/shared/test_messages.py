@@ -525,7 +525,8 @@ FIELD_VALUES = st.recursive(
 )
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@pytest.mark.slow  # a fuzz test: hundreds of examples
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.sampled_from(DECODERS),
     st.dictionaries(st.text(min_size=1, max_size=12), FIELD_VALUES, max_size=3),
