@@ -196,10 +196,10 @@ class Recorder:
         self.error = ""
         """Why the file stopped taking messages (a write failed: disk full); "" while it writes."""
         self._latest: dict[str, tuple[int, bytes]] = {}
+        """The newest version of every submap recorded: (version, payload)."""
         self._key_rate, self._key_burst = key_rate, key_burst
         self._buckets: dict[str, tuple[float, int]] = {}
         """Per key: the bytes it may still write now, and when that was worked out (ns)."""
-        """The newest version of every submap recorded: (version, payload)."""
         for name, data in (metadata or {}).items():
             writer.add_metadata(name, data)
 

@@ -958,15 +958,16 @@ class MergerService:
             try:
                 key, item = self._inbox.get_nowait()
             except queue.Empty:
-                return
+                break
             if isinstance(item, bool):
                 robot = key.rsplit("/", 1)[-1]
                 log.info("robot %s %s", robot, "joined" if item else "left")
                 self._publish(self.merger.presence(robot, item, self.clock()))
             else:
                 self._publish(self.merger.receive(key, item))
-                for waiting in self.merger.waiting:
-                    self._arrived.setdefault(waiting, time.monotonic())
+        now = time.monotonic()
+        for waiting in self.merger.waiting:
+            self._arrived.setdefault(waiting, now)
 
     def run_once(self) -> bool:
         """Take what arrived and step if there is work (a local map pending, or pairs of maps to

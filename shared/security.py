@@ -78,8 +78,8 @@ def check_fleet_roles(fleet: str, robots: list[str]) -> None:
         raise BadInput("--robots", f"named twice: {', '.join(duplicated)}")
 
 
-def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
-    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys}
+def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str], permission: str = "allow") -> dict[str, Any]:
+    return {"id": rule_id, "permission": permission, "flows": [flow], "messages": messages, "key_exprs": keys}
 
 
 def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str, Any]:
@@ -102,7 +102,7 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         _rule("robot-read-in", "ingress", ["declare_subscriber"], [f"{p}/merger/**", f"{p}/events"]),
         _rule("robot-read-out", "egress", ["put"], [f"{p}/merger/**", f"{p}/events"]),
         # a robot's global pose is the merger's to say (an explicit deny outranks the robot's own keys)
-        {**_rule("robot-no-pose", "ingress", ["put"], [f"{p}/robots/*/pose"]), "permission": "deny"},
+        _rule("robot-no-pose", "ingress", ["put"], [f"{p}/robots/*/pose"], permission="deny"),
         # the merger
         _rule(
             "merger-read-in",
@@ -277,7 +277,8 @@ def write_fleet_security(
     scheme = "tls" if tls else "tcp"
     default = DEFAULT_ENDPOINT.replace("tcp/", f"{scheme}/")
     listen = listen or [default]
-    connect = connect or [e if not e.split("/", 1)[1].startswith("0.0.0.0:") else default for e in listen]
+    # a router listening on every interface is reached on loopback, at its port, unless --connect says
+    connect = connect or [e.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:") for e in listen]
     for endpoint in [*listen, *connect]:
         endpoint_host(endpoint)
         if tls != endpoint.startswith("tls/"):

@@ -66,6 +66,13 @@ def test_secure_writes_owner_only_configs_and_prints_no_secret(
     assert "merger" in err and len(err.strip().splitlines()) == 1
 
 
+def test_a_router_listening_everywhere_is_reached_on_loopback_at_its_own_port(tmp_path: Path) -> None:
+    command = ["secure", "--fleet", "t", "--robots", "r1", "--out", str(tmp_path), "--listen", "tcp/0.0.0.0:9001"]
+    assert main(command) == 0
+    assert _without_comments(tmp_path / "r1.json5")["connect"]["endpoints"] == ["tcp/127.0.0.1:9001"]
+    assert _without_comments(tmp_path / "router.json5")["listen"]["endpoints"] == ["tcp/0.0.0.0:9001"]
+
+
 @pytest.mark.slow
 def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path: Path) -> None:
     endpoint = free_loopback_endpoint()
