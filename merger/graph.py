@@ -34,16 +34,16 @@ from dataclasses import dataclass, field, replace
 
 import networkx as nx
 import numpy as np
-from fleetmap.shared.config import IntegrationParams, MergeParams
+from fleetmap.merger.executor import Indexes, PairJob, PairResult, fitted, reference_of, run_pair
+from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.evaluation import prepare
 from fleetmap.shared.fusion import fuse
 from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
-from fleetmap.shared.integration import index_for, integrate, seen_from_enough_places, takes_large_path
+from fleetmap.shared.integration import index_for, seen_from_enough_places
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import MapIndex, viewpoints_of
-from fleetmap.shared.refine import fit_information, refine_transform
 from fleetmap.shared.simplify import simplify
+from fleetmap.shared.tracking import ReferenceMap
 from scipy.optimize import least_squares
 
 log = logging.getLogger(__name__)
@@ -57,10 +57,6 @@ together (the scale of the least-squares residuals)."""
 ISOTROPIC_SHARE = 0.01
 """The share of the value-based weight an edge with known information keeps (see
 :meth:`MapGraph._least_squares`)."""
-
-POLISH_ITERATIONS = 30
-"""Gauss-Newton steps of a valid edge's fit on the unsimplified maps (it stops when it converges;
-the edmonton edges of ``MergeParams.polish_edges`` converge within 12)."""
 
 
 @dataclass(frozen=True)
@@ -164,6 +160,18 @@ class MergeResult:
         return next((c for c in self.components if key in c.members), None)
 
 
+class _GraphIndexes(Indexes):
+    """The graph's own indexes and registration grids, as :func:`~fleetmap.merger.executor.run_pair`
+    asks for them (built once per version, kept with the node)."""
+
+    def __init__(self, graph: MapGraph) -> None:
+        self._graph = graph
+
+    def get(self, key: str, version: int, kind: str, build: object) -> object:
+        del build, version  # the graph's are the same maps at the node's version
+        return self._graph._index(key) if kind == "index" else self._graph.reference(key)
+
+
 def orientation_histogram(segments: Array) -> Array:
     """Length-weighted histogram of segment directions (unit norm), for similarity."""
     bins = np.floor((orientations(segments) + math.pi) / (2 * math.pi) * HISTOGRAM_BINS).astype(np.int64)
@@ -207,9 +215,12 @@ class MapGraph:
         self.integration = integration or IntegrationParams()
         self.merge = merge or MergeParams()
         self.anchor = anchor
+        self.tracking = TrackingParams()
+        """The registration of an integration near a prediction (:meth:`align_pair`)."""
         self._nodes: dict[str, _Node] = {}
         self._edges: dict[tuple[str, str], Edge] = {}
         self._counter = 0
+        self._references: dict[str, tuple[int, ReferenceMap]] = {}
 
     # -- nodes and edges -------------------------------------------------------------------
     def __contains__(self, key: str) -> bool:
@@ -291,6 +302,7 @@ class MapGraph:
 
     def remove_map(self, key: str) -> None:
         self._nodes.pop(key, None)
+        self._references.pop(key, None)
         for k in [k for k in self._edges if key in k]:
             del self._edges[k]
 
@@ -301,11 +313,11 @@ class MapGraph:
         self._edges[edge.key()] = edge
 
     def fit_edges(self) -> int:
-        """Fit every valid edge that carries no information (:meth:`_fitted`: restored from a state
+        """Fit every valid edge that carries no information (restored from a state
         written before edges carried it) as a new integration's would be; how many."""
         missing = [e for e in self._edges.values() if e.valid and e.information is None]
         for e in missing:
-            transform, information = self._fitted(self._nodes[e.a], self._nodes[e.b], e.transform)
+            transform, information = fitted(self.pair_job(e.a, e.b), e.transform)
             self._edges[e.key()] = replace(e, transform=transform, information=information)
         return len(missing)
 
@@ -320,51 +332,59 @@ class MapGraph:
         known = self.edge(a, b)
         if known is not None and self.is_current(a, b):
             return known
-        va, vb = self._nodes[a].version, self._nodes[b].version
+        job = self.pair_job(a, b)
+        return self.take(job, run_pair(job, self._cache))
+
+    def pair_job(self, a: str, b: str, predicted: Transform2D | None = None) -> PairJob:
+        """The integration of b on a at their current versions, near ``predicted`` (b's frame in
+        a's) or pose-free, as a job any executor runs (:mod:`fleetmap.merger.executor`)."""
         na, nb = self._nodes[a], self._nodes[b]
-        large = takes_large_path(na.work, nb.work, self.integration)
-        r = integrate(
-            na.work,
-            nb.work,
-            self.integration,
-            index1=self._index(a) if large else None,
-            index2=self._index(b) if large else None,
-        )
-        transform, information = self._fitted(na, nb, r.transform) if r.valid else (r.transform, None)
+        return PairJob(
+            a, b, (na.version, nb.version), na.map, nb.map, na.work, nb.work, predicted, self.integration,
+            self.tracking, self.merge,
+        )  # fmt: skip
+
+    def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
+        """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
+        integration (:func:`~fleetmap.shared.integration.align_near`); the edge replaces any known."""
+        job = self.pair_job(a, b, predicted)
+        return self.take(job, run_pair(job, self._cache))
+
+    def reference(self, key: str) -> ReferenceMap:
+        """The registration grid of a node's walls (built once per version)."""
+        node = self._nodes[key]
+        held = self._references.get(key)
+        if held is None or held[0] != node.version:
+            held = self._references[key] = (node.version, reference_of(node.map, self.tracking))
+        return held[1]
+
+    def take(self, job: PairJob, result: PairResult) -> Edge:
+        """Record a job's result as the pair's edge (replacing any known) and return it; a result
+        for versions the graph no longer holds is returned, not recorded."""
+        r = result.integration
+        near = job.predicted is not None
         e = Edge(
-            a,
-            b,
-            transform,
+            job.a,
+            job.b,
+            result.transform,
             r.value,
             r.valid,
-            r.runner_up,
+            0.0 if near else r.runner_up,
             r.seconds,
-            (va, vb),
+            job.versions,
             r.violation,
             r.solid_violation,
-            information,
-            rivals=tuple(t for t, _ in r.rivals),
+            result.information,
+            rivals=() if near else tuple(t for t, _ in r.rivals),
         )
-        self._edges[e.key()] = e
+        na, nb = self._nodes.get(job.a), self._nodes.get(job.b)
+        if na is not None and nb is not None and (na.version, nb.version) == job.versions:
+            self._edges[e.key()] = e
         return e
 
-    def _fitted(self, a: _Node, b: _Node, t: Transform2D) -> tuple[Transform2D, tuple[float, ...] | None]:
-        """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
-        where either was integrated simplified, ``t`` fitted again by least squares
-        (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
-        tolerances."""
-        p = self.integration
-        polish = self.merge.polish_edges and not (a.work is a.map and b.work is b.map)
-        if not (polish or self.merge.edge_information):
-            return t, None
-        prep = prepare(a.map.segments, b.map.segments, a.map.oriented and b.map.oriented, p)
-        if polish:
-            fitted = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
-            dt, dr = fitted.distance(t)
-            if dt <= p.witness_translation and dr <= p.witness_rotation:
-                t = fitted
-        h = fit_information(prep, t, p) if self.merge.edge_information else None
-        return t, None if h is None else tuple(h.ravel().tolist())
+    @property
+    def _cache(self) -> _GraphIndexes:
+        return _GraphIndexes(self)
 
     def add_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> list[Edge]:
         """Add (or update) a map and integrate it with the existing maps, most similar first."""

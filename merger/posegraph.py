@@ -52,7 +52,6 @@ from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.integration import GridFreeSpace, align_near, is_valid, max_map_violation
 from fleetmap.shared.mapfile import SegmentMap
 from fleetmap.shared.mapgrid import grid_scores
-from fleetmap.shared.tracking import ReferenceMap, sample_segments
 from fleetmap.shared.walls import WallMap
 
 log = logging.getLogger(__name__)
@@ -160,7 +159,6 @@ class PoseGraph(MapGraph):
         """The earlier submap of every link."""
         self._solution: dict[str, tuple[str, Transform2D]] = {}
         """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
-        self._references: dict[str, tuple[int, ReferenceMap]] = {}
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
         self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], tuple[float, float]]] = {}
@@ -199,7 +197,6 @@ class PoseGraph(MapGraph):
         self._links = {b: e for b, e in self._links.items() if key not in (e.a, e.b)}
         self._link_covariances = {p: c for p, c in self._link_covariances.items() if key not in p}
         self._link_sources = {e.a for e in self._links.values()}
-        self._references.pop(key, None)
         self._solution.pop(key, None)
         self._discs.pop(key, None)
         # what its pairs said is kept by version, and a map put back starts at its versions again
@@ -209,48 +206,6 @@ class PoseGraph(MapGraph):
     def _work(self, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.walls)
         return m
-
-    # -- integrations near a prediction --------------------------------------------------------
-    def reference(self, key: str) -> ReferenceMap:
-        """The registration grid of a node's walls (built once per version)."""
-        node = self._nodes[key]
-        held = self._references.get(key)
-        if held is None or held[0] != node.version:
-            reference = ReferenceMap(self.tracking.voxel_size)
-            reference.insert(sample_segments(node.map.segments, self.tracking.voxel_size))
-            held = self._references[key] = (node.version, reference)
-        return held[1]
-
-    def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
-        """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
-        integration (:func:`~fleetmap.shared.integration.align_near`); the edge replaces any known."""
-        na, nb = self._nodes[a], self._nodes[b]
-        r = align_near(
-            na.map,
-            nb.map,
-            predicted,
-            self.integration,
-            self.tracking,
-            self.reference(a),
-            self._index(a),
-            self._index(b),
-        )
-        transform, information = self._fitted(na, nb, r.transform) if r.valid else (r.transform, None)
-        e = Edge(
-            a,
-            b,
-            transform,
-            r.value,
-            r.valid,
-            0.0,
-            r.seconds,
-            (na.version, nb.version),
-            r.violation,
-            r.solid_violation,
-            information,
-        )
-        self._edges[e.key()] = e
-        return e
 
     # -- solving -----------------------------------------------------------------------------
     def solve(self, fuse_maps: bool = True) -> MergeResult:

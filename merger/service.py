@@ -60,6 +60,8 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
+from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
 from fleetmap.merger.posegraph import PoseGraph
@@ -172,9 +174,11 @@ def _epoch_of(key: str) -> str:
 class Merger:
     """The merger's logic: :meth:`receive` messages, :meth:`step`, publish what it returns."""
 
-    def __init__(self, keys: FleetKeys, config: FleetmapConfig | None = None) -> None:
+    def __init__(self, keys: FleetKeys, config: FleetmapConfig | None = None, executor: Executor | None = None) -> None:
         self.keys = keys
         self.config = config or FleetmapConfig()
+        self.executor: Executor = executor or InlineExecutor()
+        """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
         self.stats = MergerStats()
         self.seq = 0
@@ -374,15 +378,25 @@ class Merger:
             self._idle_pairs()
         new_edges: list[Edge] = []
         taken = 0
-        while self._queue:
-            if (limit is not None and taken >= limit) or (limit is None and enough is not None and taken and enough()):
+        running: deque[tuple[PairJob, JobHandle]] = deque()
+        while self._queue or running:
+            # as many in flight as the executor keeps busy; results taken in the queue's order, so
+            # the graph is the same whichever executor ran them
+            while self._queue and len(running) < self.executor.capacity:
+                if (limit is not None and taken >= limit) or (
+                    limit is None and enough is not None and taken and enough()
+                ):
+                    break
+                pair, predicted = next(iter(self._queue.items()))
+                del self._queue[pair]
+                taken += 1
+                job = self._job(pair, predicted)
+                if job is not None:
+                    running.append((job, self.executor.submit(job)))
+            if not running:
                 break
-            pair, predicted = next(iter(self._queue.items()))
-            del self._queue[pair]
-            taken += 1
-            edge = self._integrate(pair, predicted)
-            if edge is not None:
-                new_edges.append(edge)
+            job, handle = running.popleft()
+            new_edges.append(self.graph.take(job, handle.result()))
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -658,7 +672,9 @@ class Merger:
             held = self._histograms[key] = (version, orientation_histogram(self.graph.map_of(key).segments))
         return held[1]
 
-    def _integrate(self, pair: tuple[str, str], predicted: Transform2D | None) -> Edge | None:
+    def _job(self, pair: tuple[str, str], predicted: Transform2D | None) -> PairJob | None:
+        """The integration a queued pair is due: near its prediction, or pose-free (once per
+        pair of versions); None if a map has gone or the pair's edge is current."""
         a, b = pair
         if a not in self.graph or b not in self.graph:
             return None
@@ -667,8 +683,9 @@ class Merger:
             self.stats.idle += 1
         if predicted is not None:
             self.stats.near += 1
-            return self.graph.align_pair(a, b, predicted)
-        return self.graph.integrate_pair_once(a, b)
+            return self.graph.pair_job(a, b, predicted)
+        x, y = (a, b) if a < b else (b, a)  # always integrated one way (MapGraph._oriented_pair)
+        return None if self.graph.is_current(x, y) else self.graph.pair_job(x, y)
 
     # -- outputs ---------------------------------------------------------------------------
     def _global_map(self, result: MergeResult) -> GlobalMap:

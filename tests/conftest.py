@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import os
 from pathlib import Path
 
@@ -22,3 +23,21 @@ def datasets() -> Path:
     if d is None:
         pytest.skip("real laser datasets not found (set FLEETMAP_DATA to ../shared/data)")
     return d
+
+
+CSAIL_SCANS = 360
+
+
+@pytest.fixture(scope="session")
+def csail_start(datasets: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The first CSAIL_SCANS laser lines of the mit-csail log (odometry on its FLASER lines)."""
+    out = tmp_path_factory.mktemp("csail") / "csail-start.clf"
+    lines = []
+    with gzip.open(datasets / "mit-csail" / "mit-csail.clf.gz", "rt") as fh:
+        for line in fh:
+            if line.startswith("FLASER"):
+                lines.append(line)
+                if len(lines) == CSAIL_SCANS:
+                    break
+    out.write_text("".join(lines))
+    return out

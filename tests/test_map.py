@@ -20,30 +20,14 @@ from scipy.spatial import cKDTree
 
 from fleetmap.cli import main
 from tests.agents.test_sources import write_bag, write_scans_rosbag2
+from tests.conftest import CSAIL_SCANS as SCANS
 from tests.shared.test_occupancy import read_map_server
-
-SCANS = 360
 
 
 def fleetmap(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "fleetmap", *args], capture_output=True, text=True, timeout=600, check=False
     )
-
-
-@pytest.fixture(scope="module")
-def csail_start(datasets: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The first SCANS laser lines of the mit-csail log (odometry on its FLASER lines)."""
-    out = tmp_path_factory.mktemp("csail") / "csail-start.clf"
-    lines = []
-    with gzip.open(datasets / "mit-csail" / "mit-csail.clf.gz", "rt") as fh:
-        for line in fh:
-            if line.startswith("FLASER"):
-                lines.append(line)
-                if len(lines) == SCANS:
-                    break
-    out.write_text("".join(lines))
-    return out
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -56,11 +40,12 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     csail_start: Path, datasets: Path, tmp_path: Path
 ) -> None:
     runs = []
-    for n in range(2):
+    for n, executor in enumerate((["--executor", "local", "--workers", "2"], ["--executor", "inline"])):
         out = tmp_path / f"run{n}"
         done = fleetmap(
-            "map", str(csail_start), "--out", str(out), "--split", "2", "--range-max", "81.91", "--no-progress"
-        )
+            "map", str(csail_start), "--out", str(out), "--split", "2", "--range-max", "81.91", "--no-progress",
+            *executor,
+        )  # fmt: skip
         assert done.returncode == 0, done.stderr
         runs.append(out)
     first, second = runs
@@ -73,7 +58,8 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
         "csail-start-2.tum",
     ):
         assert (first / name).is_file(), name
-    # the same inputs give the same outputs, byte for byte
+    # the same inputs give the same outputs, byte for byte, whether a process pool or the mapping
+    # process itself ran the integrations
     assert (first / "poses.csv").read_bytes() == (second / "poses.csv").read_bytes()
     text = (first / "poses.csv").read_text()
     assert text.splitlines()[0] == "robot,stamp,component,x,y,theta"

@@ -27,6 +27,7 @@ import numpy as np
 
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
+from fleetmap.merger.executor import Executor
 from fleetmap.merger.service import Merger
 from fleetmap.report import SessionLog, write_outputs
 from fleetmap.shared.config import FleetmapConfig
@@ -154,8 +155,10 @@ def map_logs(
     out_dir: str | Path,
     config: FleetmapConfig,
     progress: Callable[[int, int], None] | None = None,
+    executor: Executor | None = None,
 ) -> MapResult:
-    """Map the pieces (see the module docstring) and write the outputs into ``out_dir``."""
+    """Map the pieces (see the module docstring) and write the outputs into ``out_dir``, the
+    integrations run by ``executor`` (default: in this process; the map is the same)."""
     started = time.perf_counter()
     if config.tracking.odometry == "on":
         for p in pieces:
@@ -163,7 +166,7 @@ def map_logs(
                 raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
     keys = FleetKeys()
     agents = {p.robot: Agent(p.robot, config, odometry=p.has_odometry) for p in pieces}
-    merger = Merger(keys, config)
+    merger = Merger(keys, config, executor)
     log = SessionLog()
     # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
 
@@ -51,6 +52,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     made.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
     made.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
     made.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_executor_arguments(p)
     add_config_arguments(p, ["extraction", "integration", "tracking", "merge"])
     p.set_defaults(func=run)
 
@@ -76,9 +78,11 @@ def run(args: argparse.Namespace) -> int:
         bar.n = done  # type: ignore[attr-defined]
         bar.refresh()  # type: ignore[attr-defined]
 
+    executor = executor_from_args(args)
     try:
-        result = map_logs(pieces, out, config, progress)
+        result = map_logs(pieces, out, config, progress, executor)
     finally:
+        executor.close()
         for bar in bars:
             bar.close()  # type: ignore[attr-defined]
     summary = result.report["map"]

@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.merger.service import STEP_SECONDS, Merger, MergerService
 from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import add_config_arguments, config_from_args
@@ -33,6 +34,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         f"next step (0: every pending integration in one step; default {STEP_SECONDS:g})",
     )
     add_zenoh_arguments(p)
+    add_executor_arguments(p)
     add_config_arguments(p, ["integration", "merge", "tracking"])
     p.set_defaults(func=run)
 
@@ -40,19 +42,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     options = zenoh_options_from_args(args)
-    merger = Merger(options.keys, config)
     if args.state:
         output_file(args.state, "--state")
-    if args.state and Path(args.state).exists():
-        merger.load_state(args.state)
-        log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
-    with stop_on_signals() as stop, ZenohBus.open(options) as bus:
-        service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
-        service.start()
-        try:
-            service.run(stop)
-        finally:
-            service.close()
+    executor = executor_from_args(args)
+    try:
+        merger = Merger(options.keys, config, executor)
+        if args.state and Path(args.state).exists():
+            merger.load_state(args.state)
+            log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
+        with stop_on_signals() as stop, ZenohBus.open(options) as bus:
+            service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
+            service.start()
+            try:
+                service.run(stop)
+            finally:
+                service.close()
+    finally:
+        executor.close()
     s = merger.stats
     refused = ", ".join(f"{n} by --{limit.replace('_', '-')}" for limit, n in sorted(s.refused.items()))
     log.warning(

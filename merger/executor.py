@@ -1,0 +1,351 @@
+"""Where the merger's integrations run: in its own process, in a local process pool, or on Ray.
+
+An integration (Algorithm 1, steps 1-2, or a registration near a prediction, valued the same way)
+needs two submaps and the parameters, nothing else of the graph: :class:`PairJob` holds that,
+:func:`run_pair` computes it anywhere, and :class:`~fleetmap.merger.graph.MapGraph` turns the
+:class:`PairResult` into an edge. Jobs are independent, so a step hands several to an
+:class:`Executor` at once and takes the results back in the order it queued the pairs: the graph
+is the same whichever executor ran them, bit for bit (the same numpy code on the same inputs).
+
+- :class:`InlineExecutor` runs each job in the calling process when its result is asked for (the
+  library default: no processes).
+- :class:`LocalExecutor` is a ``concurrent.futures`` process pool (``forkserver``: the merger's
+  zenoh threads are never forked); a worker that dies mid-job breaks the pool, which is started
+  again and the lost jobs run again (``MAX_ATTEMPTS`` times at most).
+- :class:`RayExecutor` submits jobs as Ray tasks to a local or remote cluster (``pip install
+  'fleetmap[ray]'``); Ray runs a task again when its worker dies (``max_retries``).
+
+Each worker keeps the search indexes of the submaps it saw (by key and version), as the graph
+does, so a submap integrated against several others is indexed once per worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+from collections import OrderedDict
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.evaluation import prepare
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.integration import Integration, align_near, index_for, integrate, takes_large_path
+from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.mapgrid import MapIndex
+from fleetmap.shared.refine import fit_information, refine_transform
+from fleetmap.shared.tracking import ReferenceMap, sample_segments
+
+log = logging.getLogger(__name__)
+
+ExecutorKind = Literal["inline", "local", "ray"]
+EXECUTORS: tuple[str, ...] = ("inline", "local", "ray")
+
+POLISH_ITERATIONS = 30
+"""Gauss-Newton steps of a valid edge's fit on the unsimplified maps (it stops when it converges;
+the edmonton edges of ``MergeParams.polish_edges`` converge within 12)."""
+
+MAX_ATTEMPTS = 3
+"""How often a local job runs when its worker dies under it (a job that kills every worker it
+runs on is a bug to report, not to retry for ever)."""
+
+CACHE_SIZE = 64
+"""Submaps' indexes a worker keeps (by key and version)."""
+
+
+@dataclass(frozen=True)
+class PairJob:
+    """One integration: submap ``b`` on submap ``a`` at their versions, near ``predicted`` (b's
+    frame in a's) or pose-free (None). ``work_*`` are the maps integrated (simplified for a
+    MapGraph's large maps; the same objects as ``map_*`` for submaps); ``map_*`` are the ones the
+    edge is fitted on."""
+
+    a: str
+    b: str
+    versions: tuple[int, int]
+    map_a: SegmentMap
+    map_b: SegmentMap
+    work_a: SegmentMap
+    work_b: SegmentMap
+    predicted: Transform2D | None
+    integration: IntegrationParams
+    tracking: TrackingParams
+    merge: MergeParams
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """What :func:`run_pair` found: the integration, and a valid edge's fitted transform and how
+    firmly the walls fix it (:func:`~fleetmap.shared.integration.fit_information`)."""
+
+    integration: Integration
+    transform: Transform2D
+    information: tuple[float, ...] | None
+
+
+class Indexes:
+    """Search indexes and registration grids of submaps, by key and version, the newest
+    ``size`` kept."""
+
+    def __init__(self, size: int = CACHE_SIZE) -> None:
+        self.size = size
+        self._held: OrderedDict[tuple[str, int, str], Any] = OrderedDict()
+
+    def get(self, key: str, version: int, kind: str, build: Any) -> Any:
+        k = (key, version, kind)
+        if k in self._held:
+            self._held.move_to_end(k)
+            return self._held[k]
+        value = self._held[k] = build()
+        while len(self._held) > self.size:
+            self._held.popitem(last=False)
+        return value
+
+
+_WORKER_INDEXES = Indexes()
+"""A worker process's own indexes (jobs give maps, not indexes: those stay where they are built)."""
+
+
+def index_of(m: SegmentMap, p: IntegrationParams) -> MapIndex:
+    return index_for(m, p)
+
+
+def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
+    """The registration grid of a map's walls."""
+    reference = ReferenceMap(t.voxel_size)
+    reference.insert(sample_segments(m.segments, t.voxel_size))
+    return reference
+
+
+def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
+    """Integrate one pair (pure but for ``indexes``, a cache): near the prediction by registration
+    (:func:`~fleetmap.shared.integration.align_near`), else by the paper's INTEGRATE, the large-map
+    path where a map is large; a valid result fitted on the full maps (:func:`fitted`)."""
+    cache = _WORKER_INDEXES if indexes is None else indexes
+    a, b, (va, vb) = job.a, job.b, job.versions
+    p = job.integration
+    if job.predicted is not None:
+        r = align_near(
+            job.map_a,
+            job.map_b,
+            job.predicted,
+            p,
+            job.tracking,
+            cache.get(a, va, "reference", lambda: reference_of(job.map_a, job.tracking)),
+            cache.get(a, va, "index", lambda: index_of(job.work_a, p)),
+            cache.get(b, vb, "index", lambda: index_of(job.work_b, p)),
+        )
+    else:
+        large = takes_large_path(job.work_a, job.work_b, p)
+        r = integrate(
+            job.work_a,
+            job.work_b,
+            p,
+            index1=cache.get(a, va, "index", lambda: index_of(job.work_a, p)) if large else None,
+            index2=cache.get(b, vb, "index", lambda: index_of(job.work_b, p)) if large else None,
+        )
+    if not r.valid:
+        return PairResult(r, r.transform, None)
+    transform, information = fitted(job, r.transform)
+    return PairResult(r, transform, information)
+
+
+def fitted(job: PairJob, t: Transform2D) -> tuple[Transform2D, tuple[float, ...] | None]:
+    """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
+    where either was integrated simplified, ``t`` fitted again by least squares
+    (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
+    tolerances."""
+    p, merge = job.integration, job.merge
+    polish = merge.polish_edges and not (job.work_a is job.map_a and job.work_b is job.map_b)
+    if not (polish or merge.edge_information):
+        return t, None
+    prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p)
+    if polish:
+        candidate = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
+        dt, dr = candidate.distance(t)
+        if dt <= p.witness_translation and dr <= p.witness_rotation:
+            t = candidate
+    h = fit_information(prep, t, p) if merge.edge_information else None
+    return t, None if h is None else tuple(np.asarray(h).ravel().tolist())
+
+
+class Handle(Protocol):
+    def result(self) -> PairResult: ...
+
+
+class Executor(Protocol):
+    """Runs :class:`PairJob` s; :attr:`capacity` jobs in flight keep every worker busy."""
+
+    name: str
+
+    @property
+    def capacity(self) -> int: ...
+
+    def submit(self, job: PairJob) -> Handle: ...
+
+    def close(self) -> None: ...
+
+
+class _Deferred:
+    def __init__(self, job: PairJob, indexes: Indexes) -> None:
+        self._job, self._indexes = job, indexes
+        self._result: PairResult | None = None
+
+    def result(self) -> PairResult:
+        if self._result is None:
+            self._result = run_pair(self._job, self._indexes)
+        return self._result
+
+
+class InlineExecutor:
+    """Each job in this process, when its result is asked for (one at a time)."""
+
+    name = "inline"
+
+    def __init__(self, indexes: Indexes | None = None) -> None:
+        self.indexes = indexes or Indexes()
+
+    @property
+    def capacity(self) -> int:
+        return 1
+
+    def submit(self, job: PairJob) -> Handle:
+        return _Deferred(job, self.indexes)
+
+    def close(self) -> None:
+        pass
+
+
+class _Pooled:
+    def __init__(self, owner: LocalExecutor, job: PairJob) -> None:
+        self._owner, self._job = owner, job
+        self._future: Future[PairResult] = owner._pool_submit(job)
+        self._attempts = 1
+
+    def result(self) -> PairResult:
+        while True:
+            try:
+                return self._future.result()
+            except BrokenProcessPool:
+                if self._attempts >= MAX_ATTEMPTS:
+                    raise
+                self._attempts += 1
+                log.warning(
+                    "an integration worker died during %s-%s: running it again (attempt %d of %d)",
+                    self._job.a,
+                    self._job.b,
+                    self._attempts,
+                    MAX_ATTEMPTS,
+                )
+                self._future = self._owner._pool_submit(self._job, restart=True)
+
+
+class LocalExecutor:
+    """A pool of ``workers`` local processes (default: one per CPU)."""
+
+    name = "local"
+
+    def __init__(self, workers: int | None = None) -> None:
+        n = workers if workers is not None else (os.cpu_count() or 1)
+        if n < 1:
+            raise BadInput("--workers", f"needs at least one worker, got {n}")
+        self.workers = n
+        self._pool: ProcessPoolExecutor | None = None
+        self.restarts = 0
+        """How often a dead worker broke the pool and it was started again."""
+        self.submitted = 0
+        """Jobs handed to the pool (again, after a restart) so far."""
+
+    @property
+    def capacity(self) -> int:
+        return 2 * self.workers
+
+    def _pool_submit(self, job: PairJob, restart: bool = False) -> Future[PairResult]:
+        if restart and self._pool is not None and getattr(self._pool, "_broken", False):
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+            self.restarts += 1
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("forkserver"))
+        self.submitted += 1
+        return self._pool.submit(run_pair, job)
+
+    @property
+    def pids(self) -> list[int]:
+        """The pool's worker processes now (none before the first job)."""
+        processes = getattr(self._pool, "_processes", None) or {}
+        return sorted(processes)
+
+    def submit(self, job: PairJob) -> Handle:
+        return _Pooled(self, job)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+class _RayHandle:
+    def __init__(self, ref: Any) -> None:
+        self._ref = ref
+
+    def result(self) -> PairResult:
+        import ray
+
+        value: PairResult = ray.get(self._ref)
+        return value
+
+
+class RayExecutor:
+    """Ray tasks on the cluster at ``address`` (None: a local one of ``workers`` CPUs, or the one
+    ``ray.init`` finds by itself with ``address="auto"``). A task whose worker dies is run again
+    (``max_retries``), so a lost worker loses no integration."""
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, workers: int | None = None) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise BadInput(
+                "--executor ray", "Ray is not installed: pip install 'fleetmap[ray]' (or choose --executor local)"
+            ) from None
+        self._ray = ray
+        self._owns = not ray.is_initialized()
+        if self._owns:
+            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "logging_level": "WARNING"}
+            if address is None:
+                kwargs["num_cpus"] = workers if workers is not None else (os.cpu_count() or 1)
+            try:
+                ray.init(address=address, **kwargs)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise BadInput(f"--ray-address {address}", f"cannot join the Ray cluster: {exc}") from exc
+        self._task = ray.remote(max_retries=MAX_ATTEMPTS, retry_exceptions=False)(run_pair)
+        self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
+
+    @property
+    def capacity(self) -> int:
+        return 2 * self.workers
+
+    def submit(self, job: PairJob) -> Handle:
+        return _RayHandle(self._task.remote(job))
+
+    def close(self) -> None:
+        if self._owns and self._ray.is_initialized():
+            self._ray.shutdown()
+
+
+def make_executor(kind: str = "inline", workers: int | None = None, address: str | None = None) -> Executor:
+    """The executor a command line asks for (``--executor``, ``--workers``, ``--ray-address``)."""
+    if kind == "inline":
+        return InlineExecutor()
+    if kind == "local":
+        return LocalExecutor(workers)
+    if kind == "ray":
+        return RayExecutor(address, workers)
+    raise BadInput("--executor", f"expected one of {', '.join(EXECUTORS)}, got {kind!r}")

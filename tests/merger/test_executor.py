@@ -1,0 +1,133 @@
+"""Where integrations run: a local process pool and a local Ray cluster give the inline merge's
+poses exactly, also when a worker is killed in the middle of the merge."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from fleetmap.merger.executor import Executor, InlineExecutor, LocalExecutor, make_executor
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.errors import BadInput
+
+from fleetmap.cli import main
+from fleetmap.mapping import Piece, map_logs, read_inputs
+
+WAIT = 120.0
+"""Seconds a killer thread waits for a worker to kill (a bound, never reached when it works)."""
+
+
+@pytest.fixture(scope="module")
+def pieces(csail_start: Path) -> list[Piece]:
+    """360 real scans (mit-csail) as two robots: a merge of a dozen submaps and their integrations."""
+    return read_inputs([str(csail_start)], 2, None, 81.91, None)
+
+
+Poses = list[tuple[str, float, int, float, float, float]]
+
+
+def _merge(pieces: list[Piece], executor: Executor, out: Path) -> Poses:
+    result = map_logs(pieces, out, FleetmapConfig(), None, executor)
+    return [(robot, stamp, c, p.x, p.y, p.theta) for robot, stamp, c, p in result.poses]
+
+
+@pytest.fixture(scope="module")
+def inline_poses(pieces: list[Piece], tmp_path_factory: pytest.TempPathFactory) -> Poses:
+    poses = _merge(pieces, InlineExecutor(), tmp_path_factory.mktemp("inline"))
+    assert len(poses) == len({(r, s) for r, s, *_ in poses}) > 300 and {c for _, _, c, *_ in poses} == {0}
+    return poses
+
+
+def _kill_one(find: Callable[[], list[int]], done: threading.Event, killed: list[int]) -> threading.Thread:
+    """A thread that kills the first worker ``find`` names (SIGKILL: no goodbye) while the merge runs."""
+
+    def run() -> None:
+        while not done.wait(0.01):
+            pids = find()
+            if pids:
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+                return
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.slow  # maps 360 real scans three times (about 40 s)
+def test_a_process_pool_merges_to_the_inline_poses_even_when_a_worker_dies(
+    pieces: list[Piece], inline_poses: Poses, tmp_path: Path
+) -> None:
+    with_pool = LocalExecutor(2)
+    try:
+        assert _merge(pieces, with_pool, tmp_path / "pool") == inline_poses
+    finally:
+        with_pool.close()
+    assert with_pool.restarts == 0 and with_pool.submitted > 10
+
+    killed: list[int] = []
+    done = threading.Event()
+    doomed = LocalExecutor(2)
+    # once a few jobs went out, one worker dies under the ones in flight
+    thread = _kill_one(lambda: doomed.pids if doomed.submitted >= 3 else [], done, killed)
+    try:
+        poses = _merge(pieces, doomed, tmp_path / "killed")
+    finally:
+        done.set()
+        thread.join(WAIT)
+        doomed.close()
+    assert killed, "no worker was killed"
+    assert doomed.restarts >= 1
+    assert poses == inline_poses
+
+
+def _ray_workers_running_a_job() -> list[int]:
+    """Ray names a worker process after the task it runs (``ray::run_pair``)."""
+    out = []
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                    if fh.read().startswith(b"ray::run_pair"):
+                        out.append(int(pid))
+            except OSError:
+                continue
+    return out
+
+
+@pytest.mark.slow  # starts a local Ray cluster of 2 CPUs and maps 360 real scans twice on it (about 60 s)
+def test_a_local_ray_cluster_merges_to_the_inline_poses_even_when_a_worker_dies(
+    pieces: list[Piece], inline_poses: Poses, tmp_path: Path
+) -> None:
+    pytest.importorskip("ray", reason="Ray is an optional extra: pip install 'fleetmap[ray]'")
+    on_ray = make_executor("ray", workers=2)
+    try:
+        assert on_ray.capacity == 4
+        assert _merge(pieces, on_ray, tmp_path / "ray") == inline_poses
+        killed: list[int] = []
+        done = threading.Event()
+        thread = _kill_one(_ray_workers_running_a_job, done, killed)
+        try:
+            poses = _merge(pieces, on_ray, tmp_path / "killed")
+        finally:
+            done.set()
+            thread.join(WAIT)
+    finally:
+        on_ray.close()
+    assert killed, "no Ray worker was seen running an integration"
+    assert poses == inline_poses
+
+
+def test_an_unknown_executor_or_no_workers_is_refused_by_name(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(BadInput, match="--executor"):
+        make_executor("threads")
+    with pytest.raises(BadInput, match="--workers"):
+        LocalExecutor(0)
+    with pytest.raises(SystemExit) as exc:
+        main(["merger", "--workers", "0"])
+    assert exc.value.code == 2
+    assert "--workers" in capsys.readouterr().err
