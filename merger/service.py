@@ -62,6 +62,7 @@ import msgpack
 import numpy as np
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
 from fleetmap.merger.executor import Handle as JobHandle
+from fleetmap.merger.follow import PoseFollower
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
 from fleetmap.merger.posegraph import PoseGraph
@@ -703,11 +704,26 @@ class Merger:
         index = self._where.get(key)
         if index is None:
             return None, None
-        component = self._result.components[index]
-        merged = len(self._epochs_in[index]) > 1
-        if not merged and not (r.epoch == 0 and index == 0):
+        if not self._gives_poses(index, r.epoch):
             return None, None  # a later epoch merged with nothing: the robot is lost, not guessed
-        return component.poses[key].compose(in_submap), index
+        return self._result.components[index].poses[key].compose(in_submap), index
+
+    def _gives_poses(self, index: int, epoch: int) -> bool:
+        """Whether a robot's pose may be given in component ``index`` for its epoch ``epoch``: the
+        component merges it with another epoch, or it is a first epoch in the largest component
+        (a robot alone, or the first of the fleet)."""
+        return len(self._epochs_in[index]) > 1 or (epoch == 0 and index == 0)
+
+    def pose_frames(self) -> dict[str, tuple[int, Transform2D]]:
+        """Per submap a robot's pose may be given in (:meth:`robot_pose`'s rule): its component
+        and its pose there, as the last step placed it (:mod:`fleetmap.merger.follow`)."""
+        frames: dict[str, tuple[int, Transform2D]] = {}
+        for i, component in enumerate(self._result.components if self._result is not None else []):
+            for key in component.members:
+                _, epoch, _ = parse_submap_key(key)
+                if self._gives_poses(i, epoch):
+                    frames[key] = (i, component.poses[key])
+        return frames
 
     def _robot_poses(self) -> list[Outgoing]:
         out = []
@@ -923,11 +939,16 @@ class MergerService:
         self._inbox: queue.SimpleQueue[tuple[str, bytes | bool]] = queue.SimpleQueue()
         self._handles: list[Handle] = []
         self._snapshot = merger.global_map.to_msgpack()
+        self.follower = PoseFollower()
+        """Robot poses between steps, from their placed scans (:mod:`fleetmap.merger.follow`)."""
+        self._scans: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._stop_following = threading.Event()
+        self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
 
     def start(self) -> None:
         keys = self.keys
         self._handles.append(self.bus.subscribe(keys.all_localmaps, self._on_message))
-        self._handles.append(self.bus.subscribe(keys.all_scans, self._on_message))
+        self._handles.append(self.bus.subscribe(keys.all_scans, self._on_scan))
         self._handles.append(self.bus.subscribe(keys.all_robot_events, self._on_message))
         self._handles.append(self.bus.subscribe(keys.events, self._on_message))
         self._handles.append(self.bus.declare_queryable(keys.state, self._on_query))
@@ -940,6 +961,7 @@ class MergerService:
             )
         )
         self._handles.append(self.bus.declare_liveliness(keys.service("merger")))
+        self._following.start()
         now = self.clock()
         self.bus.publish(keys.events, FleetEvent("merger_start", None, now).to_msgpack())
         # A (re)started merger says where it stands, and asks every robot for its latest local
@@ -962,6 +984,45 @@ class MergerService:
 
     def _on_message(self, key: str, payload: bytes) -> None:
         self._inbox.put((key, payload))
+
+    def _on_scan(self, key: str, payload: bytes) -> None:
+        self._inbox.put((key, payload))
+        self._scans.put((key, payload))
+
+    def _follow(self) -> None:
+        """The pose thread: each placed scan moves its robot's global pose (:mod:`.follow`) while
+        the merger steps; the inbox's copy of the scan counts what is wrong with it."""
+        while not self._stop_following.is_set():
+            try:
+                key, payload = self._scans.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                scan = Scan.from_msgpack(payload)
+            except BadMessage:
+                continue
+            if key != self.keys.scan(scan.robot):
+                continue
+            pose = self.follower.scan(scan)
+            if pose is not None:
+                self.bus.publish(self.keys.pose(scan.robot), pose.to_msgpack())
+
+    def _fresher_poses(self, out: list[Outgoing]) -> list[Outgoing]:
+        """A step's robot poses, each from the robot's newest placed scan where the pose thread has
+        one newer than the step's submaps (a step's pose is never older than one already said)."""
+        self.follower.merged(self.merger.pose_frames())
+        fresher = []
+        for o in out:
+            parsed = self.keys.parse(o.key)
+            if parsed.kind == "pose" and parsed.robot is not None:
+                said = RobotPose.from_msgpack(o.payload)
+                pose = self.follower.current(said.robot, said.epoch, said.stamp)
+                if pose is not None:
+                    o = Outgoing(o.key, pose.to_msgpack())
+                elif self.follower.said_after(said.robot, said.epoch, said.stamp):
+                    continue
+            fresher.append(o)
+        return fresher
 
     def _on_query(self, selector: str) -> bytes:
         return self._snapshot
@@ -1004,7 +1065,7 @@ class MergerService:
         out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
         self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
-        self._publish(out)
+        self._publish(self._fresher_poses(out))
         self._note_step()
         return True
 
@@ -1087,6 +1148,9 @@ class MergerService:
             log.warning("stopping with %d integrations or maps not yet taken in: %s", left, kept)
 
     def close(self) -> None:
+        self._stop_following.set()
+        if self._following.is_alive():
+            self._following.join(timeout=5.0)
         try:
             self.bus.publish(self.keys.events, FleetEvent("merger_stop", None, self.clock()).to_msgpack())
             self.bus.flush()

@@ -1,0 +1,94 @@
+"""A robot's global pose follows its tracking between merges: last merged submap pose composed
+with each placed scan's pose in it, at scan rate, never older than one already given."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+from fleetmap.merger.follow import PoseFollower
+from fleetmap.merger.service import Merger, MergerService
+from fleetmap.shared.bus import InMemoryBus
+from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.keys import FleetKeys
+from fleetmap.shared.messages import RobotPose, Scan
+
+from tests.helpers import true_local_map
+
+KEYS = FleetKeys("test")
+NO_SEGMENTS = np.zeros((0, 4))
+
+
+def _scan(robot: str, stamp: float, submap: int | None, pose: Transform2D | None, epoch: int = 0) -> Scan:
+    return Scan(robot, epoch, int(stamp * 5), stamp, NO_SEGMENTS, submap=submap, pose=pose)
+
+
+def _close(a: Transform2D, b: Transform2D) -> bool:
+    dt, dr = a.distance(b)
+    return dt < 1e-9 and dr < 1e-9
+
+
+def test_a_placed_scan_gives_the_merged_submap_pose_composed_with_its_own() -> None:
+    follower = PoseFollower()
+    frame = Transform2D(4.0, -1.0, 0.5)
+    follower.merged({"r1/0/3": (0, frame)})
+    in_submap = Transform2D(0.7, 0.2, -0.1)
+    pose = follower.scan(_scan("r1", 10.0, 3, in_submap))
+    assert pose is not None and pose.component == 0 and pose.stamp == 10.0
+    assert pose.pose is not None and _close(pose.pose, frame.compose(in_submap))
+    # a scan in a submap no merge placed yet, an unplaced one, an older one: nothing said
+    assert follower.scan(_scan("r1", 10.2, 4, in_submap)) is None
+    assert follower.scan(_scan("r1", 10.4, None, None)) is None
+    assert follower.scan(_scan("r1", 9.0, 3, in_submap)) is None
+    # a merge that moves the submap moves the robot with it (its newest scan is in submap 4: none)
+    assert follower.current("r1", 0, 0.0) is None
+    follower.merged({"r1/0/3": (0, frame), "r1/0/4": (1, Transform2D(1.0, 1.0, 0.0))})
+    now = follower.current("r1", 0, 10.0)
+    assert now is not None and now.component == 1 and now.stamp == 10.2
+    assert now.pose is not None and _close(now.pose, Transform2D(1.0, 1.0, 0.0).compose(in_submap))
+    assert follower.said_after("r1", 0, 10.0) and not follower.said_after("r1", 1, 10.0)
+    # a robot whose newest epoch is not placed (kidnapped): its scans say nothing
+    assert follower.scan(_scan("r1", 11.0, 0, in_submap, epoch=1)) is None
+
+
+@pytest.mark.slow  # merges whole-path maps of 200 simulated scans of three robots
+def test_poses_stream_at_scan_rate_between_steps_on_the_bus() -> None:
+    maps = {r: true_local_map("department", r, 0, 200) for r in ("r1", "r2", "r3")}
+    bus = InMemoryBus()
+    robot = bus.peer()
+    merger = Merger(KEYS)
+    service = MergerService(bus, merger, step_seconds=0)
+    poses: list[RobotPose] = []
+    got = threading.Condition()
+
+    def on_pose(key: str, payload: bytes) -> None:
+        with got:
+            poses.append(RobotPose.from_msgpack(payload))
+            got.notify_all()
+
+    robot.subscribe(KEYS.pose("r1"), on_pose)
+    service.start()
+    try:
+        for r, (m, _) in maps.items():
+            robot.publish(KEYS.localmap(r), m.to_msgpack())
+        assert service.run_once()
+        stepped = [p for p in poses if p.robot == "r1"]
+        assert stepped and stepped[-1].pose is not None  # the step placed r1 at its map's last scan
+        frame = merger.global_map.components[0].poses["r1/0/0"]
+        last = maps["r1"][0].stamp
+        # five scans after the step, each moving 10 cm in r1's submap: five poses, no step between
+        for k in range(1, 6):
+            in_submap = maps["r1"][0].pose.compose(Transform2D(0.1 * k, 0.0, 0.0))
+            robot.publish(KEYS.scan("r1"), _scan("r1", last + 0.2 * k, 0, in_submap).to_msgpack())
+        with got:
+            assert got.wait_for(lambda: len(poses) >= len(stepped) + 5, timeout=30.0), poses
+        followed = poses[len(stepped) :]
+        for k, p in enumerate(followed, 1):
+            assert math.isclose(p.stamp, last + 0.2 * k) and p.component == 0 and p.pose is not None
+            expected = frame.compose(maps["r1"][0].pose.compose(Transform2D(0.1 * k, 0.0, 0.0)))
+            assert _close(p.pose, expected)
+        assert merger.stats.steps == 1
+    finally:
+        service.close()
