@@ -458,23 +458,30 @@ class PoseGraph(MapGraph):
         a_root_from_b_root = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
         placed_b = {k: a_root_from_b_root.compose(rel[k]) for k in group_b}
         # how far each submap can have drifted from where the tree puts it, seen from the join
-        to_a, to_b = _tree_paths(adjacency, e.a), _tree_paths(adjacency, e.b)
+        # the drift of the tree path a -> e.a -> e.b -> b of each pair (:meth:`_drift`), from sums
+        # along each side's paths: var_t = sum of 0.5 tr + c |p_b - p_i|^2 over the path's links
+        # (c: a link's heading variance, p_i: where the path enters it) expands into sums of c,
+        # c p_i and c |p_i|^2, so a pair costs a few operations, not a walk along its path
+        side_a = self._path_sums(_tree_paths(adjacency, e.a), {k: rel[k] for k in group_a}, toward_start=True)
+        side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
         reach_t, reach_r = self.tracking.max_correspondence, math.radians(5.0)
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
         for a in group_a:
-            back_to_join: list[Edge] | None = None  # a's tree path to the join, turned: once per a
+            sa = side_a.get(a)
             for b in group_b:
                 implied = rel[a].inverse().compose(placed_b[b])
-                if not self._overlap(a, b, implied):
+                if sa is None or not self._overlap(a, b, implied):
                     continue
-                if back_to_join is None:
-                    back_to_join = [_turned(t) for t in reversed(to_a.get(a, []))]
-                path = [*back_to_join, e, *to_b.get(b, [])]
-                drift_t, drift_r = self._drift(path)
+                sb, pb = side_b[b], placed_b[b]
+                c = sa[0] + sb[0]
+                lever = pb.x * (sa[1] + sb[1]) + pb.y * (sa[2] + sb[2])
+                var_t = sa[4] + sb[4] + c * (pb.x * pb.x + pb.y * pb.y) - 2.0 * lever + sa[3] + sb[3]
+                drift_t, drift_r = 3.0 * math.sqrt(max(var_t, 0.0)), 3.0 * math.sqrt(c)
                 if drift_t <= reach_t and drift_r <= reach_r:
                     # farther along the groups, the chains' drift hides the pair from registration:
                     # it can neither bear the join out nor refute it
-                    pairs.append((a, b, implied, *self._cycle_tolerance(path)))
+                    base_t, base_r = self._tolerance(2 + sa[5] + sb[5])
+                    pairs.append((a, b, implied, math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)))
         looks = [self._look(a, b, implied) for a, b, implied, _, _ in pairs]
         supports, value, against = 0, 0.0, 0.0
         done: set[int] = set()
@@ -531,6 +538,43 @@ class PoseGraph(MapGraph):
         )
         self._verdicts[key] = holds
         return holds
+
+    def _path_sums(
+        self, paths: dict[str, list[Edge]], where: dict[str, Transform2D], toward_start: bool
+    ) -> dict[str, tuple[float, float, float, float, float, int]]:
+        """For every node of ``where`` (its position in one frame): sums over the links of its
+        tree path from the path's start (:func:`_tree_paths`) of c, c x, c y, c (x^2 + y^2) and
+        0.5 tr of the translation covariance, c a link's heading variance and (x, y) where a path
+        between the node and the start enters the link (the node nearer the far end when it runs
+        ``toward_start``, else the one nearer the start), and the integrations on it. See
+        :meth:`_join_holds` and :meth:`_drift`."""
+        sums: dict[str, tuple[float, float, float, float, float, int]] = {}
+        for k, path in paths.items():  # breadth first: a node's parent comes before it
+            if not path:
+                sums[k] = (0.0, 0.0, 0.0, 0.0, 0.0, 0)
+                continue
+            t = path[-1]
+            parent = sums.get(t.a)
+            if parent is None or k not in where:
+                continue
+            s0, s1x, s1y, s2, tr, joins = parent
+            cov = self._link_covariances.get((t.a, t.b)) if t.link else None
+            if cov is None:
+                sums[k] = (s0, s1x, s1y, s2, tr, joins + (not t.link))
+                continue
+            enters = where[k] if toward_start else where.get(t.a)
+            if enters is None:
+                continue
+            c = float(cov[2, 2])
+            sums[k] = (
+                s0 + c,
+                s1x + c * enters.x,
+                s1y + c * enters.y,
+                s2 + c * (enters.x * enters.x + enters.y * enters.y),
+                tr + 0.5 * float(cov[0, 0] + cov[1, 1]),
+                joins,
+            )
+        return sums
 
     def _look(self, a: str, b: str, implied: Transform2D) -> tuple[float, float]:
         """A cheap look at b's walls where ``implied`` puts them on a's: the wall length on wall

@@ -153,6 +153,8 @@ class Session:
     role may."""
     tls: bool = False
     """With ``secure``: over mutual TLS."""
+    merger_options: tuple[str, ...] = ()
+    """More flags of ``fleetmap merger`` (e.g. ``--executor inline``)."""
     python: str = sys.executable
     children: list[_Child] = field(default_factory=list)
     _zenoh: Callable[[str], list[str]] = field(init=False, repr=False)
@@ -210,7 +212,7 @@ class Session:
                 )
                 _wait(lambda: "recorder" in watch.services or not record.running, READY_TIMEOUT, "the recorder")
                 merger_args: tuple[str, ...] = ("merger", "--state", str(state_file), "--config", str(config_file))
-                merger_args += tuple(self._zenoh("merger"))
+                merger_args += tuple(self._zenoh("merger")) + self.merger_options
                 merger = self._child("merger", *merger_args)
                 _wait(lambda: "merger" in watch.services or not merger.running, READY_TIMEOUT, "the merger")
                 for c in (record, merger):
