@@ -39,8 +39,8 @@ class Keeping(InlineExecutor):
         self.jobs: list[PairJob] = []
         self.results: list[PairResult] = []
 
-    def submit(self, job: PairJob):  # type: ignore[no-untyped-def]
-        handle = super().submit(job)
+    def submit(self, job: PairJob, here=None):  # type: ignore[no-untyped-def]
+        handle = super().submit(job, here)
         self.jobs.append(job)
         outer = self
 

@@ -186,7 +186,9 @@ class Executor(Protocol):
     @property
     def capacity(self) -> int: ...
 
-    def submit(self, job: PairJob) -> Handle: ...
+    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+        """Start a job; ``here`` is the caller's cache of indexes, for a job run in its process."""
+        ...
 
     def close(self) -> None: ...
 
@@ -214,8 +216,8 @@ class InlineExecutor:
     def capacity(self) -> int:
         return 1
 
-    def submit(self, job: PairJob) -> Handle:
-        return _Deferred(job, self.indexes)
+    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+        return _Deferred(job, here if here is not None else self.indexes)
 
     def close(self) -> None:
         pass
@@ -281,7 +283,7 @@ class LocalExecutor:
         processes = getattr(self._pool, "_processes", None) or {}
         return sorted(processes)
 
-    def submit(self, job: PairJob) -> Handle:
+    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
         return _Pooled(self, job)
 
     def close(self) -> None:
@@ -332,7 +334,7 @@ class RayExecutor:
     def capacity(self) -> int:
         return 2 * self.workers
 
-    def submit(self, job: PairJob) -> Handle:
+    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
         return _RayHandle(self._task.remote(job))
 
     def close(self) -> None:

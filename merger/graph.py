@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
 import networkx as nx
@@ -167,8 +167,9 @@ class _GraphIndexes(Indexes):
     def __init__(self, graph: MapGraph) -> None:
         self._graph = graph
 
-    def get(self, key: str, version: int, kind: str, build: object) -> object:
-        del build, version  # the graph's are the same maps at the node's version
+    def get(self, key: str, version: int, kind: str, build: Callable[[], object]) -> object:
+        if key not in self._graph or self._graph.version_of(key) != version:
+            return build()  # a job of a version the graph no longer holds
         return self._graph._index(key) if kind == "index" else self._graph.reference(key)
 
 
@@ -333,7 +334,7 @@ class MapGraph:
         if known is not None and self.is_current(a, b):
             return known
         job = self.pair_job(a, b)
-        return self.take(job, run_pair(job, self._cache))
+        return self.take(job, run_pair(job, self.indexes))
 
     def pair_job(self, a: str, b: str, predicted: Transform2D | None = None) -> PairJob:
         """The integration of b on a at their current versions, near ``predicted`` (b's frame in
@@ -348,7 +349,7 @@ class MapGraph:
         """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
         integration (:func:`~fleetmap.shared.integration.align_near`); the edge replaces any known."""
         job = self.pair_job(a, b, predicted)
-        return self.take(job, run_pair(job, self._cache))
+        return self.take(job, run_pair(job, self.indexes))
 
     def reference(self, key: str) -> ReferenceMap:
         """The registration grid of a node's walls (built once per version)."""
@@ -383,7 +384,9 @@ class MapGraph:
         return e
 
     @property
-    def _cache(self) -> _GraphIndexes:
+    def indexes(self) -> Indexes:
+        """The graph's search indexes and registration grids, as an integration job run in this
+        process asks for them (:func:`~fleetmap.merger.executor.run_pair`)."""
         return _GraphIndexes(self)
 
     def add_map(self, key: str, segment_map: SegmentMap, version: int = 0) -> list[Edge]:

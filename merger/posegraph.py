@@ -165,6 +165,9 @@ class PoseGraph(MapGraph):
         self._discs: dict[str, tuple[int, Array, float]] = {}
         self._looks: dict[tuple[str, str, int, int, int, int, int], tuple[float, float]] = {}
         """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre."""
+        self._walls_now: dict[tuple[object, ...], tuple[tuple[SegmentMap, ...], Array]] = {}
+        """The walls of each component of the last solve, with its maps (:meth:`_walls`)."""
+        self._last_walls = self._walls_now
 
     # -- links -------------------------------------------------------------------------------
     def put_link(self, a: str, b: str, transform: Transform2D, covariance: Array) -> None:
@@ -215,15 +218,18 @@ class PoseGraph(MapGraph):
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
         partial = {k for k, n in self._nodes.items() if not n.map.ordered}
         disagreeing: set[tuple[str, str]] = set()
+        self._last_walls, self._walls_now = self._walls_now, {}
         for _ in range(MAX_REJECTION_ROUNDS):
             tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], partial)
-            components, off = self._refined_components(tree, loops, fuse_maps)
+            components, off = self._refined_components(tree, loops)
             if not off:
                 break
             for e in off:
                 log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
             disagreeing.update(e.key() for e in off)
         rejected += [e for e in valid if e.key() in disagreeing and e.valid]
+        if fuse_maps:  # the walls of the final round's components only
+            components = [replace(c, segments=self._walls(list(c.members), c.poses)) for c in components]
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
         for c in components:
             if len(c.members) > 1:
@@ -664,10 +670,9 @@ class PoseGraph(MapGraph):
             held = self._discs[key] = (node.version, centre, radius)
         return held[1], held[2]
 
-    def _refined_components(
-        self, tree: list[Edge], loops: list[Edge], fuse_maps: bool
-    ) -> tuple[list[Component], list[Edge]]:
-        """Each component's poses refined together, and the integrations they disagree with."""
+    def _refined_components(self, tree: list[Edge], loops: list[Edge]) -> tuple[list[Component], list[Edge]]:
+        """Each component's poses refined together (walls not fused yet), and the integrations
+        they disagree with."""
         adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
         for e in tree:
             adjacency[e.a].append(e)
@@ -697,8 +702,7 @@ class PoseGraph(MapGraph):
                         off.append(e)
             for k in order:
                 self._solution[k] = (anchor, poses[k])
-            segments = self._walls(order, poses) if fuse_maps else np.zeros((0, 4))
-            out.append(Component(anchor, tuple(order), poses, segments))
+            out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))
         # the global map first: the component of the most robots' epochs, then of the most submaps
         out.sort(
             key=lambda c: (
@@ -762,8 +766,16 @@ class PoseGraph(MapGraph):
         return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
 
     def _walls(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
-        """The component's walls: every member's at its pose, one segment per stretch of wall."""
-        walls = WallMap(self.integration.simplify_tolerance)
-        for k in order:
-            walls.add(poses[k].apply(self._nodes[k].map.segments))
-        return walls.segments
+        """The component's walls: every member's at its pose, one segment per stretch of wall; the
+        last solve's where the component is the same (the same maps in the same order at poses
+        equal to the bit: a component no step touched)."""
+        maps = tuple(self._nodes[k].map for k in order)
+        key = tuple((k, id(m), poses[k].x, poses[k].y, poses[k].theta) for k, m in zip(order, maps, strict=True))
+        held = self._last_walls.get(key)
+        if held is None or not all(a is b for a, b in zip(held[0], maps, strict=True)):
+            walls = WallMap(self.integration.simplify_tolerance)
+            for k, m in zip(order, maps, strict=True):
+                walls.add(poses[k].apply(m.segments))
+            held = (maps, walls.segments)
+        self._walls_now[key] = held
+        return held[1]

@@ -181,6 +181,8 @@ class Merger:
         self.executor: Executor = executor or InlineExecutor()
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
+        self._indexes = self.graph.indexes
+        """The graph's own search indexes, for integrations run in this process."""
         self.stats = MergerStats()
         self.seq = 0
         self.stamp = 0.0
@@ -393,7 +395,7 @@ class Merger:
                 taken += 1
                 job = self._job(pair, predicted)
                 if job is not None:
-                    running.append((job, self.executor.submit(job)))
+                    running.append((job, self.executor.submit(job, self._indexes)))
             if not running:
                 break
             job, handle = running.popleft()
