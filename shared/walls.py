@@ -207,13 +207,20 @@ class WallMap:
             self._grid[cell].discard(k)
         if not self._alive[k]:
             return
-        cx, cy, ux, uy = self._line[k]
-        lo, hi = self._extent[k]
-        ends = np.array([[cx + lo * ux, cy + lo * uy, cx + hi * ux, cy + hi * uy]])
-        cells = self._cells_of(ends, self.gap + self.tolerance)
+        cx, cy, ux, uy = self._line[k].tolist()
+        lo, hi = self._extent[k].tolist()
+        cells = self._cells_of_one(cx + lo * ux, cy + lo * uy, cx + hi * ux, cy + hi * uy, self.gap + self.tolerance)
         for cell in cells:
             self._grid.setdefault(cell, set()).add(k)
         self._cells[k] = cells
+
+    def _cells_of_one(self, ax: float, ay: float, bx: float, by: float, margin: float) -> list[tuple[int, int]]:
+        """:meth:`_cells_of` of one segment, in plain floats (the same arithmetic, without numpy's
+        cost per call: a wall is registered again every time a segment joins it)."""
+        c = self.cell
+        x0, x1 = math.floor((min(ax, bx) - margin) / c), math.floor((max(ax, bx) + margin) / c)
+        y0, y1 = math.floor((min(ay, by) - margin) / c), math.floor((max(ay, by) + margin) / c)
+        return [(i, j) for i in range(x0, x1 + 1) for j in range(y0, y1 + 1)]
 
     def _cells_of(self, seg: Array, margin: float) -> list[tuple[int, int]]:
         """The grid cells the segments' bounding boxes, widened by ``margin``, touch."""
