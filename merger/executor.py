@@ -25,9 +25,10 @@ import logging
 import multiprocessing
 import os
 from collections import OrderedDict
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -76,6 +77,9 @@ class PairJob:
     integration: IntegrationParams
     tracking: TrackingParams
     merge: MergeParams
+    given: dict[str, Any] = field(default_factory=dict)
+    """Indexes the caller built already (``index_a``, ``index_b``, ``reference_a``): a worker takes
+    them rather than build them again (unpickling one costs a hundredth of building it)."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,8 @@ class PairResult:
     integration: Integration
     transform: Transform2D
     information: tuple[float, ...] | None
+    built: dict[str, Any] = field(default_factory=dict)
+    """Indexes a worker built that the job did not give (the caller keeps them: each is built once)."""
 
 
 class Indexes:
@@ -129,6 +135,16 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     cache = _WORKER_INDEXES if indexes is None else indexes
     a, b, (va, vb) = job.a, job.b, job.versions
     p = job.integration
+    built: dict[str, Any] = {}
+
+    def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any]) -> Any:
+        value = job.given.get(name)
+        if value is None:
+            value = cache.get(key, version, kind, build)
+            if indexes is None:
+                built[name] = value  # a worker's: the caller keeps it
+        return value
+
     if job.predicted is not None:
         r = align_near(
             job.map_a,
@@ -136,9 +152,9 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.predicted,
             p,
             job.tracking,
-            cache.get(a, va, "reference", lambda: reference_of(job.map_a, job.tracking)),
-            cache.get(a, va, "index", lambda: index_of(job.work_a, p)),
-            cache.get(b, vb, "index", lambda: index_of(job.work_b, p)),
+            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking)),
+            need("index_a", a, va, "index", lambda: index_of(job.work_a, p)),
+            need("index_b", b, vb, "index", lambda: index_of(job.work_b, p)),
         )
     else:
         large = takes_large_path(job.work_a, job.work_b, p)
@@ -146,13 +162,13 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.work_a,
             job.work_b,
             p,
-            index1=cache.get(a, va, "index", lambda: index_of(job.work_a, p)) if large else None,
-            index2=cache.get(b, vb, "index", lambda: index_of(job.work_b, p)) if large else None,
+            index1=need("index_a", a, va, "index", lambda: index_of(job.work_a, p)) if large else None,
+            index2=need("index_b", b, vb, "index", lambda: index_of(job.work_b, p)) if large else None,
         )
     if not r.valid:
-        return PairResult(r, r.transform, None)
+        return PairResult(r, r.transform, None, built)
     transform, information = fitted(job, r.transform)
-    return PairResult(r, transform, information)
+    return PairResult(r, transform, information, built)
 
 
 def fitted(job: PairJob, t: Transform2D) -> tuple[Transform2D, tuple[float, ...] | None]:

@@ -338,11 +338,20 @@ class MapGraph:
 
     def pair_job(self, a: str, b: str, predicted: Transform2D | None = None) -> PairJob:
         """The integration of b on a at their current versions, near ``predicted`` (b's frame in
-        a's) or pose-free, as a job any executor runs (:mod:`fleetmap.merger.executor`)."""
+        a's) or pose-free, as a job any executor runs (:mod:`fleetmap.merger.executor`), with the
+        indexes of the two maps the graph holds already."""
         na, nb = self._nodes[a], self._nodes[b]
+        given: dict[str, object] = {}
+        if na.index is not None:
+            given["index_a"] = na.index
+        if nb.index is not None:
+            given["index_b"] = nb.index
+        reference = self._references.get(a)
+        if reference is not None and reference[0] == na.version:
+            given["reference_a"] = reference[1]
         return PairJob(
             a, b, (na.version, nb.version), na.map, nb.map, na.work, nb.work, predicted, self.integration,
-            self.tracking, self.merge,
+            self.tracking, self.merge, given,
         )  # fmt: skip
 
     def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
@@ -381,6 +390,15 @@ class MapGraph:
         na, nb = self._nodes.get(job.a), self._nodes.get(job.b)
         if na is not None and nb is not None and (na.version, nb.version) == job.versions:
             self._edges[e.key()] = e
+        # the indexes a worker built: kept, so that nothing builds them again
+        if na is not None and na.version == job.versions[0]:
+            if na.index is None and "index_a" in result.built:
+                na.index = result.built["index_a"]
+            held = self._references.get(job.a)
+            if "reference_a" in result.built and (held is None or held[0] != na.version):
+                self._references[job.a] = (na.version, result.built["reference_a"])
+        if nb is not None and nb.version == job.versions[1] and nb.index is None and "index_b" in result.built:
+            nb.index = result.built["index_b"]
         return e
 
     @property
