@@ -195,7 +195,8 @@ class Handle(Protocol):
 
 
 class Executor(Protocol):
-    """Runs :class:`PairJob` s; :attr:`capacity` jobs in flight keep every worker busy."""
+    """Runs :class:`PairJob` s; :attr:`capacity` jobs in flight keep every worker busy (one each:
+    a step past its time waits for those in flight, so no more)."""
 
     name: str
 
@@ -281,7 +282,7 @@ class LocalExecutor:
 
     @property
     def capacity(self) -> int:
-        return 2 * self.workers
+        return self.workers
 
     def _pool_submit(self, job: PairJob, restart: bool = False) -> Future[PairResult]:
         if restart and self._pool is not None and getattr(self._pool, "_broken", False):
@@ -348,7 +349,7 @@ class RayExecutor:
 
     @property
     def capacity(self) -> int:
-        return 2 * self.workers
+        return self.workers
 
     def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
         return _RayHandle(self._task.remote(job))

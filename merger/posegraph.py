@@ -168,6 +168,10 @@ class PoseGraph(MapGraph):
         self._walls_now: dict[tuple[object, ...], tuple[tuple[SegmentMap, ...], Array]] = {}
         """The walls of each component of the last solve, with its maps (:meth:`_walls`)."""
         self._last_walls = self._walls_now
+        self._refined_now: dict[tuple[object, ...], tuple[dict[str, Transform2D], list[Edge]]] = {}
+        """Each component's refined poses and the edges they disagree with, by its anchor, members
+        and edges, from the last solve (:meth:`_refined_components`)."""
+        self._last_refined = self._refined_now
 
     # -- links -------------------------------------------------------------------------------
     def put_link(self, a: str, b: str, transform: Transform2D, covariance: Array) -> None:
@@ -219,6 +223,7 @@ class PoseGraph(MapGraph):
         partial = {k for k, n in self._nodes.items() if not n.map.ordered}
         disagreeing: set[tuple[str, str]] = set()
         self._last_walls, self._walls_now = self._walls_now, {}
+        self._last_refined, self._refined_now = self._refined_now, {}
         for _ in range(MAX_REJECTION_ROUNDS):
             tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], partial)
             components, off = self._refined_components(tree, loops)
@@ -687,19 +692,28 @@ class PoseGraph(MapGraph):
             seen.update(group)
             anchor = self._pick_anchor(group)
             order = _bfs_order(adjacency, anchor)
-            poses = self._initial_poses(anchor, order, adjacency)
             group_set = set(group)
             cycle_edges = [e for e in loops if e.a in group_set]
-            if cycle_edges:
-                edges = [e for e in tree if e.a in group_set] + cycle_edges
-                poses = self._optimized(anchor, poses, edges)
-                for e in edges:
-                    if e.link:
-                        continue
-                    dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
-                    tol_t, tol_r = self._tolerance(1)
-                    if dt > tol_t or dr > tol_r:
-                        off.append(e)
+            edges = [e for e in tree if e.a in group_set] + cycle_edges
+            # a component whose submaps and edges are all as the last solve had them keeps its
+            # poses (refinement only where something changed)
+            signature = (anchor, tuple(order), tuple(sorted(edges, key=lambda e: e.key())))
+            held = self._last_refined.get(signature)
+            if held is not None:
+                poses, disagreeing = dict(held[0]), held[1]
+            else:
+                poses, disagreeing = self._initial_poses(anchor, order, adjacency), []
+                if cycle_edges:
+                    poses = self._optimized(anchor, poses, edges)
+                    for e in edges:
+                        if e.link:
+                            continue
+                        dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
+                        tol_t, tol_r = self._tolerance(1)
+                        if dt > tol_t or dr > tol_r:
+                            disagreeing.append(e)
+            self._refined_now[signature] = (dict(poses), disagreeing)
+            off += disagreeing
             for k in order:
                 self._solution[k] = (anchor, poses[k])
             out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))

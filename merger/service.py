@@ -182,6 +182,8 @@ class Merger:
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
         self._indexes = self.graph.indexes
+        self.solve_seconds = 0.0
+        """How long the last step's solve took (what a step of integrations alone is worth)."""
         """The graph's own search indexes, for integrations run in this process."""
         self.stats = MergerStats()
         self.seq = 0
@@ -409,7 +411,9 @@ class Merger:
             t = e.transform
             said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
             out.append(Outgoing(self.keys.edges, said.to_msgpack()))
+        solving = time.perf_counter()
         self._result = self.graph.solve(fuse_maps=fuse)
+        self.solve_seconds = time.perf_counter() - solving
         self._unfused = not fuse
         self._index_result()
         self._global = self._global_map(self._result)
@@ -941,6 +945,8 @@ class MergerService:
         self._inbox: queue.SimpleQueue[tuple[str, bytes | bool]] = queue.SimpleQueue()
         self._handles: list[Handle] = []
         self._snapshot = merger.global_map.to_msgpack()
+        self._maps_arrived = 0
+        """Local maps that arrived so far (a long step ends early when one does)."""
         self.follower = PoseFollower()
         """Robot poses between steps, from their placed scans (:mod:`fleetmap.merger.follow`)."""
         self._scans: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
@@ -985,6 +991,8 @@ class MergerService:
             log.info("recalled %d submaps from the recorder", recalled)
 
     def _on_message(self, key: str, payload: bytes) -> None:
+        if key.endswith("/localmap"):
+            self._maps_arrived += 1
         self._inbox.put((key, payload))
 
     def _on_scan(self, key: str, payload: bytes) -> None:
@@ -1051,18 +1059,24 @@ class MergerService:
 
     def run_once(self) -> bool:
         """Take what arrived and step if there is work (a local map pending, or pairs of maps to
-        integrate), for about ``step_seconds`` at most (one integration at least); True if it
-        stepped."""
+        integrate), for about ``step_seconds`` at most when it takes new local maps in (one
+        integration at least), else as long as the last solve took; True if it stepped."""
         self._drain()
         return self._step()
 
     def _step(self) -> bool:
         if not self.merger.has_work:
             return False
-        deadline = time.monotonic() + self.step_seconds
+        # A step that takes new submaps in integrates for step_seconds, so they reach the global
+        # map soon; one with only queued pairs integrates as long as a solve takes (at least half
+        # of the merger's time goes to the backlog), unless a local map arrives meanwhile.
+        start, arrived = time.monotonic(), self._maps_arrived
+        short = start + self.step_seconds
+        long = short if self.merger.pending else start + max(self.step_seconds, self.merger.solve_seconds)
 
         def past_deadline() -> bool:
-            return time.monotonic() >= deadline
+            now = time.monotonic()
+            return now >= long or (now >= short and self._maps_arrived != arrived)
 
         out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
         self._save()

@@ -30,8 +30,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=STEP_SECONDS,
         metavar="S",
-        help="time budget of one step's integrations (at least one): the other pairs of submaps wait for the "
-        f"next step (0: every pending integration in one step; default {STEP_SECONDS:g})",
+        help="time budget of the integrations of a step that takes new local maps in (at least one): the other "
+        "pairs of submaps wait for the next step; a step with none integrates as long as a solve takes, until a "
+        f"local map arrives (0: every pending integration in one step; default {STEP_SECONDS:g})",
     )
     add_zenoh_arguments(p)
     add_executor_arguments(p)
