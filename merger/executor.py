@@ -24,6 +24,9 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import select
+import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -264,6 +267,31 @@ class _Pooled:
                 self._future = self._owner._pool_submit(self._job, restart=True)
 
 
+def _end_with(owner: int) -> None:
+    """In a pool worker: end when the process that owns the pool ends, however it ended. A worker
+    of a killed merger would otherwise wait on its queue for ever (and keep the forkserver alive:
+    each worker holds the pipe whose end tells the forkserver its owner is gone)."""
+
+    def watch() -> None:
+        try:
+            fd = os.pidfd_open(owner)
+        except (AttributeError, OSError):
+            fd = None
+        if fd is not None:
+            select.select([fd], [], [])  # readable when the owner has ended
+            os._exit(0)
+        while True:  # no pidfd (old kernel): look once a second
+            time.sleep(1.0)
+            try:
+                os.kill(owner, 0)
+            except ProcessLookupError:
+                os._exit(0)
+            except PermissionError:
+                pass
+
+    threading.Thread(target=watch, name="fleetmap-end-with-owner", daemon=True).start()
+
+
 class LocalExecutor:
     """A pool of ``workers`` local processes (default: one per CPU)."""
 
@@ -290,7 +318,12 @@ class LocalExecutor:
             self._pool = None
             self.restarts += 1
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("forkserver"))
+            self._pool = ProcessPoolExecutor(
+                self.workers,
+                mp_context=multiprocessing.get_context("forkserver"),
+                initializer=_end_with,
+                initargs=(os.getpid(),),
+            )
         self.submitted += 1
         return self._pool.submit(run_pair, job)
 

@@ -131,3 +131,53 @@ def test_an_unknown_executor_or_no_workers_is_refused_by_name(capsys: pytest.Cap
         main(["merger", "--workers", "0"])
     assert exc.value.code == 2
     assert "--workers" in capsys.readouterr().err
+
+
+OWNER = """
+import sys
+import numpy as np
+from fleetmap.merger.executor import LocalExecutor, PairJob
+from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.mapfile import SegmentMap
+
+if __name__ == "__main__":
+    walls = SegmentMap(np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [0.0, 3.0, 0.0, 0.0]]), oriented=True)
+    params = IntegrationParams(), TrackingParams(), MergeParams()
+    job = PairJob("a", "b", (0, 0), walls, walls, walls, walls, None, *params)
+    pool = LocalExecutor(2)
+    pool.submit(job).result()
+    print(" ".join(str(p) for p in pool.pids), flush=True)
+    sys.stdin.read()  # until killed
+"""
+
+
+@pytest.mark.slow  # starts a process with a pool of two workers and kills it
+def test_the_workers_of_a_killed_merger_end_with_it(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "owner.py"
+    script.write_text(OWNER)
+    owner = subprocess.Popen(
+        [sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert owner.stdout is not None
+        workers = [int(p) for p in owner.stdout.readline().split()]
+        assert workers and all(_alive(p) for p in workers)
+    finally:
+        owner.kill()
+        owner.wait(30)
+    deadline = time.monotonic() + WAIT
+    while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+        threading.Event().wait(0.1)
+    assert not any(_alive(p) for p in workers), "a worker outlived the process that owned its pool"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
