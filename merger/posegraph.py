@@ -477,13 +477,16 @@ class PoseGraph(MapGraph):
         side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
         reach_t, reach_r = self.tracking.max_correspondence, math.radians(5.0)
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
-        for a in group_a:
+        meeting = self._meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
+        for i, a in enumerate(group_a):
             sa = side_a.get(a)
-            for b in group_b:
-                implied = rel[a].inverse().compose(placed_b[b])
-                if sa is None or not self._overlap(a, b, implied):
-                    continue
+            if sa is None:
+                continue
+            a_inverse = rel[a].inverse()
+            for j in np.flatnonzero(meeting[i]).tolist():
+                b = group_b[j]
                 sb, pb = side_b[b], placed_b[b]
+                implied = a_inverse.compose(pb)
                 c = sa[0] + sb[0]
                 lever = pb.x * (sa[1] + sb[1]) + pb.y * (sa[2] + sb[2])
                 var_t = sa[4] + sb[4] + c * (pb.x * pb.x + pb.y * pb.y) - 2.0 * lever + sa[3] + sb[3]
@@ -656,13 +659,24 @@ class PoseGraph(MapGraph):
         """Whether a group holds a submap linked to another (a robot's chain, which grows)."""
         return any(k in self._links or k in self._link_sources for k in group)
 
-    def _overlap(self, a: str, b: str, implied: Transform2D) -> bool:
-        """Whether b's walls, where ``implied`` puts them in a's frame, can touch a's: the discs
-        about each map's walls (their centre, the farthest end from it) meet."""
-        ca, ra = self._disc(a)
-        cb, rb = self._disc(b)
-        x, y = implied.apply_points(cb[None, :])[0]
-        return math.hypot(x - ca[0], y - ca[1]) <= ra + rb
+    def _meeting(
+        self, group_a: list[str], at_a: dict[str, Transform2D], group_b: list[str], at_b: dict[str, Transform2D]
+    ) -> Array:
+        """Which submaps of two groups, placed in one frame, can touch: the discs about their walls
+        (:meth:`_disc`) meet; a boolean ``(len(group_a), len(group_b))`` array."""
+
+        def discs(group: list[str], at: dict[str, Transform2D]) -> tuple[Array, Array]:
+            centres = np.empty((len(group), 2))
+            radii = np.empty(len(group))
+            for n, k in enumerate(group):
+                centre, radii[n] = self._disc(k)
+                centres[n] = at[k].apply_points(centre[None, :])[0]
+            return centres, radii
+
+        ca, ra = discs(group_a, at_a)
+        cb, rb = discs(group_b, at_b)
+        gap = np.hypot(ca[:, None, 0] - cb[None, :, 0], ca[:, None, 1] - cb[None, :, 1])
+        return np.asarray(gap <= ra[:, None] + rb[None, :])
 
     def _disc(self, key: str) -> tuple[Array, float]:
         """The disc about a node's walls: their ends' centroid and the farthest end from it."""

@@ -153,8 +153,10 @@ class Session:
     role may."""
     tls: bool = False
     """With ``secure``: over mutual TLS."""
-    merger_options: tuple[str, ...] = ()
-    """More flags of ``fleetmap merger`` (e.g. ``--executor inline``)."""
+    merger_options: tuple[str, ...] = ("--executor", "inline")
+    """Flags of ``fleetmap merger``. A session runs every robot on this machine: integration
+    workers would only take CPU from the robots and the merger's solve (decision record 004), so
+    the merger integrates in its own process unless these say otherwise."""
     python: str = sys.executable
     children: list[_Child] = field(default_factory=list)
     _zenoh: Callable[[str], list[str]] = field(init=False, repr=False)
