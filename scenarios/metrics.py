@@ -84,6 +84,36 @@ def map_error(segments: Array, walls: Array, spacing: float = 0.02) -> MapError:
     return MapError(float(np.average(d, weights=weights)), weighted_quantile(d, weights, 0.95), float(d.max()))
 
 
+ALIGN_SPACING = 0.05
+"""Metres between the wall points the best-fit alignment of :func:`aligned_map_error` uses."""
+ALIGN_REACH = 0.5
+"""A point farther than this (m) from every true wall counts as this far in the fit (robust: a
+wrongly merged piece does not drag the alignment)."""
+
+
+def aligned_map_error(segments: Array, walls: Array, spacing: float = 0.02) -> tuple[MapError, Transform2D]:
+    """:func:`map_error` after the rigid motion that lays the map best on the true walls (robust
+    least squares from where the map is), and that motion. A pose-free map's frame is arbitrary:
+    placed by one submap's true pose (:func:`world_from_global`), a small heading error of that
+    submap turns the whole map about it, which this leaves out, as trajectory tools align an
+    estimate before they score it."""
+    from scipy.optimize import least_squares
+
+    seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    if len(seg) == 0:
+        return MapError(math.nan, math.nan, math.nan), Transform2D.identity()
+    points, weights = _weighted_samples(seg, ALIGN_SPACING)
+    root = np.sqrt(weights)
+
+    def residuals(x: Array) -> Array:
+        moved = Transform2D(float(x[0]), float(x[1]), float(x[2])).apply_points(points)
+        return root * np.minimum(nearest_distance(moved, walls), ALIGN_REACH)
+
+    fit = least_squares(residuals, np.zeros(3), loss="soft_l1", f_scale=0.05, x_scale=[1.0, 1.0, 0.05])
+    motion = Transform2D(float(fit.x[0]), float(fit.x[1]), float(fit.x[2]))
+    return map_error(motion.apply(seg), walls, spacing), motion
+
+
 def visible_walls(walls: Array, poses: Iterable[Transform2D], laser: LaserParams, min_hits: int = 3) -> Array:
     """The parts of the walls the laser hits from ``poses`` (noise-free), as segments ``(k, 4)``.
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from fleetmap.scenarios import GroundTruth, Scenario, ground_truth
 from fleetmap.scenarios.fleet import Kidnap
-from fleetmap.scenarios.metrics import coverage, map_error, pose_error, world_from_global
+from fleetmap.scenarios.metrics import aligned_map_error, coverage, map_error, pose_error, world_from_global
 from fleetmap.shared.geometry import Array, Transform2D
 from fleetmap.shared.keys import FleetKeys, parse_submap_key
 from fleetmap.shared.mapfile import SegmentMap
@@ -247,6 +247,7 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
     placed = [r for r in robots if f"{r}/{latest_epoch[r]}" in main_epochs]
     report: dict[str, Any] = {
         "map_error_mean_m": None,
+        "map_error_aligned_mean_m": None,
         "map_error_p95_m": None,
         "coverage": None,
         "robots_total": len(robots),
@@ -269,6 +270,8 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
         err = map_error(segments_world, walls)
         report["map_error_mean_m"] = err.mean
         report["map_error_p95_m"] = err.p95
+        aligned, _ = aligned_map_error(segments_world, walls)
+        report["map_error_aligned_mean_m"] = aligned.mean
         report["coverage"] = coverage(segments_world, truth.truth.visible)
     if truth is not None:
         report["maps_merged_wrongly"] = _merged_wrongly(log, truth, final)
@@ -530,6 +533,7 @@ def summary_table(report: dict[str, Any]) -> str:
         f"robots placed      {report['robots_placed']} / {report['robots_total']}",
         f"map error (mean)   {fmt(report['map_error_mean_m'], ' m')}",
         f"map error (p95)    {fmt(report['map_error_p95_m'], ' m')}",
+        f"map error, aligned {fmt(report.get('map_error_aligned_mean_m'), ' m')} (mean, the map laid best on the walls)",
         f"coverage           {fmt(report['coverage'], ' %', 100.0, 1)}",
         f"components         {len(report['components'])}",
     ]

@@ -10,6 +10,7 @@ from fleetmap.scenarios.fleet import plan
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.scenarios.loader import load_scenario
 from fleetmap.scenarios.metrics import (
+    aligned_map_error,
     coverage,
     map_error,
     pose_errors,
@@ -50,6 +51,21 @@ def test_walls_shifted_by_5_cm_give_a_mean_error_of_5_cm(department: tuple[np.nd
     assert coverage(shifted_along_normals(walls, 0.05), visible) > 0.99  # still within 10 cm
     errors = [map_error(shifted_along_normals(walls, d), walls).mean for d in (0.0, 0.02, 0.05, 0.1, 0.2)]
     assert errors == sorted(errors) and errors[0] < 1e-12 and errors[-1] > 0.15
+
+
+def test_the_aligned_error_leaves_out_the_frame_not_the_shape(department: tuple[np.ndarray, np.ndarray]) -> None:
+    walls, _ = department
+    # the true map placed by a submap whose heading was half a degree off, 20 m from its far end:
+    # about 10 cm there, but the shape is exact
+    turned = Transform2D(0.05, -0.03, math.radians(0.5)).apply(walls)
+    assert map_error(turned, walls).mean > 0.05
+    err, motion = aligned_map_error(turned, walls)
+    assert err.mean < 0.005, err
+    back = motion.compose(Transform2D(0.05, -0.03, math.radians(0.5)))
+    assert abs(back.theta) < math.radians(0.05) and math.hypot(back.x, back.y) < 0.02
+    # a map whose walls are 5 cm off along their normals stays 5 cm off: no motion makes it fit
+    shifted, _ = aligned_map_error(shifted_along_normals(walls, 0.05), walls)
+    assert shifted.mean > 0.035
 
 
 def test_coverage_counts_the_visible_length_the_map_has(department: tuple[np.ndarray, np.ndarray]) -> None:
