@@ -247,7 +247,10 @@ def main() -> int:
     print()
     print(body)
     if args.write_results:
-        write_section("live", "The live fleet (`benchmarks/live.py`)", body)
+        if args.secure:
+            write_section("live-secure", "The live fleet with logins and TLS (`benchmarks/live.py --secure`)", body)
+        else:
+            write_section("live", "The live fleet (`benchmarks/live.py`)", body)
     return 0
 
 
