@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 
 POLL = 0.05
 """Longest wait (s) before the loop looks again at stop and republish requests."""
+STATUS_SECONDS = 5.0
+"""An agent says how far it is at INFO this often (s)."""
 
 
 @dataclass(frozen=True)
@@ -149,7 +151,7 @@ def run_agent(
         raise BadInput("speed", f"must be 0 (as fast as possible) or positive, got {speed}")
     wait = sleep if sleep is not None else stop.wait
     requests = _FleetEvents(agent.robot)
-    started = clock()
+    started = said = clock()
     published = republished = 0
 
     def publish(messages: list[Message]) -> None:
@@ -189,6 +191,13 @@ def run_agent(
             for epoch in requests.take_relocalized():
                 agent.relocalized(epoch)
             publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
+            if clock() - said >= STATUS_SECONDS:
+                said = clock()
+                c = agent.counts
+                log.info(
+                    "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
+                    agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
+                )  # fmt: skip
         publish(agent.finish())
         answer_requests()
         bus.flush()

@@ -89,6 +89,22 @@ def test_scans_are_paced_by_their_stamps_over_speed(buses, scans):
     assert never == [], "speed 0 plays the scans as fast as possible"
 
 
+def test_an_agent_says_how_far_it_is_every_few_seconds(buses, scans, caplog) -> None:  # type: ignore[no-untyped-def]
+    bus, _ = buses
+    now = [0.0]
+
+    def sleep(seconds: float) -> None:
+        now[0] += seconds
+
+    # four scans 0.2 s apart played 50 times slower, 10 s apart: a status line after each but the
+    # first (at least 5 s since the last line)
+    with caplog.at_level("INFO", logger="fleetmap.agents.process"):
+        run_agent(scans, Agent("r2"), bus, KEYS, speed=0.02, stop=threading.Event(), clock=lambda: now[0], sleep=sleep)
+    said = [r.getMessage() for r in caplog.records]
+    progress = [m for m in said if m.startswith("r2: ") and "messages published" in m]
+    assert [m.split(",")[0] for m in progress] == ["r2: 2 scans", "r2: 3 scans", "r2: 4 scans"], said
+
+
 def test_a_republish_request_gets_the_latest_map_of_every_epoch_and_bad_events_are_ignored(buses, scans):
     bus, seen = buses
     asking = seen.bus
