@@ -21,6 +21,7 @@ does, so a submap integrated against several others is indexed once per worker.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import multiprocessing
 import os
@@ -98,15 +99,15 @@ class PairResult:
 
 
 class Indexes:
-    """Search indexes and registration grids of submaps, by key and version, the newest
-    ``size`` kept."""
+    """Search indexes and registration grids of submaps, by key, version and what they are built
+    from (``content``: the map's fingerprint and the parameters), the newest ``size`` kept."""
 
     def __init__(self, size: int = CACHE_SIZE) -> None:
         self.size = size
-        self._held: OrderedDict[tuple[str, int, str], Any] = OrderedDict()
+        self._held: OrderedDict[tuple[object, ...], Any] = OrderedDict()
 
-    def get(self, key: str, version: int, kind: str, build: Any) -> Any:
-        k = (key, version, kind)
+    def get(self, key: str, version: int, kind: str, build: Any, content: object = None) -> Any:
+        k = (key, version, kind, content)
         if k in self._held:
             self._held.move_to_end(k)
             return self._held[k]
@@ -122,6 +123,19 @@ _WORKER_INDEXES = Indexes()
 
 def index_of(m: SegmentMap, p: IntegrationParams) -> MapIndex:
     return index_for(m, p)
+
+
+def fingerprint(m: SegmentMap) -> bytes:
+    """A digest of a map's walls and the arrays it carries (viewpoints): what its indexes are
+    built from, whatever its key and version say."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.ascontiguousarray(m.segments, dtype=np.float64).tobytes())
+    for name in sorted(m.extras):
+        value = m.extras[name]
+        if isinstance(value, np.ndarray):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(value).tobytes())
+    return h.digest()
 
 
 def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
@@ -140,10 +154,11 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     p = job.integration
     built: dict[str, Any] = {}
 
-    def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any]) -> Any:
+    def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
         value = job.given.get(name)
         if value is None:
-            value = cache.get(key, version, kind, build)
+            params = job.tracking.voxel_size if kind == "reference" else p
+            value = cache.get(key, version, kind, build, (fingerprint(m), params) if indexes is None else None)
             if indexes is None:
                 built[name] = value  # a worker's: the caller keeps it
         return value
@@ -155,9 +170,9 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.predicted,
             p,
             job.tracking,
-            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking)),
-            need("index_a", a, va, "index", lambda: index_of(job.work_a, p)),
-            need("index_b", b, vb, "index", lambda: index_of(job.work_b, p)),
+            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking), job.map_a),
+            need("index_a", a, va, "index", lambda: index_of(job.work_a, p), job.work_a),
+            need("index_b", b, vb, "index", lambda: index_of(job.work_b, p), job.work_b),
         )
     else:
         large = takes_large_path(job.work_a, job.work_b, p)
@@ -165,8 +180,8 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.work_a,
             job.work_b,
             p,
-            index1=need("index_a", a, va, "index", lambda: index_of(job.work_a, p)) if large else None,
-            index2=need("index_b", b, vb, "index", lambda: index_of(job.work_b, p)) if large else None,
+            index1=need("index_a", a, va, "index", lambda: index_of(job.work_a, p), job.work_a) if large else None,
+            index2=need("index_b", b, vb, "index", lambda: index_of(job.work_b, p), job.work_b) if large else None,
         )
     if not r.valid:
         return PairResult(r, r.transform, None, built)
@@ -246,7 +261,11 @@ class InlineExecutor:
 class _Pooled:
     def __init__(self, owner: LocalExecutor, job: PairJob) -> None:
         self._owner, self._job = owner, job
-        self._future: Future[PairResult] = owner._pool_submit(job)
+        try:
+            self._future: Future[PairResult] = owner._pool_submit(job)
+        except BrokenProcessPool as exc:  # said by result(), where the step takes failures
+            self._future = Future()
+            self._future.set_exception(exc)
         self._attempts = 1
 
     def result(self) -> PairResult:
@@ -264,7 +283,7 @@ class _Pooled:
                     self._attempts,
                     MAX_ATTEMPTS,
                 )
-                self._future = self._owner._pool_submit(self._job, restart=True)
+                self._future = self._owner._pool_submit(self._job)
 
 
 def _end_with(owner: int) -> None:
@@ -312,20 +331,32 @@ class LocalExecutor:
     def capacity(self) -> int:
         return self.workers
 
-    def _pool_submit(self, job: PairJob, restart: bool = False) -> Future[PairResult]:
-        if restart and self._pool is not None and getattr(self._pool, "_broken", False):
+    def _pool_submit(self, job: PairJob) -> Future[PairResult]:
+        """Hand a job to the pool, starting it (again, if a dead worker broke it) as needed."""
+        for _ in range(MAX_ATTEMPTS):
+            if self._pool is not None and getattr(self._pool, "_broken", False):
+                self._restart()
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    self.workers,
+                    mp_context=multiprocessing.get_context("forkserver"),
+                    initializer=_end_with,
+                    initargs=(os.getpid(),),
+                )
+            try:
+                future = self._pool.submit(run_pair, job)
+            except BrokenProcessPool:  # a worker died since the last look (idle between steps)
+                self._restart()
+                continue
+            self.submitted += 1
+            return future
+        raise BrokenProcessPool(f"the integration pool broke {MAX_ATTEMPTS} times in a row")
+
+    def _restart(self) -> None:
+        if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
-            self.restarts += 1
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(
-                self.workers,
-                mp_context=multiprocessing.get_context("forkserver"),
-                initializer=_end_with,
-                initargs=(os.getpid(),),
-            )
-        self.submitted += 1
-        return self._pool.submit(run_pair, job)
+        self.restarts += 1
 
     @property
     def pids(self) -> list[int]:
@@ -373,12 +404,18 @@ class RayExecutor:
             kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "logging_level": "WARNING"}
             if address is None:
                 kwargs["num_cpus"] = workers if workers is not None else (os.cpu_count() or 1)
+            what = "--ray-address " + address if address is not None else "--executor ray"
             try:
                 ray.init(address=address, **kwargs)
             except (ConnectionError, RuntimeError, ValueError) as exc:
-                raise BadInput(f"--ray-address {address}", f"cannot join the Ray cluster: {exc}") from exc
-        self._task = ray.remote(max_retries=MAX_ATTEMPTS, retry_exceptions=False)(run_pair)
-        self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
+                where = "join the Ray cluster" if address is not None else "start a local Ray cluster"
+                raise BadInput(what, f"cannot {where}: {exc}") from exc
+        try:
+            self._task = ray.remote(max_retries=MAX_ATTEMPTS, retry_exceptions=False)(run_pair)
+            self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        except Exception:
+            self.close()  # the cluster this started goes with it
+            raise
 
     @property
     def capacity(self) -> int:

@@ -13,6 +13,7 @@ merge or a placed scan gives a new one, never a guess.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.messages import RobotPose, Scan
@@ -22,16 +23,19 @@ Frames = dict[str, tuple[int, Transform2D]]
 
 
 class PoseFollower:
-    """Robot poses from the last merge's frames and the newest placed scans (thread-safe: scans
-    arrive on one thread, merges on another)."""
+    """Robot poses from the last merge's frames and the newest placed scans, each said (``say``,
+    e.g. published) under one lock, so a robot's poses go out in stamp order whichever thread
+    says them (scans arrive on one thread, merges on another)."""
 
-    def __init__(self) -> None:
+    def __init__(self, say: Callable[[RobotPose], object] | None = None, max_robots: int | None = None) -> None:
+        self._say = say if say is not None else (lambda pose: None)
+        self.max_robots = max_robots
         self._lock = threading.Lock()
         self._frames: Frames = {}
         self._latest: dict[str, Scan] = {}
         """Each robot's newest placed scan of its newest epoch."""
-        self._said: dict[str, float] = {}
-        """The stamp of the last pose given for each robot (never one older after it)."""
+        self._said: dict[str, tuple[int, float]] = {}
+        """(epoch, stamp) of the last pose said of each robot: never an older one after it."""
 
     def merged(self, frames: Frames) -> None:
         """A merge landed: its submaps' frames replace the previous ones."""
@@ -39,37 +43,42 @@ class PoseFollower:
             self._frames = frames
 
     def scan(self, scan: Scan) -> RobotPose | None:
-        """A robot's scan: its pose in the global map, if the scan is its newest and lies in a
-        placed submap (else None: nothing to say)."""
+        """A robot's scan: its pose in the global map, said, if the scan is its newest and lies in
+        a placed submap (else None: nothing said)."""
         if scan.pose is None or scan.submap is None:
             return None
         with self._lock:
             held = self._latest.get(scan.robot)
+            if held is None and self.max_robots is not None and len(self._latest) >= self.max_robots:
+                return None
             if held is not None and (scan.epoch, scan.stamp) < (held.epoch, held.stamp):
                 return None
             self._latest[scan.robot] = scan
-            return self._pose(scan)
+            return self._said_from(scan)
 
-    def current(self, robot: str, epoch: int, stamp: float) -> RobotPose | None:
-        """The robot's pose from its newest placed scan with the current frames, if that scan is of
-        ``epoch`` and newer than ``stamp`` (a merge's own pose of the robot, from its submaps)."""
+    def step(self, pose: RobotPose) -> RobotPose | None:
+        """A merge's own pose of a robot (from its submaps): said as the robot's newest placed scan
+        puts it under the new frames where that scan is newer, else as it is; not said (None) if
+        older than the last pose said of the robot."""
         with self._lock:
-            held = self._latest.get(robot)
-            if held is None or held.epoch != epoch or held.stamp <= stamp:
+            held = self._latest.get(pose.robot)
+            if held is not None and held.epoch == pose.epoch and held.stamp > pose.stamp:
+                fresher = self._said_from(held)
+                if fresher is not None:
+                    return fresher
+            if (pose.epoch, pose.stamp) < self._said.get(pose.robot, (-1, -1.0)):
                 return None
-            return self._pose(held)
+            self._said[pose.robot] = (pose.epoch, pose.stamp)
+            self._say(pose)
+            return pose
 
-    def said_after(self, robot: str, epoch: int, stamp: float) -> bool:
-        """Whether a pose of the robot's ``epoch`` newer than ``stamp`` was given already."""
-        with self._lock:
-            held = self._latest.get(robot)
-            return held is not None and held.epoch == epoch and self._said.get(robot, -1.0) > stamp
-
-    def _pose(self, scan: Scan) -> RobotPose | None:
+    def _said_from(self, scan: Scan) -> RobotPose | None:
         assert scan.pose is not None
         frame = self._frames.get(f"{scan.robot}/{scan.epoch}/{scan.submap}")
-        if frame is None or scan.stamp < self._said.get(scan.robot, -1.0):
+        if frame is None or (scan.epoch, scan.stamp) < self._said.get(scan.robot, (-1, -1.0)):
             return None
-        self._said[scan.robot] = scan.stamp
-        component, pose = frame
-        return RobotPose(scan.robot, scan.epoch, scan.stamp, pose.compose(scan.pose), component)
+        component, at = frame
+        pose = RobotPose(scan.robot, scan.epoch, scan.stamp, at.compose(scan.pose), component)
+        self._said[scan.robot] = (scan.epoch, scan.stamp)
+        self._say(pose)
+        return pose

@@ -167,7 +167,7 @@ class _GraphIndexes(Indexes):
     def __init__(self, graph: MapGraph) -> None:
         self._graph = graph
 
-    def get(self, key: str, version: int, kind: str, build: Callable[[], object]) -> object:
+    def get(self, key: str, version: int, kind: str, build: Callable[[], object], content: object = None) -> object:
         if key not in self._graph or self._graph.version_of(key) != version:
             return build()  # a job of a version the graph no longer holds
         return self._graph._index(key) if kind == "index" else self._graph.reference(key)

@@ -100,6 +100,8 @@ RECALL_SECONDS = 5.0
 """How long a starting merger waits for the recorder's maps (no recorder: no wait)."""
 STATE_ERROR_EVERY = 10.0
 """Seconds between the ERROR lines of a merger that cannot save its state."""
+POSE_QUEUE = 10_000
+"""Scans the pose thread keeps waiting at most (more are dropped and counted: a flood)."""
 STATUS_SECONDS = 5.0
 """Seconds between the live merger's status lines (INFO)."""
 STATUS_WINDOW = 60.0
@@ -139,6 +141,11 @@ class MergerStats:
     """... of which registered near where the graph predicts them ..."""
     idle: int = 0
     """... and pose-free tries for a robot nobody has placed, taken when nothing else was due."""
+    failed: int = 0
+    """Integrations that failed where they ran (a worker that died more often than it is retried,
+    a Ray task's error): logged and dropped, the merger goes on."""
+    poses_dropped: int = 0
+    """Scans the pose thread had no room for (it keeps ``POSE_QUEUE`` waiting)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -153,6 +160,8 @@ class MergerStats:
             "integrations": self.integrations,
             "near": self.near,
             "idle": self.idle,
+            "failed": self.failed,
+            "poses_dropped": self.poses_dropped,
         }
 
 
@@ -182,9 +191,9 @@ class Merger:
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
         self._indexes = self.graph.indexes
+        """The graph's own search indexes, for integrations run in this process."""
         self.solve_seconds = 0.0
         """How long the last step's solve took (what a step of integrations alone is worth)."""
-        """The graph's own search indexes, for integrations run in this process."""
         self.stats = MergerStats()
         self.seq = 0
         self.stamp = 0.0
@@ -386,13 +395,16 @@ class Merger:
         running: deque[tuple[PairJob, JobHandle]] = deque()
         while self._queue or running:
             # as many in flight as the executor keeps busy; results taken in the queue's order, so
-            # the graph is the same whichever executor ran them
+            # the graph is the same whichever executor ran them (a pair whose two submaps are in
+            # flight already waits for that result: whether it is due depends on it)
             while self._queue and len(running) < self.executor.capacity:
                 if (limit is not None and taken >= limit) or (
                     limit is None and enough is not None and taken and enough()
                 ):
                     break
                 pair, predicted = next(iter(self._queue.items()))
+                if any({j.a, j.b} == set(pair) for j, _ in running):
+                    break
                 del self._queue[pair]
                 taken += 1
                 job = self._job(pair, predicted)
@@ -401,7 +413,13 @@ class Merger:
             if not running:
                 break
             job, handle = running.popleft()
-            new_edges.append(self.graph.take(job, handle.result()))
+            try:
+                result = handle.result()
+            except Exception as exc:  # a job that failed where it ran: the merger goes on without it
+                self.stats.failed += 1
+                log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
+                continue
+            new_edges.append(self.graph.take(job, result))
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -947,9 +965,12 @@ class MergerService:
         self._snapshot = merger.global_map.to_msgpack()
         self._maps_arrived = 0
         """Local maps that arrived so far (a long step ends early when one does)."""
-        self.follower = PoseFollower()
+        self.follower = PoseFollower(
+            lambda pose: self.bus.publish(self.keys.pose(pose.robot), pose.to_msgpack()), merger.config.merge.max_robots
+        )
         """Robot poses between steps, from their placed scans (:mod:`fleetmap.merger.follow`)."""
-        self._scans: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._scans: queue.Queue[tuple[str, bytes]] = queue.Queue(POSE_QUEUE)
+        self._follow_errors = 0
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
 
@@ -997,11 +1018,15 @@ class MergerService:
 
     def _on_scan(self, key: str, payload: bytes) -> None:
         self._inbox.put((key, payload))
-        self._scans.put((key, payload))
+        try:
+            self._scans.put_nowait((key, payload))
+        except queue.Full:
+            self.merger.stats.poses_dropped += 1
 
     def _follow(self) -> None:
         """The pose thread: each placed scan moves its robot's global pose (:mod:`.follow`) while
-        the merger steps; the inbox's copy of the scan counts what is wrong with it."""
+        the merger steps; the inbox's copy of the scan counts what is wrong with it. Nothing ends
+        it but :meth:`close`: an error is logged and the next scan taken."""
         while not self._stop_following.is_set():
             try:
                 key, payload = self._scans.get(timeout=0.2)
@@ -1009,33 +1034,28 @@ class MergerService:
                 continue
             try:
                 scan = Scan.from_msgpack(payload)
+                if key == self.keys.scan(scan.robot):
+                    self.follower.scan(scan)
             except BadMessage:
                 continue
-            if key != self.keys.scan(scan.robot):
-                continue
-            pose = self.follower.scan(scan)
-            if pose is not None:
-                self.bus.publish(self.keys.pose(scan.robot), pose.to_msgpack())
-
-    def _fresher_poses(self, out: list[Outgoing]) -> list[Outgoing]:
-        """A step's robot poses, each from the robot's newest placed scan where the pose thread has
-        one newer than the step's submaps (a step's pose is never older than one already said)."""
-        self.follower.merged(self.merger.pose_frames())
-        fresher = []
-        for o in out:
-            parsed = self.keys.parse(o.key)
-            if parsed.kind == "pose" and parsed.robot is not None:
-                said = RobotPose.from_msgpack(o.payload)
-                pose = self.follower.current(said.robot, said.epoch, said.stamp)
-                if pose is not None:
-                    o = Outgoing(o.key, pose.to_msgpack())
-                elif self.follower.said_after(said.robot, said.epoch, said.stamp):
-                    continue
-            fresher.append(o)
-        return fresher
+            except Exception:
+                self._follow_errors += 1
+                if self._follow_errors <= 10 or self._follow_errors % 1000 == 0:
+                    log.exception("the pose thread failed on a scan on %s (%d so far)", key, self._follow_errors)
 
     def _on_query(self, selector: str) -> bytes:
         return self._snapshot
+
+    def _publish_step(self, out: list[Outgoing]) -> None:
+        """A step's messages in order, its robot poses through the pose follower (each the newest
+        placed scan's under the step's frames where that is newer; never one older than a pose
+        already published)."""
+        self.follower.merged(self.merger.pose_frames())
+        for o in out:
+            if self.keys.parse(o.key).kind == "pose":
+                self.follower.step(RobotPose.from_msgpack(o.payload))
+            else:
+                self.bus.publish(o.key, o.payload)
 
     def _publish(self, out: list[Outgoing]) -> None:
         for o in out:
@@ -1081,7 +1101,7 @@ class MergerService:
         out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
         self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
-        self._publish(self._fresher_poses(out))
+        self._publish_step(out)
         self._note_step()
         return True
 

@@ -159,9 +159,7 @@ def test_the_workers_of_a_killed_merger_end_with_it(tmp_path: Path) -> None:
 
     script = tmp_path / "owner.py"
     script.write_text(OWNER)
-    owner = subprocess.Popen(
-        [sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-    )
+    owner = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert owner.stdout is not None
         workers = [int(p) for p in owner.stdout.readline().split()]
@@ -181,3 +179,29 @@ def _alive(pid: int) -> bool:
             return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+@pytest.mark.slow  # starts a pool, kills its idle worker
+def test_a_worker_that_died_while_idle_is_replaced_at_the_next_job() -> None:
+    import numpy as np
+    from fleetmap.merger.executor import PairJob
+    from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+    from fleetmap.shared.mapfile import SegmentMap
+
+    walls = SegmentMap(np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [0.0, 3.0, 0.0, 0.0]]), oriented=True)
+    params = IntegrationParams(), TrackingParams(), MergeParams()
+    job = PairJob("a", "b", (0, 0), walls, walls, walls, walls, None, *params)
+    pool = LocalExecutor(1)
+    try:
+        first = pool.submit(job).result()
+        (worker,) = pool.pids
+        os.kill(worker, signal.SIGKILL)
+        pause = threading.Event()
+        for _ in range(600):  # the pool notices its dead worker within moments
+            if getattr(pool._pool, "_broken", False):
+                break
+            pause.wait(0.05)
+        again = pool.submit(job).result()
+    finally:
+        pool.close()
+    assert pool.restarts >= 1 and again.transform == first.transform

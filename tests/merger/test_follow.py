@@ -31,26 +31,41 @@ def _close(a: Transform2D, b: Transform2D) -> bool:
 
 
 def test_a_placed_scan_gives_the_merged_submap_pose_composed_with_its_own() -> None:
-    follower = PoseFollower()
+    said: list[RobotPose] = []
+    follower = PoseFollower(said.append)
     frame = Transform2D(4.0, -1.0, 0.5)
     follower.merged({"r1/0/3": (0, frame)})
     in_submap = Transform2D(0.7, 0.2, -0.1)
     pose = follower.scan(_scan("r1", 10.0, 3, in_submap))
-    assert pose is not None and pose.component == 0 and pose.stamp == 10.0
+    assert pose is not None and pose.component == 0 and pose.stamp == 10.0 and said == [pose]
     assert pose.pose is not None and _close(pose.pose, frame.compose(in_submap))
     # a scan in a submap no merge placed yet, an unplaced one, an older one: nothing said
     assert follower.scan(_scan("r1", 10.2, 4, in_submap)) is None
     assert follower.scan(_scan("r1", 10.4, None, None)) is None
     assert follower.scan(_scan("r1", 9.0, 3, in_submap)) is None
-    # a merge that moves the submap moves the robot with it (its newest scan is in submap 4: none)
-    assert follower.current("r1", 0, 0.0) is None
+    assert len(said) == 1
+    # a merge that places submap 4: the step's own pose of r1 (from its submap, at 9.8) gives way
+    # to the newest placed scan's (10.2) under the new frames
     follower.merged({"r1/0/3": (0, frame), "r1/0/4": (1, Transform2D(1.0, 1.0, 0.0))})
-    now = follower.current("r1", 0, 10.0)
-    assert now is not None and now.component == 1 and now.stamp == 10.2
-    assert now.pose is not None and _close(now.pose, Transform2D(1.0, 1.0, 0.0).compose(in_submap))
-    assert follower.said_after("r1", 0, 10.0) and not follower.said_after("r1", 1, 10.0)
+    stepped = follower.step(RobotPose("r1", 0, 9.8, Transform2D(0.0, 0.0, 0.0), 0))
+    assert stepped is not None and stepped.component == 1 and stepped.stamp == 10.2 and said[-1] is stepped
+    assert stepped.pose is not None and _close(stepped.pose, Transform2D(1.0, 1.0, 0.0).compose(in_submap))
+    # a step's pose older than one said is not said (its newest scan's submap placed no more); a
+    # newer epoch's (the robot lost) is
+    follower.merged({"r1/0/3": (0, frame)})
+    assert follower.step(RobotPose("r1", 0, 10.1, Transform2D(0.0, 0.0, 0.0), 0)) is None
+    lost = RobotPose("r1", 1, 10.0, None, None)
+    assert follower.step(lost) is lost and said[-1] is lost
     # a robot whose newest epoch is not placed (kidnapped): its scans say nothing
     assert follower.scan(_scan("r1", 11.0, 0, in_submap, epoch=1)) is None
+    assert len(said) == 3
+
+
+def test_no_more_robots_are_followed_than_the_merger_keeps() -> None:
+    follower = PoseFollower(max_robots=2)
+    follower.merged({f"r{i}/0/0": (0, Transform2D(0.0, 0.0, 0.0)) for i in range(3)})
+    poses = [follower.scan(_scan(f"r{i}", 1.0, 0, Transform2D(0.0, 0.0, 0.0))) for i in range(3)]
+    assert poses[0] is not None and poses[1] is not None and poses[2] is None
 
 
 @pytest.mark.slow  # merges whole-path maps of 200 simulated scans of three robots
