@@ -533,7 +533,7 @@ def summary_table(report: dict[str, Any]) -> str:
         f"robots placed      {report['robots_placed']} / {report['robots_total']}",
         f"map error (mean)   {fmt(report['map_error_mean_m'], ' m')}",
         f"map error (p95)    {fmt(report['map_error_p95_m'], ' m')}",
-        f"map error, aligned {fmt(report.get('map_error_aligned_mean_m'), ' m')} (mean, the map laid best on the walls)",
+        f"map error, aligned {fmt(report.get('map_error_aligned_mean_m'), ' m')} (mean, laid best on the walls)",
         f"coverage           {fmt(report['coverage'], ' %', 100.0, 1)}",
         f"components         {len(report['components'])}",
     ]
