@@ -15,8 +15,9 @@ is the same whichever executor ran them, bit for bit (the same numpy code on the
 - :class:`RayExecutor` submits jobs as Ray tasks to a local or remote cluster (``pip install
   'fleetmap[ray]'``); Ray runs a task again when its worker dies (``max_retries``).
 
-Each worker keeps the search indexes of the submaps it saw (by key and version), as the graph
-does, so a submap integrated against several others is indexed once per worker.
+A job carries the search indexes the graph built already, and a worker sends back the ones it
+built (the graph keeps them); a worker also keeps those it saw (by key, version and the map's
+fingerprint), so each submap is indexed once.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
@@ -42,13 +43,11 @@ from fleetmap.shared.evaluation import prepare
 from fleetmap.shared.geometry import Transform2D
 from fleetmap.shared.integration import Integration, align_near, index_for, integrate, takes_large_path
 from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import MapIndex
 from fleetmap.shared.refine import fit_information, refine_transform
 from fleetmap.shared.tracking import ReferenceMap, sample_segments
 
 log = logging.getLogger(__name__)
 
-ExecutorKind = Literal["inline", "local", "ray"]
 EXECUTORS: tuple[str, ...] = ("inline", "local", "ray")
 
 POLISH_ITERATIONS = 30
@@ -121,10 +120,6 @@ _WORKER_INDEXES = Indexes()
 """A worker process's own indexes (jobs give maps, not indexes: those stay where they are built)."""
 
 
-def index_of(m: SegmentMap, p: IntegrationParams) -> MapIndex:
-    return index_for(m, p)
-
-
 def fingerprint(m: SegmentMap) -> bytes:
     """A digest of a map's walls and the arrays it carries (viewpoints): what its indexes are
     built from, whatever its key and version say."""
@@ -171,8 +166,8 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             p,
             job.tracking,
             need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking), job.map_a),
-            need("index_a", a, va, "index", lambda: index_of(job.work_a, p), job.work_a),
-            need("index_b", b, vb, "index", lambda: index_of(job.work_b, p), job.work_b),
+            need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a),
+            need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b),
         )
     else:
         large = takes_large_path(job.work_a, job.work_b, p)
@@ -180,8 +175,8 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.work_a,
             job.work_b,
             p,
-            index1=need("index_a", a, va, "index", lambda: index_of(job.work_a, p), job.work_a) if large else None,
-            index2=need("index_b", b, vb, "index", lambda: index_of(job.work_b, p), job.work_b) if large else None,
+            index1=need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a) if large else None,
+            index2=need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b) if large else None,
         )
     if not r.valid:
         return PairResult(r, r.transform, None, built)

@@ -427,9 +427,16 @@ class MapGraph:
     def integrate_pair_once(self, x: str, y: str) -> Edge | None:
         """INTEGRATE the pair, always one way (see :meth:`_oriented_pair`); None if its edge is
         already known at these versions."""
+        job = self.job_once(x, y)
+        return None if job is None else self.take(job, run_pair(job, self.indexes))
+
+    def job_once(self, x: str, y: str) -> PairJob | None:
+        """:meth:`integrate_pair_once` as a job for an executor; None if the pair's edge is already
+        known at these versions."""
         if self.is_current(x, y):
             return None
-        return self._oriented_pair(x, y)
+        a, b = (x, y) if x < y else (y, x)  # one way, as _oriented_pair
+        return self.pair_job(a, b)
 
     def seen_enough(self, a: str, b: str) -> bool:
         """Whether two maps can merge at all (see :meth:`_too_few_places`)."""

@@ -125,12 +125,6 @@ def _tree_paths(adjacency: dict[str, list[Edge]], start: str) -> dict[str, list[
     return paths
 
 
-def _turned(e: Edge) -> Edge:
-    """An edge the other way round, for a path: its transform inverted and nothing else (what a
-    path's drift reads; :meth:`Edge.reversed` also carries the information over, at a cost)."""
-    return replace(e, a=e.b, b=e.a, transform=e.transform.inverse())
-
-
 def _pose2(t: Transform2D) -> gtsam.Pose2:
     return gtsam.Pose2(t.x, t.y, t.theta)
 

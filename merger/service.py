@@ -190,8 +190,6 @@ class Merger:
         self.executor: Executor = executor or InlineExecutor()
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
-        self._indexes = self.graph.indexes
-        """The graph's own search indexes, for integrations run in this process."""
         self.solve_seconds = 0.0
         """How long the last step's solve took (what a step of integrations alone is worth)."""
         self.stats = MergerStats()
@@ -409,7 +407,7 @@ class Merger:
                 taken += 1
                 job = self._job(pair, predicted)
                 if job is not None:
-                    running.append((job, self.executor.submit(job, self._indexes)))
+                    running.append((job, self.executor.submit(job, self.graph.indexes)))
             if not running:
                 break
             job, handle = running.popleft()
@@ -709,8 +707,7 @@ class Merger:
         if predicted is not None:
             self.stats.near += 1
             return self.graph.pair_job(a, b, predicted)
-        x, y = (a, b) if a < b else (b, a)  # always integrated one way (MapGraph._oriented_pair)
-        return None if self.graph.is_current(x, y) else self.graph.pair_job(x, y)
+        return self.graph.job_once(a, b)
 
     # -- outputs ---------------------------------------------------------------------------
     def _global_map(self, result: MergeResult) -> GlobalMap:
