@@ -32,13 +32,13 @@ from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
 from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths
+from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.core.segmap import MIN_SEGMENT_LENGTH
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Array, Transform2D, lengths
-from fleetmap.shared.keys import check_name
-from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH
-from fleetmap.shared.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan, SubmapLink
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.io.keys import check_name
+from fleetmap.shared.io.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan, SubmapLink
 
 log = logging.getLogger(__name__)
 

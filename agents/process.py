@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.sources import SourceScan
-from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
+from fleetmap.shared.io.bus import Bus, Handle
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
 
 log = logging.getLogger(__name__)
 

@@ -37,10 +37,11 @@ import numpy as np
 from fleetmap.scenarios.fleet import Scenario
 from fleetmap.scenarios.loader import load_scenario
 from fleetmap.scenarios.stream import robot_stream
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import MAX_STAMP
-from fleetmap.shared.scans import OdometryReading, RangeScan, read_carmen, read_carmen_lines, read_carmen_odometry
+from fleetmap.shared.io.logs import OdometryReading, read_carmen, read_carmen_lines, read_carmen_odometry
+from fleetmap.shared.io.messages import MAX_STAMP
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
 from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError
@@ -137,7 +138,7 @@ class CarmenSource:
     Several agents given parts of one log (``r1``: ``--stop 600``, ``r2``: ``--start 500``) map a
     real building as a fleet whose maps overlap. ``index`` is the scan's position among the log's
     laser lines, so two robots sharing a log name the same scan alike. The log's poses are dropped.
-    ``range_max`` is the no-return reading of FLASER/RLASER lines (:func:`~fleetmap.shared.scans.read_carmen`).
+    ``range_max`` is the no-return reading of FLASER/RLASER lines (:func:`~fleetmap.shared.io.logs.read_carmen`).
     """
 
     def __init__(

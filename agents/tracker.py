@@ -3,10 +3,10 @@
 For each scan (:meth:`Tracker.add`):
 
 1. **Predict** its pose from the previous one: the odometry's increment when the robot has
-   odometry, else constant velocity (:mod:`fleetmap.shared.motion`), with that model's
+   odometry, else constant velocity (:mod:`fleetmap.shared.core.motion`), with that model's
    uncertainty.
 2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
-   (:func:`fleetmap.shared.tracking.register`).
+   (:func:`fleetmap.shared.core.tracking.register`).
 3. **Check the fit**: enough of the scan's walls on the submap's (``min_matched_share``,
    ``min_matched_length``), the scan's beams through little of the submap's walls
    (``max_see_through``: a laser does not see through walls), and a pose the robot can have
@@ -42,14 +42,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
-from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
-from fleetmap.shared.integration import Window, integrate
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import scan_viewpoint
-from fleetmap.shared.motion import Prediction, from_odometry, from_velocity, odometry_increment, velocity_between
-from fleetmap.shared.scans import RangeScan
-from fleetmap.shared.tracking import ReferenceMap, Registration, ScanSamples, register, sample_segments, see_through
-from fleetmap.shared.walls import WallMap
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.integration import Window, integrate
+from fleetmap.shared.core.mapgrid import scan_viewpoint
+from fleetmap.shared.core.motion import Prediction, from_odometry, from_velocity, odometry_increment, velocity_between
+from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import (
+    ReferenceMap,
+    Registration,
+    ScanSamples,
+    register,
+    sample_segments,
+    see_through,
+)
+from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +122,7 @@ class Submap:
         self.inserted += 1
 
     def segment_map(self) -> SegmentMap:
-        """Its walls, one segment per stretch of wall (:class:`fleetmap.shared.walls.WallMap`)."""
+        """Its walls, one segment per stretch of wall (:class:`fleetmap.shared.core.walls.WallMap`)."""
         return SegmentMap(self.walls.segments, ordered=False, oriented=True)
 
     def viewpoints(self) -> Array:

@@ -24,12 +24,14 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import integrate
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.config import FleetmapConfig, IntegrationParams
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.logs import read_carmen
+
+from fleetmap.config_args import add_config_arguments, config_from_args
 
 DATASETS = {
     # name: (log, no-return reading of its FLASER lines, mounting offset of the relations' frame)

@@ -15,11 +15,11 @@ import statistics
 import time
 
 import numpy as np
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import integrate
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.logs import read_carmen
 from results import write_section
 from tracking import data_folder
 

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.recording import RecordingReader
+from fleetmap.shared.io.recording import RecordingReader
 from results import write_section
 
 from fleetmap.report import merge_latencies

@@ -6,7 +6,7 @@ never given to the algorithms, but for the reference ``--local-maps truth``):
 
 1. cut the tour into K consecutive pieces overlapping by a few scans (K robots);
 2. build each piece's local maps from its scans alone, as a robot agent does: the pivot method
-   (:class:`fleetmap.merger.sequence.PivotMapBuilder`, no poses; the scans' times give the motion
+   (:class:`fleetmap.agents.localmap.PivotMapBuilder`, no poses; the scans' times give the motion
    bound and prior, as a live agent's stamps do), and a new local map (epoch) when
    ``--kidnap-after`` scans in a row cannot be placed, or one cannot be placed on a local map of
    one scan, starting from the first of them;
@@ -57,13 +57,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.graph import MapGraph
-from fleetmap.merger.sequence import PivotMapBuilder
-from fleetmap.shared.config import FleetmapConfig, add_config_arguments, config_from_args
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import RangeScan, read_carmen
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.logs import read_carmen
+
+from fleetmap.config_args import add_config_arguments, config_from_args
 
 DATASETS = {
     # name: subsampling step (freiburg-079 is logged every 0.1 m; the others about every metre)

@@ -1,7 +1,7 @@
 """Benchmark: a scenario session without processes or a bus (run on demand, not in CI).
 
 Every robot's agent runs on its scans; their messages go, in stamp order, through one merger
-(:class:`fleetmap.merger.service.Merger`), which takes a step every ``--step`` scenario seconds; the
+(:class:`fleetmap.merger.engine.Merger`), which takes a step every ``--step`` scenario seconds; the
 session is then scored exactly as ``fleetmap run`` scores a live one (:mod:`fleetmap.report`). The
 result depends on nothing but the scenario and the config, so two versions of the code can be
 compared run for run. A live session's merger falls behind when integration is slow, so its
@@ -22,14 +22,15 @@ import math
 import time
 
 from fleetmap.agents.agent import Agent
-from fleetmap.merger.service import Merger
+from fleetmap.merger.engine import Merger
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.loader import list_scenarios
-from fleetmap.shared.config import FleetmapConfig, add_config_arguments, config_from_args
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import FleetEvent, LocalMap, Message, decode
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import FleetEvent, LocalMap, Message, decode
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.report import SessionLog, build_report, make_truth, summary_table
 
 WRONG_M, WRONG_DEG = 0.3, 3.0

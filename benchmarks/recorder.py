@@ -29,12 +29,12 @@ from pathlib import Path
 import msgpack
 import numpy as np
 from fleetmap.merger.recorder import Recorder, RecorderService
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import LocalMap
-from fleetmap.shared.recording import RecordingReader, RecordingWriter
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import LocalMap
+from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 KEYS = FleetKeys("bench")
 ROBOTS = 4
@@ -67,8 +67,8 @@ def in_process(payloads: list[tuple[str, bytes]], path: Path, foxglove: bool) ->
 PUBLISHER = """
 import sys
 import msgpack
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.zenoh_config import ZenohOptions
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_config import ZenohOptions
 
 with open(sys.argv[2], "rb") as f:
     payloads = msgpack.unpackb(f.read())

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results import write_section

@@ -40,10 +40,12 @@ import multiprocessing
 import statistics
 import sys
 
-from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import Integration, integrate
+from fleetmap.shared.config import FleetmapConfig, IntegrationParams
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Integration, integrate
 from merge import DATASETS, load_pieces
+
+from fleetmap.config_args import add_config_arguments, config_from_args
 
 RIGHT_TRANSLATION = 0.3
 RIGHT_ROTATION = math.radians(3)

@@ -3,7 +3,7 @@
 1. **Laser**: milliseconds per 181-beam scan in each world (the scenario simulator's cost), against
    casting every beam on every wall.
 2. **Integration**: every robot's scans are simulated and extracted; each pair of consecutive
-   scans (same leg: not across a kidnap) is integrated with no prior (fleetmap.shared.integration)
+   scans (same leg: not across a kidnap) is integrated with no prior (fleetmap.shared.core.integration)
    and compared with the true relative pose. A pair is *right* within (0.10 m, 2 deg). Pairs
    across a kidnap should all come out invalid.
 3. **Merge** (:func:`merge_section`): the unknown-order merge of the robots' local maps with
@@ -33,10 +33,12 @@ from fleetmap.scenarios.metrics import map_error, pose_error, score_map, world_f
 from fleetmap.scenarios.stream import SimulatedScan, robot_stream
 from fleetmap.scenarios.truth import ground_truth
 from fleetmap.scenarios.worlds import WORLDS, get_world
-from fleetmap.shared.config import FleetmapConfig, IntegrationParams, add_config_arguments, config_from_args
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.integration import integrate
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.config import FleetmapConfig, IntegrationParams
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.segmap import SegmentMap
+
+from fleetmap.config_args import add_config_arguments, config_from_args
 
 RIGHT_TRANSLATION = 0.10
 RIGHT_ROTATION_DEG = 2.0
@@ -167,8 +169,8 @@ def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: Fleetma
     fleetmap.merger is not available yet.
     """
     try:
+        from fleetmap.agents.localmap import PivotMapBuilder
         from fleetmap.merger.graph import MapGraph
-        from fleetmap.merger.sequence import PivotMapBuilder
     except ImportError:
         print("merge: not available yet")
         return None

@@ -34,9 +34,11 @@ from fleetmap.agents.agent import Agent
 from fleetmap.agents.sources import CarmenSource
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.loader import list_scenarios
-from fleetmap.shared.config import FleetmapConfig, add_config_arguments, config_from_args
-from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
 from results import write_section
+
+from fleetmap.config_args import add_config_arguments, config_from_args
 
 LOGS = {
     "aces": ("aces/aces.clf.gz", 50.0),

@@ -38,13 +38,13 @@ from typing import Any, Protocol
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Integration, align_near, index_for, integrate, takes_large_path
+from fleetmap.shared.core.refine import fit_information, refine_transform
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import ReferenceMap, sample_segments
+from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.evaluation import prepare
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import Integration, align_near, index_for, integrate, takes_large_path
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.refine import fit_information, refine_transform
-from fleetmap.shared.tracking import ReferenceMap, sample_segments
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class PairJob:
 @dataclass(frozen=True)
 class PairResult:
     """What :func:`run_pair` found: the integration, and a valid edge's fitted transform and how
-    firmly the walls fix it (:func:`~fleetmap.shared.integration.fit_information`)."""
+    firmly the walls fix it (:func:`~fleetmap.shared.core.integration.fit_information`)."""
 
     integration: Integration
     transform: Transform2D
@@ -142,7 +142,7 @@ def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
 
 def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     """Integrate one pair (pure but for ``indexes``, a cache): near the prediction by registration
-    (:func:`~fleetmap.shared.integration.align_near`), else by the paper's INTEGRATE, the large-map
+    (:func:`~fleetmap.shared.core.integration.align_near`), else by the paper's INTEGRATE, the large-map
     path where a map is large; a valid result fitted on the full maps (:func:`fitted`)."""
     cache = _WORKER_INDEXES if indexes is None else indexes
     a, b, (va, vb) = job.a, job.b, job.versions

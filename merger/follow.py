@@ -2,9 +2,9 @@
 scan in, composed with the scan's pose in that submap.
 
 The merger places submaps every second or two; a robot scans five times a second. Each placed
-scan names its submap and its pose there (:class:`~fleetmap.shared.messages.Scan`), so its pose in
+scan names its submap and its pose there (:class:`~fleetmap.shared.io.messages.Scan`), so its pose in
 the global map is ``frames[submap] * scan.pose`` with the frames of the last merge
-(:meth:`fleetmap.merger.service.Merger.pose_frames`): poses stream at scan rate and move with the
+(:meth:`fleetmap.merger.engine.Merger.pose_frames`): poses stream at scan rate and move with the
 map when a merge refines it. A scan in a submap no merge has placed yet (a robot's newest, or one
 never merged), an unplaced scan or one of an older epoch says nothing: the last pose stands until a
 merge or a placed scan gives a new one, never a guess.
@@ -15,8 +15,8 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import RobotPose, Scan
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.messages import RobotPose, Scan
 
 Frames = dict[str, tuple[int, Transform2D]]
 """Per submap key: the global map component it is in, and its pose in that component's frame."""

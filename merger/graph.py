@@ -36,14 +36,15 @@ import networkx as nx
 import numpy as np
 from fleetmap.merger.executor import Indexes, PairJob, PairResult, fitted, reference_of, run_pair
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.core.fusion import fuse
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientations, wrap_angle
+from fleetmap.shared.core.integration import index_for
+from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.simplify import simplify
+from fleetmap.shared.core.tracking import ReferenceMap
+from fleetmap.shared.core.validity import seen_from_enough_places
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.fusion import fuse
-from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, wrap_angle
-from fleetmap.shared.integration import index_for, seen_from_enough_places
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import MapIndex, viewpoints_of
-from fleetmap.shared.simplify import simplify
-from fleetmap.shared.tracking import ReferenceMap
 from scipy.optimize import least_squares
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ class Edge:
     """The part of it the validity rule limits (:attr:`Integration.solid_violation`; None: all)."""
     information: tuple[float, ...] | None = None
     """How firmly the two maps' walls fix ``transform`` (row-major 3x3,
-    :func:`~fleetmap.shared.refine.fit_information`; found for an edge integrated valid): along a
+    :func:`~fleetmap.shared.core.refine.fit_information`; found for an edge integrated valid): along a
     corridor the walls leave the translation free, and the poses refined together take it from
     the other edges. None: not known (an edge integrated invalid, ``MergeParams.edge_information``
     off, fewer than two parallel pairs matched, or an edge given without it); such an edge weighs
@@ -130,7 +131,7 @@ class _Node:
     version: int
     histogram: Array
     work: SegmentMap
-    """The map as integrated and fused: simplified (fleetmap.shared.simplify) unless it is a scan."""
+    """The map as integrated and fused: simplified (fleetmap.shared.core.simplify) unless it is a scan."""
     index: MapIndex | None = None
     """Its grid index for the large-map path, built on first use and kept."""
 
@@ -356,7 +357,7 @@ class MapGraph:
 
     def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
         """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
-        integration (:func:`~fleetmap.shared.integration.align_near`); the edge replaces any known."""
+        integration (:func:`~fleetmap.shared.core.integration.align_near`); the edge replaces any known."""
         job = self.pair_job(a, b, predicted)
         return self.take(job, run_pair(job, self.indexes))
 
@@ -444,7 +445,7 @@ class MapGraph:
 
     def _too_few_places(self, a: SegmentMap, b: SegmentMap) -> bool:
         """Whether two partial maps cannot merge whatever their geometry: one was seen from fewer
-        than ``valid_min_map_scans`` places (fleetmap.shared.integration's rule). Such a pair is
+        than ``valid_min_map_scans`` places (fleetmap.shared.core.integration's rule). Such a pair is
         not integrated (a new epoch's first versions, a robot that saw its map from one place)."""
         return not (a.ordered or b.ordered or seen_from_enough_places(a, b, self.integration))
 

@@ -16,7 +16,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D
 from matplotlib.collections import LineCollection
 from matplotlib.lines import Line2D
 

@@ -3,11 +3,11 @@
 Nodes are submaps (``<robot>/<epoch>/<submap>``). Edges are of two kinds:
 
 - **links**: a robot's own chain of consecutive submaps, measured by its tracking, with the
-  tracking's covariance (:class:`~fleetmap.shared.messages.SubmapLink`); never rejected;
+  tracking's covariance (:class:`~fleetmap.shared.io.messages.SubmapLink`); never rejected;
 - **integrations**: the paper's pose-free integration (Algorithms 1-4) between submaps of
   different robots, or non-consecutive submaps of one robot (a loop), or, for a submap the fleet
   has placed, its walls registered near where the graph predicts them
-  (:func:`~fleetmap.shared.integration.align_near`); each with its transformation value, validity
+  (:func:`~fleetmap.shared.core.integration.align_near`); each with its transformation value, validity
   and how firmly its walls fix it.
 
 The merge order is read off the graph as in :class:`~fleetmap.merger.graph.MapGraph`: a maximum
@@ -21,7 +21,7 @@ their covariance says, integrations through a Cauchy loss, the anchor fixed), an
 that still disagrees with the refined poses by more than the cycle tolerance is rejected and the
 component solved again: only edges that agree with the graph count, so one wrong integration cannot
 move a map. Each component is one global map; its walls are the submaps' fused one segment per
-stretch of wall (:class:`~fleetmap.shared.walls.WallMap`).
+stretch of wall (:class:`~fleetmap.shared.core.walls.WallMap`).
 """
 
 from __future__ import annotations
@@ -46,13 +46,14 @@ from fleetmap.merger.graph import (
     _unite,
 )
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.integration import GridFreeSpace, align_near
+from fleetmap.shared.core.mapgrid import grid_scores
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.transformation_value import prepare, transformation_value
+from fleetmap.shared.core.validity import is_valid, max_map_violation
+from fleetmap.shared.core.walls import WallMap
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.evaluation import prepare, transformation_value
-from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.integration import GridFreeSpace, align_near, is_valid, max_map_violation
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import grid_scores
-from fleetmap.shared.walls import WallMap
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +206,7 @@ class PoseGraph(MapGraph):
         self._looks = {k: v for k, v in self._looks.items() if key not in k[:2]}
 
     def _work(self, m: SegmentMap) -> SegmentMap:
-        # a submap's walls are already one segment per stretch of wall (fleetmap.shared.walls)
+        # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls)
         return m
 
     # -- solving -----------------------------------------------------------------------------
@@ -438,7 +439,7 @@ class PoseGraph(MapGraph):
 
         Registering every overlapping pair would cost a registration per pair and join, and the
         groups are whole components: each pair is first looked at cheaply where the join puts it
-        (its grid score: wall on wall, wall in seen free space, :func:`~fleetmap.shared.mapgrid.grid_scores`).
+        (its grid score: wall on wall, wall in seen free space, :func:`~fleetmap.shared.core.mapgrid.grid_scores`).
         A pair the look says refutes the join is registered to make sure (a drifted chain puts
         walls a little off); then the pairs with the most wall on wall are registered, most first,
         until enough bear the join out and their value outweighs the wall against, or none is left

@@ -8,7 +8,7 @@ the end; it needs no network. :class:`RecorderService` runs it on a bus: it subs
 it to be ready; its queryable ``fleet/<fleet>/recorder/stats`` answers what it has recorded so
 far (:meth:`RecorderSummary.from_msgpack`), so whoever stops it can first wait for it to catch up.
 
-What goes into the file (see :mod:`fleetmap.shared.recording`): every payload raw, on a channel
+What goes into the file (see :mod:`fleetmap.shared.io.recording`): every payload raw, on a channel
 named by its key, and a Foxglove view of every valid one. A malformed payload was on the bus, so
 it is recorded raw too; it gets no view and is counted, and it never stops the recorder. Presence
 changes are recorded as FleetEvent payloads (join, leave) on the liveliness key's channel.
@@ -32,10 +32,10 @@ from types import TracebackType
 from typing import ClassVar, Self
 
 import msgpack
-from fleetmap.shared.bus import Bus, Handle
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import ROBOT_KINDS, FleetKeys
-from fleetmap.shared.messages import (
+from fleetmap.shared.io.bus import Bus, Handle
+from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys
+from fleetmap.shared.io.messages import (
     BadMessage,
     FleetEvent,
     GlobalMap,
@@ -47,7 +47,7 @@ from fleetmap.shared.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.recording import FoxgloveScene, RecordingWriter, seconds_to_ns
+from fleetmap.shared.io.recording import FoxgloveScene, RecordingWriter, seconds_to_ns
 
 log = logging.getLogger(__name__)
 

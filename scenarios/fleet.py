@@ -28,7 +28,7 @@ import numpy as np
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.scenarios.odometry import OdometryParams
 from fleetmap.scenarios.worlds import World
-from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 
 Point = tuple[float, float]
 

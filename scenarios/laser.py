@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from fleetmap.shared.geometry import Array, point_segment_distance
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.core.geometry import Array, point_segment_distance
+from fleetmap.shared.core.rangescan import RangeScan
 
 
 @dataclass(frozen=True)

@@ -78,8 +78,8 @@ from fleetmap.scenarios.fleet import (
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.scenarios.odometry import OdometryParams
 from fleetmap.scenarios.worlds import WORLDS, World, get_world
+from fleetmap.shared.core.geometry import Transform2D, wrap_angle
 from fleetmap.shared.errors import ConfigError
-from fleetmap.shared.geometry import Transform2D, wrap_angle
 
 log = logging.getLogger(__name__)
 

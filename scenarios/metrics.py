@@ -23,7 +23,7 @@ from typing import TypeVar
 
 import numpy as np
 from fleetmap.scenarios.laser import LaserParams, true_ranges
-from fleetmap.shared.geometry import Array, Transform2D, lengths, point_segment_distance, segment_points
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths, point_segment_distance, segment_points
 
 K = TypeVar("K", bound=Hashable)
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D
 
 if TYPE_CHECKING:
     from fleetmap.scenarios.fleet import PlannedScan

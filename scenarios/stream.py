@@ -2,7 +2,7 @@
 
 :func:`robot_stream` yields, for each scan of a robot's plan (:func:`fleetmap.scenarios.fleet.plan`),
 its index, stamp (scenario seconds), true laser pose (world frame) and the simulated
-:class:`~fleetmap.shared.scans.RangeScan`. The noise of scan k of robot r is drawn from its own
+:class:`~fleetmap.shared.core.rangescan.RangeScan`. The noise of scan k of robot r is drawn from its own
 generator seeded by (scenario seed, robot id, k): every run of a scenario gives the same scans,
 and a stream restarted at scan k gives the same scans from there on.
 
@@ -20,8 +20,8 @@ import numpy as np
 from fleetmap.scenarios.fleet import PlannedScan, Scenario, plan
 from fleetmap.scenarios.laser import noisy_ranges, true_ranges
 from fleetmap.scenarios.odometry import simulate_odometry
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.rangescan import RangeScan
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from typing import Any
 
 from fleetmap.scenarios.fleet import Event, Kidnap, MergerRestart, PlannedScan, Scenario, plan
 from fleetmap.scenarios.metrics import visible_walls
-from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D
 
 
 @dataclass(frozen=True, eq=False)

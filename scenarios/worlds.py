@@ -27,8 +27,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from fleetmap.shared.core.geometry import Array, point_segment_distance, segments_intersect
 from fleetmap.shared.errors import ConfigError
-from fleetmap.shared.geometry import Array, point_segment_distance, segments_intersect
 
 
 @dataclass(frozen=True, eq=False)

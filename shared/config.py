@@ -18,18 +18,11 @@ Command-line overrides use the field names with dashes (``--point-distance-toler
 
 from __future__ import annotations
 
-import argparse
-import ast
 import dataclasses
-import functools
-import inspect
-import itertools
 import logging
 import math
-import re
-import textwrap
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal, get_args, get_type_hints
@@ -55,7 +48,7 @@ class ExtractionParams:
     kappa_noise_factor: float = 3.0
     """fleetmap: a noisy scan's polyline tolerance is this times its noise (the median distance of
     a point from the chord of its two neighbours), where that exceeds kappa by a quarter
-    (:func:`fleetmap.shared.extraction.kappa_for`), so a noisy laser's straight wall stays one
+    (:func:`fleetmap.shared.core.extraction.kappa_for`), so a noisy laser's straight wall stays one
     segment (edmonton's laser: 2.2 cm, so kappa 6.6 cm); 0 keeps kappa always."""
     max_range: float = 20.0
     """Ranges beyond this are treated as no return (m). The paper's SICK LMS 200 was set to 8 m;
@@ -68,7 +61,7 @@ class ExtractionParams:
     """Clusters with fewer points give no segment (a lone return is not a wall)."""
     line_fit: bool = True
     """Merge split pieces that fit one line and put segments on fitted lines (fleetmap, not the
-    paper: see fleetmap.shared.extraction); false gives the paper's polylines through the points."""
+    paper: see fleetmap.shared.core.extraction); false gives the paper's polylines through the points."""
 
 
 @dataclass(frozen=True)
@@ -140,7 +133,7 @@ class IntegrationParams:
     """auto also tries the all heuristic when it yields at most this many transformations."""
     free_space_margin: float = 0.10
     """A wall point closer to a scan's sensor than the wall it saw, by more than this (m), lies in
-    the scan's seen free space (fleetmap's free-space check, see fleetmap.shared.visibility)."""
+    the scan's seen free space (fleetmap's free-space check, see fleetmap.shared.core.visibility)."""
     valid_min_value: float = 1.0
     """An integration is valid only if its value is at least this (m) ..."""
     valid_min_fraction: float = 0.2
@@ -150,7 +143,7 @@ class IntegrationParams:
     valid_max_ambiguity: float = 0.8
     """... and no clearly different transformation scores more than this fraction of its score."""
     grid_resolution: float = 0.10
-    """Large maps (fleetmap, see fleetmap.shared.mapgrid): cell size (m) of the grids that rank
+    """Large maps (fleetmap, see fleetmap.shared.core.mapgrid): cell size (m) of the grids that rank
     candidate transformations by matched wall length and wall length in seen free space."""
     map_free_space_margin: float = 0.20
     """Large maps: a wall point closer to a viewpoint than the map's wall in that bearing by more than
@@ -183,7 +176,7 @@ class IntegrationParams:
     orebro map built 2.5 m off its first scan (a log without times) with the others (14 maps
     wrong, against 5). The simulated scenarios do not change."""
     simplify_tolerance: float = 0.05
-    """Partial maps (fleetmap, see fleetmap.shared.simplify): segments within this (m) of one line
+    """Partial maps (fleetmap, see fleetmap.shared.core.simplify): segments within this (m) of one line
     are replaced by one segment per covered stretch (0: never simplify)."""
     pivot_witnesses: bool = True
     """The pivot builder places a scan only when two integrations agree on its pose (fleetmap: one
@@ -222,7 +215,7 @@ class IntegrationParams:
     """... and it puts at most this fraction of its value in the maps' seen free space ..."""
     valid_max_map_ambiguity: float = 0.5
     """... and no clearly different transformation scores more than this fraction of its score
-    (on the large-map path; see fleetmap.shared.integration for how these were measured)."""
+    (on the large-map path; see fleetmap.shared.core.integration for how these were measured)."""
     valid_strong_map_value: float = 16.0
     """Two partial maps (fleetmap): an integration of at least this value (m; 0: no such tier) ..."""
     valid_max_strong_map_violation: float = 0.15
@@ -342,7 +335,7 @@ class MergeParams:
 
 @dataclass(frozen=True)
 class TrackingParams:
-    """The robot agent's front end: scan-to-submap tracking (fleetmap; ``fleetmap.shared.tracking``
+    """The robot agent's front end: scan-to-submap tracking (fleetmap; ``fleetmap.shared.core.tracking``
     and ``fleetmap.agents.tracker``, ``docs/decisions/001-tracking-front-end.md``)."""
 
     front_end: FrontEnd = "tracking"
@@ -406,7 +399,7 @@ class TrackingParams:
     """... or this many inserted scans, whichever comes first; the next submap starts halfway, so
     consecutive submaps overlap by half."""
     typical_score_share: float = 0.5
-    """A fit whose score (:attr:`fleetmap.shared.tracking.Registration.score`) is below this share of
+    """A fit whose score (:attr:`fleetmap.shared.core.tracking.Registration.score`) is below this share of
     the robot's recent fits' median is not taken at once: the robot standing still, the other
     motion model and the pose-free integration are tried too, and the best taken."""
     min_matched_share: float = 0.3
@@ -416,12 +409,12 @@ class TrackingParams:
     """... and at least this much of it (m) ..."""
     max_see_through: float = 0.5
     """... and the scan's beams pass through at most this share of the submap wall they could
-    have seen (:func:`fleetmap.shared.tracking.see_through`): a laser cannot see through walls."""
+    have seen (:func:`fleetmap.shared.core.tracking.see_through`): a laser cannot see through walls."""
     see_through_margin: float = 0.3
     """A beam passes through a submap wall when its return lies this much (m) beyond it ..."""
     see_through_slope: float = 0.02
     """... plus the range change a heading error of this much (rad) makes on that wall, at its
-    range and incidence (:func:`fleetmap.shared.tracking.see_through`) ..."""
+    range and incidence (:func:`fleetmap.shared.core.tracking.see_through`) ..."""
     see_through_beams: float = 5.0
     """... and only walls wide enough to span this many of the laser's beams at their range count
     (a thin thing between two beams is not seen through)."""
@@ -568,63 +561,3 @@ def load_config(path: str | Path | None = None) -> FleetmapConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(p), f"not valid TOML: {exc}") from None
     return apply_overrides(config, data, str(p))
-
-
-def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str]) -> None:
-    """Add ``--config FILE`` and one ``--field-name VALUE`` option per field of ``sections``, in
-    "advanced algorithm parameters" groups, each with the first sentence of its field's docstring."""
-    parser.add_argument(
-        "--config",
-        metavar="FILE",
-        help="a TOML file of algorithm parameters, one table per section ([integration], ...)",
-    )
-    for section in sections:
-        cls = SECTIONS[section]
-        said = field_sentences(cls)
-        group = parser.add_argument_group(
-            f"advanced algorithm parameters: {section} (override --config; fleetmap/shared/config.py explains each)"
-        )
-        for f in fields(cls):
-            default = f.default
-            group.add_argument(
-                "--" + f.name.replace("_", "-"),
-                dest=f"cfg__{section}__{f.name}",
-                metavar=type(default).__name__.upper() if not isinstance(default, str) else "NAME",
-                default=None,
-                help=f"{said.get(f.name, '')} (default {default!r})".lstrip(),
-            )
-
-
-@functools.cache
-def field_sentences(cls: type) -> dict[str, str]:
-    """The first sentence of each field's docstring (the string literal after it in the class body),
-    for ``--help``."""
-    try:
-        body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0]
-    except (OSError, TypeError, SyntaxError):
-        return {}
-    out: dict[str, str] = {}
-    statements = body.body if isinstance(body, ast.ClassDef) else []
-    for field_node, doc in itertools.pairwise(statements):
-        if (
-            isinstance(field_node, ast.AnnAssign)
-            and isinstance(field_node.target, ast.Name)
-            and isinstance(doc, ast.Expr)
-            and isinstance(doc.value, ast.Constant)
-            and isinstance(doc.value.value, str)
-        ):
-            text = " ".join(doc.value.value.replace("``", "").split())
-            sentence = re.split(r"(?<=[a-z0-9)]\.)\s+(?=[A-Z(])", text, maxsplit=1)[0]
-            out[field_node.target.id] = sentence if len(sentence) <= 160 else sentence[:157].rstrip() + "..."
-    return out
-
-
-def config_from_args(args: argparse.Namespace) -> FleetmapConfig:
-    """The config file named by ``--config`` (or the defaults) with the command-line overrides."""
-    config = load_config(getattr(args, "config", None))
-    overrides: dict[str, dict[str, Any]] = {}
-    for key, value in vars(args).items():
-        if key.startswith("cfg__") and value is not None:
-            _, section, name = key.split("__", 2)
-            overrides.setdefault(section, {})[name] = value
-    return apply_overrides(config, overrides, "command line") if overrides else config

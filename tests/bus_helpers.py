@@ -6,8 +6,8 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from fleetmap.shared.bus import Bus, BusError, InMemoryBus, ZenohBus
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint, zenoh_config
+from fleetmap.shared.io.bus import Bus, BusError, InMemoryBus, ZenohBus
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint, zenoh_config
 
 WAIT = 5.0
 """The longest any test waits for something the bus should deliver (s); it normally takes ms."""

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import ExtractionParams
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
 
 # A 12 m x 10 m room with an irregular inside: boxes, an L-shaped wall, a slanted wall and a
 # pillar, so that no rotation or shift of it looks like itself.
@@ -74,8 +74,8 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
     agent's epoch would be. Returns (message, true pose of the frame in the world). A bundled
     scenario's scans are its sparse copy's (:func:`sparse`)."""
     from fleetmap.scenarios import load_scenario, robot_stream
-    from fleetmap.shared.fusion import fuse
-    from fleetmap.shared.messages import LocalMap
+    from fleetmap.shared.core.fusion import fuse
+    from fleetmap.shared.io.messages import LocalMap
 
     sc = load_scenario(sparse(scenario_name))
     scans = [s for s in robot_stream(sc, robot) if start <= s.index < stop]

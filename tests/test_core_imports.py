@@ -1,42 +1,63 @@
-"""The pure core (geometry, extraction, integration, fusion, tracking, the pose graph, the agent's
-and the merger's logic) imports neither zenoh nor mcap: it runs in a notebook, a test or a Ray
-worker with no network and no recording."""
+"""The layout keeps the pure core apart from I/O.
+
+``fleetmap.shared.core`` (geometry, extraction, integration and its validity, fusion, tracking)
+imports nothing of ``fleetmap.shared.io``, zenoh or mcap: it runs in a notebook, a test or a Ray
+worker with no files, no network and no recording. The agent's and the merger's logic (the
+tracker, the local-map builder, the pose graph, the merger as a library, the integration jobs)
+reads and writes bus messages but imports neither zenoh nor mcap."""
 
 from __future__ import annotations
 
+import pkgutil
 import subprocess
 import sys
 
-CORE = [
-    "fleetmap.shared.geometry",
-    "fleetmap.shared.extraction",
-    "fleetmap.shared.evaluation",
-    "fleetmap.shared.integration",
-    "fleetmap.shared.fusion",
-    "fleetmap.shared.walls",
-    "fleetmap.shared.tracking",
-    "fleetmap.shared.mapgrid",
-    "fleetmap.shared.messages",
+import fleetmap.shared.core
+
+CORE = sorted(f"fleetmap.shared.core.{m.name}" for m in pkgutil.iter_modules(fleetmap.shared.core.__path__))
+
+LOGIC = [
+    "fleetmap.shared.io.messages",
     "fleetmap.agents.tracker",
+    "fleetmap.agents.localmap",
     "fleetmap.agents.agent",
+    "fleetmap.agents.pivot",
     "fleetmap.merger.graph",
     "fleetmap.merger.posegraph",
     "fleetmap.merger.executor",
     "fleetmap.merger.follow",
+    "fleetmap.merger.engine",
+    "fleetmap.merger.sequence",
 ]
-
 
 CHECK = """
 import importlib, sys
-for module in sys.argv[1:]:
+forbidden = sys.argv[1].split(",")
+for module in sys.argv[2:]:
     importlib.import_module(module)
-    found = [n for n in ("zenoh", "mcap") if n in sys.modules]
+    found = sorted(n for n in sys.modules if any(n == f or n.startswith(f + ".") for f in forbidden))
     if found:
         sys.exit(f"{module} imports {found}")
 """
 
 
-def test_the_core_imports_neither_zenoh_nor_mcap() -> None:
-    argv = [sys.executable, "-c", CHECK, *CORE]
+def _imports_none_of(forbidden: list[str], modules: list[str]) -> None:
+    argv = [sys.executable, "-c", CHECK, ",".join(forbidden), *modules]
     done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr.strip().splitlines()[-1:]
+
+
+def test_the_core_is_every_algorithm_module() -> None:
+    assert {
+        "fleetmap.shared.core.geometry",
+        "fleetmap.shared.core.integration",
+        "fleetmap.shared.core.validity",
+    } <= set(CORE)
+
+
+def test_the_core_imports_no_io_no_zenoh_no_mcap() -> None:
+    _imports_none_of(["zenoh", "mcap", "fleetmap.shared.io"], CORE)
+
+
+def test_the_agent_and_merger_logic_import_neither_zenoh_nor_mcap() -> None:
+    _imports_none_of(["zenoh", "mcap"], LOGIC)

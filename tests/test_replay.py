@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from fleetmap.merger.service import Merger, Outgoing
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import LocalMap
-from fleetmap.shared.recording import RecordingWriter
+from fleetmap.merger.engine import Merger, Outgoing
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import LocalMap
+from fleetmap.shared.io.recording import RecordingWriter
 
 from fleetmap.replay import replay
 from tests.helpers import true_local_map

@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 from fleetmap.scenarios import load_scenario
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import Component, FleetEvent, GlobalMap
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.messages import Component, FleetEvent, GlobalMap
 
 from fleetmap.report import SessionLog, build_report, make_truth, summary_table
 

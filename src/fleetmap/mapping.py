@@ -3,7 +3,7 @@
 Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces, no scan in two).
 Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the
 order of their clocks (each piece's clock starting at 0, as a fleet started together); the submaps
-they publish go, as bytes, through one :class:`~fleetmap.merger.service.Merger`, which takes a step
+they publish go, as bytes, through one :class:`~fleetmap.merger.engine.Merger`, which takes a step
 every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
 is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
 
@@ -27,16 +27,16 @@ import numpy as np
 
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
+from fleetmap.merger.engine import Merger
 from fleetmap.merger.executor import Executor
-from fleetmap.merger.service import Merger
 from fleetmap.report import SessionLog, write_outputs
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import LocalMap, Message
-from fleetmap.shared.occupancy import placed_scans
-from fleetmap.shared.scans import read_ranges_jsonl
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.logs import read_ranges_jsonl
+from fleetmap.shared.io.messages import LocalMap, Message
+from fleetmap.shared.io.occupancy import placed_scans
 
 STEP_SECONDS = 5.0
 """Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this

@@ -20,16 +20,16 @@ from typing import Any
 
 import numpy as np
 
-from fleetmap.merger.service import Merger
+from fleetmap.merger.engine import Merger
 from fleetmap.report import SessionLog, make_truth, write_outputs
 from fleetmap.scenarios import Scenario
 from fleetmap.scenarios.loader import read_scenario
 from fleetmap.shared.config import FleetmapConfig, apply_overrides
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode
-from fleetmap.shared.outputs import output_folder
-from fleetmap.shared.recording import RecordedMessage, RecordingReader
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode
+from fleetmap.shared.io.outputs import output_folder
+from fleetmap.shared.io.recording import RecordedMessage, RecordingReader
 
 log = logging.getLogger(__name__)
 

@@ -26,10 +26,10 @@ import numpy as np
 from fleetmap.scenarios import GroundTruth, Scenario, ground_truth
 from fleetmap.scenarios.fleet import Kidnap
 from fleetmap.scenarios.metrics import aligned_map_error, coverage, map_error, pose_error, world_from_global
-from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.keys import FleetKeys, parse_submap_key
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.messages import (
+from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.keys import FleetKeys, parse_submap_key
+from fleetmap.shared.io.messages import (
     BadMessage,
     Component,
     FleetEvent,
@@ -42,8 +42,8 @@ from fleetmap.shared.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.occupancy import Beams, OccupancyGrid, occupancy_grid, write_map_server
-from fleetmap.shared.occupancy import placed_scans as scan_places
+from fleetmap.shared.io.occupancy import Beams, OccupancyGrid, occupancy_grid, write_map_server
+from fleetmap.shared.io.occupancy import placed_scans as scan_places
 
 FALSE_RELOCALIZATION_M = 1.0
 """A relocalization farther than this from the truth is a false one."""
@@ -447,7 +447,7 @@ def write_outputs(log: SessionLog, truth: Truth | None, out_dir: str | Path, tit
 
 def placed_scans(log: SessionLog) -> dict[tuple[str, int], tuple[int, Transform2D]]:
     """Every scan of the largest component, by (robot, index): its epoch and its laser pose in the
-    global map (:func:`fleetmap.shared.occupancy.placed_scans`)."""
+    global map (:func:`fleetmap.shared.io.occupancy.placed_scans`)."""
     main = log.main
     if main is None:
         return {}
@@ -484,7 +484,7 @@ def robot_paths(log: SessionLog) -> dict[str, Array]:
 
 
 def occupancy_of(log: SessionLog) -> OccupancyGrid:
-    """The largest component's occupancy grid (:mod:`fleetmap.shared.occupancy`): free along its
+    """The largest component's occupancy grid (:mod:`fleetmap.shared.io.occupancy`): free along its
     placed scans' beams, occupied on its fused walls."""
     main = log.main
     walls = np.asarray(main.segments) if main is not None else np.zeros((0, 4))

@@ -29,13 +29,13 @@ from fleetmap.merger.recorder import wait_until_recorded
 from fleetmap.report import latency_figures, log_from_recording, make_truth, merge_latencies, write_outputs
 from fleetmap.scenarios import Scenario, scenario_to_toml
 from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
-from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import FleetmapError
-from fleetmap.shared.messages import BadMessage, LocalMap, MergerStep, decode
-from fleetmap.shared.recording import RecordingReader
-from fleetmap.shared.security import write_fleet_security
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, decode
+from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.security import write_fleet_security
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Every service (``fleetmap record``, ``fleetmap router``, the agent and the merger) takes the same
 ``--mode/--connect/--listen/--zenoh-config/--fleet`` flags (see
-:mod:`fleetmap.shared.zenoh_config` for what they default to) and stops cleanly on SIGINT or
+:mod:`fleetmap.shared.io.zenoh_config` for what they default to) and stops cleanly on SIGINT or
 SIGTERM alike, so ``kill PID`` and Ctrl-C both leave finished files behind.
 """
 
@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from types import FrameType
 
-from fleetmap.shared.zenoh_config import ZenohOptions, add_zenoh_arguments, zenoh_options_from_args
+from fleetmap.shared.io.zenoh_config import ZenohOptions, add_zenoh_arguments, zenoh_options_from_args
 
 __all__ = ["ZenohOptions", "add_zenoh_arguments", "stop_on_signals", "zenoh_options_from_args"]
 

@@ -15,7 +15,7 @@ from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import Scenario, SimulatedScan, load_scenario, robot_stream
 from fleetmap.scenarios.loader import parse_scenario
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
-from fleetmap.shared.messages import FleetEvent, Message
+from fleetmap.shared.io.messages import FleetEvent, Message
 
 KIDNAPPED_DENSE = """
 name = "kidnapped-dense"

@@ -15,9 +15,9 @@ from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import load_scenario, map_error, robot_stream
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
+from fleetmap.shared.io.messages import FleetEvent, LocalMap, Scan, decode
 
 from tests.agents.conftest import blocked, epoch_events, kidnap_index, run, source_scans
 

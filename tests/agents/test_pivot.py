@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from fleetmap.agents.pivot import ONE_SCAN_REASON
 from fleetmap.scenarios import load_scenario, map_error, robot_stream
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import FleetEvent, LocalMap, Scan, decode
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.io.logs import read_carmen
+from fleetmap.shared.io.messages import FleetEvent, LocalMap, Scan, decode
 
 from tests.agents.conftest import blocked, epoch_events, kidnap_index, pivot, run, source_scans
 from tests.helpers import sparse

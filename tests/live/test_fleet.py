@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.messages import FleetEvent, GlobalMap, decode
-from fleetmap.shared.recording import RecordingReader
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.messages import FleetEvent, GlobalMap, decode
+from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from tests.bus_helpers import Inbox
 from tests.helpers import true_local_map
@@ -170,8 +170,8 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
 def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path: Path) -> None:
     # The state of a merger killed after saving a step and before publishing it: fleetmap run
     # waits for that step, and the robots' republished maps bring nothing new to start another.
-    from fleetmap.merger.service import Merger
-    from fleetmap.shared.messages import MergerStep
+    from fleetmap.merger.engine import Merger
+    from fleetmap.shared.io.messages import MergerStep
 
     keys = bus_keys()
     killed = Merger(keys)
@@ -194,7 +194,7 @@ def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path
 
 
 def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_loses_nothing(tmp_path: Path) -> None:
-    from fleetmap.merger.service import Merger
+    from fleetmap.merger.engine import Merger
 
     keys = bus_keys()
     state = tmp_path / "merger.state"
@@ -220,7 +220,7 @@ def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_l
 
 def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_down(tmp_path: Path) -> None:
     from fleetmap.merger.recorder import wait_until_recorded
-    from fleetmap.shared.messages import LocalMap, MergerStep
+    from fleetmap.shared.io.messages import LocalMap, MergerStep
 
     keys = bus_keys()
     state = str(tmp_path / "merger.state")
@@ -262,7 +262,7 @@ def _small_disk(size: int) -> Callable[[], None]:
 
 def test_a_full_disk_is_said_loudly_and_the_services_keep_serving(tmp_path: Path) -> None:
     from fleetmap.merger.recorder import query_recorder_stats
-    from fleetmap.shared.messages import LocalMap
+    from fleetmap.shared.io.messages import LocalMap
 
     keys = bus_keys()
     with router_session(tmp_path) as (bus, _, common, procs):
@@ -313,7 +313,7 @@ def test_a_full_disk_is_said_loudly_and_the_services_keep_serving(tmp_path: Path
 
 
 def bus_keys():  # type: ignore[no-untyped-def]
-    from fleetmap.shared.keys import FleetKeys
+    from fleetmap.shared.io.keys import FleetKeys
 
     return FleetKeys("t")
 

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import msgpack
 import pytest
-from fleetmap.shared.bus import BusError, ZenohBus
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import FleetEvent, GlobalMap, decode
-from fleetmap.shared.recording import RecordingReader
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from fleetmap.shared.io.bus import BusError, ZenohBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import FleetEvent, GlobalMap, decode
+from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from fleetmap.cli import main
 from tests.bus_helpers import Inbox

@@ -138,7 +138,7 @@ import sys
 import numpy as np
 from fleetmap.merger.executor import LocalExecutor, PairJob
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.segmap import SegmentMap
 
 if __name__ == "__main__":
     walls = SegmentMap(np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [0.0, 3.0, 0.0, 0.0]]), oriented=True)
@@ -186,7 +186,7 @@ def test_a_worker_that_died_while_idle_is_replaced_at_the_next_job() -> None:
     import numpy as np
     from fleetmap.merger.executor import PairJob
     from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
-    from fleetmap.shared.mapfile import SegmentMap
+    from fleetmap.shared.core.segmap import SegmentMap
 
     walls = SegmentMap(np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [0.0, 3.0, 0.0, 0.0]]), oriented=True)
     params = IntegrationParams(), TrackingParams(), MergeParams()

@@ -8,12 +8,13 @@ import threading
 
 import numpy as np
 import pytest
+from fleetmap.merger.engine import Merger
 from fleetmap.merger.follow import PoseFollower
-from fleetmap.merger.service import Merger, MergerService
-from fleetmap.shared.bus import InMemoryBus
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import RobotPose, Scan
+from fleetmap.merger.service import MergerService
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.bus import InMemoryBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import RobotPose, Scan
 
 from tests.helpers import true_local_map
 

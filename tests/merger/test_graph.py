@@ -8,11 +8,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.graph import Edge, MapGraph
-from fleetmap.merger.sequence import PivotMapBuilder
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
 
 from tests.helpers import NORTH_LANE, OMNI, ROOM, scan_map, scenario_scans
 

@@ -7,13 +7,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.graph import MapGraph
-from fleetmap.merger.sequence import PivotMapBuilder
 from fleetmap.shared.config import FleetmapConfig, MergeParams
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.logs import read_carmen
 
 
 def _pieces(datasets: Path, log: str, which: list[int]) -> dict[str, tuple[SegmentMap, Transform2D]]:

@@ -7,8 +7,8 @@ import math
 from pathlib import Path
 
 import pytest
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import write_map
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.mapfile import write_map
 
 from tests.merger.test_graph import MAPS, TRUE
 from tests.test_cli import fleetmap

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.merger.plot import plot_merged
-from fleetmap.shared.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D
 
 
 def test_a_fleet_of_many_submaps_gets_one_legend_row_per_robot(tmp_path: Path) -> None:

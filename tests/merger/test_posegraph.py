@@ -7,13 +7,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
+from fleetmap.merger.engine import Merger
 from fleetmap.merger.graph import Edge
-from fleetmap.merger.service import Merger
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import LocalMap, RobotPose, SubmapLink, decode
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import LocalMap, RobotPose, SubmapLink, decode
 
 from tests.helpers import true_local_map
 

@@ -23,10 +23,10 @@ from fleetmap.merger.recorder import (
     query_recorder_stats,
     wait_until_recorded,
 )
-from fleetmap.shared.bus import Bus
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import (
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.bus import Bus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import (
     BadMessage,
     Component,
     FleetEvent,
@@ -37,8 +37,8 @@ from fleetmap.shared.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.recording import RecordingReader, RecordingWriter
-from fleetmap.shared.zenoh_config import ZenohOptions, free_loopback_endpoint
+from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
+from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader

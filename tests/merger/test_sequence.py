@@ -8,11 +8,12 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from fleetmap.merger.sequence import PivotMapBuilder, SequenceResult, pivot, sequential, tree
+from fleetmap.agents.localmap import PivotMapBuilder
+from fleetmap.merger.sequence import SequenceResult, pivot, sequential, tree
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
 
 from tests.helpers import NORTH_LANE, ROOM, scan_map, scenario_scans
 
@@ -226,8 +227,8 @@ def test_bad_input_is_refused() -> None:
 def test_a_map_fused_at_known_poses_is_the_one_the_builder_builds_and_its_frame_is_the_first_scans() -> None:
     # The merge benchmark's reference local maps (--local-maps truth): the scans fused at their
     # true poses, as the builder fuses them at the poses it finds.
+    from fleetmap.shared.core.geometry import point_segment_distance, segment_points
     from fleetmap.shared.errors import BadInput
-    from fleetmap.shared.geometry import point_segment_distance, segment_points
 
     found, given = PivotMapBuilder(), PivotMapBuilder()
     for scan in SCANS:

@@ -11,21 +11,13 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
-from fleetmap.merger.service import Merger
+from fleetmap.merger.engine import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.config import FleetmapConfig, MergeParams
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.messages import (
-    FleetEvent,
-    GlobalMap,
-    LocalMap,
-    MergeEdge,
-    MergerStep,
-    RobotPose,
-    decode,
-)
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import FleetEvent, GlobalMap, LocalMap, MergeEdge, MergerStep, RobotPose, decode
 
 from tests.helpers import true_local_map
 
@@ -266,7 +258,7 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     import threading
 
     import fleetmap.merger.service as service
-    from fleetmap.shared.bus import InMemoryBus
+    from fleetmap.shared.io.bus import InMemoryBus
 
     state = tmp_path / "merger.state"
     merger = Merger(KEYS)

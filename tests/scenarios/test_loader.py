@@ -19,8 +19,8 @@ from fleetmap.scenarios.loader import (
     read_scenario,
     scenario_to_toml,
 )
+from fleetmap.shared.core.geometry import point_segment_distance, segments_intersect
 from fleetmap.shared.errors import ConfigError
-from fleetmap.shared.geometry import point_segment_distance, segments_intersect
 
 WriteScenario = Callable[..., Path]
 

@@ -20,7 +20,7 @@ from fleetmap.scenarios.metrics import (
 )
 from fleetmap.scenarios.truth import ground_truth
 from fleetmap.scenarios.worlds import get_world
-from fleetmap.shared.geometry import Transform2D, lengths
+from fleetmap.shared.core.geometry import Transform2D, lengths
 
 
 def shifted_along_normals(walls: np.ndarray, d: float) -> np.ndarray:

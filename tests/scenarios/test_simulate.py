@@ -12,8 +12,8 @@ from fleetmap.scenarios.fleet import plan
 from fleetmap.scenarios.loader import load_scenario, read_scenario
 from fleetmap.scenarios.metrics import map_error
 from fleetmap.shared.config import load_config
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.scans import read_ranges_jsonl
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.logs import read_ranges_jsonl
 
 from fleetmap.cli import main
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fleetmap.scenarios.worlds import WORLDS, get_world
+from fleetmap.shared.core.geometry import lengths
 from fleetmap.shared.errors import ConfigError
-from fleetmap.shared.geometry import lengths
 
 
 def in_box(walls: np.ndarray, x0: float, y0: float, x1: float, y1: float) -> np.ndarray:

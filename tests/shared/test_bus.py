@@ -18,10 +18,10 @@ from collections.abc import Iterator
 
 import pytest
 import zenoh
-from fleetmap.shared.bus import Bus, BusError, InMemoryBus, ZenohBus
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.zenoh_config import (
+from fleetmap.shared.io.bus import Bus, BusError, InMemoryBus, ZenohBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.zenoh_config import (
     DEFAULT_ENDPOINT,
     ZenohOptions,
     add_zenoh_arguments,
@@ -264,9 +264,9 @@ def test_a_listen_port_in_use_fails_to_open_with_bus_error():
 
 CHILD = """
 import sys
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.keys import FleetKeys
-from fleetmap.shared.zenoh_config import ZenohOptions
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.zenoh_config import ZenohOptions
 
 keys = FleetKeys("t")
 with ZenohBus.open(ZenohOptions(connect=(sys.argv[1],), fleet="t")) as bus:

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.core.extraction import _returns, clusters, extract_segments, range_noise, split_polyline
+from fleetmap.shared.core.geometry import lengths, point_segment_distance
+from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.extraction import _returns, clusters, extract_segments, range_noise, split_polyline
-from fleetmap.shared.geometry import lengths, point_segment_distance
-from fleetmap.shared.scans import RangeScan, read_carmen, read_ranges_jsonl
+from fleetmap.shared.io.logs import read_carmen, read_ranges_jsonl
 
 CORNER = np.array([[3.0, -4.0, 3.0, 2.0], [3.0, 2.0, -3.0, 2.0]])
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.fusion import chain_polyline, fuse
-from fleetmap.shared.geometry import lengths, point_segment_distance
-from fleetmap.shared.integration import integrate
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.fusion import chain_polyline, fuse
+from fleetmap.shared.core.geometry import lengths, point_segment_distance
+from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.segmap import SegmentMap
 
 from tests.shared.test_integration import PAIRS
 
@@ -51,7 +51,7 @@ def test_a_bent_chain_keeps_its_bend_and_direction() -> None:
 def test_maps_that_do_not_overlap_are_kept_whole() -> None:
     a = SegmentMap(np.array([[0, 0, 1, 0.0]]), oriented=True)
     b = SegmentMap(np.array([[5, 5, 6, 5.0]]), oriented=True)
-    from fleetmap.shared.geometry import Transform2D
+    from fleetmap.shared.core.geometry import Transform2D
 
     fused = fuse(a, b, Transform2D.identity())
     assert len(fused) == 2 and np.isclose(lengths(fused.segments).sum(), 2.0)

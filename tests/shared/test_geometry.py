@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from fleetmap.shared.geometry import (
+from fleetmap.shared.core.geometry import (
     Transform2D,
     matching_value,
     point_segment_distance,

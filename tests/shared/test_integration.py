@@ -8,18 +8,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fleetmap.shared.candidates import (
-    find_transformations,
-    pairs_consecutive,
-    pairs_histogram,
-)
 from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.core.candidates import find_transformations, pairs_consecutive, pairs_histogram
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Window, integrate
+from fleetmap.shared.core.mapgrid import with_viewpoints
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.transformation_value import prepare, refused, transformation_values
+from fleetmap.shared.core.validity import is_valid
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.evaluation import prepare, refused, transformation_values
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import Window, integrate, is_valid
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import with_viewpoints
 
 from tests.helpers import OMNI, ROOM, pose_pair, scan_map
 
@@ -203,7 +200,7 @@ def test_two_partial_maps_need_the_map_rule_a_scan_the_scan_rule() -> None:
     # A scan on a map is judged by the scan rule: 6 m is half of what the scan saw.
     assert valid(6.0, 0.0, 0.0, scan)
     # Maps that carry their scans' viewpoints must each have been seen from 5 places at least.
-    from fleetmap.shared.mapgrid import with_viewpoints
+    from fleetmap.shared.core.mapgrid import with_viewpoints
 
     def seen_from(m: SegmentMap, n: int) -> SegmentMap:
         return with_viewpoints(
@@ -218,7 +215,7 @@ def test_an_ambiguous_match_names_its_rivals_and_a_window_chooses_among_them() -
     # further along scores 0.92 of the right one.
     from fleetmap.scenarios import load_scenario, robot_stream
     from fleetmap.shared.config import ExtractionParams
-    from fleetmap.shared.extraction import extract_segments
+    from fleetmap.shared.core.extraction import extract_segments
 
     from tests.helpers import sparse
 

@@ -1,4 +1,4 @@
-"""The grid index that ranks large maps' candidate transformations (fleetmap.shared.mapgrid)."""
+"""The grid index that ranks large maps' candidate transformations (fleetmap.shared.core.mapgrid)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import math
 import multiprocessing
 
 import numpy as np
-from fleetmap.shared import mapgrid
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import RANK_ROTATION_STEP, grid_scores, map_index, ranking_scores
+from fleetmap.shared.core import mapgrid
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.mapgrid import RANK_ROTATION_STEP, grid_scores, map_index, ranking_scores
+from fleetmap.shared.core.segmap import SegmentMap
 
 # An L-shaped room with a pillar: walls facing every way, no symmetry.
 WALLS = np.array(

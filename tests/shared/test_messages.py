@@ -9,10 +9,11 @@ from dataclasses import replace
 import msgpack
 import numpy as np
 import pytest
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.keys import FleetKeys, map_key, parse_map_key
-from fleetmap.shared.messages import (
+from fleetmap.shared.io.keys import FleetKeys, map_key, parse_map_key
+from fleetmap.shared.io.messages import (
     MAX_PAYLOAD_BYTES,
     MAX_SEGMENTS,
     BadMessage,
@@ -29,7 +30,6 @@ from fleetmap.shared.messages import (
     SubmapLink,
     decode,
 )
-from fleetmap.shared.scans import RangeScan
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

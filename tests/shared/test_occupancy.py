@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.occupancy import FREE, OCCUPIED, UNKNOWN, Beams, occupancy_grid, write_map_server
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.occupancy import FREE, OCCUPIED, UNKNOWN, Beams, occupancy_grid, write_map_server
 
 ROOM = np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [4.0, 3.0, 0.0, 3.0], [0.0, 3.0, 0.0, 0.0]])
 """A 4 m x 3 m room."""

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.merger.sequence import PivotMapBuilder
+from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.shared.config import ExtractionParams, IntegrationParams
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.integration import integrate
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.scans import read_carmen
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.logs import read_carmen
 
 
 @pytest.mark.slow  # 50 scans of a real log, 25 relations

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.messages import (
+from fleetmap.shared.io.messages import (
     Component,
     FleetEvent,
     GlobalMap,
@@ -20,7 +20,7 @@ from fleetmap.shared.messages import (
     RobotPose,
     Scan,
 )
-from fleetmap.shared.recording import (
+from fleetmap.shared.io.recording import (
     FRAME_TRANSFORM,
     POSES_IN_FRAME,
     ROOT_FRAME,

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from fleetmap.shared.geometry import lengths, orientations
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.simplify import simplify
+from fleetmap.shared.core.geometry import lengths, orientations
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.simplify import simplify
 
 
 def _noisy_wall(rng: np.random.Generator, x0: float, x1: float, y: float, piece: float = 0.12) -> np.ndarray:

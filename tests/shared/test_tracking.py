@@ -10,11 +10,11 @@ import pytest
 from fleetmap.scenarios import get_world
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import TrackingParams
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.geometry import Transform2D
-from fleetmap.shared.motion import from_odometry, odometry_increment
-from fleetmap.shared.tracking import ReferenceMap, register, sample_segments, see_through
-from fleetmap.shared.walls import WallMap
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.motion import from_odometry, odometry_increment
+from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments, see_through
+from fleetmap.shared.core.walls import WallMap
 
 PARAMS = TrackingParams()
 LOOSE = np.diag([1 / 0.5**2, 1 / 0.5**2, 1 / 0.3**2])

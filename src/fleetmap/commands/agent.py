@@ -10,10 +10,10 @@ import sys
 from fleetmap.agents.agent import LOST_SCANS, Agent
 from fleetmap.agents.process import run_agent
 from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import check_name
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.keys import check_name
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

@@ -9,10 +9,11 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.shared.core.extraction import extract_segments
+from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.extraction import extract_segments
-from fleetmap.shared.scans import RangeScan, read_carmen, read_ranges_jsonl
+from fleetmap.shared.io.logs import read_carmen, read_ranges_jsonl
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -9,11 +9,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.shared.core.fusion import fuse
+from fleetmap.shared.core.integration import Integration, integrate
+from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.fusion import fuse
-from fleetmap.shared.integration import Integration, integrate
-from fleetmap.shared.mapfile import SegmentMap, map_from_dict, parse_json, read_map, read_text, write_map
+from fleetmap.shared.io.mapfile import map_from_dict, parse_json, read_map, read_text, write_map
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

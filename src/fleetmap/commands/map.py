@@ -8,8 +8,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
-from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
 
 

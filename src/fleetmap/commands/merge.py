@@ -8,13 +8,14 @@ from typing import Any
 
 import numpy as np
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.merger.graph import MapGraph
 from fleetmap.merger.sequence import pivot, sequential, tree
-from fleetmap.shared.config import add_config_arguments, config_from_args
+from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.mapfile import SegmentMap, read_map
-from fleetmap.shared.outputs import output_file
+from fleetmap.shared.io.mapfile import read_map
+from fleetmap.shared.io.outputs import output_file
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -6,11 +6,12 @@ import argparse
 import logging
 from pathlib import Path
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
-from fleetmap.merger.service import STEP_SECONDS, Merger, MergerService
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.config import add_config_arguments, config_from_args
-from fleetmap.shared.outputs import output_file
+from fleetmap.merger.engine import Merger
+from fleetmap.merger.service import STEP_SECONDS, MergerService
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.outputs import output_file
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

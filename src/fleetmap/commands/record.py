@@ -13,12 +13,12 @@ from pathlib import Path
 from fleetmap import __version__
 from fleetmap.merger.recorder import KEY_BURST, KEY_RATE, Recorder, RecorderService
 from fleetmap.scenarios import load_scenario
-from fleetmap.shared.bus import ZenohBus
 from fleetmap.shared.config import load_config
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.outputs import output_file
-from fleetmap.shared.recording import RecordingWriter, config_metadata
-from fleetmap.shared.zenoh_config import describe, zenoh_config
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.outputs import output_file
+from fleetmap.shared.io.recording import RecordingWriter, config_metadata
+from fleetmap.shared.io.zenoh_config import describe, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

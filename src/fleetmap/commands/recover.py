@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.outputs import output_file
-from fleetmap.shared.recording import RecordingReader
+from fleetmap.shared.io.outputs import output_file
+from fleetmap.shared.io.recording import RecordingReader
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -6,9 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.replay import ReplayOptions, replay
 from fleetmap.report import summary_table
-from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
 
 

@@ -6,8 +6,8 @@ import argparse
 import logging
 import sys
 
-from fleetmap.shared.bus import ZenohBus
-from fleetmap.shared.zenoh_config import DEFAULT_ENDPOINT, describe, zenoh_config
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_config import DEFAULT_ENDPOINT, describe, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

@@ -6,13 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.report import summary_table
 from fleetmap.runner import Session
 from fleetmap.scenarios import DEFAULT_SCENARIO, load_scenario
 from fleetmap.scenarios.loader import list_scenarios
-from fleetmap.shared.config import add_config_arguments, config_from_args
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.outputs import output_folder
+from fleetmap.shared.io.outputs import output_folder
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -6,8 +6,8 @@ import argparse
 from pathlib import Path
 
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.outputs import output_folder
-from fleetmap.shared.security import SERVICES, check_fleet_roles, write_fleet_security
+from fleetmap.shared.io.outputs import output_folder
+from fleetmap.shared.io.security import SERVICES, check_fleet_roles, write_fleet_security
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -8,13 +8,14 @@ import logging
 import time
 from pathlib import Path
 
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.scenarios.fleet import Scenario
 from fleetmap.scenarios.loader import DEFAULT_SCENARIO, list_scenarios, load_scenario, scenario_to_toml
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.scenarios.truth import ground_truth
-from fleetmap.shared.config import ExtractionParams, add_config_arguments, config_from_args
+from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.extraction import extract_segments
 
 log = logging.getLogger(__name__)
 

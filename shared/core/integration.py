@@ -1,73 +1,42 @@
 """INTEGRATE (paper III, Algorithm 1): the transformation of S2 on S1 from geometry alone.
 
-1. Find transformations (Algorithm 2/3, :mod:`fleetmap.shared.candidates`).
-2. Evaluate them and keep the best (Algorithm 4, :mod:`fleetmap.shared.evaluation`), then refine
-   the few best distinct ones by least squares (:mod:`fleetmap.shared.refine`) and keep the one
+1. Find transformations (Algorithm 2/3, :mod:`fleetmap.shared.core.candidates`).
+2. Evaluate them and keep the best (Algorithm 4, :mod:`fleetmap.shared.core.transformation_value`), then refine
+   the few best distinct ones by least squares (:mod:`fleetmap.shared.core.refine`) and keep the one
    with the highest transformation value.
-3. Fuse S1 and S2^t (Algorithm 5, :mod:`fleetmap.shared.fusion`), on demand.
+3. Fuse S1 and S2^t (Algorithm 5, :mod:`fleetmap.shared.core.fusion`), on demand.
 
-Validity (``valid``): the paper leaves it to a user threshold on the value (V-B) and reports that
-right integrations of its local maps scored about 10 m and wrong ones about 5 m. A fixed
-threshold cannot serve both a pair of scans (a few metres of wall) and a pair of local maps
-(tens of metres), so the rule is relative to the maps' sizes: an integration is valid when its
-value is at least ``valid_min_value`` metres *and* at least ``valid_min_fraction`` of the total
-segment length of the smaller map, i.e. a fair share of what the smaller map saw is explained by
-the other. The benchmark (``benchmarks/integration.py``) measures how well this separates right
-from wrong integrations on real scans.
-
-Two partial maps (neither a scan: ``ordered`` false) have their own rule: value at least
-``valid_min_map_value`` (8 m: the paper's right merges of local maps scored about 10 m, wrong ones
-about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space
-(only the walls farther than ``map_free_space_clearance``, 0.3 m, from the other map's own walls
-counted there, since two local maps place the same wall a little apart; and with
-``map_free_space_min_length``, only long walls: clutter; and from ``valid_strong_map_value``,
-16 m, on, ``valid_max_strong_map_violation``, 15 %: a large overlap's shared walls, placed a
-little apart, violate in proportion to it), and no clearly
-different transformation within ``valid_max_map_ambiguity`` (50 %) of its score on the large-map
-path, where the rival is judged by the free space too (``valid_max_ambiguity``, 80 %, on the
-small path, where nothing refutes the mirror image of a rectangular room). A rival that puts
-metres of wall where a laser saw through, while the best puts next to none there, is refuted and
-does not count (``valid_refute_violation``, :func:`_unrefuted`). And a map that carries its
-scans' viewpoints must have at least ``valid_min_map_scans`` (5) of them
-(in the simulated warehouse, local maps of two or three scans matched others turned round, 13 to
-24 m off, with values of 16-17 m).
-Measured on 843 integrations between local maps built from the corrected logs
-(``benchmarks/merge.py --max-scans 200 --edges-json``): 106 of 153 right ones (within 0.3 m, 3
-degrees) valid (56 without the wall clearance), 9 of 668 wrong ones (over 1 m or 10 degrees; 5
-without): four between small corridor maps of the infinite corridor (a T-junction like another,
-a stretch matching itself reversed), five onto an orebro map whose first scan sits 2.5 m off the
-rest of it (right by the map's walls). With the 15 % tier for values of 16 m or more: still 106
-right ones valid, and 11 wrong ones (two more onto that orebro map); between maps built from the
-corrected poses (``--local-maps truth``, 170 pairs), 52 right ones valid instead of 44, and the
-same 2 wrong ones (low values, 8-9 m), which the cycle check then rejects. Long corridors match
-wherever they align, so between maps only a clear, unambiguous match is trusted; an unplaced map
-is better than a wrong one.
+Validity (``valid``) is judged by :mod:`fleetmap.shared.core.validity`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from fleetmap.shared.candidates import IntArray, find_transformations
 from fleetmap.shared.config import HEURISTICS, IntegrationParams, TrackingParams
-from fleetmap.shared.errors import BadInput
-from fleetmap.shared.evaluation import (
+from fleetmap.shared.core.candidates import IntArray, find_transformations
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths, wrap_angle
+from fleetmap.shared.core.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
+from fleetmap.shared.core.refine import refine_transform
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments
+from fleetmap.shared.core.transformation_value import (
     PreparedPairs,
     matched_pairs,
     prepare,
     transformation_value,
     transformation_values,
 )
-from fleetmap.shared.geometry import Array, Transform2D, lengths, wrap_angle
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
-from fleetmap.shared.refine import refine_transform
-from fleetmap.shared.tracking import ReferenceMap, register, sample_segments
-from fleetmap.shared.visibility import FreeSpace
+from fleetmap.shared.core.validity import (
+    clearly_different,
+    is_valid,
+    unrefuted,
+)
+from fleetmap.shared.core.visibility import FreeSpace
+from fleetmap.shared.errors import BadInput
 
 AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
 """What auto tries: the paper's heuristics, fleetmap's segment alignments (for corridors, which
@@ -118,7 +87,7 @@ class Integration:
     rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
     """The best few transformations clearly different from ``transform`` (as for ``runner_up``),
     with their scores, best first: where a repetitive world puts S2 too. Between two partial
-    maps, only those the seen free space does not refute (:func:`_unrefuted`)."""
+    maps, only those the seen free space does not refute (:func:`~fleetmap.shared.core.validity.unrefuted`)."""
 
     def to_json_dict(self) -> dict[str, float | bool]:
         return {
@@ -129,63 +98,6 @@ class Integration:
             "valid": self.valid,
             "seconds": self.seconds,
         }
-
-
-def is_valid(
-    value: float,
-    violation: float,
-    runner_up: float,
-    m1: SegmentMap,
-    m2: SegmentMap,
-    params: IntegrationParams,
-    large: bool = False,
-    solid_violation: float | None = None,
-) -> bool:
-    """The validity rule of the module docstring (``large``: the large-map path's rule; between two
-    partial maps, ``solid_violation``, where given, is the violation limited)."""
-    score = value - violation
-    scans = [x.total_length for x in (m1, m2) if x.ordered]
-    if large and scans:
-        # A scan integrated with a partial map must still be explained in a fair share by it.
-        return (
-            value >= params.valid_min_value
-            and value >= params.valid_min_fraction * min(scans)
-            and violation <= params.valid_max_violation * value
-            and runner_up <= params.valid_max_ambiguity * score
-        )
-    if not scans:
-        # Two partial maps: the paper's right ~10 m / wrong ~5 m, with free space and ambiguity;
-        # and each seen from enough places (a map of two scans in a symmetric building matches
-        # turned round as well as it matches where it is).
-        return (
-            seen_from_enough_places(m1, m2, params)
-            and value >= params.valid_min_map_value
-            and (violation if solid_violation is None else solid_violation) <= max_map_violation(value, params) * value
-            and runner_up <= (params.valid_max_map_ambiguity if large else params.valid_max_ambiguity) * score
-        )
-    smaller = min(m1.total_length, m2.total_length)
-    return (
-        value >= params.valid_min_value
-        and value >= params.valid_min_fraction * smaller
-        and violation <= params.valid_max_violation * value
-        and runner_up <= params.valid_max_ambiguity * score
-    )
-
-
-def max_map_violation(value: float, params: IntegrationParams) -> float:
-    """The fraction of its value an integration of two partial maps may put in their seen free
-    space: ``valid_max_strong_map_violation`` from ``valid_strong_map_value`` on."""
-    strong = params.valid_strong_map_value
-    if strong > 0 and value >= strong:
-        return max(params.valid_max_map_violation, params.valid_max_strong_map_violation)
-    return params.valid_max_map_violation
-
-
-def seen_from_enough_places(m1: SegmentMap, m2: SegmentMap, params: IntegrationParams) -> bool:
-    """Whether each of two partial maps that carries its scans' viewpoints has at least
-    ``valid_min_map_scans`` of them: otherwise they cannot merge, whatever their geometry."""
-    seen = [len(x.extras[VIEWPOINTS]) for x in (m1, m2) if VIEWPOINTS in x.extras]
-    return min(seen, default=params.valid_min_map_scans) >= params.valid_min_map_scans
 
 
 def gather_candidates(
@@ -320,8 +232,8 @@ def integrate(
     """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity.
 
     The best transformation has the highest *score*: its transformation value minus the wall
-    length it puts in the seen free space of the other map (:mod:`fleetmap.shared.visibility` for
-    scans, :mod:`fleetmap.shared.mapgrid` for maps that carry viewpoints; zero for maps that carry
+    length it puts in the seen free space of the other map (:mod:`fleetmap.shared.core.visibility` for
+    scans, :mod:`fleetmap.shared.core.mapgrid` for maps that carry viewpoints; zero for maps that carry
     none, so the score is the paper's value there).
 
     Large maps (more than ``max_search_segments`` segments) take fleetmap's large-map path (see
@@ -412,7 +324,7 @@ def _integrate_small(
         ]
         best, rivals, centre = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = np.flatnonzero(_far_from(best.transform, centre)(cand[shortlist]))
+        others = np.flatnonzero(clearly_different(best.transform, centre)(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
     return best, _best_rivals(rivals), len(cand), prep
 
@@ -438,7 +350,7 @@ def _integrate_large(
     The candidates come from the paper's heuristics on each map's longest segments. Valuing tens
     of thousands of them exactly is slow, and between large maps the value ranks them poorly
     (long parallel walls match wherever corridors align), so they are ranked by the grid score of
-    :mod:`fleetmap.shared.mapgrid` (matched wall length less wall length in the other's seen free
+    :mod:`fleetmap.shared.core.mapgrid` (matched wall length less wall length in the other's seen free
     space) on a few points per map, then on points every 10 cm for the best GRID_FINE; the best
     distinct ones are valued on the full maps and refined. Where the maps carry viewpoints, the
     free space judges crossings, and SEGMENTLENGTHREFUSE (steps 6-8), which one crossing pair
@@ -471,20 +383,20 @@ def _integrate_large(
         # that got one (a small map in a symmetric building can fill the shortlist with one
         # alignment): the first, and between two partial maps up to RIVALS, each clearly different
         # from the others, since the free space refutes some aliases and not others in racks
-        # (:func:`_unrefuted`), and one left out could be the clean one.
+        # (:func:`~fleetmap.shared.core.validity.unrefuted`), and one left out could be the clean one.
         maps = not (m1.ordered or m2.ordered)
         ranked_t = cand[ranked]
-        open_ = _far_from(best.transform, centre)(ranked_t)
+        open_ = clearly_different(best.transform, centre)(ranked_t)
         for t, _ in rivals if maps else ():
-            open_ &= _far_from(t, centre)(ranked_t)
+            open_ &= clearly_different(t, centre)(ranked_t)
         for _ in range(RIVALS if maps else 1):
             if not open_.any():
                 break
             other = _evaluated(prep, free, Transform2D.from_array(ranked_t[int(np.argmax(open_))]), 0, p)
             rivals.append((other.transform, other.score))
-            open_ &= _far_from(other.transform, centre)(ranked_t)
+            open_ &= clearly_different(other.transform, centre)(ranked_t)
         if maps:
-            rivals = _unrefuted(rivals, best, free, p)
+            rivals = unrefuted(rivals, best.value, best.score, free, p)
     solid = None
     limited = p.map_free_space_min_length > 0 or p.map_free_space_clearance > 0
     if limited and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
@@ -501,7 +413,8 @@ def _choose(
     large: bool = False,
 ) -> tuple[_Choice, list[tuple[Transform2D, float]], Array | None]:
     """Refine the picks, and return the best, the clearly different ones (the rivals), and the
-    point of S2 at which "clearly different" is measured (:func:`_far_from`; None: S2's origin).
+    point of S2 at which "clearly different" is measured
+    (:func:`~fleetmap.shared.core.validity.clearly_different`; None: S2's origin).
 
     For large maps, "clearly different" is measured where the maps overlap (the centroid of S2's
     matched segments under the best), not at S2's origin: far from the overlap, a turn of a
@@ -521,31 +434,8 @@ def _choose(
     centre = _overlap_centre(prep, best.transform, p) if large else None
     if not finals:
         return best, [], centre
-    mask = _far_from(best.transform, centre)(np.array([c.transform.as_array() for c in finals]))
+    mask = clearly_different(best.transform, centre)(np.array([c.transform.as_array() for c in finals]))
     return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], centre
-
-
-def _unrefuted(
-    rivals: list[tuple[Transform2D, float]], best: _Choice, free: GridFreeSpace, p: IntegrationParams
-) -> list[tuple[Transform2D, float]]:
-    """Two partial maps: the rivals that the maps' seen free space does not refute (fleetmap).
-
-    A rival is refuted when it puts at least ``valid_refute_violation`` metres of wall, and more
-    than ``valid_max_map_violation`` of its value, where the other robot's laser saw through, while
-    the best puts at most ``valid_refute_clean`` of its value there. Wall where a laser saw free
-    space is evidence against a transformation; a smaller overlap is only the absence of evidence
-    for it. In a warehouse lane, the alignments a rack or two off match more wall than the right
-    one (they slide the map over more of the other) but put rack ends in the forklift's bay; the
-    score (value less violation) still ranks them within a tenth of the right one.
-    """
-    limit = p.valid_refute_violation
-    if limit <= 0 or not rivals or not free.active or best.value - best.score > p.valid_refute_clean * best.value:
-        return rivals
-    t = np.array([r.as_array() for r, _ in rivals])
-    violation = free.violation(t)
-    scores = np.array([s for _, s in rivals])
-    refuted = (violation >= limit) & (violation > p.valid_max_map_violation * (scores + violation))
-    return [r for r, out in zip(rivals, refuted, strict=True) if not out]
 
 
 RIVALS = 8
@@ -558,23 +448,6 @@ def _best_rivals(rivals: list[tuple[Transform2D, float]]) -> list[tuple[Transfor
     return kept[:RIVALS]
 
 
-def _far_from(best: Transform2D, centre: Array | None = None) -> Callable[[Array], Array]:
-    """Which of ``(n, 3)`` transformations are clearly different from ``best``: they move ``centre``
-    (S2's origin by default) more than AMBIGUITY_TRANSLATION from where ``best`` puts it, or turn
-    more than AMBIGUITY_ROTATION from it."""
-    c = np.zeros(2) if centre is None else centre
-    at_best = best.apply_points(c[None])[0]
-
-    def far(t: Array) -> Array:
-        t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
-        cos, sin = np.cos(t[:, 2]), np.sin(t[:, 2])
-        moved = np.column_stack([cos * c[0] - sin * c[1] + t[:, 0], sin * c[0] + cos * c[1] + t[:, 1]])
-        turn = np.abs(wrap_angle(t[:, 2] - best.theta))
-        return np.asarray((np.hypot(*(moved - at_best).T) > AMBIGUITY_TRANSLATION) | (turn > AMBIGUITY_ROTATION))
-
-    return far
-
-
 def _overlap_centre(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Array | None:
     """The centroid of S2's segments matched under ``best`` (None if none is)."""
     _, k, mv = matched_pairs(prep, best.as_array(), p)
@@ -582,10 +455,6 @@ def _overlap_centre(prep: PreparedPairs, best: Transform2D, p: IntegrationParams
         return None
     mid = 0.5 * (prep.s2[k, 0:2] + prep.s2[k, 2:4])
     return np.asarray((mid * mv[:, None]).sum(axis=0) / mv.sum())
-
-
-AMBIGUITY_TRANSLATION = 0.5
-AMBIGUITY_ROTATION = 0.17
 
 
 @dataclass(frozen=True)
@@ -700,7 +569,7 @@ def align_near(
     index2: MapIndex | None = None,
 ) -> Integration:
     """S2 on S1 where it is expected to be (fleetmap): the walls of S2 registered on S1's from
-    ``predicted`` (robust point-to-line ICP, :func:`fleetmap.shared.tracking.register`), then valued
+    ``predicted`` (robust point-to-line ICP, :func:`fleetmap.shared.core.tracking.register`), then valued
     as :func:`integrate` values its best transformation: the paper's transformation value
     (Algorithm 4), the wall put in the other map's seen free space, and the validity rule, with no
     rival (a prediction names one place; the search near it finds the walls there or fails).
@@ -708,7 +577,7 @@ def align_near(
     This is the constraint search of production back ends (Cartographer's constraint builder)
     for a robot the fleet has placed: its tracking says where its new submap lies among the others,
     so the pose-free search, a hundred times the cost, is needed only for robots nobody has placed.
-    ``reference1`` is S1's registration grid (:class:`fleetmap.shared.tracking.ReferenceMap`)."""
+    ``reference1`` is S1's registration grid (:class:`fleetmap.shared.core.tracking.ReferenceMap`)."""
     check_map(m1, "S1")
     check_map(m2, "S2")
     start = time.perf_counter()

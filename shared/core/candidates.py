@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.geometry import Array, lengths, orientations, wrap_angle
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.geometry import Array, lengths, orientations, wrap_angle
+from fleetmap.shared.core.segmap import SegmentMap
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from fleetmap.shared.config import TrackingParams
-from fleetmap.shared.geometry import Array, Transform2D, wrap_angle
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.rangescan import RangeScan
 from scipy.spatial import cKDTree
 
 _KEY_STRIDE = 1 << 32

@@ -4,8 +4,8 @@ Services talk to a :class:`Bus` (publish, subscribe, query, liveliness) and neve
 directly, so their logic can be driven by :class:`InMemoryBus` in a unit test; the real thing is
 :class:`ZenohBus`, and the multi-process tests run it on loopback.
 
-Payloads are bytes (fleetmap messages, :mod:`fleetmap.shared.messages`); keys come from
-:mod:`fleetmap.shared.keys`. Callbacks run on the bus's threads (a thread per zenoh subscription,
+Payloads are bytes (fleetmap messages, :mod:`fleetmap.shared.io.messages`); keys come from
+:mod:`fleetmap.shared.io.keys`. Callbacks run on the bus's threads (a thread per zenoh subscription,
 in arrival order, so a slow one never holds zenoh's receiving thread; zenoh's for liveliness and
 queries; the publisher's for the in-memory bus); one that raises is logged and counted in
 :attr:`BusStats.callback_errors` and never reaches zenoh.
@@ -29,7 +29,7 @@ from typing import Protocol, Self
 
 import zenoh
 from fleetmap.shared.errors import BadInput, FleetmapError
-from fleetmap.shared.zenoh_config import ZenohOptions, describe, zenoh_config
+from fleetmap.shared.io.zenoh_config import ZenohOptions, describe, zenoh_config
 
 log = logging.getLogger(__name__)
 

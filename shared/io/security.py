@@ -20,7 +20,7 @@ Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
   ``P``; query the merger's state and the recorder's statistics.
 
 Everyone may declare on ``fleetmap/barrier/**`` and query and reply there: :class:`ZenohBus`'s
-flush before closing (:mod:`fleetmap.shared.bus`). A client is known by its username (user and
+flush before closing (:mod:`fleetmap.shared.io.bus`). A client is known by its username (user and
 password, ``transport.auth.usrpwd``) and, with TLS, also by its certificate's common name (mutual
 TLS); a subject needs both.
 
@@ -40,8 +40,8 @@ from pathlib import Path
 from typing import Any
 
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import FleetKeys, check_name
-from fleetmap.shared.zenoh_config import DEFAULT_ENDPOINT, KEEP_ALIVE, LEASE_MS
+from fleetmap.shared.io.keys import FleetKeys, check_name
+from fleetmap.shared.io.zenoh_config import DEFAULT_ENDPOINT, KEEP_ALIVE, LEASE_MS
 
 SERVICES = ("merger", "recorder", "viewer")
 """The roles that are not robots (a robot may not take one of these names)."""

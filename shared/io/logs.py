@@ -1,10 +1,6 @@
-"""Range scans and their readers: CARMEN logs and the ranges JSONL of the contracts.
-
-A :class:`RangeScan` is one laser sweep in the laser's frame (x forward, y left): beam i points at
-``angle_min + i * angle_increment``. A range that is not finite, is <= 0 or is >= ``range_max``
-is "no return". The pose a log may carry (``odom``) is kept for benchmarks only; the algorithms
-never read it.
-"""
+"""Laser log readers: CARMEN logs and the ranges JSONL of the contracts, read into
+:class:`~fleetmap.shared.core.rangescan.RangeScan` (a name, line or record that is wrong is
+named in the error)."""
 
 from __future__ import annotations
 
@@ -18,34 +14,11 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+from fleetmap.shared.core.geometry import Array
+from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Array
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RangeScan:
-    stamp: float
-    angle_min: float
-    angle_increment: float
-    range_max: float
-    ranges: Array
-    odom: tuple[float, float, float] | None = None
-    """The pose written on the log line (odometry or SLAM-corrected): never used by the algorithms
-    (benchmarks score against it where it is a corrected pose)."""
-    odometry: tuple[float, float, float] | None = None
-    """The robot's odometry written on the log line (FLASER/RLASER: its odom_x, odom_y,
-    odom_theta; ROBOTLASER1: the laser's pose by odometry), for a source that has no ODOM lines."""
-
-    def to_json_dict(self) -> dict[str, Any]:
-        return {
-            "stamp": self.stamp,
-            "angle_min": self.angle_min,
-            "angle_increment": self.angle_increment,
-            "range_max": self.range_max,
-            "ranges": [float(r) if math.isfinite(r) else None for r in self.ranges],
-        }
 
 
 def half_circle_angles(n: int) -> tuple[float, float]:

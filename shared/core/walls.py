@@ -1,6 +1,6 @@
 """A submap's walls kept as one segment per stretch of wall, as its scans come in (pure core).
 
-:func:`fleetmap.shared.simplify.simplify` turns a finished partial map into one segment per
+:func:`fleetmap.shared.core.simplify.simplify` turns a finished partial map into one segment per
 covered stretch of wall; a robot's submap needs the same while it grows, several times a second,
 and simplifying all its scans' segments again each time costs tens of milliseconds. A
 :class:`WallMap` does it incrementally: each new segment joins the wall it lies on (both ends
@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fleetmap.shared.geometry import Array
+from fleetmap.shared.core.geometry import Array
 
 _GROW = 64
 
@@ -235,7 +235,7 @@ class WallMap:
 def _segment_moments(ax: float, ay: float, bx: float, by: float, length: float) -> tuple[float, ...]:
     """A segment's share of a wall's line fit: its two ends weighted by its length, and its own
     spread along itself (length / 12 times its direction's outer product), as in
-    :func:`fleetmap.shared.simplify._fit`."""
+    :func:`fleetmap.shared.core.simplify._fit`."""
     w = length
     ex, ey = bx - ax, by - ay
     return (

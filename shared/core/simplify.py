@@ -20,8 +20,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fleetmap.shared.geometry import Array, lengths
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.geometry import Array, lengths
+from fleetmap.shared.core.segmap import SegmentMap
 
 REFIT_ROUNDS = 4
 """Rounds of growing a group and refitting its line."""

@@ -19,8 +19,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fleetmap.shared.candidates import ragged_ranges
-from fleetmap.shared.geometry import Array, segment_points
+from fleetmap.shared.core.candidates import ragged_ranges
+from fleetmap.shared.core.geometry import Array, segment_points
 
 BINS = 1440
 """Bearing bins of a range profile (0.25 degree)."""

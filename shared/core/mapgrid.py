@@ -12,10 +12,10 @@ map's walls in the other's free space; the right one does not.
 - **Viewpoints.** A map may carry the poses of the scans it was built from, in its own frame:
   ``SegmentMap.extras["viewpoints"]``, rows ``[x, y, theta, bearing_min, bearing_max]`` (the
   bearings, in the scan's frame, that its segments span). The pivot method records them
-  (:class:`fleetmap.merger.sequence.PivotMapBuilder`); they survive a map file (extra keys are
+  (:class:`fleetmap.agents.localmap.PivotMapBuilder`); they survive a map file (extra keys are
   kept). A scan (an ``ordered`` map) has one, at its origin.
 - **Free grid.** The cells seen free from any viewpoint: from each viewpoint, the range profile of
-  the map's own segments (:func:`fleetmap.shared.visibility.range_profile`: the nearest wall in
+  the map's own segments (:func:`fleetmap.shared.core.visibility.range_profile`: the nearest wall in
   each bearing, within the span the scan covered) minus a margin that grows with range (the map's
   own small rotation errors move far walls most). The map's walls include the scan's own, so
   this never claims more than the scan saw.
@@ -50,11 +50,11 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-from fleetmap.shared.candidates import ragged_ranges
+from fleetmap.shared.core.candidates import ragged_ranges
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientations, segment_points
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.visibility import range_profile
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Array, Transform2D, lengths, orientations, segment_points
-from fleetmap.shared.mapfile import SegmentMap
-from fleetmap.shared.visibility import range_profile
 
 VIEWPOINTS = "viewpoints"
 """The key of a map's viewpoints in ``SegmentMap.extras``."""

@@ -34,7 +34,7 @@ from typing import Any
 
 import zenoh
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.keys import DEFAULT_FLEET, FleetKeys, check_name
+from fleetmap.shared.io.keys import DEFAULT_FLEET, FleetKeys, check_name
 
 MODES = ("peer", "client", "router")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -78,7 +78,7 @@ class ZenohOptions:
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True, fleet: bool = True) -> None:
     """Add the zenoh flags every service shares (``mode``/``fleet`` False leave those out)."""
-    group = parser.add_argument_group("zenoh (see fleetmap.shared.zenoh_config for the defaults)")
+    group = parser.add_argument_group("zenoh (see fleetmap.shared.io.zenoh_config for the defaults)")
     if mode:
         group.add_argument("--mode", choices=MODES, default=None, help="zenoh session mode (default: peer)")
     group.add_argument(

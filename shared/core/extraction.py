@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 from fleetmap.shared.config import ExtractionParams
-from fleetmap.shared.geometry import Array
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.core.geometry import Array
+from fleetmap.shared.core.rangescan import RangeScan
 
 
 def scan_points(scan: RangeScan, max_range: float) -> Array:

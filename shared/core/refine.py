@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.evaluation import PreparedPairs, matched_pairs
-from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.transformation_value import PreparedPairs, matched_pairs
 
 
 def pair_residuals(s1: Array, s2t: Array) -> tuple[Array, Array, Array, Array]:

@@ -28,11 +28,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from fleetmap.shared.candidates import IntArray
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.evaluation import matched_pairs, prepare
-from fleetmap.shared.geometry import Array, Transform2D, lengths, segment_distance, segment_points
-from fleetmap.shared.mapfile import SegmentMap
+from fleetmap.shared.core.candidates import IntArray
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths, segment_distance, segment_points
+from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.transformation_value import matched_pairs, prepare
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree

@@ -33,11 +33,11 @@ from typing import IO, Any, Self
 
 import numpy as np
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Array, Transform2D
-from fleetmap.shared.messages import FleetEvent, GlobalMap, LaserRanges, LocalMap, Scan
-from fleetmap.shared.messages import Message as FleetMessage
-from fleetmap.shared.occupancy import Beams, occupancy_grid, placed_scans
+from fleetmap.shared.io.messages import FleetEvent, GlobalMap, LaserRanges, LocalMap, Scan
+from fleetmap.shared.io.messages import Message as FleetMessage
+from fleetmap.shared.io.occupancy import Beams, occupancy_grid, placed_scans
 from foxglove import Schema
 from foxglove.messages import (
     Color,
@@ -349,7 +349,7 @@ class FoxgloveScene:
     ``/foxglove/<fleet>/paths/<robot>``), drawn at every global map from the scans its submaps
     hold, at their submaps' poses there; and, when the recording is finished, the largest
     component's occupancy grid (``foxglove.Grid`` on ``/foxglove/<fleet>/grid``,
-    :mod:`fleetmap.shared.occupancy`)."""
+    :mod:`fleetmap.shared.io.occupancy`)."""
 
     def __init__(self) -> None:
         self._tables: dict[str, tuple[Array, Array]] = {}

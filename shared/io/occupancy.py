@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fleetmap.shared.geometry import Array, Transform2D, lengths
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths
 from scipy.ndimage import binary_dilation
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1

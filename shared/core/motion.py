@@ -1,6 +1,6 @@
 """Where a robot's next scan should be: odometry or constant velocity, with an uncertainty (pure).
 
-The prediction starts the registration (:func:`fleetmap.shared.tracking.register`) and is its
+The prediction starts the registration (:func:`fleetmap.shared.core.tracking.register`) and is its
 prior: where the walls fix the pose it barely counts, where they leave a direction free (along a
 featureless corridor) it decides that direction. Its uncertainty is a motion model's:
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fleetmap.shared.config import TrackingParams
-from fleetmap.shared.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D
 
 
 @dataclass(frozen=True)

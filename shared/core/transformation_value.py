@@ -1,7 +1,7 @@
 """Evaluate transformations (paper III-B, Algorithm 4), vectorised over candidates and pairs.
 
 The transformation value of t is the sum of the matching values of every pair (s1, s2^t)
-(:func:`fleetmap.shared.geometry.matching_value`); t is discarded when it makes two segments
+(:func:`fleetmap.shared.core.geometry.matching_value`); t is discarded when it makes two segments
 longer than SEGMENTLENGTHREFUSE cross (steps 6-8).
 
 What makes it fast without changing the result that matters:
@@ -26,9 +26,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from fleetmap.shared.candidates import IntArray, ragged_ranges
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.geometry import Array, lengths, matching_value, orientations
+from fleetmap.shared.core.candidates import IntArray, ragged_ranges
+from fleetmap.shared.core.geometry import Array, lengths, matching_value, orientations
 from scipy.spatial import cKDTree
 
 PAIR_ANGLE_LIMIT = 0.5

@@ -16,7 +16,7 @@ Conventions on the wire:
 - transforms are maps ``{"x", "y", "theta"}`` (``../shared/CONTRACTS.md``, Transform);
 - ``stamp`` is seconds (the scan's time: simulated or wall clock), finite and non-negative;
 - a robot's local map of one epoch is named by its map key ``<robot>/<epoch>``, one submap of it
-  by ``<robot>/<epoch>/<submap>`` (:mod:`fleetmap.shared.keys`);
+  by ``<robot>/<epoch>/<submap>`` (:mod:`fleetmap.shared.io.keys`);
 - optional fields are ``nil`` or absent; unknown fields are ignored, so a newer sender may add
   optional fields without breaking older receivers; a ``v`` this code does not read is refused.
 """
@@ -31,11 +31,11 @@ from typing import Any, ClassVar, Self
 
 import msgpack
 import numpy as np
+from fleetmap.shared.core.geometry import Array, Transform2D, lengths
+from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.core.segmap import MIN_SEGMENT_LENGTH
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.geometry import Array, Transform2D, lengths
-from fleetmap.shared.keys import MAP_KEY_PATTERN, NAME_PATTERN
-from fleetmap.shared.mapfile import MIN_SEGMENT_LENGTH
-from fleetmap.shared.scans import RangeScan
+from fleetmap.shared.io.keys import MAP_KEY_PATTERN, NAME_PATTERN
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Payloads larger than this are refused before they are unpacked: the largest message fleetmap
@@ -56,7 +56,7 @@ publish times and ROS's time do. A clock in milliseconds (1.7e12) is past it: a 
 hold its messages, and a merger would keep that stamp for good."""
 MAX_KEY_NUMBER = 10**18 - 1
 """The largest epoch or submap number: what a map key ``<robot>/<epoch>/<submap>`` holds
-(:data:`fleetmap.shared.keys.MAP_KEY_PATTERN`, 18 digits)."""
+(:data:`fleetmap.shared.io.keys.MAP_KEY_PATTERN`, 18 digits)."""
 
 EVENT_KINDS = frozenset(
     {
@@ -569,7 +569,7 @@ class LocalMap(WireMessage):
     """Set on the submaps of an epoch that follows another one of the same robot."""
     viewpoints: Array | None = None
     """Where each scan that went into it was taken, in the map's frame, and the bearings its laser
-    covers: rows ``[x, y, theta, bearing_min, bearing_max]`` (fleetmap.shared.mapgrid). With them
+    covers: rows ``[x, y, theta, bearing_min, bearing_max]`` (fleetmap.shared.core.mapgrid). With them
     the merger knows the free space the robot saw and refuses a match that puts walls in it."""
     submap: int = 0
     """The submap's number in its epoch."""
