@@ -107,7 +107,7 @@ class PivotMapBuilder:
         placed map to the last, scaled to the time since the last, continued from the last. None
         until two maps with increasing stamps are placed.
 
-        After a corner (a step turned more than ``CORNER_TURN``), the robot drives on straight
+        After a corner (a step turned more than ``corner_turn``), the robot drives on straight
         ahead in its new heading, as far as that step took it in the same time (the chord across
         the corner, a little short of the way driven): continuing the
         turn would put it facing back the way it came (a robot that turned 90 degrees in one step
@@ -122,7 +122,7 @@ class PivotMapBuilder:
             return None
         ratio = (stamp - t1) / (t1 - t0)
         step = self._before[1].inverse().compose(self._last_pose)
-        if abs(step.theta) > CORNER_TURN:
+        if abs(step.theta) > self.params.pivot.corner_turn:
             return self._last_pose.compose(Transform2D(math.hypot(step.x, step.y) * ratio, 0.0, 0.0))
         return self._last_pose.compose(Transform2D(step.x * ratio, step.y * ratio, step.theta * ratio))
 
@@ -144,7 +144,7 @@ class PivotMapBuilder:
             return PivotStep(Transform2D.identity(), None)
         # Step 4: t_{1,i} = t_{1,i-1} composed with t_{i-1,i}.
         witnesses = [self._witness(self._last, self._last_pose, m, motion)]
-        if p.pivot_witnesses and self._before is not None:
+        if p.pivot.pivot_witnesses and self._before is not None:
             witnesses.append(self._witness(self._before[0], self._before[1], m, motion))
         placed = (
             self._corroborated(witnesses, motion) if len(witnesses) > 1 else self._if_possible(witnesses[0], motion)
@@ -152,13 +152,15 @@ class PivotMapBuilder:
         if placed is None and self.use_map and self._before is not None:
             witnesses.append(self._witness(self._near(self._last_pose), Transform2D.identity(), m, motion))
             placed = (
-                self._corroborated(witnesses, motion) if p.pivot_witnesses else self._if_possible(witnesses[-1], motion)
+                self._corroborated(witnesses, motion)
+                if p.pivot.pivot_witnesses
+                else self._if_possible(witnesses[-1], motion)
             )
         if placed is None:
             self.poses.append(None)
             return PivotStep(None, witnesses[-1].integration)
         pose = placed.pose
-        if self.params.pivot_refine:
+        if self.params.pivot.pivot_refine:
             pose = self._refined_on_map(m, pose)
         self._fuse(self._last, m, pose, stamp)
         return PivotStep(pose, placed.integration)
@@ -186,7 +188,7 @@ class PivotMapBuilder:
             self._map = fuse(self._map, m, pose, self.params)
         self._viewpoints.append(moved_viewpoints(viewpoints_of(m), pose))
         tol = self.params.simplify_tolerance
-        if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
+        if tol > 0 and len(self._map) > max(self.params.pivot.simplify_from, 1.5 * self._simplified_size):
             self._map = simplify(self._map, tol)
             self._simplified_size = len(self._map)
         self._before = (last, self._last_pose)
@@ -199,14 +201,14 @@ class PivotMapBuilder:
         p = self.params
         if stamp is None or not self._stamps or not stamp > self._stamps[-1]:
             # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
-            return _Motion(self._last_pose, p.motion_prior_rotation)
+            return _Motion(self._last_pose, p.motion.motion_prior_rotation)
         dt = stamp - self._stamps[-1]
-        max_motion = p.max_speed * dt + p.witness_translation if p.max_speed > 0 else None
+        max_motion = p.motion.max_speed * dt + p.pivot.witness_translation if p.motion.max_speed > 0 else None
         predicted = self.predict(stamp)
         slack = None
-        if predicted is not None and p.max_acceleration > 0:
-            slack = 0.5 * p.max_acceleration * dt * dt + p.witness_translation
-        return _Motion(self._last_pose, p.motion_prior_rotation, max_motion, predicted, slack)
+        if predicted is not None and p.motion.max_acceleration > 0:
+            slack = 0.5 * p.motion.max_acceleration * dt * dt + p.pivot.witness_translation
+        return _Motion(self._last_pose, p.motion.motion_prior_rotation, max_motion, predicted, slack)
 
     def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, motion: _Motion) -> _Witness:
         """INTEGRATE(base, m), ``base`` placed at ``pose``; an ambiguous one settled where it can be
@@ -216,8 +218,10 @@ class PivotMapBuilder:
         self.integrations += 1
         p = self.params
         predicted, max_motion = motion.predicted, motion.max_motion
-        if predicted is not None and p.motion_prior_radius > 0:
-            window = Window(pose.inverse().compose(predicted), p.motion_prior_radius, p.motion_prior_rotation)
+        if predicted is not None and p.motion.motion_prior_radius > 0:
+            window = Window(
+                pose.inverse().compose(predicted), p.motion.motion_prior_radius, p.motion.motion_prior_rotation
+            )
         elif predicted is None and max_motion is not None:
             window = Window(pose.inverse().compose(self._last_pose), max_motion, math.pi)
         else:
@@ -234,7 +238,7 @@ class PivotMapBuilder:
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         near_pose = pose.compose(near.transform)
-        if near.valid and near.value - near.violation >= p.valid_max_ambiguity * (r.value - r.violation):
+        if near.valid and near.value - near.violation >= p.validity.valid_max_ambiguity * (r.value - r.violation):
             return _Witness(near_pose, near, at_prediction=predicted is not None)
         if predicted is None or near.value <= 0:
             return _Witness(pose.compose(r.transform), r)
@@ -249,7 +253,7 @@ class PivotMapBuilder:
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
-        if not _close(t, pose, self.params.witness_translation, self.params.witness_rotation):
+        if not _close(t, pose, self.params.pivot.witness_translation, self.params.pivot.witness_rotation):
             return pose  # not a refinement: the integrations that placed it agree within these
         after = transformation_value(prep, t.as_array(), self.params, refuse=False)
         return t if refinement_kept(pose, t, before, after, self.params) else pose
@@ -265,10 +269,10 @@ class PivotMapBuilder:
         off with confidence, while the scan between them matches where the robot drove). Where the
         motion says, the agreeing witness may be invalid, and may agree by its best match inside
         the motion prior's window. Failing all that, :meth:`_with_motion`."""
-        tt, tr = self.params.witness_translation, self.params.witness_rotation
+        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
         window = None
-        if motion.predicted is not None and self.params.motion_prior_radius > 0:
-            window = Window(motion.predicted, self.params.motion_prior_radius, math.pi)
+        if motion.predicted is not None and self.params.motion.motion_prior_radius > 0:
+            window = Window(motion.predicted, self.params.motion.motion_prior_radius, math.pi)
         for w in witnesses:
             if self._if_possible(w, motion) is None:
                 continue
@@ -290,7 +294,7 @@ class PivotMapBuilder:
         Where a better match lies elsewhere, geometry alone is ambiguous and motion decides: a
         forward-looking laser in racks that repeat sees more of the known map one rack back than
         where the robot drove, since the part of its view beyond the map matches nothing yet."""
-        tt, tr = self.params.witness_translation, self.params.witness_rotation
+        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
         at = [w for w in witnesses if w.at_prediction]
         for w in at:
             pose = w.motion_pose
@@ -306,7 +310,7 @@ class PivotMapBuilder:
 
     def _near(self, pose: Transform2D) -> SegmentMap:
         """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
-        radius = self.params.local_map_radius
+        radius = self.params.pivot.local_map_radius
         seg, vp = self._map.segments, self._all_viewpoints()
         near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
             axis=1
@@ -393,11 +397,3 @@ def _close(a: Transform2D, b: Transform2D, translation: float, rotation: float) 
     """Whether two poses agree within ``translation`` (m) and ``rotation`` (rad)."""
     dt, dr = a.distance(b)
     return dt <= translation and dr <= rotation
-
-
-CORNER_TURN = math.radians(45)
-"""A step that turned more than this (rad) took a corner: the motion prior then has the robot drive on
-straight ahead in its new heading (see :meth:`PivotMapBuilder.predict`)."""
-
-SIMPLIFY_FROM = 200
-"""The built map is simplified once it holds more segments than this (and half again each time)."""

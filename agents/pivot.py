@@ -67,15 +67,24 @@ KIDNAP_REASON = "{n} consecutive scans did not integrate with the local map"
 
 ONE_SCAN_REASON = "a scan did not integrate with the local map's only scan"
 """The reason of an epoch started because its previous one held a single scan when the next one did
-not integrate with it. In orebro's log, a scan ambiguous against the first (a corridor: a metre
-on, or standing still) was left out, and the next, integrated with the first across it, was placed
-as if the robot had not moved, 2.2 m short; every later scan followed it, so the local map stood
-2.4 m off its first scan, and merged wrongly by that scan's pose (``benchmarks/merge.py``: orebro
-K = 4 and 8, 2 maps wrong each; none with this rule)."""
+not integrate with it: a local map of one scan is no context to place a later scan on across one
+that would not integrate with it, and a scan placed so can take every later one off with it
+(docs/decisions/008-pivot-local-maps.md)."""
 
 LOST_SCANS = 20
 """An epoch after the first publishes its local map after each of its first this many placed scans
 (the robot is lost until the merger places that map; see the module docstring)."""
+
+
+@dataclass(frozen=True)
+class EpochMap:
+    """One epoch's local map as the front end built it (:attr:`PivotFrontEnd.epochs`)."""
+
+    number: int
+    map: SegmentMap
+    """The built map (its first scan's frame), carrying its placed scans' viewpoints."""
+    scans: tuple[tuple[int, Transform2D], ...]
+    """Each scan placed in it, in order: its index (as given to ``add_scan``) and its pose in the map's frame."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +102,8 @@ class _Epoch:
         self.link = link
         self.builder = PivotMapBuilder(config.integration)
         self.placed = 0
+        self.scans: list[tuple[int, Transform2D]] = []
+        """(index, pose) of each placed scan, in order."""
         self.pose: Transform2D | None = None
         self.version = -1
         self.published_placed = 0
@@ -109,14 +120,18 @@ class _Epoch:
     def changed(self) -> bool:
         return self.placed != self.published_placed or self.pose != self.published_pose
 
-    def add(self, scan: SegmentMap, stamp: float) -> bool:
+    def add(self, index: int, scan: SegmentMap, stamp: float) -> bool:
         """Integrate one scan (Algorithm 6, steps 3-6) with its stamp (the motion bound and prior);
         whether it was placed."""
         step = self.builder.add(scan, stamp)
         self.pose = step.pose
         if step.pose is not None:
             self.placed += 1
+            self.scans.append((index, step.pose))
         return step.pose is not None
+
+    def built(self) -> EpochMap:
+        return EpochMap(self.number, self.builder.map, tuple(self.scans))
 
 
 class PivotFrontEnd:
@@ -147,6 +162,8 @@ class PivotFrontEnd:
         self._epoch = _Epoch(0, self.config, None)
         self._closed: list[LocalMap] = []
         """The latest version of every closed epoch, in epoch order."""
+        self._closed_maps: list[EpochMap] = []
+        """The final local map of every closed epoch, in epoch order."""
         self._unplaced: list[_Unplaced] = []
         """The scans with segments that could not be placed since the last placed one."""
         self._scans = 0
@@ -163,6 +180,13 @@ class PivotFrontEnd:
     def epoch_pose(self) -> Transform2D | None:
         """The robot's pose in its current epoch's local map after the last scan (None: unplaced)."""
         return self._epoch.pose
+
+    @property
+    def epochs(self) -> list[EpochMap]:
+        """Every epoch so far that holds a placed scan, in order: the closed ones as they were
+        closed, and the current one as it is now (read-only; publishes nothing)."""
+        current = [self._epoch.built()] if self._epoch.started else []
+        return [*self._closed_maps, *current]
 
     @property
     def counts(self) -> AgentCounts:
@@ -182,8 +206,8 @@ class PivotFrontEnd:
         if len(segments) == 0:
             current.pose = None  # nothing in reach: the robot cannot say where it is
         elif not current.started:
-            self._place(current, scan_map, stamp)  # the epoch's frame
-        elif self._place(current, scan_map, stamp):
+            self._place(current, index, scan_map, stamp)  # the epoch's frame
+        elif self._place(current, index, scan_map, stamp):
             self._unplaced.clear()
         else:
             self._unplaced.append(_Unplaced(index, stamp, scan_map))
@@ -220,8 +244,8 @@ class PivotFrontEnd:
 
     # --- internals ---
 
-    def _place(self, epoch: _Epoch, scan_map: SegmentMap, stamp: float) -> bool:
-        placed = epoch.add(scan_map, stamp)
+    def _place(self, epoch: _Epoch, index: int, scan_map: SegmentMap, stamp: float) -> bool:
+        placed = epoch.add(index, scan_map, stamp)
         self._placed += int(placed)
         return placed
 
@@ -238,6 +262,8 @@ class PivotFrontEnd:
                 out.append(self._local_map(stamp))
             if old.latest is not None:
                 self._closed.append(old.latest)
+            if old.started:
+                self._closed_maps.append(old.built())
             new = _Epoch(old.number + 1, self.config, EpochLink(old.number, reason, transform=None))
             self._epoch = new
             detail = {"epoch": new.number, "first_scan": seeds[0].index, "previous_epoch": old.number, "reason": reason}
@@ -245,7 +271,7 @@ class PivotFrontEnd:
             out.append(FleetEvent("epoch", self.robot, stamp, json.dumps(detail)))
             rest, seeds = seeds, []
             for n, seed in enumerate(rest):  # the first one is placed: it is the new epoch's frame
-                if self._place(new, seed.map, seed.stamp):
+                if self._place(new, seed.index, seed.map, seed.stamp):
                     self._unplaced.clear()
                 elif new.placed == 1:
                     seeds, self._unplaced, reason = rest[n:], [], ONE_SCAN_REASON

@@ -60,14 +60,6 @@ from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
-LINK_MIN_SIGMA_TRANSLATION = 0.01
-"""The least uncertainty (m) of a link between submaps: a registration's own information counts
-every sampled point as independent and claims millimetres."""
-LINK_MIN_SIGMA_ROTATION = 0.005
-"""... and of its rotation (rad, about 0.3 degrees)."""
-
-RECENT_FITS = 20
-"""How many of the robot's recent good fits make its typical score (:meth:`Tracker._fit`)."""
 
 KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
@@ -194,7 +186,7 @@ class Tracker:
         self._velocity_known = False
         """Whether two placed scans of the epoch with times between them gave the velocity."""
         self._held: list[_Held] = []
-        self._scores: deque[float] = deque(maxlen=RECENT_FITS)
+        self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
         self._inserted_at: tuple[float, Transform2D] | None = None
         self.bad_odometry = 0
@@ -271,7 +263,7 @@ class Tracker:
         seconds = stamp - self._stamp if self._stamp is not None else 0.0
         out = []
         if self.use_odometry and odometry is not None:
-            increment, why = odometry_increment(self._odometry, odometry, seconds, integration.max_speed)
+            increment, why = odometry_increment(self._odometry, odometry, seconds, integration.motion.max_speed)
             if increment is not None:
                 out.append(from_odometry(increment, self.params))
             elif self._odometry is not None:
@@ -279,10 +271,10 @@ class Tracker:
                 if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
                     log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
         if seconds > 0 and not self._per_scan:
-            out.append(from_velocity(self._velocity, seconds, self.params, integration.max_acceleration))
+            out.append(from_velocity(self._velocity, seconds, self.params, integration.motion.max_acceleration))
         else:
             # stamps that do not advance (a log without times): the last step again
-            out.append(from_velocity(self._velocity, 1.0, self.params, integration.max_acceleration))
+            out.append(from_velocity(self._velocity, 1.0, self.params, integration.motion.max_acceleration))
         return out
 
     def _fit(
@@ -373,16 +365,16 @@ class Tracker:
         if seconds <= 0:
             return True  # no usable time: no bound
         last = self._good[1]
-        margin = integration.witness_translation
-        if integration.max_speed > 0 and math.hypot(pose.x - last.x, pose.y - last.y) > (
-            integration.max_speed * seconds + margin
+        margin = integration.pivot.witness_translation
+        if integration.motion.max_speed > 0 and math.hypot(pose.x - last.x, pose.y - last.y) > (
+            integration.motion.max_speed * seconds + margin
         ):
             return False
-        if integration.max_acceleration > 0 and self._velocity_known:
+        if integration.motion.max_acceleration > 0 and self._velocity_known:
             v = self._velocity * seconds
             expected = last.compose(Transform2D(float(v[0]), float(v[1]), float(v[2])))
             off = math.hypot(pose.x - expected.x, pose.y - expected.y)
-            return off <= 0.5 * integration.max_acceleration * seconds * seconds + margin
+            return off <= 0.5 * integration.motion.max_acceleration * seconds * seconds + margin
         return True
 
     def _reacquire(
@@ -420,12 +412,12 @@ class Tracker:
     def _reach(self, stamp: float) -> float:
         """How far (m) the robot can have driven since its last placed scan."""
         integration = self.config.integration
-        if self._good is None or integration.max_speed <= 0:
+        if self._good is None or integration.motion.max_speed <= 0:
             return self.config.extraction.max_range
         seconds = stamp - self._good[0]
         if seconds <= 0:
             return self.config.extraction.max_range
-        return integration.max_speed * seconds + integration.witness_translation
+        return integration.motion.max_speed * seconds + integration.pivot.witness_translation
 
     def _place(
         self,
@@ -498,7 +490,7 @@ class Tracker:
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
-            covariance = _link_covariance(reg) + _drift_covariance(self.params, previous.path_length)
+            covariance = _link_covariance(reg, self.params) + _drift_covariance(self.params, previous.path_length)
         walls = WallMap(self.config.integration.simplify_tolerance)
         submap = Submap(
             self.epoch, self._submaps, index, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls
@@ -560,10 +552,11 @@ def _within(a: Transform2D, b: Transform2D, prediction: Prediction) -> bool:
     return d <= prediction.sigma_translation and r <= prediction.sigma_rotation
 
 
-def _link_covariance(reg: Registration | None) -> Array:
+def _link_covariance(reg: Registration | None, p: TrackingParams) -> Array:
     """The covariance of a submap link from the registration that placed the new submap's frame,
-    no tighter than LINK_MIN_SIGMA_*."""
-    floor = np.diag([LINK_MIN_SIGMA_TRANSLATION**2, LINK_MIN_SIGMA_TRANSLATION**2, LINK_MIN_SIGMA_ROTATION**2])
+    no tighter than ``link_min_sigma_translation`` and ``link_min_sigma_rotation``."""
+    st, sr = p.link_min_sigma_translation, p.link_min_sigma_rotation
+    floor = np.diag([st**2, st**2, sr**2])
     if reg is None:
         return floor
     try:

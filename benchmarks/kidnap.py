@@ -3,7 +3,7 @@
 Runs a live session of each ``*-events`` scenario (every one kidnaps a robot into an area another
 robot maps) and prints, per kidnap: whether the robot was relocalized, the scans and seconds it
 took (from the kidnap, and from when its view first overlapped the mapped area), and the pose
-error afterwards; false relocalizations (> 1 m off) are counted. Issue 6's targets: every kidnap
+error afterwards; false relocalizations (> 1 m off) are counted. The targets: every kidnap
 relocalized within (0.1 m, 2 deg) in at most 10 scans after the overlap, none false in the
 warehouse.
 

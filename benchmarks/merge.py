@@ -5,11 +5,11 @@ The paper's four-robot experiment (Fig. 16-17) at a larger scale. For each SLAM-
 never given to the algorithms, but for the reference ``--local-maps truth``):
 
 1. cut the tour into K consecutive pieces overlapping by a few scans (K robots);
-2. build each piece's local maps from its scans alone, as a robot agent does: the pivot method
-   (:class:`fleetmap.agents.localmap.PivotMapBuilder`, no poses; the scans' times give the motion
-   bound and prior, as a live agent's stamps do), and a new local map (epoch) when
+2. build each piece's local maps from its scans alone with the robot agent's own front end
+   (:class:`fleetmap.agents.pivot.PivotFrontEnd`: the pivot method, no poses; the scans' times give
+   the motion bound and prior, as a live agent's stamps do), one local map per epoch: a new one when
    ``--kidnap-after`` scans in a row cannot be placed, or one cannot be placed on a local map of
-   one scan, starting from the first of them;
+   one scan, started again from the unplaced scans (the agent's rules; see its module);
 3. shuffle the local maps and merge them with the map graph (``--order unknown``);
 4. compare each placed map's pose (its first scan's frame, in the anchor's frame) with the
    corrected poses.
@@ -58,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.agents.localmap import PivotMapBuilder
+from fleetmap.agents.pivot import PivotFrontEnd
 from fleetmap.merger.graph import MapGraph
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
@@ -96,9 +97,9 @@ def data_dir() -> Path:
 
 @dataclass
 class Piece:
-    scans: list[SegmentMap]
-    stamps: list[float]
-    """Each scan's time (s): the agent's motion bound and prior use it, as a live agent does."""
+    scans: list[RangeScan]
+    """The piece's scans that see something (a segment), in order; their times (s) give the agent's
+    motion bound and prior, as a live agent's stamps do (``--stamps log``)."""
     truth: list[Transform2D | None]
     """The corrected pose of each scan (given to no algorithm; ``--local-maps truth`` builds the
     reference maps with it); None for a scan of the full-rate log between two corrected ones."""
@@ -121,13 +122,17 @@ def load_pieces(
             if raw is not None and j + 1 < hi:
                 log, at = raw
                 sequence.extend((log[n], None) for n in range(at[j] + full_rate, at[j + 1], full_rate))
-        maps = [SegmentMap(extract_segments(s, config.extraction), ordered=True, oriented=True) for s, _ in sequence]
-        keep = [n for n, m in enumerate(maps) if len(m) > 0]
+        # Scans without a segment place nothing and count for no kidnap (the agent's rule too): left
+        # out, so that the figures count the scans that see something.
+        keep = [(s, t) for s, t in sequence if len(extract_segments(s, config.extraction)) > 0]
         if keep:
-            pieces.append(
-                Piece([maps[n] for n in keep], [sequence[n][0].stamp for n in keep], [sequence[n][1] for n in keep])
-            )
+            pieces.append(Piece([s for s, _ in keep], [t for _, t in keep]))
     return pieces
+
+
+def scan_maps(piece: Piece, config: FleetmapConfig) -> list[SegmentMap]:
+    """The piece's scans as segment maps (``config.extraction``), as the agent extracts them."""
+    return [SegmentMap(extract_segments(s, config.extraction), ordered=True, oriented=True) for s in piece.scans]
 
 
 def full_rate_positions(name: str, scans: list[RangeScan]) -> tuple[list[RangeScan], list[int]]:
@@ -178,13 +183,12 @@ def content_frame(placed: list[Transform2D], truth: list[Transform2D]) -> Transf
 
 
 def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[list[LocalMap], float]:
-    """A piece's local maps, as an agent builds them (see the module docstring), or with
+    """A piece's local maps, built by the agent's front end (see the module docstring), or with
     ``local_maps="truth"`` its one map fused from its scans at their corrected poses."""
     piece, config, kidnap_after, stamps, local_maps = job
     clock = {
-        "log": lambda j: piece.stamps[j],
+        "log": lambda j: piece.scans[j].stamp,
         "index": lambda j: float(j),
-        "none": lambda j: None,
     }[stamps]
     start = time.perf_counter()
     if local_maps == "truth":
@@ -192,31 +196,20 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
         truth = [t for t in piece.truth if t is not None]
         if len(truth) < len(piece.scans):
             raise ValueError("--local-maps truth needs every scan's corrected pose (not with --full-rate)")
-        for j, scan in enumerate(piece.scans):
+        for j, scan in enumerate(scan_maps(piece, config)):
             builder.add_at(scan, truth[0].inverse().compose(truth[j]), clock(j))
         every = list(range(len(piece.scans)))
         return [LocalMap(builder.map, every, False, truth[0], truth[0], len(every))], time.perf_counter() - start
+    # The robot's agent, scan by scan (a local map message only at an epoch's first scan and end:
+    # the benchmark reads the epochs' maps from the front end, not from its messages).
+    agent = PivotFrontEnd("robot", config, publish_every=len(piece.scans) + 1, kidnap_after=kidnap_after, lost_scans=0)
+    for j, scan in enumerate(piece.scans):
+        agent.add_scan(j, clock(j), scan)
     out: list[LocalMap] = []
-    queue = list(range(len(piece.scans)))
-    while queue:
-        builder = PivotMapBuilder(config.integration)
-        placed: list[int] = []
-        poses: list[Transform2D] = []
+    for epoch in agent.epochs:
         frame: Transform2D | None = None
         broken = False
-        unplaced: list[int] = []
-        rest: list[int] = []
-        for n, j in enumerate(queue):
-            pose = builder.add(piece.scans[j], clock(j)).pose
-            if pose is None:
-                unplaced.append(j)
-                if len(unplaced) >= kidnap_after or len(placed) == 1:  # the agent's rule (ONE_SCAN_REASON)
-                    rest = unplaced + queue[n + 1 :]
-                    break
-                continue
-            unplaced = []
-            placed.append(j)
-            poses.append(pose)
+        for j, pose in epoch.scans:
             truth = piece.truth[j]
             if truth is None:
                 continue
@@ -224,10 +217,9 @@ def build_local_maps(job: tuple[Piece, FleetmapConfig, int, str, str]) -> tuple[
                 frame = truth.compose(pose.inverse())
             dt, dr = pose.distance(frame.inverse().compose(truth))
             broken |= dt > 1.0 or math.degrees(dr) > 10
-        known = [(p, t) for p, j in zip(poses, placed, strict=True) if (t := piece.truth[j]) is not None]
+        known = [(p, t) for j, p in epoch.scans if (t := piece.truth[j]) is not None]
         content = content_frame([p for p, _ in known], [t for _, t in known])
-        out.append(LocalMap(builder.map, placed, broken, content, frame, len(known)))
-        queue = rest
+        out.append(LocalMap(epoch.map, [j for j, _ in epoch.scans], broken, content, frame, len(known)))
     return out, time.perf_counter() - start
 
 
@@ -347,10 +339,10 @@ def main() -> int:
     ap.add_argument("--kidnap-after", type=int, default=2, help="unplaced scans in a row that start a new local map")
     ap.add_argument(
         "--stamps",
-        choices=["log", "index", "none"],
+        choices=["log", "index"],
         default="log",
-        help="the scans' times for the motion bound and prior: the log's, the scan's index in seconds "
-        "(the corrected logs hold a scan about every metre), or none",
+        help="the scans' times for the motion bound and prior: the log's, or the scan's index in seconds "
+        "(the corrected logs hold a scan about every metre)",
     )
     ap.add_argument(
         "--local-maps",

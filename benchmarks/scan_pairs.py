@@ -43,7 +43,7 @@ import sys
 from fleetmap.shared.config import FleetmapConfig, IntegrationParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, integrate
-from merge import DATASETS, load_pieces
+from merge import DATASETS, load_pieces, scan_maps
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -75,11 +75,11 @@ def alias_kind(alias: Transform2D, truth: Transform2D) -> str:
 def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
     """The parts of the scan-pair validity rule (``is_valid``) that ``r`` fails."""
     parts = []
-    if r.value < p.valid_min_value or r.value < p.valid_min_fraction * smaller:
+    if r.value < p.validity.valid_min_value or r.value < p.validity.valid_min_fraction * smaller:
         parts.append("low")
-    if r.violation > p.valid_max_violation * r.value:
+    if r.violation > p.validity.valid_max_violation * r.value:
         parts.append("viol")
-    if r.runner_up > p.valid_max_ambiguity * (r.value - r.violation):
+    if r.runner_up > p.validity.valid_max_ambiguity * (r.value - r.violation):
         parts.append("amb")
     return "+".join(parts)
 
@@ -89,13 +89,14 @@ def classify(
 ) -> tuple[str, collections.Counter[str], list[str], list[float], collections.Counter[str]]:
     name, max_scans, config = job
     piece = load_pieces(name, 1, 0, max_scans, config)[0]
+    scans = scan_maps(piece, config)
     p = config.integration
     counts: collections.Counter[str] = collections.Counter()
     aliases: collections.Counter[str] = collections.Counter()
     rows = []
     turn_errors = []
     for j in range(1, len(piece.scans)):
-        a, b = piece.scans[j - 1], piece.scans[j]
+        a, b = scans[j - 1], scans[j]
         truth = piece.truth[j - 1].inverse().compose(piece.truth[j])
         r = integrate(a, b, p)
         dt, dr = r.transform.distance(truth)

@@ -7,7 +7,7 @@
    and compared with the true relative pose. A pair is *right* within (0.10 m, 2 deg). Pairs
    across a kidnap should all come out invalid.
 3. **Merge** (:func:`merge_section`): the unknown-order merge of the robots' local maps with
-   fleetmap.merger, scored with fleetmap.scenarios.metrics; skipped while the merger is not there.
+   fleetmap.merger, scored with fleetmap.scenarios.metrics; skipped where it cannot be imported.
 
     python benchmarks/scenarios.py                          # everything
     python benchmarks/scenarios.py --scenarios department   # one scenario
@@ -166,7 +166,7 @@ def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: Fleetma
     Local maps as an agent builds them: the pivot method over a robot's scans, a new local map
     (epoch) when a scan does not integrate with the last one. A local map's frame is its first
     scan's, so that scan's true pose is the map's true pose. Returns a table row, or None when
-    fleetmap.merger is not available yet.
+    fleetmap.merger cannot be imported.
     """
     try:
         from fleetmap.agents.localmap import PivotMapBuilder

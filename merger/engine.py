@@ -11,7 +11,7 @@ many pairs it integrated, and a replay follows those steps.
 **Bounded work per submap.** A submap is integrated when it is final (it never changes again),
 and, while its robot's current epoch is not placed and has no final submap yet (a robot that
 just joined, or lost its place), as its active submap grows (each time its version doubles,
-``SEARCH_GROWTH``). Which pairs:
+``MergeParams.search_growth``). Which pairs:
 
 - *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
   robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
@@ -81,10 +81,6 @@ from fleetmap.shared.io.messages import (
 
 log = logging.getLogger(__name__)
 STATE_VERSION = 2
-SEARCH_GROWTH = 2
-"""An unplaced robot's active submap is searched again once its version is this many times the
-version last searched: each search sees as much new wall as all before it together, so a submap
-of v versions costs about log(v) searches, not v."""
 
 
 @dataclass(frozen=True)
@@ -500,7 +496,7 @@ class Merger:
             current
             and not placed
             and f"{m.robot}/{m.epoch}" not in self._finished_epochs
-            and (last is None or m.version >= SEARCH_GROWTH * max(last, 1))
+            and (last is None or m.version >= self.config.merge.search_growth * max(last, 1))
         )
         if not (final or searching):
             return
@@ -668,7 +664,10 @@ class Merger:
         version = self.graph.version_of(key)
         held = self._histograms.get(key)
         if held is None or held[0] != version:
-            held = self._histograms[key] = (version, orientation_histogram(self.graph.map_of(key).segments))
+            held = self._histograms[key] = (
+                version,
+                orientation_histogram(self.graph.map_of(key).segments, self.config.merge.histogram_bins),
+            )
         return held[1]
 
     def _job(self, pair: tuple[str, str], predicted: Transform2D | None) -> PairJob | None:

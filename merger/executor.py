@@ -50,9 +50,6 @@ log = logging.getLogger(__name__)
 
 EXECUTORS: tuple[str, ...] = ("inline", "local", "ray")
 
-POLISH_ITERATIONS = 30
-"""Gauss-Newton steps of a valid edge's fit on the unsimplified maps (it stops when it converges;
-the edmonton edges of ``MergeParams.polish_edges`` converge within 12)."""
 
 MAX_ATTEMPTS = 3
 """How often a local job runs when its worker dies under it (a job that kills every worker it
@@ -195,9 +192,9 @@ def fitted(job: PairJob, t: Transform2D) -> tuple[Transform2D, tuple[float, ...]
         return t, None
     prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p)
     if polish:
-        candidate = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
+        candidate = refine_transform(prep, t, p, iterations=merge.polish_iterations)
         dt, dr = candidate.distance(t)
-        if dt <= p.witness_translation and dr <= p.witness_rotation:
+        if dt <= p.pivot.witness_translation and dr <= p.pivot.witness_rotation:
             t = candidate
     h = fit_information(prep, t, p) if merge.edge_information else None
     return t, None if h is None else tuple(np.asarray(h).ravel().tolist())

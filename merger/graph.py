@@ -49,16 +49,6 @@ from scipy.optimize import least_squares
 
 log = logging.getLogger(__name__)
 
-HISTOGRAM_BINS = 36
-
-SIGMA_T = 0.05
-"""How far (m) a wall of one map may lie from the same wall of another when their poses are refined
-together (the scale of the least-squares residuals)."""
-
-ISOTROPIC_SHARE = 0.01
-"""The share of the value-based weight an edge with known information keeps (see
-:meth:`MapGraph._least_squares`)."""
-
 
 @dataclass(frozen=True)
 class Edge:
@@ -174,10 +164,10 @@ class _GraphIndexes(Indexes):
         return self._graph._index(key) if kind == "index" else self._graph.reference(key)
 
 
-def orientation_histogram(segments: Array) -> Array:
-    """Length-weighted histogram of segment directions (unit norm), for similarity."""
-    bins = np.floor((orientations(segments) + math.pi) / (2 * math.pi) * HISTOGRAM_BINS).astype(np.int64)
-    h = np.bincount(np.clip(bins, 0, HISTOGRAM_BINS - 1), weights=lengths(segments), minlength=HISTOGRAM_BINS)
+def orientation_histogram(segments: Array, count: int) -> Array:
+    """Length-weighted histogram of segment directions in ``count`` bins (unit norm), for similarity."""
+    bins = np.floor((orientations(segments) + math.pi) / (2 * math.pi) * count).astype(np.int64)
+    h = np.bincount(np.clip(bins, 0, count - 1), weights=lengths(segments), minlength=count)
     # Segments without an orientation convention count both ways.
     n = np.linalg.norm(h)
     return h / n if n > 0 else h
@@ -280,14 +270,18 @@ class MapGraph:
                             self._edges[k] = replace(e, versions=(version, vb) if e.a == key else (va, version))
                 return True
             node.map, node.version = segment_map, version
-            node.histogram = orientation_histogram(segment_map.segments)
+            node.histogram = orientation_histogram(segment_map.segments, self.merge.histogram_bins)
             node.work, node.index = self._work(segment_map), None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
                     del self._edges[k]
             return True
         self._nodes[key] = _Node(
-            segment_map, self._counter, version, orientation_histogram(segment_map.segments), self._work(segment_map)
+            segment_map,
+            self._counter,
+            version,
+            orientation_histogram(segment_map.segments, self.merge.histogram_bins),
+            self._work(segment_map),
         )
         self._counter += 1
         return True
@@ -316,7 +310,7 @@ class MapGraph:
 
     def fit_edges(self) -> int:
         """Fit every valid edge that carries no information (restored from a state
-        written before edges carried it) as a new integration's would be; how many."""
+        file that does not carry it) as a new integration's would be; how many."""
         missing = [e for e in self._edges.values() if e.valid and e.information is None]
         for e in missing:
             transform, information = fitted(self.pair_job(e.a, e.b), e.transform)
@@ -566,23 +560,24 @@ class MapGraph:
 
         An edge whose :attr:`Edge.information` is known weighs as its walls fix it: its residual is
         the difference of its transform and the poses' (x, y, heading) through the square root of
-        that information (over ``SIGMA_T`` squared) with a hundredth of the value-weighted weight
+        that information (over ``edge_sigma_translation`` squared) with ``isotropic_share`` of the value-weighted weight
         below added, so that no direction is entirely free. Along a corridor one edge may be 0.3 m
-        off while another, whose walls end there, is right: weighted by value alone, the wrong one
-        pulled an orebro map 0.23 m off. Another edge, or one whose information is not a weight
-        (not positive definite with that share added), weighs by its value, the same in every
-        direction. Only a component with a cycle is refined: a tree's poses are its edges'."""
+        off while another, whose walls end there, is right: weighted by value alone in every
+        direction, the wrong one would pull the map along the corridor
+        (docs/decisions/008-pivot-local-maps.md). Another edge, or one whose information is not a
+        weight (not positive definite with that share added), weighs by its value, the same in
+        every direction. Only a component with a cycle is refined: a tree's poses are its edges'."""
         free = [k for k in poses if k != anchor]
         index = {k: i for i, k in enumerate(free)}
         x0 = np.concatenate([poses[k].as_array() for k in free])
         weights = np.sqrt(np.array([max(e.value, 1e-3) for e in edges]))
-        sigma_t, sigma_r = SIGMA_T, 0.01
+        sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
         roots: list[Array | None] = []
         for e, w in zip(edges, weights, strict=True):
             if e.information is None:
                 roots.append(None)
                 continue
-            iso = np.diag([1 / sigma_t**2, 1 / sigma_t**2, 1 / sigma_r**2]) * w**2 * ISOTROPIC_SHARE
+            iso = np.diag([1 / sigma_t**2, 1 / sigma_t**2, 1 / sigma_r**2]) * w**2 * self.merge.isotropic_share
             try:
                 root = np.linalg.cholesky(np.array(e.information).reshape(3, 3) / sigma_t**2 + iso).T
             except np.linalg.LinAlgError:
@@ -640,7 +635,7 @@ def _weak_bridges(edges: list[Edge], min_value: float, partial: set[str]) -> dic
     can check (bridges of their graph) and whose value is under ``min_value``, by key.
     The paper's right merges of local maps scored about 10 m and its wrong ones about 5 m; a
     wrong one just over ``valid_min_map_value`` that joins two groups of maps has nothing to
-    contradict it (see ``MergeParams.bridge_min_value``)."""
+    contradict it (see ``MergeParams.bridge_min_value``; docs/decisions/008-pivot-local-maps.md)."""
     if min_value <= 0 or not edges:
         return {}
     g = nx.Graph()

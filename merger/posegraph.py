@@ -34,7 +34,6 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 from fleetmap.merger.graph import (
-    SIGMA_T,
     Component,
     Edge,
     MapGraph,
@@ -57,22 +56,10 @@ from fleetmap.shared.errors import BadInput
 
 log = logging.getLogger(__name__)
 
-CAUCHY_SCALE = 2.0
-"""The Cauchy loss of an integration in the refinement, in standard deviations of its information."""
-MAX_REJECTION_ROUNDS = 5
-"""How many times a solve drops the integrations the refined poses disagree with and solves again."""
-SIGMA_R = 0.01
-"""An integration weighed by its value alone: its rotation's standard deviation at unit weight (rad)."""
-ISOTROPIC_SHARE = 0.01
-"""The share of the value-based weight an integration with known information keeps (no direction is
-entirely free)."""
-
 
 VERDICT_VERSIONS = 5
 """A pair's verdict on a join is found again once either submap has this many versions more."""
 
-HYPOTHESES = 3
-"""An ambiguous integration proposes its alignment and its next best rivals, this many in all."""
 
 LOOKS_KEPT = 200_000
 """Cheap looks kept (:meth:`PoseGraph._look`); past this many the memo starts again."""
@@ -219,7 +206,7 @@ class PoseGraph(MapGraph):
         disagreeing: set[tuple[str, str]] = set()
         self._last_walls, self._walls_now = self._walls_now, {}
         self._last_refined, self._refined_now = self._refined_now, {}
-        for _ in range(MAX_REJECTION_ROUNDS):
+        for _ in range(self.merge.max_rejection_rounds):
             tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], partial)
             components, off = self._refined_components(tree, loops)
             if not off:
@@ -373,7 +360,7 @@ class PoseGraph(MapGraph):
             if not e.valid:
                 # an ambiguous integration: its best alignment and its rivals are hypotheses; a join
                 # takes the one the two groups bear out, if only one; a cycle the one that agrees
-                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: HYPOTHESES - 1])]
+                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
                 if ra != rb:
                     holders = [h for h in hypotheses if self._join_holds(h, members[ra], members[rb], rel, adjacency)]
                     if len(holders) != 1:
@@ -434,8 +421,8 @@ class PoseGraph(MapGraph):
         the cycle tolerance of the tree path from one submap through the join to the other
         (:meth:`_cycle_tolerance`), and a pair whose chains can have drifted farther than
         registration reaches (the tracking's correspondence distance, 5 degrees) says nothing
-        either way: judged at the tree's poses, the right join of two long chains looked refuted
-        at their far ends (mit-csail cut in 4: 19 right integrations rejected, none wrong kept).
+        either way: judged at the tree's poses, the right join of two long chains looks refuted
+        at their far ends (docs/decisions/002-pose-graph.md).
 
         Registering every overlapping pair would cost a registration per pair and join, and the
         groups are whole components: each pair is first looked at cheaply where the join puts it
@@ -510,7 +497,7 @@ class PoseGraph(MapGraph):
             # it has to bear a join out: the paper's validity of the one integration may be all
             required = min(required, len(pairs))
         bearing = sorted(
-            (i for i, look in enumerate(looks) if look[0] >= p.valid_min_value), key=lambda i: -looks[i][0]
+            (i for i, look in enumerate(looks) if look[0] >= p.validity.valid_min_value), key=lambda i: -looks[i][0]
         )
 
         def refuted() -> bool:
@@ -519,7 +506,7 @@ class PoseGraph(MapGraph):
             most = value + sum(looks[i][0] for i in bearing if i not in done)
             return against > max_map_violation(most, p) * most
 
-        refuting = [i for i, (_, free) in enumerate(looks) if free >= p.valid_refute_violation]
+        refuting = [i for i, (_, free) in enumerate(looks) if free >= p.validity.valid_refute_violation]
         for i in sorted(refuting, key=lambda i: -looks[i][1]):
             if refuted():
                 break
@@ -645,7 +632,7 @@ class PoseGraph(MapGraph):
         prep = prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
         value = max(transformation_value(prep, at, p, refuse=False), 0.0)
         violation = float(free.violation(at)[0]) if free.active else 0.0
-        if violation >= p.valid_refute_violation and violation > max_map_violation(value, p) * value:
+        if violation >= p.validity.valid_refute_violation and violation > max_map_violation(value, p) * value:
             log.debug("pair %s-%s: %.1f m of wall in seen free space against %.1f m matched", a, b, violation, value)
             return 0.0, violation
         return 0.0, 0.0
@@ -754,16 +741,19 @@ class PoseGraph(MapGraph):
         if e.link and e.information is not None:
             return gtsam.noiseModel.Gaussian.Information(np.array(e.information).reshape(3, 3))
         w2 = max(e.value, 1e-3)
-        iso = np.diag([w2 / SIGMA_T**2, w2 / SIGMA_T**2, w2 / SIGMA_R**2])
+        sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
+        iso = np.diag([w2 / sigma_t**2, w2 / sigma_t**2, w2 / sigma_r**2])
         information = iso
         if e.information is not None:
-            candidate = np.array(e.information).reshape(3, 3) / SIGMA_T**2 + ISOTROPIC_SHARE * iso
+            candidate = np.array(e.information).reshape(3, 3) / sigma_t**2 + self.merge.isotropic_share * iso
             if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
                 information = candidate
         gaussian = gtsam.noiseModel.Gaussian.Information(information)
         if not robust:
             return gaussian
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_SCALE), gaussian)
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(self.merge.robust_scale), gaussian
+        )
 
     def _optimized(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
         """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed),
@@ -772,7 +762,7 @@ class PoseGraph(MapGraph):
         what a loop corrects along the chain), then from there with the integrations' Cauchy loss
         (an integration the others outvote weighs little). Started at the spanning tree's poses
         with the robust loss at once, a loop that corrects a long chain's drift starts far off,
-        weighs next to nothing, and is never taken."""
+        weighs next to nothing, and is never taken (docs/decisions/002-pose-graph.md)."""
         ids = {k: i for i, k in enumerate(poses)}
         values = gtsam.Values()
         for k, pose in poses.items():

@@ -92,8 +92,8 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
 
 
 SPARSE = Path(__file__).parent / "data" / "sparse"
-"""The bundled scenarios as they were when robots scanned every 0.8-1.2 m of path (the paper's
-Section V spacing): the tests of pose-free integration and merging cut their maps from these."""
+"""Copies of the bundled scenarios whose robots scan every 0.8-1.2 m of path (the paper's Section V
+spacing): the tests of pose-free integration and merging cut their maps from these."""
 
 
 def sparse(name: str) -> str:
@@ -104,8 +104,8 @@ def sparse(name: str) -> str:
 
 
 NORTH_LANE = str(Path(__file__).parent / "data" / "warehouse-north-lane.toml")
-"""warehouse-events as bundled until 2026-11-21: r1 carried to the north lane facing west (its
-scans 16 on), driving away from the forklift's bay; the lane cases of the tests are cut from it."""
+"""A warehouse-events variant: r1 carried to the north lane facing west (its scans 16 on), driving
+away from the forklift's bay; the lane cases of the tests are cut from it."""
 
 
 @functools.cache

@@ -323,16 +323,16 @@ def _lines(m: Array) -> tuple[Array, Array]:
     return np.column_stack([cx, cy]), np.column_stack([ux, uy])
 
 
-def range_noise(points: Array, beams: Array) -> float:
+def range_noise(points: Array, beams: Array, span: float = 0.3) -> float:
     """A scan's noise (m): the median distance of each point from the chord of its two neighbours,
-    over the triples of neighbouring beams that lie within NOISE_SPAN of each other (on one
+    over the triples of neighbouring beams that lie within ``span`` (m) of each other (``noise_span``) (on one
     wall, mostly; a corner's few triples do not move the median). 0 for a scan with no such triple."""
     if len(points) < 3:
         return 0.0
     a, b, c = points[:-2], points[1:-1], points[2:]
     chord = c - a
     length = np.hypot(chord[:, 0], chord[:, 1])
-    ok = (beams[2:] - beams[:-2] == 2) & (length > 1e-9) & (length <= NOISE_SPAN)
+    ok = (beams[2:] - beams[:-2] == 2) & (length > 1e-9) & (length <= span)
     if not ok.any():
         return 0.0
     d = b[ok] - a[ok]
@@ -340,23 +340,15 @@ def range_noise(points: Array, beams: Array) -> float:
     return float(np.median(np.abs(d[:, 0] * u[:, 1] - d[:, 1] * u[:, 0])))
 
 
-NOISE_SPAN = 0.3
-"""Neighbouring beams whose outer two points lie farther apart than this (m) do not measure noise."""
-
-
 def kappa_for(noise: float, p: ExtractionParams) -> float:
     """The polyline tolerance for a scan of this ``noise``: ``kappa_noise_factor`` times it where
-    that exceeds kappa by more than NOISY, kappa otherwise. Merging pieces needs an RMS residual
-    within kappa / 2, so a laser of noise sigma (a noise reading of 0.83 sigma) needs about 2.5
-    sigma / 0.83: 3 times its noise, and a little more than that still cuts some walls. A clean
-    laser's scans read 0.6-1.0 cm (the simulator's 1 cm sigma): without NOISY, some would take
-    3 cm instead of 2.5, and their maps come out a little less precise."""
+    that exceeds kappa ``noisy_kappa_share`` times, kappa otherwise. Merging pieces needs an RMS
+    residual within kappa / 2, so a laser of noise sigma (a noise reading of 0.83 sigma) needs
+    about 2.5 sigma / 0.83: 3 times its noise, and a little more than that still cuts some walls.
+    ``noisy_kappa_share`` keeps a clean laser (the simulator's 1 cm sigma) at kappa
+    (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
     wide = p.kappa_noise_factor * noise
-    return wide if wide > NOISY * p.kappa else p.kappa
-
-
-NOISY = 1.25
-"""A scan's noise sets its kappa only where that is this many times the configured kappa."""
+    return wide if wide > p.noisy_kappa_share * p.kappa else p.kappa
 
 
 def extract_segments(scan: RangeScan, params: ExtractionParams | None = None) -> Array:
@@ -365,7 +357,7 @@ def extract_segments(scan: RangeScan, params: ExtractionParams | None = None) ->
     out: list[Array] = []
     step = abs(scan.angle_increment)
     points, beams = _returns(scan, p.max_range)
-    kappa = kappa_for(range_noise(points, beams), p) if p.kappa_noise_factor > 0 else p.kappa
+    kappa = kappa_for(range_noise(points, beams, p.noise_span), p) if p.kappa_noise_factor > 0 else p.kappa
     cum = _cumulative_moments(points) if p.line_fit else None
     runs: list[list[tuple[int, int]]] = []
     bounds = [(a, b) for a, b in cluster_bounds(points, p.tau, step, p.breakpoint_angle, beams)]

@@ -45,19 +45,6 @@ have no angles), and all pairs while the maps are small enough for that to stay 
 FIRST_CHUNK = 256
 """The most supported candidates are evaluated in full first; their best score seeds the early stop."""
 
-DISTINCT_TRANSLATION = 0.10
-DISTINCT_ROTATION = 0.035
-"""Candidates closer than this (m, rad) are refined only once: refinement converges within."""
-
-SHORTLIST = 64
-"""Candidates (best values first) whose free-space consistency is measured before the choice."""
-
-BY_VALUE = 4
-"""Scans: candidates refined for their value alone, besides the best by score (see
-:func:`_also_by_value`). With the coarse step on every pick, 4 of them integrated 147 of 160
-consecutive pairs of real scans right (132 with none, 151 with 12) at 1.3 times the time (12:
-1.65 times)."""
-
 
 @dataclass(frozen=True)
 class Integration:
@@ -81,7 +68,7 @@ class Integration:
     the score."""
     runner_up: float = 0.0
     """Score of the best transformation clearly different from the chosen one (more than
-    AMBIGUITY_TRANSLATION or AMBIGUITY_ROTATION away): close to the best's in a repetitive world."""
+    ``ambiguity_translation`` or ``ambiguity_rotation`` away): close to the best's in a repetitive world."""
     matches: tuple[IntArray, IntArray] = field(repr=False, default=(np.zeros(0, np.int64), np.zeros(0, np.int64)))
     """Matched segment pairs (index in S1, index in S2) under ``transform``."""
     rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
@@ -160,37 +147,38 @@ def _in_window(t: Array, labels: IntArray, window: Window | None) -> tuple[Array
     return t[keep], labels[keep]
 
 
-def _pick_distinct(t: Array, values: Array, k: int) -> list[int]:
-    """Indices of the k best candidates that differ by more than DISTINCT_TRANSLATION or DISTINCT_ROTATION."""
+def _pick_distinct(t: Array, values: Array, k: int, p: IntegrationParams) -> list[int]:
+    """Indices of the k best candidates that differ by more than ``distinct_translation`` or
+    ``distinct_rotation``."""
     picked: list[int] = []
     for idx in np.argsort(-values, kind="stable"):
         if values[idx] <= 0 or len(picked) >= k:
             break
-        if not any(_alike(t, idx, j) for j in picked):
+        if not any(_alike(t, idx, j, p) for j in picked):
             picked.append(int(idx))
     return picked
 
 
-def _alike(t: Array, i: int, j: int) -> bool:
-    """Whether candidates i and j are within DISTINCT_TRANSLATION and DISTINCT_ROTATION of each other."""
+def _alike(t: Array, i: int, j: int, p: IntegrationParams) -> bool:
+    """Whether candidates i and j are within ``distinct_translation`` and ``distinct_rotation`` of each other."""
     d = math.hypot(t[i, 0] - t[j, 0], t[i, 1] - t[j, 1])
-    return d < DISTINCT_TRANSLATION and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < DISTINCT_ROTATION
+    return d < p.distinct_translation and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < p.distinct_rotation
 
 
-def _also_by_value(t: Array, values: Array, picked: list[int], k: int) -> list[int]:
+def _also_by_value(t: Array, values: Array, picked: list[int], k: int, p: IntegrationParams) -> list[int]:
     """The k best-valued candidates apart from the ``picked`` ones and from each other.
 
     Scans with noisy walls (short segments whose directions are off by a degree or two) give
     candidates near the right transformation that are off by a few tenths of a metre: they match
     the most wall, but put much of it in the other scan's seen free space, which the right
-    transformation does not (edmonton: value 3.1 and 4.6 m of violation, 7.4 and 0.1 m once
-    refined). The free space judges a transformation only once it is refined, so these are refined
-    too, and scored after."""
+    transformation, once refined, does not. The free space judges a transformation only once it
+    is refined, so these are refined too, and scored after
+    (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
     kept: list[int] = []
-    for j in _pick_distinct(t, values, k + len(picked)):
+    for j in _pick_distinct(t, values, k + len(picked), p):
         if len(kept) >= k:
             break
-        if not any(_alike(t, j, i) for i in picked):
+        if not any(_alike(t, j, i, p) for i in picked):
             kept.append(j)
     return kept
 
@@ -289,7 +277,7 @@ def _integrate_small(
     """Scans and small maps: every candidate valued by Algorithm 4 (with the early stop)."""
     oriented = m1.oriented and m2.oriented
     prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered)
-    free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.free_space_margin)
+    free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
     raw, labels = gather_candidates(m1, m2, h, p)
     cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
     if 0 < p.max_evaluated < len(cand):
@@ -304,14 +292,14 @@ def _integrate_small(
         if len(cand) > FIRST_CHUNK:
             known = float(head_best.max()) if len(head_best) else 0.0
             values[FIRST_CHUNK:] = transformation_values(prep, cand[FIRST_CHUNK:], p, best_known=max(known, 0.0))
-        shortlist = np.argsort(-values, kind="stable")[:SHORTLIST]
+        shortlist = np.argsort(-values, kind="stable")[: p.shortlist]
         shortlist = shortlist[values[shortlist] > 0]
         scores = values[shortlist] - free.violation(cand[shortlist]) if free.active else values[shortlist]
         k = max(1, p.refine_candidates) if p.refine else 1
-        picked = _pick_distinct(cand[shortlist], scores, k)
+        picked = _pick_distinct(cand[shortlist], scores, k, p)
         by_score = len(picked)
         if p.refine and free.active:
-            picked += _also_by_value(cand[shortlist], values[shortlist], picked, BY_VALUE)
+            picked += _also_by_value(cand[shortlist], values[shortlist], picked, p.also_by_value, p)
         finals = [
             _Choice(
                 Transform2D.from_array(cand[shortlist[j]]),
@@ -324,9 +312,9 @@ def _integrate_small(
         ]
         best, rivals, centre = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = np.flatnonzero(clearly_different(best.transform, centre)(cand[shortlist]))
+        others = np.flatnonzero(clearly_different(best.transform, centre, p.validity)(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
-    return best, _best_rivals(rivals), len(cand), prep
+    return best, _best_rivals(rivals, p), len(cand), prep
 
 
 GRID_FINE = 1024
@@ -370,9 +358,9 @@ def _integrate_large(
         fine = ranking_scores(i1, i2, cand[first], fine=True)
         order = np.argsort(-fine, kind="stable")
         ranked = first[order]
-        shortlist = ranked[:SHORTLIST]
+        shortlist = ranked[: p.shortlist]
         picked = _pick_distinct(
-            cand[shortlist], fine[order[:SHORTLIST]], max(1, p.refine_candidates) if p.refine else 1
+            cand[shortlist], fine[order[: p.shortlist]], max(1, p.refine_candidates) if p.refine else 1, p
         )
         finals = [
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
@@ -381,27 +369,27 @@ def _integrate_large(
         best, rivals, centre = _choose(prep, free, finals, p, not free.active, large=True)
         # More alignments clearly different from the best, best fine grid score first, among all
         # that got one (a small map in a symmetric building can fill the shortlist with one
-        # alignment): the first, and between two partial maps up to RIVALS, each clearly different
+        # alignment): the first, and between two partial maps up to ``rivals``, each clearly different
         # from the others, since the free space refutes some aliases and not others in racks
         # (:func:`~fleetmap.shared.core.validity.unrefuted`), and one left out could be the clean one.
         maps = not (m1.ordered or m2.ordered)
         ranked_t = cand[ranked]
-        open_ = clearly_different(best.transform, centre)(ranked_t)
+        open_ = clearly_different(best.transform, centre, p.validity)(ranked_t)
         for t, _ in rivals if maps else ():
-            open_ &= clearly_different(t, centre)(ranked_t)
-        for _ in range(RIVALS if maps else 1):
+            open_ &= clearly_different(t, centre, p.validity)(ranked_t)
+        for _ in range(p.rivals if maps else 1):
             if not open_.any():
                 break
             other = _evaluated(prep, free, Transform2D.from_array(ranked_t[int(np.argmax(open_))]), 0, p)
             rivals.append((other.transform, other.score))
-            open_ &= clearly_different(other.transform, centre)(ranked_t)
+            open_ &= clearly_different(other.transform, centre, p.validity)(ranked_t)
         if maps:
             rivals = unrefuted(rivals, best.value, best.score, free, p)
     solid = None
-    limited = p.map_free_space_min_length > 0 or p.map_free_space_clearance > 0
+    limited = p.validity.map_free_space_min_length > 0 or p.validity.map_free_space_clearance > 0
     if limited and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
         solid = float(free.violation(best.transform.as_array(), solid=True)[0])
-    return best, _best_rivals(rivals), len(cand), prep, solid
+    return best, _best_rivals(rivals, p), len(cand), prep, solid
 
 
 def _choose(
@@ -422,9 +410,9 @@ def _choose(
     """
     if p.refine:
         # Two stages: a few steps for every pick, then to convergence for those still in the race.
-        finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse) for c in finals]
+        finals = [_refined(prep, free, c, p, p.refine_first_steps, refuse) for c in finals]
         top = max((c.score for c in finals), default=0.0)
-        finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top else c for c in finals]
+        finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= p.refine_keep * top else c for c in finals]
     best = finals[0] if finals else _Choice(Transform2D.identity(), 0.0, 0.0, 0)
     for choice in finals:
         if choice.score > best.score:
@@ -434,18 +422,14 @@ def _choose(
     centre = _overlap_centre(prep, best.transform, p) if large else None
     if not finals:
         return best, [], centre
-    mask = clearly_different(best.transform, centre)(np.array([c.transform.as_array() for c in finals]))
+    mask = clearly_different(best.transform, centre, p.validity)(np.array([c.transform.as_array() for c in finals]))
     return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], centre
 
 
-RIVALS = 8
-"""Rivals an Integration keeps (the best-scoring ones)."""
-
-
-def _best_rivals(rivals: list[tuple[Transform2D, float]]) -> list[tuple[Transform2D, float]]:
-    """The RIVALS best-scoring rivals with a positive score, best first."""
+def _best_rivals(rivals: list[tuple[Transform2D, float]], p: IntegrationParams) -> list[tuple[Transform2D, float]]:
+    """The ``rivals`` best-scoring rivals with a positive score, best first."""
     kept = sorted((r for r in rivals if r[1] > 0), key=lambda r: -r[1])
-    return kept[:RIVALS]
+    return kept[: p.rivals]
 
 
 def _overlap_centre(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Array | None:
@@ -465,11 +449,6 @@ class _Choice:
     label: int
     coarse: bool = False
     """Picked for its value alone (:func:`_also_by_value`): refined coarse first."""
-
-
-REFINE_FIRST_STEPS = 3
-REFINE_KEEP = 0.6
-"""Picks scoring under this fraction of the best after the first steps are not refined further."""
 
 
 def _evaluated(
@@ -499,11 +478,9 @@ def _refined(
     """``c`` refined by least squares, if that raises its score; first coarse
     (``refine_coarse_factor``) if it was picked for its value alone (``c.coarse``). With noisy
     walls the candidates an angle match gives near the right transformation are a few tenths of a
-    metre or a few degrees off, beyond the pairs the tolerance matches, and would stay there
-    (edmonton's first 30 consecutive scan pairs: 24 integrated right, 22 without the coarse step).
-    Not the picks by score: a coarse step on every pick cost the simulated warehouse's r1 an epoch
-    (3 instead of 2; not traced), and on large maps it made the merge of 8 local maps up to twice
-    as slow."""
+    metre or a few degrees off, beyond the pairs the tolerance matches, and would stay there. The
+    picks by score are refined at the given tolerance only: a coarse step there slows large merges
+    and helps nothing (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
     t = c.transform
     if c.coarse and p.refine_coarse_factor > 1:
         wide = replace(p, point_distance_tolerance=p.refine_coarse_factor * p.point_distance_tolerance)
@@ -537,10 +514,10 @@ def index_for(m: SegmentMap, p: IntegrationParams) -> MapIndex:
         m,
         p.grid_resolution,
         p.segment_distance_threshold * p.point_distance_tolerance,
-        p.map_free_space_margin,
-        p.map_free_space_slope,
-        p.map_free_space_min_length,
-        p.map_free_space_clearance,
+        p.validity.map_free_space_margin,
+        p.validity.map_free_space_slope,
+        p.validity.map_free_space_min_length,
+        p.validity.map_free_space_clearance,
     )
 
 
@@ -582,7 +559,8 @@ def align_near(
     check_map(m2, "S2")
     start = time.perf_counter()
     samples = sample_segments(m2.segments, tracking.sample_spacing)
-    loose = np.diag([1.0 / NEAR_PRIOR_TRANSLATION**2, 1.0 / NEAR_PRIOR_TRANSLATION**2, 1.0 / NEAR_PRIOR_ROTATION**2])
+    near_t, near_r = params.near_prior_translation, params.near_prior_rotation
+    loose = np.diag([1.0 / near_t**2, 1.0 / near_t**2, 1.0 / near_r**2])
     reg = register(samples, reference1, predicted, predicted, loose, tracking)
     t = reg.pose
     prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered)
@@ -605,9 +583,3 @@ def align_near(
         solid_violation=solid,
         matches=matches,
     )
-
-
-NEAR_PRIOR_TRANSLATION = 1.0
-"""How far (m) :func:`align_near`'s registration lets the prediction pull (loosely: the walls decide) ..."""
-NEAR_PRIOR_ROTATION = 0.35
-"""... and how far it turns (rad)."""

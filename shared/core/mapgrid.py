@@ -4,7 +4,7 @@ The paper integrates partial maps exactly as it integrates scans (IV: "all the m
 applicable to the integration of two partial maps"), and notes that it gets slow and unreliable
 as they grow (V-B, V-C). Two partial maps of a real building share only a part of their walls,
 while their many long parallel walls (corridors, racks) let wrong transformations match tens of
-metres: the transformation value alone no longer separates right from wrong. What separates them
+metres: the transformation value alone does not separate right from wrong. What separates them
 is what the robots *saw*: a map built from scans knows from where each scan was taken, and the
 space between those viewpoints and the walls they saw is free. A wrong transformation puts one
 map's walls in the other's free space; the right one does not.

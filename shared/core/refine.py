@@ -107,5 +107,5 @@ def refinement_kept(
     if after >= before:
         return True
     dt, dr = start.distance(refined)
-    small = dt <= params.pivot_refine_slack_translation and dr <= params.pivot_refine_slack_rotation
-    return small and after >= before - params.pivot_refine_slack * abs(before)
+    small = dt <= params.pivot.pivot_refine_slack_translation and dr <= params.pivot.pivot_refine_slack_rotation
+    return small and after >= before - params.pivot.pivot_refine_slack * abs(before)

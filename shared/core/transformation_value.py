@@ -12,7 +12,7 @@ What makes it fast without changing the result that matters:
   the pairs near parallel under a candidate's rotation are one binary search away, and a
   midpoint-distance test (exact: segments whose midpoints are farther apart than their half
   lengths plus the threshold cannot overlap) prunes the rest before the exact computation.
-  Pairs more than ``PAIR_ANGLE_LIMIT`` from parallel are skipped: for them d <= D forces the
+  Pairs more than ``pair_angle_limit`` from parallel are skipped: for them d <= D forces the
   shorter segment to be shorter than 2D / sin(angle), so their matching value is at most
   2D cot(angle), under 0.15 m at the default D = 75 mm, and in practice zero.
 - The early stop of III-B: S1's segments are taken longest first in blocks; after each block a
@@ -30,9 +30,6 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.candidates import IntArray, ragged_ranges
 from fleetmap.shared.core.geometry import Array, lengths, matching_value, orientations
 from scipy.spatial import cKDTree
-
-PAIR_ANGLE_LIMIT = 0.5
-"""Pairs further from parallel than this (rad) are not evaluated (see the module docstring)."""
 
 CHUNK_ENTRIES = 1_500_000
 """Candidate-pair entries processed at once: bounds memory to a few tens of MB."""
@@ -162,9 +159,9 @@ def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
     SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE, and more for a scan's far segments. Two
     walls meeting at a corner touch (and, with extraction noise, overshoot a little) without
     crossing, and two nearly parallel segments that overlap are a match, not a contradiction. A
-    far wall is fixed by a few sparse points, so its line may turn by tens of degrees: at the true
-    alignment of edmonton's consecutive scans, 1 m segments 14-19 m from the sensor crossed the
-    other scan's line of the same wall at 14-31 degrees, reaching 0.1-0.6 m beyond it.
+    far wall is fixed by a few sparse points, so its line may turn by tens of degrees and cross
+    another scan's line of the same wall: hence a scan's margin grows with range
+    (docs/decisions/006-real-lasers-extraction-and-refusal.md).
     """
     out = np.zeros(len(t), dtype=bool)
     if len(prep.long1) == 0 or len(prep.long2) == 0 or len(t) == 0:
@@ -214,8 +211,8 @@ def _block_values(
     order, ext, pi, pk = prep.blocks[block]
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     theta = np.mod(t[:, 2] + prep.period / 2, prep.period) - prep.period / 2
-    lo = np.searchsorted(ext, theta - PAIR_ANGLE_LIMIT, side="left")
-    hi = np.searchsorted(ext, theta + PAIR_ANGLE_LIMIT, side="right")
+    lo = np.searchsorted(ext, theta - params.pair_angle_limit, side="left")
+    hi = np.searchsorted(ext, theta + params.pair_angle_limit, side="right")
     values = np.zeros(len(t))
     found: list[tuple[IntArray, IntArray, IntArray, Array]] = []
     counts = hi - lo
@@ -321,7 +318,7 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
         i, k = _tree_pairs(prep, mid2, d_max)
         dphi = prep.phi1[i] - prep.phi2[k]
     rot = np.mod(dphi - theta + prep.period / 2, prep.period) - prep.period / 2
-    parallel = np.flatnonzero(np.abs(rot) <= PAIR_ANGLE_LIMIT)
+    parallel = np.flatnonzero(np.abs(rot) <= params.pair_angle_limit)
     i, k = i[parallel], k[parallel]
     dx = prep.mid1[i, 0] - mid2[k, 0]
     dy = prep.mid1[i, 1] - mid2[k, 1]

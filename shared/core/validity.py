@@ -1,41 +1,30 @@
 """The validity rules of one integration: whether INTEGRATE's best transformation is trusted.
 
-Validity (``valid``): the paper leaves it to a user threshold on the value (V-B) and reports that
-right integrations of its local maps scored about 10 m and wrong ones about 5 m. A fixed
-threshold cannot serve both a pair of scans (a few metres of wall) and a pair of local maps
-(tens of metres), so the rule is relative to the maps' sizes: an integration is valid when its
-value is at least ``valid_min_value`` metres *and* at least ``valid_min_fraction`` of the total
-segment length of the smaller map, i.e. a fair share of what the smaller map saw is explained by
-the other. The benchmark (``benchmarks/integration.py``) measures how well this separates right
-from wrong integrations on real scans.
+The paper leaves validity to a user threshold on the value (V-B) and reports that right
+integrations of its local maps scored about 10 m and wrong ones about 5 m. A fixed threshold
+cannot serve both a pair of scans (a few metres of wall) and a pair of local maps (tens of
+metres), so there are two rules (docs/decisions/007-validity-of-an-integration.md).
 
-Two partial maps (neither a scan: ``ordered`` false) have their own rule: value at least
-``valid_min_map_value`` (8 m: the paper's right merges of local maps scored about 10 m, wrong ones
-about 5 m), at most ``valid_max_map_violation`` (10 %) of it in the other map's seen free space
-(only the walls farther than ``map_free_space_clearance``, 0.3 m, from the other map's own walls
-counted there, since two local maps place the same wall a little apart; and with
-``map_free_space_min_length``, only long walls: clutter; and from ``valid_strong_map_value``,
-16 m, on, ``valid_max_strong_map_violation``, 15 %: a large overlap's shared walls, placed a
-little apart, violate in proportion to it), and no clearly
-different transformation within ``valid_max_map_ambiguity`` (50 %) of its score on the large-map
-path, where the rival is judged by the free space too (``valid_max_ambiguity``, 80 %, on the
-small path, where nothing refutes the mirror image of a rectangular room). A rival that puts
-metres of wall where a laser saw through, while the best puts next to none there, is refuted and
-does not count (``valid_refute_violation``, :func:`_unrefuted`). And a map that carries its
-scans' viewpoints must have at least ``valid_min_map_scans`` (5) of them
-(in the simulated warehouse, local maps of two or three scans matched others turned round, 13 to
-24 m off, with values of 16-17 m).
-Measured on 843 integrations between local maps built from the corrected logs
-(``benchmarks/merge.py --max-scans 200 --edges-json``): 106 of 153 right ones (within 0.3 m, 3
-degrees) valid (56 without the wall clearance), 9 of 668 wrong ones (over 1 m or 10 degrees; 5
-without): four between small corridor maps of the infinite corridor (a T-junction like another,
-a stretch matching itself reversed), five onto an orebro map whose first scan sits 2.5 m off the
-rest of it (right by the map's walls). With the 15 % tier for values of 16 m or more: still 106
-right ones valid, and 11 wrong ones (two more onto that orebro map); between maps built from the
-corrected poses (``--local-maps truth``, 170 pairs), 52 right ones valid instead of 44, and the
-same 2 wrong ones (low values, 8-9 m), which the cycle check then rejects. Long corridors match
-wherever they align, so between maps only a clear, unambiguous match is trusted; an unplaced map
-is better than a wrong one.
+Scans (either map ``ordered``): the value is at least ``valid_min_value`` metres *and* at least
+``valid_min_fraction`` of the total segment length of the smaller map (a fair share of what the
+smaller map saw is explained by the other), at most ``valid_max_violation`` of it lies in the
+other scan's seen free space, and no clearly different transformation scores within
+``valid_max_ambiguity`` of it (nothing refutes the mirror image of a rectangular room).
+
+Two partial maps: value at least ``valid_min_map_value``; at most ``valid_max_map_violation`` of
+it in the other map's seen free space, counting only the walls farther than
+``map_free_space_clearance`` from the other map's own walls (two local maps place the same wall a
+little apart) and, with ``map_free_space_min_length``, only long walls (clutter moves); from
+``valid_strong_map_value`` on, ``valid_max_strong_map_violation`` (a large overlap's shared walls,
+placed a little apart, violate in proportion to it); no clearly different transformation within
+``valid_max_map_ambiguity`` of its score on the large-map path, where the free space judges the
+rivals too (``valid_max_ambiguity`` on the small one): a rival that puts metres of wall where a
+laser saw through, while the best puts next to none there, is refuted and does not count
+(``valid_refute_violation``, :func:`unrefuted`); and each map that carries its scans' viewpoints
+has at least ``valid_min_map_scans`` of them (a map of two or three scans in a symmetric building
+matches turned round as well as where it is). Long corridors match wherever they align, so
+between maps only a clear, unambiguous match is trusted; an unplaced map is better than a wrong
+one.
 """
 
 from __future__ import annotations
@@ -44,7 +33,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.config import IntegrationParams, ValidityParams
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.mapgrid import VIEWPOINTS
 from fleetmap.shared.core.segmap import SegmentMap
@@ -57,10 +46,6 @@ class SeenFreeSpace(Protocol):
     def active(self) -> bool: ...
 
     def violation(self, t: Array) -> Array: ...
-
-
-AMBIGUITY_TRANSLATION = 0.5
-AMBIGUITY_ROTATION = 0.17
 
 
 def is_valid(
@@ -80,10 +65,10 @@ def is_valid(
     if large and scans:
         # A scan integrated with a partial map must still be explained in a fair share by it.
         return (
-            value >= params.valid_min_value
-            and value >= params.valid_min_fraction * min(scans)
-            and violation <= params.valid_max_violation * value
-            and runner_up <= params.valid_max_ambiguity * score
+            value >= params.validity.valid_min_value
+            and value >= params.validity.valid_min_fraction * min(scans)
+            and violation <= params.validity.valid_max_violation * value
+            and runner_up <= params.validity.valid_max_ambiguity * score
         )
     if not scans:
         # Two partial maps: the paper's right ~10 m / wrong ~5 m, with free space and ambiguity;
@@ -91,39 +76,40 @@ def is_valid(
         # turned round as well as it matches where it is).
         return (
             seen_from_enough_places(m1, m2, params)
-            and value >= params.valid_min_map_value
+            and value >= params.validity.valid_min_map_value
             and (violation if solid_violation is None else solid_violation) <= max_map_violation(value, params) * value
-            and runner_up <= (params.valid_max_map_ambiguity if large else params.valid_max_ambiguity) * score
+            and runner_up
+            <= (params.validity.valid_max_map_ambiguity if large else params.validity.valid_max_ambiguity) * score
         )
     smaller = min(m1.total_length, m2.total_length)
     return (
-        value >= params.valid_min_value
-        and value >= params.valid_min_fraction * smaller
-        and violation <= params.valid_max_violation * value
-        and runner_up <= params.valid_max_ambiguity * score
+        value >= params.validity.valid_min_value
+        and value >= params.validity.valid_min_fraction * smaller
+        and violation <= params.validity.valid_max_violation * value
+        and runner_up <= params.validity.valid_max_ambiguity * score
     )
 
 
 def max_map_violation(value: float, params: IntegrationParams) -> float:
     """The fraction of its value an integration of two partial maps may put in their seen free
     space: ``valid_max_strong_map_violation`` from ``valid_strong_map_value`` on."""
-    strong = params.valid_strong_map_value
+    strong = params.validity.valid_strong_map_value
     if strong > 0 and value >= strong:
-        return max(params.valid_max_map_violation, params.valid_max_strong_map_violation)
-    return params.valid_max_map_violation
+        return max(params.validity.valid_max_map_violation, params.validity.valid_max_strong_map_violation)
+    return params.validity.valid_max_map_violation
 
 
 def seen_from_enough_places(m1: SegmentMap, m2: SegmentMap, params: IntegrationParams) -> bool:
     """Whether each of two partial maps that carries its scans' viewpoints has at least
     ``valid_min_map_scans`` of them: otherwise they cannot merge, whatever their geometry."""
     seen = [len(x.extras[VIEWPOINTS]) for x in (m1, m2) if VIEWPOINTS in x.extras]
-    return min(seen, default=params.valid_min_map_scans) >= params.valid_min_map_scans
+    return min(seen, default=params.validity.valid_min_map_scans) >= params.validity.valid_min_map_scans
 
 
-def clearly_different(best: Transform2D, centre: Array | None = None) -> Callable[[Array], Array]:
+def clearly_different(best: Transform2D, centre: Array | None, p: ValidityParams) -> Callable[[Array], Array]:
     """Which of ``(n, 3)`` transformations are clearly different from ``best``: they move ``centre``
-    (S2's origin by default) more than AMBIGUITY_TRANSLATION from where ``best`` puts it, or turn
-    more than AMBIGUITY_ROTATION from it."""
+    (S2's origin by default) more than ``ambiguity_translation`` from where ``best`` puts it, or turn
+    more than ``ambiguity_rotation`` from it."""
     c = np.zeros(2) if centre is None else centre
     at_best = best.apply_points(c[None])[0]
 
@@ -132,7 +118,7 @@ def clearly_different(best: Transform2D, centre: Array | None = None) -> Callabl
         cos, sin = np.cos(t[:, 2]), np.sin(t[:, 2])
         moved = np.column_stack([cos * c[0] - sin * c[1] + t[:, 0], sin * c[0] + cos * c[1] + t[:, 1]])
         turn = np.abs(wrap_angle(t[:, 2] - best.theta))
-        return np.asarray((np.hypot(*(moved - at_best).T) > AMBIGUITY_TRANSLATION) | (turn > AMBIGUITY_ROTATION))
+        return np.asarray((np.hypot(*(moved - at_best).T) > p.ambiguity_translation) | (turn > p.ambiguity_rotation))
 
     return far
 
@@ -150,11 +136,11 @@ def unrefuted(
     one (they slide the map over more of the other) but put rack ends in the forklift's bay; the
     score (value less violation) still ranks them within a tenth of the right one.
     """
-    limit = p.valid_refute_violation
-    if limit <= 0 or not rivals or not free.active or value - score > p.valid_refute_clean * value:
+    limit = p.validity.valid_refute_violation
+    if limit <= 0 or not rivals or not free.active or value - score > p.validity.valid_refute_clean * value:
         return rivals
     t = np.array([r.as_array() for r, _ in rivals])
     violation = free.violation(t)
     scores = np.array([s for _, s in rivals])
-    refuted = (violation >= limit) & (violation > p.valid_max_map_violation * (scores + violation))
+    refuted = (violation >= limit) & (violation > p.validity.valid_max_map_violation * (scores + violation))
     return [r for r, out in zip(rivals, refuted, strict=True) if not out]

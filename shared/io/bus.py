@@ -208,11 +208,10 @@ class _ZenohHandle:
 class _Dispatcher:
     """Runs a subscription's callback on a thread of its own, fed by an unbounded queue, so zenoh's
     receiving thread only queues a sample. A callback that held that thread (zenoh queues a few
-    hundred samples per subscriber, then waits) kept the session from reading its peers' keep-alives:
-    a subscriber taking 5 ms a message made the peer's link lapse at the 2 s lease, and what was
-    still on the way was lost (1,500 messages of 10 kB: 643-1,105 arrived in 2 of 3 runs, and
-    950-1,267 in 3 of 3 in a second series; with the queue, all of them). Stopping delivers what
-    was received first, waiting up to FLUSH_TIMEOUT."""
+    hundred samples per subscriber, then waits) would keep the session from reading its peers'
+    keep-alives: a slow subscriber's link would lapse at the lease, and what was still on the way
+    would be lost (docs/decisions/004-a-live-fleet-that-keeps-up.md). Stopping delivers what was
+    received first, waiting up to FLUSH_TIMEOUT."""
 
     def __init__(self, name: str, deliver: Callable[[str, bytes], None]) -> None:
         self._queue: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()

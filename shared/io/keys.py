@@ -180,8 +180,8 @@ class FleetKeys:
 
     @property
     def events(self) -> str:
-        """The merger's events (join, leave, relocalized, requests to the robots); robots' own
-        events of older recordings are here too."""
+        """The merger's events (join, leave, relocalized, requests to the robots); a recording may
+        hold robots' own events here too."""
         return f"{self.prefix}/events"
 
     @property

@@ -28,10 +28,8 @@ def half_circle_angles(n: int) -> tuple[float, float]:
     first beam to the right: an odd count (181, 361) spans -90..+90 with both ends included (1 or
     0.5 degree steps); an even count (180, 360) cannot include both ends at a laser's step, and
     takes 180/n degree steps from -90, as GMapping, which corrected ``../shared/data/corrected``,
-    reads such logs. Spread over both ends (180/179 degrees a step), the corrected logs' 180-beam
-    scans turned 0.8 % too far against their corrected poses on turning steps, a robot's spin in
-    place in aces adding 5 degrees to its local map's heading; with 1-degree steps they read
-    +0.2-0.35 %, like the 181- and 361-beam logs (``benchmarks/scan_pairs.py``, last column).
+    reads such logs: spread over both ends, the scans turn too far against the corrected poses
+    (docs/decisions/006-real-lasers-extraction-and-refusal.md).
     """
     if n % 2 == 0:
         return -math.pi / 2.0, math.pi / n

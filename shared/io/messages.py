@@ -39,8 +39,9 @@ from fleetmap.shared.io.keys import MAP_KEY_PATTERN, NAME_PATTERN
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Payloads larger than this are refused before they are unpacked: the largest message fleetmap
-sends, a global map of ``MAX_SEGMENTS`` packed segments, is 6.4 MB. (At 64 MiB, one payload of small
-integers unpacked into 4.6 GB of Python objects in every subscriber.)"""
+sends, a global map of ``MAX_SEGMENTS`` packed segments, is 6.4 MB, while a payload of small
+integers unpacks into Python objects tens of times its size, in every subscriber
+(docs/decisions/003-a-fleet-that-lets-in-only-its-own.md)."""
 MAX_SEGMENTS = 200_000
 """The most segments one message carries (a global map: all its components together)."""
 MAX_BEAMS = 100_000
@@ -548,8 +549,8 @@ class LocalMap(WireMessage):
     consecutive ones overlap and are chained by ``link``. The active submap grows in versions;
     a finished one is published once more with ``final`` true and never changes again.
 
-    Version 1 (recordings made before submaps) carried a whole epoch's local map: it reads as
-    submap 0, not final, without a link or scan table.
+    Version 1 carries a whole epoch's local map, with no submap fields: it reads as submap 0, not
+    final, without a link or scan table.
     """
 
     SCHEMA: ClassVar[str] = "fleetmap.LocalMap"

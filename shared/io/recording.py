@@ -186,11 +186,7 @@ class RecordingWriter:
 
 def config_metadata(config: FleetmapConfig) -> dict[str, str]:
     """A config as MCAP metadata: every ``section.field`` and the whole TOML."""
-    out = {
-        f"{section}.{name}": str(value)
-        for section, values in config.to_dict().items()
-        for name, value in values.items()
-    }
+    out = {name: str(value) for name, value in config.flat().items()}
     out["toml"] = config.to_toml()
     return out
 

@@ -15,30 +15,56 @@ from typing import Any
 
 from fleetmap.shared.config import SECTIONS, FleetmapConfig, apply_overrides, load_config
 
+HELP_ALL = "--help-all"
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: the help with every algorithm parameter, not only the basic ones."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: Any, **__: Any) -> None:
+        for action in parser._actions:
+            hidden = getattr(action, "advanced_help", None)
+            if hidden is not None:
+                action.help = hidden
+        parser.print_help()
+        parser.exit()
+
 
 def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str]) -> None:
-    """Add ``--config FILE`` and one ``--field-name VALUE`` option per field of ``sections``, in
-    "advanced algorithm parameters" groups, each with the first sentence of its field's docstring."""
+    """Add ``--config FILE`` and one ``--field-name VALUE`` option per parameter of ``sections`` and
+    the sections nested in them, each with its tag (paper or fleetmap) and the first sentence of its
+    docstring. ``--help`` shows the basic parameters; ``--help-all`` every one."""
     parser.add_argument(
         "--config",
         metavar="FILE",
-        help="a TOML file of algorithm parameters, one table per section ([integration], ...)",
+        help="a TOML file of algorithm parameters, one table per stage ([extraction], [integration], "
+        "[integration.validity], ...; fleetmap/examples/basic.toml holds the basic ones)",
     )
-    for section in sections:
-        cls = SECTIONS[section]
-        said = field_sentences(cls)
-        group = parser.add_argument_group(
-            f"advanced algorithm parameters: {section} (override --config; fleetmap/shared/config.py explains each)"
-        )
-        for f in fields(cls):
+    parser.add_argument(HELP_ALL, action=_HelpAll, help="show this help with every algorithm parameter, and exit")
+    basic = parser.add_argument_group("basic parameters (override --config)")
+    for path in SECTIONS:
+        if path.split(".")[0] not in sections:
+            continue
+        said = field_sentences(SECTIONS[path])
+        group = parser.add_argument_group(f"advanced parameters: [{path}] (shown by {HELP_ALL})")
+        for f in fields(SECTIONS[path]):
+            if "origin" not in f.metadata:
+                continue
             default = f.default
-            group.add_argument(
+            text = f"[{f.metadata['origin']}] {said.get(f.name, '')} (default {default!r})"
+            shown = f.metadata.get("basic", False)
+            action = (basic if shown else group).add_argument(
                 "--" + f.name.replace("_", "-"),
-                dest=f"cfg__{section}__{f.name}",
+                dest=f"cfg__{path}__{f.name}",
                 metavar=type(default).__name__.upper() if not isinstance(default, str) else "NAME",
                 default=None,
-                help=f"{said.get(f.name, '')} (default {default!r})".lstrip(),
+                help=text if shown else argparse.SUPPRESS,
             )
+            if not shown:
+                action.advanced_help = text  # type: ignore[attr-defined]
 
 
 @functools.cache

@@ -176,7 +176,7 @@ def replay(
         by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
         for n, step in enumerate(steps):
             for key, version in zip(step.maps, step.versions, strict=True):
-                if key.count("/") == 1:  # recorded before submaps: an epoch's map is its submap 0
+                if key.count("/") == 1:  # a version-1 map key (no submap): an epoch's map is its submap 0
                     key = f"{key}/0"
                 found = by_version.get((key, version))
                 if found is None:

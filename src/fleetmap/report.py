@@ -7,7 +7,7 @@ its error and coverage fields are null (``../shared/CONTRACTS.md``).
 
 The frame of a submap ``<robot>/<epoch>/<submap>`` is the laser frame of its frame scan (the
 message says which; an epoch's first submap's is the epoch's first scan, and so is the frame of a
-local map of the pivot front end or of a recording made before submaps), so its true pose is that
+local map of the pivot front end or of a version-1 LocalMap), so its true pose is that
 scan's true pose. The global frame is the anchor submap's; the world-to-global alignment comes
 from the anchor's true pose.
 """
@@ -175,7 +175,7 @@ def make_truth(scenario: Scenario | None) -> Truth | None:
 
 def frame_scan(log: SessionLog, key: str) -> tuple[str, int] | None:
     """The robot and scan index whose laser pose is the frame of map ``key`` (a submap key, or an
-    epoch key of a recording made before submaps), or None where the session does not say."""
+    epoch key of a version-1 LocalMap), or None where the session does not say."""
     robot, epoch, submap = parse_submap_key(key)
     held = log.local_maps.get(key if submap is not None else f"{key}/0")
     if held is not None and held.frame_scan is not None:

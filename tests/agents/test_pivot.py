@@ -177,15 +177,15 @@ def test_bad_parameters_are_refused_by_name(kwargs, named):
     "name, robot, epochs",
     [
         # warehouse, r1: its agent loses its place once, after the first corner (scan 19): scans
-        # 21 and 22 do not integrate, and epoch 1 starts at 21. It used to lose it three times
-        # more: after the next corner (scan 27), constant velocity turned the robot round, so
-        # nothing challenged the scans' best match one rack back, and two scans were placed 3.5 m
-        # off before a new epoch; and along lanes, where the right placement ranked below the
-        # rivals an integration keeps.
+        # 21 and 22 do not integrate, and epoch 1 starts at 21. After the next corner (scan 27)
+        # the motion prior drives it on straight ahead, so the scans' best match one rack back
+        # is challenged, and along lanes the prior's window is searched even where the right
+        # placement ranks below the rivals an integration keeps
+        # (docs/decisions/008-pivot-local-maps.md).
         ("warehouse", "r1", 2),
         # office-events, r3: at the corner of scan 21 (a quarter turn, four segments in view) the
-        # refinement on the map slid the scan 0.7 m along the corridor, away from where its two
-        # integrations agreed, and the next scan started an epoch.
+        # refinement on the map must not slide the scan along the corridor, away from where its
+        # two integrations agree: the next scan would start an epoch.
         ("office-events", "r3", 1),
     ],
 )
@@ -230,11 +230,10 @@ def test_a_warehouse_lane_is_not_mapped_one_rack_off(robot, scans):
 @pytest.mark.slow  # 30 scans of a real log through the agent
 def test_a_scan_is_not_placed_on_a_local_map_of_one_scan_across_one_that_did_not_integrate(datasets) -> None:
     # orebro, along a corridor, with no usable times: scan 151 is ambiguous against 150 (a metre
-    # on, or standing still). Placed on 150 across it, 152 went where the robot had not moved,
-    # 2.2 m short (value 5.3 against 3.0 at the truth), every later scan followed, and the local
-    # map stood 2.4 m off its first scan: merged by that scan's pose, it was wrong. The agent now
-    # starts the epoch again from 151: every placed scan lies where the corrected poses put it
-    # relative to its epoch's first scan, within 0.3 m and 3 degrees.
+    # on, or standing still), and 152 placed on 150 across it would go where the robot had not
+    # moved. The agent starts the epoch again from 151 (ONE_SCAN_REASON,
+    # docs/decisions/008-pivot-local-maps.md): every placed scan lies where the corrected poses put
+    # it relative to its epoch's first scan, within 0.3 m and 3 degrees.
     scans = list(read_carmen(datasets / "corrected" / "orebro-corrected.log.gz"))[150:180]
     agent = pivot("r1")
     messages = []

@@ -1,4 +1,4 @@
-"""The live fleet over real Zenoh between real processes on loopback (issue 5's proof).
+"""The live fleet over real Zenoh between real processes on loopback.
 
 Every test starts the real programs (``python -m fleetmap ...``), picks free ports, waits on
 events with bounded timeouts and always stops its processes.
@@ -331,9 +331,8 @@ def _wait(predicate, event: threading.Event, timeout: float = WAIT) -> bool:  # 
 
 def test_late_join_leave_crash_and_kidnap_in_one_session(tmp_path: Path) -> None:
     out = tmp_path / "events"
-    # In real time, as the kidnap target is stated: at --speed 3 the kidnap's scans come three times
-    # as fast as the merger's steps, and a busy machine took 12 scans to relocalize in about one run
-    # of four (5 in every run at speed 1, idle or beside a busy core; about 28 s).
+    # In real time, as the kidnap target is stated: faster, the kidnap's scans outrun the merger's
+    # steps on a busy machine (docs/decisions/004-a-live-fleet-that-keeps-up.md).
     r = subprocess.run(
         fleetmap_cmd("run", "department-events", "--out", str(out), "--speed", "1", "--no-progress", "--json"),
         capture_output=True,

@@ -1,4 +1,4 @@
-"""Issue 6's proof: offline replay of a live session, and a merger restart that loses nothing."""
+"""Offline replay of a live session, and a merger restart that loses nothing."""
 
 from __future__ import annotations
 
@@ -68,8 +68,7 @@ def test_a_partial_replay_takes_only_the_chosen_robots_and_times(live: Path, tmp
 
 @pytest.mark.parametrize("kept", [0.3, 0.6])
 def test_a_recording_cut_short_replays_up_to_its_last_complete_chunk(live: Path, tmp_path: Path, kept: float) -> None:
-    # a recorder killed anywhere: the replay ends (at 0.3 of this session it stepped for ever: the
-    # idle search counted tries of submaps it never tries)
+    # a recorder killed anywhere: the replay ends, whatever part of the session the file holds
     data = (live / "session.mcap").read_bytes()
     cut = tmp_path / "crashed.mcap"
     cut.write_bytes(data[: int(len(data) * kept)])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.graph import Edge, MapGraph
-from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
 
@@ -127,7 +127,7 @@ def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_
 ) -> None:
     # a-b and c-d are right merges; b-c is the only valid edge between the two groups, so no
     # cycle can check it. Just over valid_min_map_value (8 m) it is rejected and listed (a wrong
-    # merge of local maps scores about that; an edmonton edge of 8.3 m put 5 maps 55 m off); at
+    # merge of local maps scores about that: docs/decisions/008-pivot-local-maps.md); at
     # 12 m it joins them. Between scans (a scan pair scores a few metres) the rule does not apply.
     true, edge = CHAIN, chain_edge
     for ordered in (False, True):
@@ -149,10 +149,10 @@ def test_two_groups_of_local_maps_join_by_an_edge_no_cycle_checks_only_if_it_is_
 
 def test_two_weak_edges_that_join_two_groups_differently_join_nothing() -> None:
     # a-b and c-d are right merges. Two weak edges join the groups: b-c right, a-d turned 90
-    # degrees and 40 m off (as an edmonton 90-degree alias, 8.4 m, beside a 55 m corridor alias,
-    # 8.3 m). They make a cycle, so neither is a bridge of the valid edges, but the cycle
-    # disagrees and the weaker one is rejected: the stronger, wrong, one then joins the groups
-    # with nothing for it. Neither may: both are listed as rejected and the groups stay apart.
+    # degrees and 40 m off (edmonton's local maps have such aliases:
+    # docs/decisions/008-pivot-local-maps.md). They make a cycle, so neither is a bridge of the
+    # valid edges, but the cycle disagrees and the weaker one is rejected: the stronger, wrong,
+    # one then joins the groups with nothing for it. Neither may: both are listed as rejected and the groups stay apart.
     # With a strong right edge instead, it joins them and the wrong weak one is rejected.
     true, edge = CHAIN, chain_edge
     wrong = Transform2D(40.0, 3.0, math.pi / 2)
@@ -239,7 +239,7 @@ def _local_map(scans: list[tuple[float, SegmentMap, Transform2D]]) -> SegmentMap
 
 @pytest.mark.slow  # builds two local maps from 20 simulated scans (about 5 s)
 def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_aliases() -> None:
-    # NORTH_LANE (warehouse-events until 2026-11-21): r2 maps the north lane westward from
+    # NORTH_LANE (a warehouse-events variant): r2 maps the north lane westward from
     # x = 34 m (scans 0-13); r1, carried there, maps it from x = 20 m on (scans 21-26), past the
     # forklift's bay. A rack (3.5 m) off, r1's map matches more wall than where it belongs (it
     # slides over more of r2's) and puts none where r2 saw through; the aliases 10 and 14 m off
@@ -250,12 +250,12 @@ def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_a
     lane, part = _local_map(lane_scans), _local_map(r1_scans)
     truth = lane_scans[0][2].inverse().compose(r1_scans[0][2])
     edges = {}
-    for refute in (0.0, IntegrationParams().valid_refute_violation):
-        g = MapGraph(IntegrationParams(valid_refute_violation=refute))
+    for refute in (0.0, IntegrationParams().validity.valid_refute_violation):
+        g = MapGraph(tuned(IntegrationParams(), valid_refute_violation=refute))
         g.add_map("r2/0", lane)
         g.add_map("r1/1", part)
         edges[refute] = g.edge("r2/0", "r1/1")
-    with_refuting, without = edges[IntegrationParams().valid_refute_violation], edges[0.0]
+    with_refuting, without = edges[IntegrationParams().validity.valid_refute_violation], edges[0.0]
     assert with_refuting is not None and without is not None
     assert truth.distance(with_refuting.transform)[0] > 3.0, "the best is the alias a rack off: the test shows nothing"
     assert with_refuting.runner_up < without.runner_up, "no rival was refuted: the test shows nothing"
@@ -273,8 +273,8 @@ def test_an_office_map_is_merged_when_free_space_refutes_its_look_alike_alignmen
     r1_scans = scenario_scans("office", "r1", 35)[29:]
     r2_scans = scenario_scans("office", "r2", 21)
     truth = r1_scans[0][2].inverse().compose(r2_scans[0][2])
-    for refute, merged in ((IntegrationParams().valid_refute_violation, True), (0.0, False)):
-        g = MapGraph(IntegrationParams(valid_refute_violation=refute))
+    for refute, merged in ((IntegrationParams().validity.valid_refute_violation, True), (0.0, False)):
+        g = MapGraph(tuned(IntegrationParams(), valid_refute_violation=refute))
         g.add_map("r1/4", _local_map(r1_scans))
         g.add_map("r2/0", _local_map(r2_scans))
         edge = g.edge("r1/4", "r2/0")

@@ -55,7 +55,7 @@ def _errors(pieces: dict[str, tuple[SegmentMap, Transform2D]], merge: MergeParam
 def test_merged_maps_are_placed_as_their_walls_fit_not_as_their_simplified_copies_scored(datasets: Path) -> None:
     # edmonton, pieces 1-4 of 8: a chain of merges. The maps are integrated simplified, and the
     # integration keeps the transformation of highest value, which is flat near the truth: two
-    # of the three edges came out 0.28 and 0.41 degrees off, and chained they put map 1 0.47 m
+    # of the three edges come out 0.28 and 0.41 degrees off, and chained they put map 1 0.47 m
     # off (0.68 degrees). Each edge fitted again on the maps as they are puts every map within
     # 2 cm.
     errors = _errors(_pieces(datasets, "edmonton", [1, 2, 3, 4]), MergeParams())

@@ -11,7 +11,7 @@ import pytest
 from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.sequence import SequenceResult, pivot, sequential, tree
 from fleetmap.scenarios.laser import LaserParams
-from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
 
@@ -61,7 +61,7 @@ def test_integration_counts_are_the_papers() -> None:
     n = len(SCANS)
     assert merged("sequential").integrations == n - 1
     # The paper's pivot method (no second witness): n - 1; fleetmap's witness adds one per map after the second.
-    assert pivot(SCANS, IntegrationParams(pivot_witnesses=False)).integrations == n - 1
+    assert pivot(SCANS, tuned(IntegrationParams(), pivot_witnesses=False)).integrations == n - 1
     assert merged("pivot").integrations == 2 * (n - 1) - 1
 
 
@@ -86,7 +86,7 @@ def test_the_pivot_builder_leaves_a_scan_from_elsewhere_unplaced_and_goes_on() -
 
 
 def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
-    params = IntegrationParams(max_speed=1.0)
+    params = tuned(IntegrationParams(), max_speed=1.0)
     builder = PivotMapBuilder(params)
     for k, m in enumerate(SCANS[:3]):
         assert builder.add(m, stamp=float(k)).pose is not None
@@ -125,7 +125,7 @@ def place_all(scans: list[tuple[float, SegmentMap, Transform2D]], metres: float,
         # another half turn in the next second, facing back the way it came: it drives on
         # straight ahead in its new heading instead.
         (90.0, 0.0),
-        # An arc (under CORNER_TURN a step): constant velocity, still turning as it did.
+        # An arc (under ``corner_turn`` a step): constant velocity, still turning as it did.
         (30.0, 60.0),
     ],
 )

@@ -69,8 +69,8 @@ def test_a_flood_of_malformed_messages_is_counted_and_changes_nothing(maps) -> N
         noisy.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack()[: 10 + k])  # truncated
     bad_robot = maps["r1"][0].to_msgpack().replace(b"r1", b"R!")
     noisy.receive(KEYS.localmap("r1"), bad_robot)
-    # the 16 bytes that killed the merger (a schema that is a list), and a local map whose epoch no
-    # map key can name (it passed validation, then killed the step that built the global map)
+    # a schema that is a list (16 bytes), and a local map whose epoch no map key can name (each of
+    # its fields valid on its own): neither may stop the step that builds the global map
     noisy.receive(KEYS.localmap("r1"), msgpack.packb({"schema": [], "v": 1}))
     wire = msgpack.unpackb(maps["r1"][0].to_msgpack())
     noisy.receive(KEYS.localmap("r1"), msgpack.packb({**wire, "epoch": 10**18}))

@@ -76,7 +76,7 @@ def test_a_robot_turns_on_the_spot_at_its_turn_rate_scanning_as_it_turns() -> No
     ]
     assert len(on_the_spot) == 5
     assert s.poses[-1, :2] == pytest.approx([1.0, 1.0], abs=0.2) and headings[-1] == pytest.approx(math.pi / 2)
-    # with no turn rate, as before: the next leg's heading at once
+    # with no turn rate: the next leg's heading at once, between two scans
     assert sample_motion([(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)], 0.2, 0.2, 0.0).poses.shape == (11, 3)
 
 

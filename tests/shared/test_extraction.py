@@ -163,8 +163,8 @@ def test_a_flaser_lines_beams_are_a_lasers_steps_from_the_right(
     tmp_path: Path, beams: int, step_degrees: float
 ) -> None:
     # An odd count spans -90..+90 degrees inclusive; an even one cannot at a laser's step, and
-    # takes 180/n degree steps from -90 as GMapping does (it corrected the logs we score with:
-    # spread over both ends, a 180-beam scan turned 0.8 % too far against them).
+    # takes 180/n degree steps from -90 as GMapping does, which corrected the logs we score with
+    # (docs/decisions/006-real-lasers-extraction-and-refusal.md).
     path = tmp_path / "log.clf"
     path.write_text(_flaser_line([2.0] * beams, 1.0))
     (scan,) = read_carmen(path)

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.candidates import find_transformations, pairs_consecutive, pairs_histogram
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Window, integrate
@@ -195,7 +195,7 @@ def test_two_partial_maps_need_the_map_rule_a_scan_the_scan_rule() -> None:
     # ... or, from 16 m of matched wall on (a large overlap, whose shared walls two maps place a
     # little apart), at most 15 %
     assert valid(20.0, 2.6, 0.0, map1) and not valid(12.0, 1.5, 0.0, map1) and not valid(20.0, 3.4, 0.0, map1)
-    assert not is_valid(20.0, 2.6, 0.0, map1, map2, replace(p, valid_strong_map_value=0.0), True)
+    assert not is_valid(20.0, 2.6, 0.0, map1, map2, tuned(p, valid_strong_map_value=0.0), True)
     assert not valid(12.0, 0.0, 7.0, map1) and valid(12.0, 0.0, 7.0, map1, large=False)
     # A scan on a map is judged by the scan rule: 6 m is half of what the scan saw.
     assert valid(6.0, 0.0, 0.0, scan)
@@ -262,7 +262,7 @@ def test_a_wall_two_maps_place_a_little_apart_does_not_refuse_their_merge_and_ch
     views[:, 2] = -t.theta
     b = with_viewpoints(SegmentMap(t.inverse().apply(apart), ordered=False, oriented=True), views)
     cleared = integrate(a, b)
-    every_wall = integrate(a, b, replace(IntegrationParams(), map_free_space_clearance=0.0))
+    every_wall = integrate(a, b, tuned(IntegrationParams(), map_free_space_clearance=0.0))
     assert cleared.valid and not every_wall.valid
     dt, dr = cleared.transform.distance(t)
     assert dt <= 0.3 and dr <= math.radians(1)

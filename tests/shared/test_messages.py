@@ -167,7 +167,7 @@ def test_a_submap_round_trips_with_its_link_and_the_scans_it_places():
 
 
 def test_a_local_map_of_version_1_reads_as_an_epochs_first_submap():
-    # Recorded before submaps: version 1, none of their fields.
+    # Version 1: a whole epoch's local map, none of the submap fields.
     data = wire(local_map())
     data["v"] = 1
     for name in ("submap", "final", "link", "scan_indices", "scan_stamps", "scan_poses"):
@@ -247,7 +247,7 @@ def test_value_messages_round_trip_equal():
 
 
 def test_a_merger_step_without_its_integration_counts_reads_as_one_that_did_all():
-    # Recorded before steps had a budget: no integrations or queued field (a replay does all).
+    # A step without a budget: no integrations or queued field (a replay does all).
     data = wire(MergerStep(7, 9.5, ("r1/0",), (4,)))
     del data["integrations"], data["queued"]
     step = decode(msgpack.packb(data))
@@ -564,7 +564,7 @@ def test_any_valid_local_map_round_trips_exactly(rows, version):
 
 def test_a_payload_that_would_blow_up_when_unpacked_is_refused_from_its_header():
     # a big payload, and a small one declaring millions of msgpack items: refused before anything of
-    # that size is allocated (at 64 MiB, 4.6 GB of Python objects in every subscriber)
+    # that size is allocated (docs/decisions/003-a-fleet-that-lets-in-only-its-own.md)
     with pytest.raises(BadMessage, match=f"is more than {MAX_PAYLOAD_BYTES}"):
         decode(b"\x00" * (MAX_PAYLOAD_BYTES + 1))
     huge_array = b"\x81\xa8segments\xdd" + (50_000_000).to_bytes(4, "big")  # map {segments: array32(5e7)}

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fleetmap.agents.localmap import PivotMapBuilder
-from fleetmap.shared.config import ExtractionParams, IntegrationParams
+from fleetmap.shared.config import ExtractionParams, IntegrationParams, tuned
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
@@ -57,13 +56,13 @@ def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_w
     r = integrate(maps[0], maps[1])
     dt, dr = r.transform.distance(truth)
     assert r.valid and dt <= 0.2 and math.degrees(dr) <= 3, (r, dt, math.degrees(dr))
-    # The walls placed apart still lower the score; they no longer refuse the alignment.
+    # The walls placed apart still lower the score; they do not refuse the alignment.
     assert r.solid_violation <= 0.02 * r.value and r.violation > 0.1 * r.value
-    no_clearance = replace(IntegrationParams(), map_free_space_clearance=0.0)
+    no_clearance = tuned(IntegrationParams(), map_free_space_clearance=0.0)
     refused = integrate(maps[0], maps[1], no_clearance)
     assert refused.transform == r.transform  # the same choice (the score is the same), refused
     assert not refused.valid and refused.solid_violation == refused.violation > 0.1 * refused.value
-    long_walls = integrate(maps[0], maps[1], replace(no_clearance, map_free_space_min_length=0.8))
+    long_walls = integrate(maps[0], maps[1], tuned(no_clearance, map_free_space_min_length=0.8))
     assert long_walls.valid and long_walls.transform.distance(truth)[0] <= 0.2
     assert long_walls.solid_violation <= 0.1 * long_walls.value < long_walls.violation
 
@@ -75,8 +74,9 @@ def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path) -> N
     # directions are off by a degree or two, so the candidates the angle matches give near the
     # right transformation are a few tenths of a metre off. There they put walls in the other
     # scan's seen free space (so the best by value are refined too, not only the best by score),
-    # and the refinement reaches more of them with a coarse step: 24 of these 30 pairs are
-    # integrated right, 22 without the coarse step, 18 with neither.
+    # and the refinement reaches more of them with a coarse step: at least 24 of these 30 pairs
+    # integrate right, 2 more than without the coarse step
+    # (docs/decisions/006-real-lasers-extraction-and-refusal.md).
     scans = list(read_carmen(datasets / "corrected" / "edmonton-corrected.log.gz"))[:31]
     fixed = ExtractionParams(kappa_noise_factor=0.0)
     maps = [SegmentMap(extract_segments(s, fixed), ordered=True, oriented=True) for s in scans]
@@ -99,10 +99,9 @@ def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path) -> N
 def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consecutive_scans(datasets: Path) -> None:
     # edmonton: at the true alignment of these consecutive scans, a 1 m segment 14-19 m away,
     # fixed by three or four points, crosses the other scan's line of the same wall at 14-31
-    # degrees. The paper's SEGMENTLENGTHREFUSE discards the alignment for it, and the best left
-    # puts metres of wall in the other scan's seen free space: invalid, 0.1-0.2 m off. Between
-    # scans, the crossing margin grows with the distance from the sensor (refuse_range_slope): right
-    # within 0.1 m and 0.5 degrees.
+    # degrees: the paper's SEGMENTLENGTHREFUSE discards the right alignment for it. Between scans the
+    # crossing margin grows with the distance from the sensor (refuse_range_slope,
+    # docs/decisions/006-real-lasers-extraction-and-refusal.md): right within 0.1 m and 0.5 degrees.
     scans = list(read_carmen(datasets / "corrected" / "edmonton-corrected.log.gz"))[:123]
     for j in (22, 117, 119, 122):
         a, b = (SegmentMap(extract_segments(s), ordered=True, oriented=True) for s in scans[j - 1 : j + 1])
