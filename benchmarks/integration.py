@@ -9,6 +9,7 @@ on the largest pair.
 
     python benchmarks/integration.py                      # 300 relations per dataset, all heuristics
     python benchmarks/integration.py --sample 0 --heuristics auto   # every relation, auto only
+    python benchmarks/integration.py --write-results      # and update benchmarks/RESULTS.md
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
+from results import markdown_table, write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -121,6 +123,60 @@ def summarize(rows: list[dict]) -> dict[str, float]:
     }
 
 
+HEADER = [
+    "dataset",
+    "heuristic",
+    "pairs",
+    "success (0.10 m, 2°)",
+    "success (0.30 m, 5°)",
+    "median error",
+    "median time/pair",
+    "valid on right / wrong",
+]
+TITLE = "Pose-free integration of real scan pairs (`benchmarks/integration.py`)"
+EXPLAINED = (
+    "The two scans of each Kümmerle relation (a sample of `--sample` per log; 0: all) extracted and "
+    "integrated with no prior, by each heuristic; overall: every log's pairs together. Success: the result "
+    "within (0.10 m, 2°) or (0.30 m, 5°) of the relation; median error: of translation and rotation over all "
+    "pairs; median time/pair: the integration's own seconds; valid on right / wrong: the share of the "
+    "pairs right within (0.30 m, 5°), and of the others, that the validity rule calls valid. Below the "
+    "table: the largest pair (most segments, product of the two) with `all` and with `auto`."
+)
+
+
+def table(rows: list[tuple[str, str, dict[str, float]]]) -> str:
+    """The printed table: one row per dataset and heuristic, ``summarize``'s figures."""
+    cells = [
+        [
+            name,
+            h,
+            str(s["pairs"]),
+            f"{100 * s['success_10cm_2deg']:.1f} %",
+            f"{100 * s['success_30cm_5deg']:.1f} %",
+            f"{100 * s['median_trans_err_m']:.1f} cm, {s['median_rot_err_deg']:.2f}°",
+            f"{1000 * s['median_seconds']:.0f} ms",
+            f"{100 * s['valid_right']:.0f} % / {100 * s['valid_wrong']:.0f} %",
+        ]
+        for name, h, s in rows
+    ]
+    return markdown_table(HEADER, cells)
+
+
+def largest_pair(a: SegmentMap, b: SegmentMap, truth: Transform2D, config: FleetmapConfig) -> list[str]:
+    """The largest pair integrated with ``all`` and with ``auto``: a line each, and their time ratio."""
+    lines, times = [], {}
+    for h in ("all", "auto"):
+        params = replace(config.integration, heuristic=h)
+        r = integrate(a, b, params)
+        dt, dr = r.transform.distance(truth)
+        times[h] = r.seconds
+        lines.append(
+            f"largest pair ({len(a)} x {len(b)} segments): {h}: {r.seconds:.3f} s, {r.candidates} transformations, "
+            f"error {100 * dt:.1f} cm {math.degrees(dr):.2f} deg"
+        )
+    return [*lines, f"all / auto time ratio: {times['all'] / max(times['auto'], 1e-9):.1f}"]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--datasets", default=",".join(DATASETS))
@@ -129,11 +185,12 @@ def main() -> int:
     ap.add_argument("--sample-seed", type=int, default=1)
     ap.add_argument("--workers", type=int, default=1, help="processes (timings are per pair either way)")
     ap.add_argument("--json", metavar="FILE", help="write every result row here")
+    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
     add_config_arguments(ap, ["extraction", "integration"])
     args = ap.parse_args()
     config = config_from_args(args)
     print(f"data: {data_dir()}; extraction {config.extraction}", file=sys.stderr)
-    table = []
+    rows_of_table = []
     all_rows: dict[str, dict[str, list[dict]]] = {}
     largest: tuple[int, SegmentMap, SegmentMap, Transform2D] | None = None
     for name in args.datasets.split(","):
@@ -153,7 +210,7 @@ def main() -> int:
             wall = time.perf_counter() - start
             all_rows.setdefault(name, {})[h] = rows
             s = summarize(rows)
-            table.append((name, h, s))
+            rows_of_table.append((name, h, s))
             print(
                 f"{name:10s} {h:12s} n={s['pairs']:4d} ok@10cm/2deg {100 * s['success_10cm_2deg']:5.1f}% "
                 f"ok@30cm/5deg {100 * s['success_30cm_5deg']:5.1f}% med err {100 * s['median_trans_err_m']:.1f} cm "
@@ -165,34 +222,15 @@ def main() -> int:
     for h in args.heuristics.split(","):
         rows = [r for name in all_rows for r in all_rows[name].get(h, [])]
         s = summarize(rows)
-        table.append(("overall", h, s))
+        rows_of_table.append(("overall", h, s))
+    text = table(rows_of_table)
     print()
-    print(
-        "| dataset | heuristic | pairs | success (0.10 m, 2°) | success (0.30 m, 5°) | median error "
-        "| median time/pair | valid on right / wrong |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for name, h, s in table:
-        print(
-            f"| {name} | {h} | {s['pairs']} | {100 * s['success_10cm_2deg']:.1f} % "
-            f"| {100 * s['success_30cm_5deg']:.1f} % | "
-            f"{100 * s['median_trans_err_m']:.1f} cm, {s['median_rot_err_deg']:.2f}° "
-            f"| {1000 * s['median_seconds']:.0f} ms | "
-            f"{100 * s['valid_right']:.0f} % / {100 * s['valid_wrong']:.0f} % |"
-        )
-    if largest is not None:
-        _, a, b, t = largest
-        times = {}
-        for h in ("all", "auto"):
-            params = replace(config.integration, heuristic=h)
-            r = integrate(a, b, params)
-            dt, dr = r.transform.distance(t)
-            times[h] = r.seconds
-            print(
-                f"largest pair ({len(a)} x {len(b)} segments): {h}: {r.seconds:.3f} s, {r.candidates} transformations, "
-                f"error {100 * dt:.1f} cm {math.degrees(dr):.2f} deg"
-            )
-        print(f"all / auto time ratio: {times['all'] / max(times['auto'], 1e-9):.1f}")
+    print(text)
+    lines = [] if largest is None else largest_pair(*largest[1:], config)
+    for line in lines:
+        print(line)
+    if args.write_results:
+        write_section("integration", TITLE, "\n\n".join([EXPLAINED, text, *lines]))
     if args.json:
         Path(args.json).write_text(json.dumps(all_rows))
     return 0

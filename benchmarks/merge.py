@@ -28,6 +28,7 @@ corrected poses put its content (:func:`content_frame`), not its first scan's.
 
     python benchmarks/merge.py                         # every dataset, K = 4 and 8
     python benchmarks/merge.py --datasets aces,csail --k 8
+    python benchmarks/merge.py --write-results         # and update benchmarks/RESULTS.md
     python benchmarks/merge.py --stamps index          # a scan a second, for logs without usable times
     python benchmarks/merge.py --local-maps truth      # the merge alone: each piece's one map fused
                                                        # from its scans at their corrected poses
@@ -66,6 +67,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
+from results import markdown_table, write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -328,6 +330,77 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     }
 
 
+HEADER = [
+    "dataset",
+    "K",
+    "local maps",
+    "within (0.2 m, 3°)",
+    "wrong (> 1 m or > 10°)",
+    "unplaced",
+    "scans in maps within",
+    "merge time",
+    "segments per map",
+]
+EXPLAINED = (
+    "Each SLAM-corrected log (its corrected poses are the truth, given to no algorithm) cut into K "
+    "consecutive pieces, one robot each; each piece's local maps built from its scans alone by the pivot "
+    "agent's front end, shuffled and merged with the map graph (order unknown). Local maps: those merged "
+    "(at least `--min-scans` scans); within: in the largest component, within (0.2 m, 3°) of where the "
+    "corrected poses put it; wrong: more than 1 m or 10° off relative to its component's anchor, in any "
+    "component; unplaced: merged with nothing, or not wrong but in a smaller component (a map in the largest "
+    "but 0.2-1 m or 3-10° off is in none of the three: see the totals below); scans in maps within: the "
+    "share of the pieces' scans in maps placed within; merge time: adding the maps to the graph and solving "
+    "it (building the local maps not counted); segments per map: the smallest and largest map's."
+)
+
+
+def table(rows: list[dict]) -> str:
+    """The printed table of ``run``'s rows, one per dataset and K."""
+    cells = [
+        [
+            r["dataset"],
+            str(r["k"]),
+            str(r["maps"]),
+            str(r["good"]),
+            str(r["wrong"]),
+            str(r["unplaced"]),
+            f"{100 * r['scans_good'] / max(r['scans'], 1):.0f} %",
+            f"{r['merge_s']:.1f} s",
+            r["segments"],
+        ]
+        for r in rows
+    ]
+    return markdown_table(HEADER, cells)
+
+
+def totals(rows: list[dict]) -> list[str]:
+    """Why the maps not within are not, and the overall figures: two lines."""
+    total = sum(r["maps"] for r in rows)
+    good = sum(r["good"] for r in rows)
+    wrong = sum(r["wrong"] for r in rows)
+    wrong_content = sum(r["wrong_content"] for r in rows)
+    scans = sum(r["scans"] for r in rows)
+    scans_good = sum(r["scans_good"] for r in rows)
+    alone, side, side_within, off = (sum(r[k] for r in rows) for k in ("alone", "side", "side_within", "off"))
+    return [
+        f"not within: {alone} merged with nothing, {side} in a smaller component (not wrong; {side_within} of "
+        f"them within its anchor's frame), {off} in the largest but 0.2-1 m or 3-10 deg off",
+        f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
+        f"{wrong} wrong ({wrong_content} by where their content lies); "
+        f"{100 * scans_good / max(scans, 1):.1f} % of the scans in maps placed within",
+    ]
+
+
+def report(rows: list[dict], write: bool) -> None:
+    """Print the table and the totals; with ``write``, into RESULTS.md's section ``merge`` too."""
+    print()
+    print(table(rows))
+    print("\n" + "\n".join(totals(rows)))
+    if write:
+        body = "\n\n".join([EXPLAINED, table(rows), *totals(rows)])
+        write_section("merge", "Merging local maps of the corrected logs (`benchmarks/merge.py`)", body)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--datasets", default=",".join(DATASETS))
@@ -360,6 +433,7 @@ def main() -> int:
         help=f"also every Nth scan of the full-rate log between two corrected ones ({', '.join(FULL_RATE)}; see above)",
     )
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
+    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
     args = ap.parse_args()
     if args.full_rate < 0:
@@ -385,33 +459,7 @@ def main() -> int:
                 )
     if args.edges_json:
         Path(args.edges_json).write_text(json.dumps(args.edges_rows))
-    print()
-    print(
-        "| dataset | K | local maps | within (0.2 m, 3°) | wrong (> 1 m or > 10°) | unplaced | scans in maps within "
-        "| merge time | segments per map |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(
-            f"| {r['dataset']} | {r['k']} | {r['maps']} | {r['good']} | {r['wrong']} | {r['unplaced']} "
-            f"| {100 * r['scans_good'] / max(r['scans'], 1):.0f} % | {r['merge_s']:.1f} s | {r['segments']} |"
-        )
-    total = sum(r["maps"] for r in rows)
-    good = sum(r["good"] for r in rows)
-    wrong = sum(r["wrong"] for r in rows)
-    wrong_content = sum(r["wrong_content"] for r in rows)
-    scans = sum(r["scans"] for r in rows)
-    scans_good = sum(r["scans_good"] for r in rows)
-    alone, side, side_within, off = (sum(r[k] for r in rows) for k in ("alone", "side", "side_within", "off"))
-    print(
-        f"\nnot within: {alone} merged with nothing, {side} in a smaller component (not wrong; {side_within} of "
-        f"them within its anchor's frame), {off} in the largest but 0.2-1 m or 3-10 deg off"
-    )
-    print(
-        f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
-        f"{wrong} wrong ({wrong_content} by where their content lies); "
-        f"{100 * scans_good / max(scans, 1):.1f} % of the scans in maps placed within"
-    )
+    report(rows, args.write_results)
     return 0
 
 

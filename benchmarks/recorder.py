@@ -13,6 +13,7 @@ Prints messages/s and MB/s of payload, with and without the Foxglove views.
 
     python benchmarks/recorder.py                          # 300-segment maps, 2000 of them
     python benchmarks/recorder.py --segments 100 1000 --messages 500
+    python benchmarks/recorder.py --write-results          # and update benchmarks/RESULTS.md
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap
 from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
+from results import markdown_table, write_section
 
 KEYS = FleetKeys("bench")
 ROBOTS = 4
@@ -119,12 +121,50 @@ def over_zenoh(payloads: list[tuple[str, bytes]], path: Path, foxglove: bool) ->
     return end - recorder.first, recorder.count
 
 
+Row = tuple[str, int, bool, int, float, float, int]
+"""A run: path, segments per map, Foxglove views, messages recorded, seconds, MB of payload sent, file bytes."""
+HEADER = ["path", "segments", "foxglove", "messages", "s", "msg/s", "MB/s", "file MB"]
+WIDTHS = [-15, 8, 8, 8, 7, 8, 7, 8]
+"""The printed columns' widths (negative: left-aligned)."""
+EXPLAINED = (
+    "Local maps of `--segments` random wall pieces (4 robots in turn), `--messages` of them, recorded to an "
+    "MCAP file on disk: in-process (`Recorder.feed` in a loop, no network: validating, writing raw, drawing "
+    "the Foxglove view, compressing) and over zenoh loopback (a publisher process sending them as fast as it "
+    "can to a `RecorderService`, reliable and blocking). foxglove: with the Foxglove views drawn or not; "
+    "messages: those recorded; s: seconds (over zenoh, from the first message recorded to the last); msg/s "
+    "and MB/s: messages and megabytes of payload recorded per second; file MB: the MCAP file's size."
+)
+
+
+def cells(row: Row, messages: int) -> list[str]:
+    """A run's columns: ``messages`` local maps were sent."""
+    path_kind, segments, foxglove, n, seconds, megabytes, size = row
+    rate = n / seconds if seconds > 0 else math.nan
+    mb_per_s = megabytes * n / messages / seconds
+    return [
+        path_kind,
+        str(segments),
+        "yes" if foxglove else "no",
+        str(n),
+        f"{seconds:.2f}",
+        f"{rate:.0f}",
+        f"{mb_per_s:.1f}",
+        f"{size / 1e6:.2f}",
+    ]
+
+
+def aligned(columns: list[str]) -> str:
+    """A printed line: the columns padded to ``WIDTHS``."""
+    return " ".join(c.ljust(-w) if w < 0 else c.rjust(w) for c, w in zip(columns, WIDTHS, strict=True))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--segments", type=int, nargs="+", default=[300], help="segments per local map")
     parser.add_argument("--messages", type=int, default=2000, help="local maps per run")
+    parser.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
     args = parser.parse_args()
-    rows = []
+    rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
         for segments in args.segments:
             payloads = local_maps(segments, args.messages)
@@ -140,15 +180,12 @@ def main() -> int:
                 if recorded != args.messages:
                     print(f"zenoh run recorded {recorded} of {args.messages} messages", file=sys.stderr)
                 rows.append(("zenoh loopback", segments, foxglove, got, seconds, megabytes, path.stat().st_size))
-    print(
-        f"{'path':<15} {'segments':>8} {'foxglove':>8} {'messages':>8} {'s':>7} {'msg/s':>8} {'MB/s':>7} {'file MB':>8}"
-    )
-    for path_kind, segments, foxglove, n, seconds, megabytes, size in rows:
-        rate = n / seconds if seconds > 0 else math.nan
-        print(
-            f"{path_kind:<15} {segments:>8} {'yes' if foxglove else 'no':>8} {n:>8} {seconds:>7.2f} {rate:>8.0f} "
-            f"{megabytes * n / args.messages / seconds:>7.1f} {size / 1e6:>8.2f}"
-        )
+    print(aligned(HEADER))
+    for row in rows:
+        print(aligned(cells(row, args.messages)))
+    if args.write_results:
+        table = markdown_table(HEADER, [cells(row, args.messages) for row in rows])
+        write_section("recorder", "The recorder's throughput (`benchmarks/recorder.py`)", EXPLAINED + "\n\n" + table)
     return 0
 
 

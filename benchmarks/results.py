@@ -48,3 +48,9 @@ def write_section(name: str, title: str, body: str) -> None:
     pattern = re.compile(rf"<!-- section: {re.escape(name)} -->\n.*?(?=<!-- section: |\Z)", re.S)
     text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + block
     RESULTS.write_text(text.rstrip("\n") + "\n", encoding="utf-8")
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table: the header, its rule and one line per row (no newline at the end)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])

@@ -28,6 +28,7 @@ apart. Along a corridor the value is nearly flat along the way, and on these log
 lies mostly short of the step.
 
     python benchmarks/scan_pairs.py
+    python benchmarks/scan_pairs.py --write-results    # and update benchmarks/RESULTS.md
     python benchmarks/scan_pairs.py --datasets edmonton --refuse-range-slope 0 -v
 """
 
@@ -39,11 +40,13 @@ import math
 import multiprocessing
 import statistics
 import sys
+from collections.abc import Callable
 
 from fleetmap.shared.config import FleetmapConfig, IntegrationParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, integrate
 from merge import DATASETS, load_pieces, scan_maps
+from results import markdown_table, write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -84,9 +87,11 @@ def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
     return "+".join(parts)
 
 
-def classify(
-    job: tuple[str, int, FleetmapConfig],
-) -> tuple[str, collections.Counter[str], list[str], list[float], collections.Counter[str]]:
+Result = tuple[str, collections.Counter[str], list[str], list[float], collections.Counter[str]]
+"""A dataset's name, its pairs by outcome, the lines of ``-v``, its turns' rotation errors, its aliases."""
+
+
+def classify(job: tuple[str, int, FleetmapConfig]) -> Result:
     name, max_scans, config = job
     piece = load_pieces(name, 1, 0, max_scans, config)[0]
     scans = scan_maps(piece, config)
@@ -124,12 +129,49 @@ def classify(
     return name, counts, rows, turn_errors, aliases
 
 
+COLUMNS: dict[str, Callable[[str], bool]] = {
+    "right, valid": lambda k: k == "right valid",
+    "right, only ambiguous": lambda k: k == "right invalid: amb",
+    "right, invalid otherwise": lambda k: k.startswith("right invalid") and k != "right invalid: amb",
+    "wrong, invalid": lambda k: k.startswith("wrong invalid"),
+    "wrong, valid": lambda k: k == "wrong valid",
+}
+"""The outcome columns of the first table: which of ``classify``'s keys each one counts."""
+TITLE = "Consecutive scan pairs of the corrected logs (`benchmarks/scan_pairs.py`)"
+EXPLAINED = (
+    "Every consecutive pair of each corrected log's first `--max-scans` scans integrated with no prior. Right: within "
+    f"{RIGHT_TRANSLATION} m and {math.degrees(RIGHT_ROTATION):.0f} deg of the corrected poses; valid or not by "
+    "the scan-pair validity rule (only ambiguous: a clearly different transformation scores nearly as much, "
+    "which a motion prior can settle; invalid otherwise: too low a value or too much of it in the other "
+    "scan's seen free space, ambiguous or not); a wrong valid pair is what breaks a local map. Rotation error "
+    "on turns: the median, over the pairs that turn more than 10 deg and are placed within 3 deg, of the "
+    "rotation error as a share of the rotation (how many such pairs). The second table sorts the pairs not "
+    "right and valid by their alias (the wrong best, or the right best's best rival): turned round (over "
+    f"170 deg from the step), turned (over {math.degrees(ALIAS_ROTATION):.0f} deg), beside the way "
+    f"({ALIAS_ACROSS} m or more off it), short of the step or past it; steps under {MIN_STEP} m apart."
+)
+
+
+def tables(results: list[Result]) -> str:
+    """The two printed tables: pairs by outcome, and pairs not right and valid by alias."""
+    outcomes = []
+    for name, counts, _, turns, _ in results:
+        cells = [sum(n for k, n in counts.items() if test(k)) for test in COLUMNS.values()]
+        bias = f"{100 * statistics.median(turns):+.2f} % ({len(turns)})" if turns else "-"
+        outcomes.append([name, str(sum(counts.values())), *map(str, cells), bias])
+    head = ["dataset", "pairs", *COLUMNS, "rotation error on turns"]
+    kinds = [[name, str(sum(a.values())), *(str(a[k]) for k in ALIAS_KINDS)] for name, _, _, _, a in results]
+    alias_head = ["dataset", "pairs not right and valid, by alias", *ALIAS_KINDS]
+    return markdown_table(head, outcomes) + "\n\n" + markdown_table(alias_head, kinds)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--datasets", default="aces,csail,freiburg-101,infinite-corridor,edmonton,orebro")
     ap.add_argument("--max-scans", type=int, default=200, help="scans used per dataset (after subsampling)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("-v", "--verbose", action="store_true", help="list the pairs that are not right and valid")
+    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
     add_config_arguments(ap, ["extraction", "integration"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -139,25 +181,10 @@ def main() -> int:
         ap.error(f"unknown datasets {', '.join(unknown)} (known: {', '.join(DATASETS)})")
     with multiprocessing.Pool(args.workers) as pool:
         results = pool.map(classify, [(n, args.max_scans, config) for n in names])
-    columns = {
-        "right, valid": lambda k: k == "right valid",
-        "right, only ambiguous": lambda k: k == "right invalid: amb",
-        "right, invalid otherwise": lambda k: k.startswith("right invalid") and k != "right invalid: amb",
-        "wrong, invalid": lambda k: k.startswith("wrong invalid"),
-        "wrong, valid": lambda k: k == "wrong valid",
-    }
-    print("| dataset | pairs | " + " | ".join(columns) + " | rotation error on turns |")
-    print("|---|---|" + "---|" * len(columns) + "---|")
-    for name, counts, _, turns, _ in results:
-        cells = [sum(n for k, n in counts.items() if test(k)) for test in columns.values()]
-        bias = f"{100 * statistics.median(turns):+.2f} % ({len(turns)})" if turns else "-"
-        print(f"| {name} | {sum(counts.values())} | " + " | ".join(map(str, cells)) + f" | {bias} |")
-    kinds = ALIAS_KINDS
-    print("\n| dataset | pairs not right and valid, by alias | " + " | ".join(kinds) + " |")
-    print("|---|---|" + "---|" * len(kinds))
-    for name, _, _, _, aliases in results:
-        cells = [str(aliases[k]) for k in kinds]
-        print(f"| {name} | {sum(aliases.values())} | " + " | ".join(cells) + " |")
+    body = tables(results)
+    print(body)
+    if args.write_results:
+        write_section("scan-pairs", TITLE, EXPLAINED + "\n\n" + body)
     if args.verbose:
         for name, counts, rows, _, _ in results:
             print(f"\n{name}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))

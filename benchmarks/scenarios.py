@@ -12,6 +12,7 @@
     python benchmarks/scenarios.py                          # everything
     python benchmarks/scenarios.py --scenarios department   # one scenario
     python benchmarks/scenarios.py --no-merge --heuristic consecutive
+    python benchmarks/scenarios.py --write-results          # and update benchmarks/RESULTS.md
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from fleetmap.shared.config import FleetmapConfig, IntegrationParams
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.segmap import SegmentMap
+from results import markdown_table, write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -50,38 +52,44 @@ class ScanMap:
     map: SegmentMap
 
 
-def laser_section(repeats: int) -> None:
-    """Milliseconds per scan in every world, at the poses the bundled scenarios drive."""
+def laser_row(world_name: str, laser: LaserParams, repeats: int) -> list[str]:
+    """One world's walls, its scans timed and their milliseconds (mean / max), both ways of casting."""
+    world = get_world(world_name)
+    poses = [
+        (s.pose.x, s.pose.y, s.pose.theta)
+        for name in list_scenarios()
+        if (sc := load_scenario(name)).world.name == world_name
+        for r in sc.robots
+        for s in plan(sc, r.id)
+    ]
+    fast, full = [], []
+    for pose in poses:
+        start = time.perf_counter()
+        for _ in range(repeats):
+            true_ranges(world.walls, pose, laser)
+        fast.append((time.perf_counter() - start) / repeats)
+        start = time.perf_counter()
+        for _ in range(repeats):
+            cast_rays(world.walls, np.array(pose[:2]), laser.beam_angles() + pose[2])
+        full.append((time.perf_counter() - start) / repeats)
+    return [
+        world_name,
+        str(len(world.walls)),
+        str(len(poses)),
+        f"{1000 * np.mean(fast):.2f} / {1000 * max(fast):.2f} ms",
+        f"{1000 * np.mean(full):.2f} / {1000 * max(full):.2f} ms",
+    ]
+
+
+def laser_section(repeats: int) -> str:
+    """Milliseconds per scan in every world, at the poses the bundled scenarios drive: a paragraph and a table."""
     laser = LaserParams()
-    print(f"Laser: {laser.beams} beams, {laser.max_range:g} m: ms per scan at the scenarios' poses (mean / max),")
-    print("casting on the walls in reach (the simulator) and on every wall.")
-    print()
-    print("| world | walls | scans timed | walls in reach | every wall |")
-    print("|---|---|---|---|---|")
-    for world_name in WORLDS:
-        world = get_world(world_name)
-        poses = [
-            (s.pose.x, s.pose.y, s.pose.theta)
-            for name in list_scenarios()
-            if (sc := load_scenario(name)).world.name == world_name
-            for r in sc.robots
-            for s in plan(sc, r.id)
-        ]
-        fast, full = [], []
-        for pose in poses:
-            start = time.perf_counter()
-            for _ in range(repeats):
-                true_ranges(world.walls, pose, laser)
-            fast.append((time.perf_counter() - start) / repeats)
-            start = time.perf_counter()
-            for _ in range(repeats):
-                cast_rays(world.walls, np.array(pose[:2]), laser.beam_angles() + pose[2])
-            full.append((time.perf_counter() - start) / repeats)
-        print(
-            f"| {world_name} | {len(world.walls)} | {len(poses)} | {1000 * np.mean(fast):.2f} / {1000 * max(fast):.2f} "
-            f"ms | {1000 * np.mean(full):.2f} / {1000 * max(full):.2f} ms |"
-        )
-    print()
+    rows = [laser_row(world_name, laser, repeats) for world_name in WORLDS]
+    return (
+        f"Laser: {laser.beams} beams, {laser.max_range:g} m: ms per scan at the scenarios' poses (mean / max),\n"
+        "casting on the walls in reach (the simulator) and on every wall.\n\n"
+        + markdown_table(["world", "walls", "scans timed", "walls in reach", "every wall"], rows)
+    )
 
 
 def simulate(sc: Scenario, config: FleetmapConfig) -> dict[str, list[ScanMap]]:
@@ -119,7 +127,7 @@ def integration_section(scans: dict[str, list[ScanMap]], config: FleetmapConfig)
     return results
 
 
-def integration_row(name: str, results: list[PairResult]) -> str:
+def integration_row(name: str, results: list[PairResult]) -> list[str]:
     same = [r for r in results if not r.across_kidnap]
     kidnap = [r for r in results if r.across_kidnap]
     right = [r for r in same if r.right]
@@ -133,10 +141,16 @@ def integration_row(name: str, results: list[PairResult]) -> str:
     )
     ms = 1000 * statistics.median(r.seconds for r in same) if same else math.nan
     kid = f"{sum(r.valid for r in kidnap)}/{len(kidnap)}" if kidnap else "-"
-    return (
-        f"| {name} | {len(same)} | {100 * len(right) / max(len(same), 1):.0f} % | "
-        f"{100 * valid_right / max(len(same), 1):.0f} % | {valid_wrong} | {med} | {ms:.0f} ms | {kid} |"
-    )
+    return [
+        name,
+        str(len(same)),
+        f"{100 * len(right) / max(len(same), 1):.0f} %",
+        f"{100 * valid_right / max(len(same), 1):.0f} %",
+        str(valid_wrong),
+        med,
+        f"{ms:.0f} ms",
+        kid,
+    ]
 
 
 def local_maps(
@@ -160,7 +174,7 @@ def local_maps(
     return out
 
 
-def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: FleetmapConfig) -> str | None:
+def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: FleetmapConfig) -> list[str] | None:
     """The unknown-order merge of the robots' local maps, scored against the truth.
 
     Local maps as an agent builds them: the pivot method over a robot's scans, a new local map
@@ -190,11 +204,59 @@ def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: Fleetma
     worst = max(errors, key=lambda e: e.translation_m)
     # The local maps themselves, each put at its true pose: what a perfect merge would score.
     at_truth = map_error(np.vstack([true_pose[k].apply(m.segments) for k, _, m in local]), sc.world.walls)
-    return (
-        f"| {sc.name} | {len(local)} | {100 * at_truth.mean:.1f} cm | {len(largest.members)} | {wrong} | "
-        f"{100 * score.error.mean:.1f} cm | "
-        f"{100 * score.error.p95:.1f} cm | {100 * score.coverage:.0f} % | "
-        f"{100 * worst.translation_m:.1f} cm {worst.rotation_deg:.2f} deg | {time.perf_counter() - start:.0f} s |"
+    return [
+        sc.name,
+        str(len(local)),
+        f"{100 * at_truth.mean:.1f} cm",
+        str(len(largest.members)),
+        str(wrong),
+        f"{100 * score.error.mean:.1f} cm",
+        f"{100 * score.error.p95:.1f} cm",
+        f"{100 * score.coverage:.0f} %",
+        f"{100 * worst.translation_m:.1f} cm {worst.rotation_deg:.2f} deg",
+        f"{time.perf_counter() - start:.0f} s",
+    ]
+
+
+TITLE = "Bundled scenarios against their ground truth (`benchmarks/scenarios.py`)"
+INTEGRATION_HEADER = [
+    "scenario",
+    "pairs",
+    "right",
+    "right and valid",
+    "valid but wrong",
+    "median error (right)",
+    "median time",
+    "valid across a kidnap",
+]
+MERGE_HEADER = [
+    "scenario",
+    "local maps",
+    "at true poses",
+    "in largest",
+    "wrong",
+    "map error mean",
+    "p95",
+    "coverage",
+    "worst pose",
+    "time",
+]
+
+
+def tables(integration_rows: list[list[str]], merge_rows: list[list[str]], config: FleetmapConfig) -> str:
+    """The integration table and (where the merge ran) the merge table, each after its paragraph."""
+    text = (
+        f"Consecutive scans integrated with no prior (heuristic {config.integration.heuristic}); right: within\n"
+        f"({RIGHT_TRANSLATION} m, {RIGHT_ROTATION_DEG} deg) of the truth. Across a kidnap every pair should be "
+        "invalid.\n\n" + markdown_table(INTEGRATION_HEADER, integration_rows)
+    )
+    if not merge_rows:
+        return text
+    return text + (
+        "\n\nUnknown-order merge of the local maps (pivot method per robot, new map on a failed integration).\n"
+        "At true poses: the mean error of the local maps each placed at its true pose (a perfect merge).\n"
+        "Wrong: placed more than 0.3 m or 5 deg off. Error and coverage: the largest component.\n\n"
+        + markdown_table(MERGE_HEADER, merge_rows)
     )
 
 
@@ -203,11 +265,14 @@ def main() -> int:
     ap.add_argument("--scenarios", default=",".join(list_scenarios()), help="comma-separated (default: all bundled)")
     ap.add_argument("--laser-repeats", type=int, default=20, help="timing repeats per pose (0: skip the laser)")
     ap.add_argument("--no-merge", action="store_true", help="skip the merge section")
+    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
     args = ap.parse_args()
     config = config_from_args(args)
-    if args.laser_repeats > 0:
-        laser_section(args.laser_repeats)
+    laser = laser_section(args.laser_repeats) if args.laser_repeats > 0 else ""
+    if laser:
+        print(laser)
+        print()
     integration_rows, merge_rows = [], []
     for name in args.scenarios.split(","):
         sc = load_scenario(name)
@@ -220,32 +285,11 @@ def main() -> int:
             row = merge_section(sc, scans, config)
             if row is not None:
                 merge_rows.append(row)
+    text = tables(integration_rows, merge_rows, config)
     print()
-    print(f"Consecutive scans integrated with no prior (heuristic {config.integration.heuristic}); right: within")
-    print(
-        f"({RIGHT_TRANSLATION} m, {RIGHT_ROTATION_DEG} deg) of the truth. Across a kidnap every pair should be invalid."
-    )
-    print()
-    print(
-        "| scenario | pairs | right | right and valid | valid but wrong | median error (right) | median time "
-        "| valid across a kidnap |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for row in integration_rows:
-        print(row)
-    if merge_rows:
-        print()
-        print("Unknown-order merge of the local maps (pivot method per robot, new map on a failed integration).")
-        print("At true poses: the mean error of the local maps each placed at its true pose (a perfect merge).")
-        print("Wrong: placed more than 0.3 m or 5 deg off. Error and coverage: the largest component.")
-        print()
-        print(
-            "| scenario | local maps | at true poses | in largest | wrong | map error mean | p95 | coverage "
-            "| worst pose | time |"
-        )
-        print("|---|---|---|---|---|---|---|---|---|---|")
-        for row in merge_rows:
-            print(row)
+    print(text)
+    if args.write_results:
+        write_section("scenarios", TITLE, "\n\n".join(t for t in (laser, text) if t))
     return 0
 
 
