@@ -139,7 +139,7 @@ class PoseGraph(MapGraph):
         """Each link's covariance, both ways round (what a cycle through it may have drifted)."""
         self._link_sources: set[str] = set()
         """The earlier submap of every link."""
-        self._solution: dict[str, tuple[str, Transform2D]] = {}
+        self._solution: dict[str, tuple[str, tuple[object, ...], Transform2D]] = {}
         """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
@@ -695,10 +695,11 @@ class PoseGraph(MapGraph):
             # poses (refinement only where something changed)
             signature = (anchor, tuple(order), tuple(sorted(edges, key=lambda e: e.key())))
             held = self._last_refined.get(signature)
+            paths = _joins_above(anchor, order, adjacency)
             if held is not None:
                 poses, disagreeing = dict(held[0]), held[1]
             else:
-                poses, disagreeing = self._initial_poses(anchor, order, adjacency), []
+                poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
                 if cycle_edges:
                     poses = self._optimized(anchor, poses, edges)
                     for e in edges:
@@ -711,7 +712,7 @@ class PoseGraph(MapGraph):
             self._refined_now[signature] = (dict(poses), disagreeing)
             off += disagreeing
             for k in order:
-                self._solution[k] = (anchor, poses[k])
+                self._solution[k] = (anchor, paths[k], poses[k])
             out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))
         # the global map first: the component of the most robots' epochs, then of the most submaps
         out.sort(
@@ -723,15 +724,22 @@ class PoseGraph(MapGraph):
         )
         return out, off
 
-    def _initial_poses(self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, Transform2D]:
-        """The last solve's poses where they were under the same anchor, the tree's elsewhere."""
+    def _initial_poses(
+        self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], paths: dict[str, tuple[object, ...]]
+    ) -> dict[str, Transform2D]:
+        """Where the refinement starts: a submap's pose from the last solve where it hangs from the
+        same anchor by the same integrations, else the spanning tree's. A join that changed (one
+        wrong join replaced by the right one) starts from the new tree: started where the wrong join
+        had put them, a robot's submaps sit in a wrong minimum and the right join and its loops read
+        as disagreeing (docs/decisions/002-pose-graph.md)."""
         poses = {anchor: Transform2D.identity()}
         for k in order:
             for e in adjacency[k]:
                 if e.b in poses:
                     continue
                 held = self._solution.get(e.b)
-                poses[e.b] = held[1] if held is not None and held[0] == anchor else poses[k].compose(e.transform)
+                same = held is not None and held[0] == anchor and held[1] == paths[e.b]
+                poses[e.b] = held[2] if held is not None and same else poses[k].compose(e.transform)
         return poses
 
     def _noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
@@ -792,3 +800,14 @@ class PoseGraph(MapGraph):
             held = (maps, walls.segments)
         self._walls_now[key] = held
         return held[1]
+
+
+def _joins_above(anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, tuple[object, ...]]:
+    """For each submap of a component, the integrations (not the links) on its spanning-tree path
+    from the anchor, each as its two submaps and its transform."""
+    paths: dict[str, tuple[object, ...]] = {anchor: ()}
+    for k in order:
+        for e in adjacency[k]:
+            if e.b not in paths:
+                paths[e.b] = paths[k] if e.link else (*paths[k], (e.a, e.b, *e.transform.as_array().tolist()))
+    return paths

@@ -168,3 +168,41 @@ def test_a_robot_never_integrated_stays_apart_with_no_pose() -> None:
     poses = [m for m in out if isinstance(m, RobotPose) and m.robot == "r9"]
     assert poses and all(p.pose is None and p.component is None for p in poses)
     assert merger.robot_pose("r9") == (None, None) and merger.robot_pose("r2")[0] is not None
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_a_robot_whose_join_changed_is_solved_from_its_new_join(fleet: Fleet) -> None:
+    # A robot first joined by a wrong integration (turned round) and then by the right one must be
+    # refined from where the right one puts it: started where the wrong join had put its submaps,
+    # the optimizer settles in a wrong minimum and the right join's loops read as disagreeing
+    # (aces cut in 2: a robot stayed 43 m and 179 degrees off).
+    merger = _merged(fleet.finals)
+    assert merger.result is not None
+    clean = merger.result.components[0]
+    graph = merger.graph
+    r2 = [k for k in clean.members if k.startswith("r2/")]
+    assert r2 and clean.anchor not in r2
+    turned = Transform2D(5.0, 3.0, np.pi)
+    for key in r2:  # as a wrong join had left them: the same anchor, another join above them
+        anchor, _, pose = graph._solution[key]
+        graph._solution[key] = (anchor, (("a wrong join", key),), turned.compose(pose))
+    graph._refined_now = {}  # nothing kept from the last solve: every component is refined again
+    starts: list[dict[str, Transform2D]] = []
+    solve_from = graph._initial_poses
+
+    def recorded(*args: object) -> dict[str, Transform2D]:
+        starts.append(solve_from(*args))  # type: ignore[arg-type]
+        return starts[-1]
+
+    graph._initial_poses = recorded  # type: ignore[method-assign]
+    again = graph.solve().components[0]
+    # the refinement started from the tree the joins make now, not from the turned poses
+    start = next(s for s in starts if set(r2) <= set(s))
+    for key in r2:
+        dt, dr = start[key].distance(clean.poses[key])
+        assert dt < 0.5 and np.degrees(dr) < 5.0, f"{key} started {dt:.2f} m, {np.degrees(dr):.1f} deg off"
+    assert set(again.members) == set(clean.members)
+    moved = _aligned(dict(again.poses), dict(clean.poses))
+    for key, pose in moved.items():
+        dt, dr = pose.distance(clean.poses[key])
+        assert dt < 0.05 and np.degrees(dr) < 0.5, f"{key}: {dt:.3f} m, {np.degrees(dr):.2f} deg"
