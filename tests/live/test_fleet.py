@@ -54,7 +54,9 @@ def start(procs: list[subprocess.Popen[bytes]], *args: str, log: Path) -> subpro
 
 def run_department(out: Path, *flags: str) -> dict:  # type: ignore[type-arg]
     """``fleetmap run department`` at 4x into ``out``: its report, checked for every robot placed
-    and a map within 5 cm of the truth."""
+    and a map within 5 cm of the truth (laid best on the true walls; placed by its anchor submap's
+    true pose, within 10 cm: a heading error of half a degree of that one submap moves the far
+    walls more than the map's shape is off, and how much depends on the live merger's timing)."""
     r = subprocess.run(
         fleetmap_cmd("run", "department", "--out", str(out), "--speed", "4", "--no-progress", "--json", *flags),
         capture_output=True,
@@ -65,7 +67,8 @@ def run_department(out: Path, *flags: str) -> dict:  # type: ignore[type-arg]
     report: dict = json.loads((out / "report.json").read_text())  # type: ignore[type-arg]
     assert report["robots_total"] == 3 and report["robots_placed"] == 3
     assert 0 < report["merge_latency_median_s"] <= report["merge_latency_p95_s"]
-    assert report["map_error_mean_m"] is not None and report["map_error_mean_m"] <= 0.05
+    assert report["map_error_aligned_mean_m"] is not None and report["map_error_aligned_mean_m"] <= 0.05
+    assert report["map_error_mean_m"] is not None and report["map_error_mean_m"] <= 0.10
     return report
 
 
