@@ -56,6 +56,7 @@ def _check_consistent(front: PivotFrontEnd, messages: list[Message], now: dict[i
         assert kept.shape[0] <= len(e.map) and np.isin(kept, e.map.segments).all()
 
 
+@pytest.mark.slow  # a kidnapped robot's whole stream through the pivot front end
 def test_a_kidnap_puts_the_scans_after_it_in_the_next_epoch(kidnapped_stream):
     front, messages, now = _drive(kidnapped_stream)
     _check_consistent(front, messages, now)
