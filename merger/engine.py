@@ -80,7 +80,9 @@ from fleetmap.shared.io.messages import (
 )
 
 log = logging.getLogger(__name__)
+
 STATE_VERSION = 2
+"""The format of the state file a merger saves (:meth:`Merger.save_state`); a file of another is refused."""
 
 
 @dataclass(frozen=True)

@@ -491,32 +491,28 @@ def _with_section(config: Any, path: str, changes: Mapping[str, Any]) -> Any:
 def tuned(params: T, **changes: Any) -> T:
     """``params`` (a section, or the whole config) with parameters changed by name wherever they sit
     among its nested sections: ``tuned(IntegrationParams(), max_speed=1.0)``."""
-    mine = {f.name for f in _leaves(type(params))}
-    own = {k: v for k, v in changes.items() if k in mine}
-    out = replace(params, **own)  # type: ignore[type-var]
-    rest = {k: v for k, v in changes.items() if k not in mine}
+    unknown = set(changes) - _names(params)
+    if unknown:
+        raise ConfigError(type(params).__name__, f"no such parameter: {', '.join(sorted(unknown))}")
+    out: dict[str, Any] = {}
     for f in fields(params):  # type: ignore[arg-type]
-        if "origin" in f.metadata or not rest:
+        if "origin" in f.metadata:
+            if f.name in changes:
+                out[f.name] = changes[f.name]
             continue
-        inner = getattr(out, f.name)
-        names = {g.name for path, g in parameters() if SECTIONS[path] is type(inner) or _nested_in(type(inner), path)}
-        take = {k: v for k, v in rest.items() if k in names}
+        inner = getattr(params, f.name)
+        take = {k: v for k, v in changes.items() if k in _names(inner)}
         if take:
-            out = replace(out, **{f.name: tuned(inner, **take)})  # type: ignore[type-var]
-            rest = {k: v for k, v in rest.items() if k not in take}
-    if rest:
-        raise ConfigError(type(params).__name__, f"no such parameter: {', '.join(sorted(rest))}")
+            out[f.name] = tuned(inner, **take)
+    return replace(params, **out)  # type: ignore[type-var]
+
+
+def _names(params: Any) -> set[str]:
+    """The parameters of a section and of the sections nested in it."""
+    out: set[str] = set()
+    for f in fields(params):
+        out |= {f.name} if "origin" in f.metadata else _names(getattr(params, f.name))
     return out
-
-
-def _nested_in(cls: type, path: str) -> bool:
-    """Whether the section at ``path`` sits inside a section of type ``cls``."""
-    parent = path.rpartition(".")[0]
-    while parent:
-        if SECTIONS[parent] is cls:
-            return True
-        parent = parent.rpartition(".")[0]
-    return False
 
 
 def _toml_value(value: Any) -> str:
