@@ -9,7 +9,8 @@ occupied, 254 free, 205 unknown, with thresholds 0.65 and 0.196, so a map saved 
 ``map_saver`` wrote.
 
 The cells (:func:`occupancy_grid`): free where a laser beam passed on its way to the wall it hit
-(each placed scan's raw ranges, cast from the scan's pose in the global map; a beam with no return
+(each placed scan's raw ranges, cast from the scan's pose in the global map, from the centre of
+the cell it starts in to the centre of the cell it ends in; a beam with no return
 says nothing, as in gmapping and slam_toolbox, and neither does one whose end is on no wall of the
 map: a passer-by, a reflection, or a log's no-return reading not named as one), occupied on the
 global map's walls (its fused segments: what the merge found, not the raw returns of clutter that
@@ -107,9 +108,24 @@ def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.0
     row, col, inside = grid.cell_of(end)
     on_wall = np.zeros(len(end), dtype=bool)
     on_wall[inside] = near[row[inside], col[inside]]
-    _mark(grid, _along_beams(start[on_wall], end[on_wall], resolution), FREE)
+    start, end = _distinct_beams(grid, start[on_wall], end[on_wall])
+    _mark(grid, _along_beams(start, end, resolution), FREE)
     grid.cells[occupied] = OCCUPIED
     return grid
+
+
+def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Array, Array]:
+    """The beams as the grid tells them apart: one from the centre of each first cell to the centre
+    of each last cell that some beam joins. A robot standing or creeping casts the same beams
+    scan after scan (a log at 40 scans a second repeats most of them): each is marched once."""
+    if len(start) == 0:
+        return start, end
+    r0, c0, _ = grid.cell_of(start)
+    r1, c1, _ = grid.cell_of(end)
+    keys = np.unique(np.column_stack([r0, c0, r1, c1]), axis=0)
+    centres = (keys + 0.5) * grid.resolution
+    origin = np.array(grid.origin)
+    return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin
 
 
 def _along_beams(start: Array, end: Array, resolution: float, chunk: int = 200_000) -> Iterable[Array]:
