@@ -217,6 +217,37 @@ def test_a_carmen_logs_odometry_is_its_odom_lines_interpolated_at_each_scan(tmp_
         assert s.odometry.x == pytest.approx(0.1 * k + 0.05) and s.odometry.theta == pytest.approx(0.02 * k + 0.01)
 
 
+def _odom_lines(speed_sign: float) -> list[str]:
+    # heading along x: 1 m/s forward for 0.5 s, then reversing at 1 m/s for 0.5 s; the poses as a
+    # logger that adds up the speed without its sign writes them (always forward) when
+    # speed_sign < 0, else as it should
+    lines, x = [], 0.0
+    for i in range(11):
+        t = 100.0 + 0.1 * i
+        tv = 1.0 if i < 5 else -1.0
+        lines.append(f"ODOM {x:.6f} 0 0 {tv:.3f} 0 0 {t:.6f} host {t:.6f}\n")
+        if 0 < i < 10:
+            lines.append(flaser_line([2.0] * 181, t + 0.05))
+        x += 0.1 * (1.0 if tv > 0 or speed_sign < 0 else -1.0)
+    return lines
+
+
+def test_a_carmen_log_whose_odometry_forgets_reversing_is_integrated_again_with_its_speeds_sign(tmp_path, caplog):
+    unsigned = tmp_path / "unsigned.log"
+    unsigned.write_text("".join(_odom_lines(-1.0)))
+    signed = tmp_path / "signed.log"
+    signed.write_text("".join(_odom_lines(1.0)))
+    with caplog.at_level(logging.WARNING):
+        fixed = [s.odometry.x for s in CarmenSource(unsigned)]
+    # forward to 0.45 m, then back: the same as the log that wrote its reversing as reversing
+    assert fixed == pytest.approx([s.odometry.x for s in CarmenSource(signed)])
+    assert fixed[3] == pytest.approx(0.45) and fixed[-1] == pytest.approx(0.05)
+    assert "unsigned.log: the odometry moves forward while its speed says the robot reverses (5 of 5 steps)" in (
+        caplog.text
+    )
+    assert "signed.log:" not in caplog.text.replace("unsigned.log", "")
+
+
 def test_a_carmen_log_without_usable_times_takes_the_odom_line_before_each_scan(tmp_path):
     lines = []
     for i in range(4):
