@@ -358,22 +358,21 @@ class PoseGraph(MapGraph):
         for e in edges:
             ra, rb = root[e.a], root[e.b]
             if not e.valid:
-                # an ambiguous integration: its best alignment and its rivals are hypotheses; a join
-                # takes the one the two groups bear out, if only one; a cycle the one that agrees
-                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+                # an ambiguous integration: its best alignment and its rivals are hypotheses that a
+                # cycle can decide (the one that agrees with the tree, if only one), but it joins no
+                # two groups: in a grid of corridors the neighbours of a hypothesis turned round or
+                # crosswise bear it out as readily as the right one's (aces cut in 8: all four wrong
+                # joins were such hypotheses; docs/decisions/002-pose-graph.md)
                 if ra != rb:
-                    holders = [h for h in hypotheses if self._join_holds(h, members[ra], members[rb], rel, adjacency)]
-                    if len(holders) != 1:
-                        continue
-                    e = replace(holders[0], valid=True)
-                else:
-                    path = _tree_path(adjacency, e.a, e.b)
-                    tol_t, tol_r = self._cycle_tolerance(path)
-                    predicted = rel[e.a].inverse().compose(rel[e.b])
-                    agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
-                    if len(agreeing) == 1:
-                        loops.append(replace(agreeing[0], valid=True))
                     continue
+                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+                path = _tree_path(adjacency, e.a, e.b)
+                tol_t, tol_r = self._cycle_tolerance(path)
+                predicted = rel[e.a].inverse().compose(rel[e.b])
+                agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
+                if len(agreeing) == 1:
+                    loops.append(replace(agreeing[0], valid=True))
+                continue
             elif ra != rb and not e.link and not self._join_holds(e, members[ra], members[rb], rel, adjacency):
                 conflicts.append(e)
                 continue
@@ -389,7 +388,7 @@ class PoseGraph(MapGraph):
 
     def _ambiguous(self, e: Edge) -> bool:
         """Whether an integration is invalid for its rivals alone (its value and free space would
-        do): its alignment and its rivals' are hypotheses for the forest to test."""
+        do): its alignment and its rivals' are hypotheses for a cycle to test."""
         if e.valid or e.link or not e.rivals or e.a not in self._nodes or e.b not in self._nodes:
             return False
         ma, mb = self._nodes[e.a].map, self._nodes[e.b].map

@@ -302,7 +302,8 @@ class MergeParams:
     """An integration joins two groups of submaps only if at least this many pairs of their submaps,
     itself included, bear it out and none contradicts it."""
     join_hypotheses: int = ours(3)
-    """An ambiguous integration proposes its alignment and its next best rivals, this many in all."""
+    """An ambiguous integration proposes to a cycle its alignment and its next best rivals, this many
+    in all (it joins no two groups)."""
     bridge_min_value: float = ours(10.0)
     """A valid integration of two partial maps that no cycle can check (a bridge) joins them only if
     its value is at least this (m; 0: no such rule)."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -206,3 +206,26 @@ def test_a_robot_whose_join_changed_is_solved_from_its_new_join(fleet: Fleet) ->
     for key, pose in moved.items():
         dt, dr = pose.distance(clean.poses[key])
         assert dt < 0.05 and np.degrees(dr) < 0.5, f"{key}: {dt:.3f} m, {np.degrees(dr):.2f} deg"
+
+
+@pytest.mark.slow  # a merger on two robots' submaps (about 5 s)
+def test_an_ambiguous_integration_joins_no_two_robots() -> None:
+    # r2 and r3 map the same stretch of the department: their integration joins them. Made
+    # ambiguous (valid but for a rival turned round), it may still close a cycle, but it joins
+    # nobody: in a grid of corridors the neighbours of a hypothesis turned round or crosswise bear
+    # it out as readily as the right one's (aces cut in 8 placed two robots turned round so).
+    merger = Merger(KEYS)
+    for robot in ("r2", "r3"):
+        m, _ = true_local_map("department", robot, 0, 30)
+        merger.receive(KEYS.localmap(robot), m.to_msgpack())
+    merger.step()
+    while merger.has_work:
+        merger.step()
+    graph = merger.graph
+    joined = next(e for e in graph.edges if e.valid and e.a[:2] != e.b[:2])
+    assert len(graph.solve().components) == 1, "the integration joins them"
+    turned = joined.transform.compose(Transform2D(0.0, 0.0, np.pi))
+    graph.add_edge(replace(joined, valid=False, rivals=(turned,)))
+    assert graph._ambiguous(graph.edge(joined.a, joined.b))
+    result = graph.solve()
+    assert len(result.components) == 2 and all(p is None for p in result.poses.values())
