@@ -10,6 +10,7 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import IO, Any
 
@@ -200,19 +201,15 @@ def _signed_odometry(readings: list[OdometryReading], speeds: list[float], path:
     """The readings, integrated again with the sign of their speed where the log's poses ignore it.
 
     Some logs' odometry adds up the wheels' speed without its sign: reversing, the robot's ``tv``
-    is negative while its pose moves forward (fr079: 317 of 320 readings while reversing). A
+    is negative while its pose moves forward (fr079: all 406 steps taken at a negative speed). A
     tracker started from such a pose looks for the scan where the robot did not go, and along a
     corridor the walls cannot say otherwise. When most steps taken at a negative speed move
     forward, each of those steps is turned back (its translation negated, its turn kept) and the
     poses are summed again; a log whose odometry reverses as it should is left as it is."""
-    steps = [
-        (i, Transform2D(*readings[i - 1].pose).inverse().compose(Transform2D(*readings[i].pose)))
-        for i in range(1, len(readings))
-        if speeds[i - 1] < 0
-    ]
-    moving = [(i, step) for i, step in steps if math.hypot(step.x, step.y) > REVERSE_NOISE]
-    forward = [i for i, step in moving if step.x > 0]
-    if not moving or 2 * len(forward) <= len(moving):
+    steps = [Transform2D(*a.pose).inverse().compose(Transform2D(*b.pose)) for a, b in pairwise(readings)]
+    moving = [i for i, step in enumerate(steps) if speeds[i] < 0 and math.hypot(step.x, step.y) > REVERSE_NOISE]
+    forward = {i for i in moving if steps[i].x > 0}
+    if 2 * len(forward) <= len(moving):  # also when nothing reverses
         return readings
     _warn_once(
         path,
@@ -220,15 +217,11 @@ def _signed_odometry(readings: list[OdometryReading], speeds: list[float], path:
         f"{path}: the odometry moves forward while its speed says the robot reverses ({len(forward)} of "
         f"{len(moving)} steps): its poses add up the speed without its sign; integrated again with it",
     )
-    turn_back = set(forward)
     out = readings[:1]
     pose = Transform2D(*readings[0].pose)
-    for i in range(1, len(readings)):
-        step = Transform2D(*readings[i - 1].pose).inverse().compose(Transform2D(*readings[i].pose))
-        if i in turn_back:
-            step = Transform2D(-step.x, -step.y, step.theta)
-        pose = pose.compose(step)
-        out.append(replace(readings[i], pose=(pose.x, pose.y, pose.theta)))
+    for i, (reading, step) in enumerate(zip(readings[1:], steps, strict=True)):
+        pose = pose.compose(Transform2D(-step.x, -step.y, step.theta) if i in forward else step)
+        out.append(replace(reading, pose=(pose.x, pose.y, pose.theta)))
     return out
 
 

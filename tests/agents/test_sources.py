@@ -239,8 +239,9 @@ def test_a_carmen_log_whose_odometry_forgets_reversing_is_integrated_again_with_
     signed.write_text("".join(_odom_lines(1.0)))
     with caplog.at_level(logging.WARNING):
         fixed = [s.odometry.x for s in CarmenSource(unsigned)]
+        right = [s.odometry.x for s in CarmenSource(signed)]
     # forward to 0.45 m, then back: the same as the log that wrote its reversing as reversing
-    assert fixed == pytest.approx([s.odometry.x for s in CarmenSource(signed)])
+    assert fixed == pytest.approx(right)
     assert fixed[3] == pytest.approx(0.45) and fixed[-1] == pytest.approx(0.05)
     assert "unsigned.log: the odometry moves forward while its speed says the robot reverses (5 of 5 steps)" in (
         caplog.text
