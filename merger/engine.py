@@ -190,6 +190,8 @@ class Merger:
         self._idle: set[tuple[str, str]] = set()
         """Queued pairs that :meth:`_idle_pairs` chose."""
         self._histograms: dict[str, tuple[int, Any]] = {}
+        self._in_flight: list[tuple[PairJob, JobHandle]] = []
+        """Integrations an overlapping step started (``step(overlap=True)``): the next step takes them."""
         self._last_out: list[Outgoing] = []
         self._unfused = False
         """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
@@ -328,7 +330,7 @@ class Merger:
     def has_work(self) -> bool:
         """Whether a step has something to do: submaps pending, pairs to integrate, or a robot
         nobody has placed whose submaps have candidates left to try (:meth:`_idle_pairs`)."""
-        return bool(self._pending) or bool(self._queue) or self._searching
+        return bool(self._pending) or bool(self._queue) or bool(self._in_flight) or self._searching
 
     @property
     def _searching(self) -> bool:
@@ -344,16 +346,30 @@ class Merger:
 
     # -- one step --------------------------------------------------------------------------
     def step(
-        self, limit: int | None = None, enough: Callable[[], bool] | None = None, fuse: bool = True
+        self,
+        limit: int | None = None,
+        enough: Callable[[], bool] | None = None,
+        fuse: bool = True,
+        overlap: bool = False,
     ) -> list[Outgoing]:
         """Take the submaps received since the last step into the graph, integrate the pairs due
         (all of them, ``limit`` of them as a replay repeats a live step, or until ``enough()`` says
         the step took long enough), solve, and return the messages to publish. With ``fuse``
         False the global map's walls are left out (an offline run fuses them once, at its end: a
-        step with ``fuse`` after one without solves again, work or none, to publish them)."""
+        step with ``fuse`` after one without solves again, work or none, to publish them).
+
+        With ``overlap`` (an offline run, which has the next scans to track meanwhile), the step
+        starts the pairs due without waiting for them and takes, first, the results of those the
+        last step started: the workers integrate while the caller tracks. Each result is taken at
+        the step after the one that started it, however long it took, so the map is the same on
+        any executor; it solves a step later than a step that waits."""
+        if overlap and (limit is not None or enough is not None):
+            raise ValueError("an overlapping step integrates every pair due: no limit, no enough()")
         refuse = fuse and self._unfused and not self.has_work
         if not self.has_work and not refuse:
             return []
+        new_edges = [e for e in (self._collect(job, handle) for job, handle in self._in_flight) if e is not None]
+        self._in_flight = []
         batch = list(self._pending.values())
         self._pending.clear()
         for m in batch:
@@ -362,14 +378,14 @@ class Merger:
             self._schedule(m)
         if not self._queue and not refuse:
             self._idle_pairs()
-        new_edges: list[Edge] = []
         taken = 0
         running: deque[tuple[PairJob, JobHandle]] = deque()
         while self._queue or running:
-            # as many in flight as the executor keeps busy; results taken in the queue's order, so
-            # the graph is the same whichever executor ran them (a pair whose two submaps are in
-            # flight already waits for that result: whether it is due depends on it)
-            while self._queue and len(running) < self.executor.capacity:
+            # as many in flight as the executor keeps busy (all of them when overlapping: the pool
+            # queues them); results taken in the queue's order, so the graph is the same whichever
+            # executor ran them (a pair whose two submaps are in flight already waits for that
+            # result: whether it is due depends on it)
+            while self._queue and (overlap or len(running) < self.executor.capacity):
                 if (limit is not None and taken >= limit) or (
                     limit is None and enough is not None and taken and enough()
                 ):
@@ -382,16 +398,15 @@ class Merger:
                 job = self._job(pair, predicted)
                 if job is not None:
                     running.append((job, self.executor.submit(job, self.graph.indexes)))
+            if overlap:
+                self._in_flight = list(running)
+                break
             if not running:
                 break
             job, handle = running.popleft()
-            try:
-                result = handle.result()
-            except Exception as exc:  # a job that failed where it ran: the merger goes on without it
-                self.stats.failed += 1
-                log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
-                continue
-            new_edges.append(self.graph.take(job, result))
+            edge = self._collect(job, handle)
+            if edge is not None:
+                new_edges.append(edge)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -421,6 +436,17 @@ class Merger:
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         self._last_out = out
         return out
+
+    def _collect(self, job: PairJob, handle: JobHandle) -> Edge | None:
+        """A job's result as the pair's edge; None if the job failed where it ran (the merger
+        goes on without it)."""
+        try:
+            result = handle.result()
+        except Exception as exc:
+            self.stats.failed += 1
+            log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
+            return None
+        return self.graph.take(job, result)
 
     def where_it_stands(self) -> list[Outgoing]:
         """What a merger restored from its state publishes first: its last step's messages again,

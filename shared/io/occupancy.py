@@ -109,7 +109,10 @@ def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.0
     on_wall = np.zeros(len(end), dtype=bool)
     on_wall[inside] = near[row[inside], col[inside]]
     start, end = _distinct_beams(grid, start[on_wall], end[on_wall])
-    _mark(grid, _along_beams(start, end, resolution), FREE)
+    free = np.zeros(grid.cells.size, dtype=bool)
+    for cells in _along_beams(grid, start, end):
+        free[cells] = True
+    grid.cells.ravel()[free] = FREE
     grid.cells[occupied] = OCCUPIED
     return grid
 
@@ -128,20 +131,31 @@ def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Arra
     return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin
 
 
-def _along_beams(start: Array, end: Array, resolution: float, chunk: int = 200_000) -> Iterable[Array]:
-    """Points every half cell along each beam, up to a cell short of its end, a chunk of beams at a time."""
-    step = resolution / 2
+def _along_beams(grid: OccupancyGrid, start: Array, end: Array, chunk: int = 262_144) -> Iterable[Array]:
+    """The cells (flat indices into ``grid.cells``) of points every half cell along each beam, up to
+    a cell short of its end, a chunk of beams at a time. Worked in cell units, one coordinate
+    array at a time: a long log's beams make a few hundred million points."""
+    rows, cols = grid.cells.shape
+    origin = np.asarray(grid.origin)
+    cell_start = (start - origin) / grid.resolution
+    cell_end = (end - origin) / grid.resolution
     for i in range(0, len(start), chunk):
-        s, e = start[i : i + chunk], end[i : i + chunk]
-        length = np.hypot(*(e - s).T)
-        count = np.maximum(np.floor((length - resolution) / step).astype(np.int64), 0)
-        owner = np.repeat(np.arange(len(s)), count)
-        if len(owner) == 0:
+        s, d = cell_start[i : i + chunk], cell_end[i : i + chunk] - cell_start[i : i + chunk]
+        length = np.hypot(d[:, 0], d[:, 1])
+        count = np.maximum(np.floor((length - 1.0) / 0.5).astype(np.int64), 0)
+        total = int(count.sum())
+        if total == 0:
             continue
-        first = np.cumsum(count) - count
-        k = np.arange(len(owner)) - np.repeat(first, count)
-        f = (k * step / np.maximum(length[owner], 1e-12))[:, None]
-        yield s[owner] + f * (e[owner] - s[owner])
+        owner = np.repeat(np.arange(len(s), dtype=np.int32), count)
+        k = np.arange(total, dtype=np.float64)
+        k -= np.repeat((np.cumsum(count) - count).astype(np.float64), count)
+        step = d * (0.5 / np.maximum(length, 1e-12))[:, None]
+        x = s[owner, 0] + k * step[owner, 0]
+        y = s[owner, 1] + k * step[owner, 1]
+        col = np.floor(x).astype(np.int64)
+        row = np.floor(y).astype(np.int64)
+        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        yield row[inside] * cols + col[inside]
 
 
 def _along_walls(walls: Array, resolution: float) -> Iterable[Array]:
@@ -153,12 +167,6 @@ def _along_walls(walls: Array, resolution: float) -> Iterable[Array]:
     first = np.cumsum(count) - count
     f = ((np.arange(len(owner)) - np.repeat(first, count)) / np.maximum(count[owner] - 1, 1))[:, None]
     yield walls[owner, 0:2] + f * (walls[owner, 2:4] - walls[owner, 0:2])
-
-
-def _mark(grid: OccupancyGrid, chunks: Iterable[Array], value: int) -> None:
-    for points in chunks:
-        row, col, inside = grid.cell_of(points)
-        grid.cells[row[inside], col[inside]] = value
 
 
 def write_map_server(grid: OccupancyGrid, folder: str | Path, name: str = "map") -> tuple[Path, Path]:

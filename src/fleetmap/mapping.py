@@ -4,8 +4,10 @@ Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces
 Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the
 order of their clocks (each piece's clock starting at 0, as a fleet started together); the submaps
 they publish go, as bytes, through one :class:`~fleetmap.merger.engine.Merger`, which takes a step
-every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
-is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
+every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. A step
+starts its integrations on the executor's workers and takes their results at the next step, so the
+agents track the next scans meanwhile (``Merger.step(overlap=True)``). Nothing is
+re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
 
 Every scan an agent placed gets a global pose: the pose of its submap in its component (the merged
 map it belongs to) composed with its pose in the submap.
@@ -176,7 +178,8 @@ def map_logs(
     def step(final: bool = False) -> None:
         nonlocal merger_seconds
         t0 = time.perf_counter()
-        for o in merger.step(fuse=final):
+        # the workers integrate while the agents track the next scans (results taken a step later)
+        for o in merger.step(fuse=final, overlap=not final):
             log.add_payload(o.payload)
         merger_seconds += time.perf_counter() - t0
 
