@@ -359,10 +359,11 @@ class Merger:
         step with ``fuse`` after one without solves again, work or none, to publish them).
 
         With ``overlap`` (an offline run, which has the next scans to track meanwhile), the step
-        starts the pairs due without waiting for them and takes, first, the results of those the
-        last step started: the workers integrate while the caller tracks. Each result is taken at
-        the step after the one that started it, however long it took, so the map is the same on
-        any executor; it solves a step later than a step that waits."""
+        takes the results of the pairs the last step started, solves, and starts the pairs now due
+        without waiting for them: the workers integrate while the caller tracks. The pairs are
+        chosen on the results a waiting step's successor would choose them on, and each result is
+        taken at the next step however long it took, so the map is the same on any executor; a
+        step publishes the results of the pairs the step before it started."""
         if overlap and (limit is not None or enough is not None):
             raise ValueError("an overlapping step integrates every pair due: no limit, no enough()")
         refuse = fuse and self._unfused and not self.has_work
@@ -372,8 +373,16 @@ class Merger:
         self._in_flight = []
         batch = list(self._pending.values())
         self._pending.clear()
+        self.seq += 1
+        self.stats.steps += 1
+        self.stamp = max([self.stamp] + [m.stamp for m in batch])
         for m in batch:
             self._enter(m)
+        solved = None
+        if overlap:
+            # solved before the pairs are chosen, as a waiting step's next step would choose them:
+            # on every result taken so far, with the new submaps in place
+            solved = self._solve(fuse)
         for m in batch:
             self._schedule(m)
         if not self._queue and not refuse:
@@ -407,22 +416,15 @@ class Merger:
             edge = self._collect(job, handle)
             if edge is not None:
                 new_edges.append(edge)
-        self.seq += 1
-        self.stats.steps += 1
+        if solved is None:
+            solved = self._solve(fuse)
         self.stats.integrations += len(new_edges)
-        self.stamp = max([self.stamp] + [m.stamp for m in batch])
         out: list[Outgoing] = []
         for e in new_edges:
             t = e.transform
             said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
             out.append(Outgoing(self.keys.edges, said.to_msgpack()))
-        solving = time.perf_counter()
-        self._result = self.graph.solve(fuse_maps=fuse)
-        self.solve_seconds = time.perf_counter() - solving
-        self._unfused = not fuse
-        self._index_result()
-        self._global = self._global_map(self._result)
-        out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
+        out.append(Outgoing(self.keys.globalmap, solved.to_msgpack()))
         out += self._robot_poses()
         # Last: whoever sees the step has seen everything it produced (fleetmap run waits on it).
         step = MergerStep(
@@ -436,6 +438,16 @@ class Merger:
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         self._last_out = out
         return out
+
+    def _solve(self, fuse: bool) -> GlobalMap:
+        """The graph solved (the global map's walls fused with ``fuse``): the step's result."""
+        solving = time.perf_counter()
+        self._result = self.graph.solve(fuse_maps=fuse)
+        self.solve_seconds = time.perf_counter() - solving
+        self._unfused = not fuse
+        self._index_result()
+        self._global = self._global_map(self._result)
+        return self._global
 
     def _collect(self, job: PairJob, handle: JobHandle) -> Edge | None:
         """A job's result as the pair's edge; None if the job failed where it ran (the merger
