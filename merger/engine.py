@@ -190,8 +190,6 @@ class Merger:
         self._idle: set[tuple[str, str]] = set()
         """Queued pairs that :meth:`_idle_pairs` chose."""
         self._histograms: dict[str, tuple[int, Any]] = {}
-        self._in_flight: list[tuple[PairJob, JobHandle]] = []
-        """Integrations an overlapping step started (``step(overlap=True)``): the next step takes them."""
         self._last_out: list[Outgoing] = []
         self._unfused = False
         """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
@@ -330,7 +328,7 @@ class Merger:
     def has_work(self) -> bool:
         """Whether a step has something to do: submaps pending, pairs to integrate, or a robot
         nobody has placed whose submaps have candidates left to try (:meth:`_idle_pairs`)."""
-        return bool(self._pending) or bool(self._queue) or bool(self._in_flight) or self._searching
+        return bool(self._pending) or bool(self._queue) or self._searching
 
     @property
     def _searching(self) -> bool:
@@ -346,55 +344,32 @@ class Merger:
 
     # -- one step --------------------------------------------------------------------------
     def step(
-        self,
-        limit: int | None = None,
-        enough: Callable[[], bool] | None = None,
-        fuse: bool = True,
-        overlap: bool = False,
+        self, limit: int | None = None, enough: Callable[[], bool] | None = None, fuse: bool = True
     ) -> list[Outgoing]:
         """Take the submaps received since the last step into the graph, integrate the pairs due
         (all of them, ``limit`` of them as a replay repeats a live step, or until ``enough()`` says
         the step took long enough), solve, and return the messages to publish. With ``fuse``
         False the global map's walls are left out (an offline run fuses them once, at its end: a
-        step with ``fuse`` after one without solves again, work or none, to publish them).
-
-        With ``overlap`` (an offline run, which has the next scans to track meanwhile), the step
-        takes the results of the pairs the last step started, solves, and starts the pairs now due
-        without waiting for them: the workers integrate while the caller tracks. The pairs are
-        chosen on the results a waiting step's successor would choose them on, and each result is
-        taken at the next step however long it took, so the map is the same on any executor; a
-        step publishes the results of the pairs the step before it started."""
-        if overlap and (limit is not None or enough is not None):
-            raise ValueError("an overlapping step integrates every pair due: no limit, no enough()")
+        step with ``fuse`` after one without solves again, work or none, to publish them)."""
         refuse = fuse and self._unfused and not self.has_work
         if not self.has_work and not refuse:
             return []
-        new_edges = [e for e in (self._collect(job, handle) for job, handle in self._in_flight) if e is not None]
-        self._in_flight = []
         batch = list(self._pending.values())
         self._pending.clear()
-        self.seq += 1
-        self.stats.steps += 1
-        self.stamp = max([self.stamp] + [m.stamp for m in batch])
         for m in batch:
             self._enter(m)
-        solved = None
-        if overlap:
-            # solved before the pairs are chosen, as a waiting step's next step would choose them:
-            # on every result taken so far, with the new submaps in place
-            solved = self._solve(fuse)
         for m in batch:
             self._schedule(m)
         if not self._queue and not refuse:
             self._idle_pairs()
+        new_edges: list[Edge] = []
         taken = 0
         running: deque[tuple[PairJob, JobHandle]] = deque()
         while self._queue or running:
-            # as many in flight as the executor keeps busy (all of them when overlapping: the pool
-            # queues them); results taken in the queue's order, so the graph is the same whichever
-            # executor ran them (a pair whose two submaps are in flight already waits for that
-            # result: whether it is due depends on it)
-            while self._queue and (overlap or len(running) < self.executor.capacity):
+            # as many in flight as the executor keeps busy; results taken in the queue's order, so
+            # the graph is the same whichever executor ran them (a pair whose two submaps are in
+            # flight already waits for that result: whether it is due depends on it)
+            while self._queue and len(running) < self.executor.capacity:
                 if (limit is not None and taken >= limit) or (
                     limit is None and enough is not None and taken and enough()
                 ):
@@ -407,24 +382,32 @@ class Merger:
                 job = self._job(pair, predicted)
                 if job is not None:
                     running.append((job, self.executor.submit(job, self.graph.indexes)))
-            if overlap:
-                self._in_flight = list(running)
-                break
             if not running:
                 break
             job, handle = running.popleft()
-            edge = self._collect(job, handle)
-            if edge is not None:
-                new_edges.append(edge)
-        if solved is None:
-            solved = self._solve(fuse)
+            try:
+                result = handle.result()
+            except Exception as exc:  # a job that failed where it ran: the merger goes on without it
+                self.stats.failed += 1
+                log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
+                continue
+            new_edges.append(self.graph.take(job, result))
+        self.seq += 1
+        self.stats.steps += 1
         self.stats.integrations += len(new_edges)
+        self.stamp = max([self.stamp] + [m.stamp for m in batch])
         out: list[Outgoing] = []
         for e in new_edges:
             t = e.transform
             said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
             out.append(Outgoing(self.keys.edges, said.to_msgpack()))
-        out.append(Outgoing(self.keys.globalmap, solved.to_msgpack()))
+        solving = time.perf_counter()
+        self._result = self.graph.solve(fuse_maps=fuse)
+        self.solve_seconds = time.perf_counter() - solving
+        self._unfused = not fuse
+        self._index_result()
+        self._global = self._global_map(self._result)
+        out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += self._robot_poses()
         # Last: whoever sees the step has seen everything it produced (fleetmap run waits on it).
         step = MergerStep(
@@ -438,27 +421,6 @@ class Merger:
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         self._last_out = out
         return out
-
-    def _solve(self, fuse: bool) -> GlobalMap:
-        """The graph solved (the global map's walls fused with ``fuse``): the step's result."""
-        solving = time.perf_counter()
-        self._result = self.graph.solve(fuse_maps=fuse)
-        self.solve_seconds = time.perf_counter() - solving
-        self._unfused = not fuse
-        self._index_result()
-        self._global = self._global_map(self._result)
-        return self._global
-
-    def _collect(self, job: PairJob, handle: JobHandle) -> Edge | None:
-        """A job's result as the pair's edge; None if the job failed where it ran (the merger
-        goes on without it)."""
-        try:
-            result = handle.result()
-        except Exception as exc:
-            self.stats.failed += 1
-            log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
-            return None
-        return self.graph.take(job, result)
 
     def where_it_stands(self) -> list[Outgoing]:
         """What a merger restored from its state publishes first: its last step's messages again,

@@ -19,6 +19,7 @@ from rosbags.rosbag2 import StoragePlugin
 from scipy.spatial import cKDTree
 
 from fleetmap.cli import main
+from fleetmap.mapping import _Behind
 from tests.agents.test_sources import write_bag, write_scans_rosbag2
 from tests.conftest import CSAIL_SCANS as SCANS
 from tests.shared.test_occupancy import read_map_server
@@ -197,3 +198,24 @@ def test_a_rosbag2_directory_its_mcap_and_a_db3_bag_map_alike(tmp_path: Path) ->
     assert len(occupied) > 1000 and len(free) > 20 * len(occupied)
     assert np.mean(occupied < 0.15) > 0.9, np.mean(occupied < 0.15)
     assert np.mean(free < resolution / 2) < 0.02, np.mean(free < resolution / 2)  # a wall through the cell
+
+
+def test_the_merger_side_runs_in_order_and_its_first_error_reaches_the_caller() -> None:
+    seen: list[int] = []
+    behind = _Behind(depth=2)  # the caller waits for room: order kept however far ahead it is
+    for k in range(50):
+        behind.call(lambda k=k: seen.append(k))
+    behind.finish()
+    assert seen == list(range(50))
+
+    def fail() -> None:
+        raise RuntimeError("the merger broke")
+
+    seen.clear()
+    failing = _Behind()
+    failing.call(lambda: seen.append(1))
+    failing.call(fail)
+    failing.call(lambda: seen.append(2))  # after the error: never run
+    with pytest.raises(RuntimeError, match="the merger broke"):
+        failing.finish()
+    assert seen == [1]

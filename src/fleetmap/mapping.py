@@ -4,10 +4,11 @@ Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces
 Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the
 order of their clocks (each piece's clock starting at 0, as a fleet started together); the submaps
 they publish go, as bytes, through one :class:`~fleetmap.merger.engine.Merger`, which takes a step
-every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. A step
-starts its integrations on the executor's workers and takes their results at the next step, so the
-agents track the next scans meanwhile (``Merger.step(overlap=True)``). Nothing is
-re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
+every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
+is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
+The merger's side runs on a thread of its own, a little behind the agents (:class:`_Behind`): its
+calls are the same, in the same order, while the agents track the next scans and the executor's
+workers integrate.
 
 Every scan an agent placed gets a global pose: the pose of its submap in its component (the merged
 map it belongs to) composed with its pose in the submap.
@@ -16,9 +17,12 @@ map it belongs to) composed with its pose in the submap.
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
+import queue
 import re
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -145,6 +149,44 @@ def read_inputs(
     return pieces
 
 
+class _Behind:
+    """Calls run one after another on a thread of their own, in the order given (the merger's side
+    of :func:`map_logs`: the same calls, in the same order, as run in line, so the same outputs). At
+    most ``depth`` wait; the caller waits for room. The first call that raises stops the rest, and
+    the next :meth:`call`, or :meth:`finish`, raises it in the caller."""
+
+    def __init__(self, depth: int = 10_000) -> None:
+        self._calls: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._cancelled = False
+        self._thread = threading.Thread(target=self._run, name="fleetmap-merger", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            call = self._calls.get()
+            if call is None:
+                return
+            if self._error is None and not self._cancelled:
+                try:
+                    call()
+                except BaseException as exc:  # raised again in the caller's thread
+                    self._error = exc
+
+    def call(self, fn: Callable[[], None]) -> None:
+        if self._error is not None:
+            raise self._error
+        self._calls.put(fn)
+
+    def finish(self, cancel: bool = False) -> None:
+        """Wait for every call given (with ``cancel``, for the one running: the caller is failing)."""
+        self._cancelled = cancel
+        self._calls.put(None)
+        self._thread.join()
+        if self._error is not None and not cancel:
+            raise self._error
+
+
 @dataclass
 class MapResult:
     report: dict[str, Any]
@@ -178,8 +220,7 @@ def map_logs(
     def step(final: bool = False) -> None:
         nonlocal merger_seconds
         t0 = time.perf_counter()
-        # the workers integrate while the agents track the next scans (results taken a step later)
-        for o in merger.step(fuse=final, overlap=not final):
+        for o in merger.step(fuse=final):
             log.add_payload(o.payload)
         merger_seconds += time.perf_counter() - t0
 
@@ -189,25 +230,38 @@ def map_logs(
             if isinstance(m, LocalMap):
                 merger.receive(keys.localmap(m.robot), m.to_msgpack())
 
-    due = STEP_SECONDS
-    for done, (t, n, i) in enumerate(timeline, 1):
-        while t >= due:
-            if merger.has_work:
-                step()
-            due += STEP_SECONDS
-        piece = pieces[n]
-        s = piece.scans[i]
-        t0 = time.perf_counter()
-        out = agents[piece.robot].add_scan(s.index, s.stamp, s.scan, s.odometry)
-        agent_seconds += time.perf_counter() - t0
-        send(out)
-        if progress is not None and (done % 50 == 0 or done == total):
-            progress(done, total)
-    for p in pieces:
-        send(agents[p.robot].finish())
-    while merger.has_work:
-        step()
-    step(final=True)  # the global map's walls, fused once
+    def steps_due() -> None:
+        if merger.has_work:
+            step()
+
+    def finish() -> None:
+        while merger.has_work:
+            step()
+        step(final=True)  # the global map's walls, fused once
+
+    behind = _Behind()
+    try:
+        due = STEP_SECONDS
+        for done, (t, n, i) in enumerate(timeline, 1):
+            while t >= due:
+                behind.call(steps_due)
+                due += STEP_SECONDS
+            piece = pieces[n]
+            s = piece.scans[i]
+            t0 = time.perf_counter()
+            out = agents[piece.robot].add_scan(s.index, s.stamp, s.scan, s.odometry)
+            agent_seconds += time.perf_counter() - t0
+            if out:
+                behind.call(functools.partial(send, out))
+            if progress is not None and (done % 50 == 0 or done == total):
+                progress(done, total)
+        for p in pieces:
+            behind.call(functools.partial(send, agents[p.robot].finish()))
+        behind.call(finish)
+    except BaseException:
+        behind.finish(cancel=True)
+        raise
+    behind.finish()
     result = merger.result
     poses: list[tuple[str, float, int, Transform2D]] = []
     if result is not None:

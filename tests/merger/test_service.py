@@ -90,33 +90,6 @@ def test_the_same_messages_in_the_same_order_give_identical_outputs(maps) -> Non
     assert runs[0] == runs[1]
 
 
-@pytest.mark.slow  # integrates whole-path maps of 200 simulated scans, twice
-def test_an_overlapping_step_takes_its_integrations_at_the_next_step_and_ends_at_the_same_map(maps) -> None:  # type: ignore[no-untyped-def]
-    waiting, overlapping = Merger(KEYS), Merger(KEYS)
-    expected = _feed(waiting, [maps[r][0] for r in ("r1", "r2", "r3")])
-    for r in ("r1", "r2", "r3"):
-        overlapping.receive(KEYS.localmap(r), maps[r][0].to_msgpack())
-    first = _decoded(overlapping.step(overlap=True))
-    # the integrations started, none taken yet: three robots apart
-    assert overlapping.stats.integrations == 0 and overlapping.has_work
-    assert not any(isinstance(m, MergeEdge) for m in first)
-    assert len(next(m for m in first if isinstance(m, GlobalMap)).components) == 3
-    second = _decoded(overlapping.step(overlap=True))
-    assert overlapping.stats.integrations == waiting.stats.integrations == 3
-    assert not overlapping.has_work
-    # the same edges, global map and poses as the merger that waited (its step number aside)
-    same = (MergeEdge, RobotPose)
-    assert [m.to_msgpack() for m in second if isinstance(m, same)] == [
-        m.to_msgpack() for m in expected if isinstance(m, same)
-    ]
-    (got,) = [m.components for m in second if isinstance(m, GlobalMap)]
-    (want,) = [m.components for m in expected if isinstance(m, GlobalMap)]
-    assert [(c.members, dict(c.poses)) for c in got] == [(c.members, dict(c.poses)) for c in want]
-    assert all(np.array_equal(a.segments, b.segments) for a, b in zip(got, want, strict=True))
-    with pytest.raises(ValueError, match="no limit"):
-        overlapping.step(limit=1, overlap=True)
-
-
 @pytest.mark.slow  # integrates whole-path maps of 200 simulated scans
 def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) -> None:  # type: ignore[no-untyped-def]
     original = Merger(KEYS)
