@@ -150,10 +150,12 @@ def _along_beams(grid: OccupancyGrid, start: Array, end: Array, chunk: int = 262
         k = np.arange(total, dtype=np.float64)
         k -= np.repeat((np.cumsum(count) - count).astype(np.float64), count)
         step = d * (0.5 / np.maximum(length, 1e-12))[:, None]
-        x = s[owner, 0] + k * step[owner, 0]
-        y = s[owner, 1] + k * step[owner, 1]
-        col = np.floor(x).astype(np.int64)
-        row = np.floor(y).astype(np.int64)
+        x = s[:, 0][owner]  # gathered from contiguous columns, added and floored in place
+        x += k * step[:, 0][owner]
+        y = s[:, 1][owner]
+        y += k * step[:, 1][owner]
+        col = np.floor(x, out=x).astype(np.int64)
+        row = np.floor(y, out=y).astype(np.int64)
         inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
         yield row[inside] * cols + col[inside]
 
