@@ -19,6 +19,7 @@ moved), unknown elsewhere.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,34 +126,44 @@ def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Arra
         return start, end
     r0, c0, _ = grid.cell_of(start)
     r1, c1, _ = grid.cell_of(end)
-    keys = np.unique(np.column_stack([r0, c0, r1, c1]), axis=0)
-    centres = (keys + 0.5) * grid.resolution
+    cells = np.column_stack([r0, c0, r1, c1])
+    low = cells.min(axis=0)
+    span = cells.max(axis=0) - low + 1
+    if float(np.prod(span.astype(np.float64))) < 2.0**62:
+        # one integer per (first cell, last cell): a sort of numbers, not of rows
+        key = np.unique(np.ravel_multi_index(tuple((cells - low).T), tuple(span)))
+        cells = np.column_stack(np.unravel_index(key, tuple(span))) + low
+    else:
+        cells = np.unique(cells, axis=0)
+    centres = (cells + 0.5) * grid.resolution
     origin = np.array(grid.origin)
     return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin
 
 
-def _along_beams(grid: OccupancyGrid, start: Array, end: Array, chunk: int = 262_144) -> Iterable[Array]:
+def _along_beams(grid: OccupancyGrid, start: Array, end: Array, points: int = 1 << 22) -> Iterable[Array]:
     """The cells (flat indices into ``grid.cells``) of points every half cell along each beam, up to
-    a cell short of its end, a chunk of beams at a time. Worked in cell units, one coordinate
-    array at a time: a long log's beams make a few hundred million points."""
+    a cell short of its end, about ``points`` points at a time. Worked in cell units, one coordinate
+    array at a time, in chunks that stay small: a long log's beams make a few hundred million
+    points, and arrays of a gigabyte each cost more to allocate than to fill."""
     rows, cols = grid.cells.shape
     origin = np.asarray(grid.origin)
     cell_start = (start - origin) / grid.resolution
-    cell_end = (end - origin) / grid.resolution
-    for i in range(0, len(start), chunk):
-        s, d = cell_start[i : i + chunk], cell_end[i : i + chunk] - cell_start[i : i + chunk]
-        length = np.hypot(d[:, 0], d[:, 1])
-        count = np.maximum(np.floor((length - 1.0) / 0.5).astype(np.int64), 0)
-        total = int(count.sum())
+    delta = (end - origin) / grid.resolution - cell_start
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    count = np.maximum(np.floor((length - 1.0) / 0.5).astype(np.int64), 0)
+    step = delta * (0.5 / np.maximum(length, 1e-12))[:, None]
+    cuts = np.searchsorted(np.cumsum(count), np.arange(points, int(count.sum()), points), side="right")
+    for lo, hi in itertools.pairwise([0, *cuts.tolist(), len(count)]):
+        n = count[lo:hi]
+        total = int(n.sum())
         if total == 0:
             continue
-        owner = np.repeat(np.arange(len(s), dtype=np.int32), count)
+        owner = np.repeat(np.arange(lo, hi, dtype=np.int64), n)
         k = np.arange(total, dtype=np.float64)
-        k -= np.repeat((np.cumsum(count) - count).astype(np.float64), count)
-        step = d * (0.5 / np.maximum(length, 1e-12))[:, None]
-        x = s[:, 0][owner]  # gathered from contiguous columns, added and floored in place
+        k -= np.repeat((np.cumsum(n) - n).astype(np.float64), n)
+        x = cell_start[:, 0][owner]  # gathered from contiguous columns, added and floored in place
         x += k * step[:, 0][owner]
-        y = s[:, 1][owner]
+        y = cell_start[:, 1][owner]
         y += k * step[:, 1][owner]
         col = np.floor(x, out=x).astype(np.int64)
         row = np.floor(y, out=y).astype(np.int64)
