@@ -52,6 +52,7 @@ from fleetmap.shared.core.tracking import (
     ReferenceMap,
     Registration,
     ScanSamples,
+    drift_covariance,
     register,
     sample_segments,
     see_through,
@@ -490,7 +491,7 @@ class Tracker:
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
-            covariance = _link_covariance(reg, self.params) + _drift_covariance(self.params, previous.path_length)
+            covariance = _link_covariance(reg, self.params) + drift_covariance(self.params, previous.path_length)
         walls = WallMap(self.config.integration.simplify_tolerance)
         submap = Submap(
             self.epoch, self._submaps, index, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls
@@ -565,14 +566,6 @@ def _link_covariance(reg: Registration | None, p: TrackingParams) -> Array:
         return floor
     cov = 0.5 * (cov + cov.T) + floor
     return cov
-
-
-def _drift_covariance(params: TrackingParams, distance: float) -> Array:
-    """What tracking adds up over ``distance`` metres driven (a random walk,
-    :attr:`~fleetmap.shared.config.TrackingParams.drift_translation`)."""
-    d = max(distance, 0.0)
-    t, r = params.drift_translation**2 * d, params.drift_rotation**2 * d
-    return np.diag([t, t, r])
 
 
 def _near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:

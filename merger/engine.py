@@ -59,6 +59,7 @@ from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
 from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, key_samples, refine_key_scans
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.mapgrid import with_viewpoints
@@ -78,6 +79,7 @@ from fleetmap.shared.io.messages import (
     Scan,
     decode,
 )
+from fleetmap.shared.io.occupancy import placed_scans
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +122,12 @@ class MergerStats:
     a Ray task's error): logged and dropped, the merger goes on."""
     poses_dropped: int = 0
     """Scans the pose thread had no room for (it keeps ``POSE_QUEUE`` waiting)."""
+    key_scans: int = 0
+    """Scans kept to register on the submaps they revisit (:mod:`fleetmap.merger.scangraph`)."""
+    scan_registrations: int = 0
+    """Key scans registered on other submaps by the last :meth:`Merger.scan_poses` ..."""
+    scan_constraints: int = 0
+    """... and the fits kept as edges."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -136,6 +144,9 @@ class MergerStats:
             "idle": self.idle,
             "failed": self.failed,
             "poses_dropped": self.poses_dropped,
+            "key_scans": self.key_scans,
+            "scan_registrations": self.scan_registrations,
+            "scan_constraints": self.scan_constraints,
         }
 
 
@@ -196,6 +207,8 @@ class Merger:
         self._where: dict[str, int] = {}
         self._epoch_where: dict[str, int] = {}
         self._epochs_in: list[set[str]] = []
+        self._key_scans: dict[str, list[KeyScan]] = {}
+        """The key scans of every submap, by submap key (:meth:`_take_scan`)."""
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, key: str, payload: bytes) -> list[Outgoing]:
@@ -217,7 +230,11 @@ class Merger:
                 return []
             self._take_submap(message)
         elif isinstance(message, Scan):
+            if key != self.keys.scan(message.robot):
+                self.stats.ignored += 1
+                return []
             self._robot(message.robot)  # a robot that only scans so far is known, not placed
+            self._take_scan(message)
         elif isinstance(message, FleetEvent) and message.kind == "epoch" and message.robot is not None:
             self._robot(message.robot)
         else:
@@ -291,6 +308,20 @@ class Merger:
             return
         self._robot(m.robot)  # known from its first map (max_robots counts it)
         self._pending[key] = m
+
+    def _take_scan(self, scan: Scan) -> None:
+        """Keep a placed scan that is a key scan of its submap (:func:`fleetmap.merger.scangraph.is_key`)."""
+        if not self.config.merge.scan_constraints or scan.submap is None or scan.pose is None or not len(scan.segments):
+            return
+        key = f"{scan.robot}/{scan.epoch}/{scan.submap}"
+        held = self._key_scans.setdefault(key, [])
+        if held and scan.index <= held[-1].index:
+            return  # a scan again, or out of order
+        if not is_key(held[-1].pose if held else None, scan.pose, self.config.merge):
+            return
+        samples = key_samples(np.asarray(scan.segments), self.config.tracking)
+        held.append(KeyScan(scan.robot, scan.epoch, scan.index, key, scan.pose, samples))
+        self.stats.key_scans += 1
 
     def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
         """A robot's liveliness token appeared or went: a join or leave event. Its maps stay."""
@@ -747,6 +778,44 @@ class Merger:
     @property
     def result(self) -> MergeResult | None:
         return self._result
+
+    def scan_poses(self) -> dict[tuple[str, int], tuple[int, Transform2D]]:
+        """Every scan the last solve placed, by (robot, index): its component's number and its laser
+        pose in that component's frame; with ``merge.scan_constraints``, the key scans registered on
+        the submaps they revisit and all refined together (:mod:`fleetmap.merger.scangraph`), else
+        its submap's pose composed with its pose in the submap."""
+        out: dict[tuple[str, int], tuple[int, Transform2D]] = {}
+        if self._result is None:
+            return out
+        tables = {
+            k: (m.scan_indices, m.scan_poses)
+            for k, m in self.submaps.items()
+            if m.scan_indices is not None and m.scan_poses is not None
+        }
+        links = {e.b: (e.a, e.transform) for e in self.graph.links}
+        edges = [e for e in (*self._result.tree, *self._result.loops) if not e.link]
+        self.stats.scan_registrations = self.stats.scan_constraints = 0
+        for n, c in enumerate(self._result.components):
+            placed = placed_scans(c.poses, tables)
+            if self.config.merge.scan_constraints:
+                keys = [k for key in c.members for k in self._key_scans.get(key, ())]
+                walls = {key: np.asarray(self.submaps[key].segments) for key in c.members if key in self.submaps}
+                integrations = [
+                    IntegrationEdge(e.a, e.b, e.transform, self.graph.edge_noise(e))
+                    for e in edges
+                    if e.a in c.poses and e.b in c.poses
+                ]
+                refined = refine_key_scans(
+                    keys, c.poses, c.anchor, walls, links, integrations, self.config.merge, self.config.tracking
+                )
+                self.stats.scan_registrations += refined.registrations
+                self.stats.scan_constraints += refined.constraints
+                poses = follow_key_scans(placed, keys, refined.poses, c.poses)
+            else:
+                poses = {scan: pose for scan, (_, pose) in placed.items()}
+            for scan, pose in poses.items():
+                out.setdefault(scan, (n, pose))
+        return out
 
     # -- state file ------------------------------------------------------------------------
     def save_state(self, path: str | Path) -> None:

@@ -741,6 +741,10 @@ class PoseGraph(MapGraph):
                 poses[e.b] = held[2] if held is not None and same else poses[k].compose(e.transform)
         return poses
 
+    def edge_noise(self, e: Edge) -> gtsam.noiseModel.Base:
+        """How an edge weighs in the refinement, robust loss included (:meth:`_noise`)."""
+        return self._noise(e)
+
     def _noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
         """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
         it (with a share of its value in every direction), else by its value alone, through a

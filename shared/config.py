@@ -329,6 +329,23 @@ class MergeParams:
     max_rejection_rounds: int = ours(5)
     """The refined poses are solved again, without the integrations they disagree with, at most this
     many times."""
+    scan_constraints: bool = ours(True)
+    """Once the submaps are merged, key scans are registered on the submaps they revisit and every
+    placed scan's pose is refined with them (a scan is rigid; a submap bends a little)."""
+    scan_key_spacing: float = ours(1.0)
+    """A submap's next key scan is this far (m) along the robot's path from its last ..."""
+    scan_key_rotation: float = ours(0.35)
+    """... or turned this much from it (rad, 20 degrees)."""
+    scan_search_radius: float = ours(2.0)
+    """A key scan is registered on every submap of its component with a key scan this near (m) ..."""
+    scan_prior_translation: float = ours(0.3)
+    """... from where the merged submaps put it, as uncertain as this (m) ..."""
+    scan_prior_rotation: float = ours(0.087)
+    """... and this (rad, 5 degrees), which is also the most the fit may turn it ..."""
+    scan_max_correction: float = ours(0.5)
+    """... and the most (m) it may move it ..."""
+    scan_min_matched_share: float = ours(0.5)
+    """... and the fit must match at least this share of the scan's walls."""
     max_submap_segments: int = ours(5000)
     """The merger refuses a submap of more segments than this (dropped, logged and counted)."""
     max_robots: int = ours(256, basic=True)

@@ -379,3 +379,11 @@ def see_through_masks(
     margin = params.see_through_margin + params.see_through_slope * distance * np.maximum(tan_incidence, 1.0)
     through = visible & (measured > distance + margin)
     return visible, through
+
+
+def drift_covariance(params: TrackingParams, distance: float) -> Array:
+    """What tracking adds up over ``distance`` metres driven (a random walk,
+    :attr:`~fleetmap.shared.config.TrackingParams.drift_translation`)."""
+    d = max(distance, 0.0)
+    t, r = params.drift_translation**2 * d, params.drift_rotation**2 * d
+    return np.diag([t, t, r])

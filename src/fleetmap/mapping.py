@@ -10,8 +10,9 @@ The merger's side runs on a thread of its own, a little behind the agents (:clas
 calls are the same, in the same order, while the agents track the next scans and the executor's
 workers integrate.
 
-Every scan an agent placed gets a global pose: the pose of its submap in its component (the merged
-map it belongs to) composed with its pose in the submap.
+Every scan an agent placed gets a global pose in its component (the merged map it belongs to):
+its submap's pose composed with its pose in the submap, refined by the key scans registered on
+the submaps they revisit (:meth:`~fleetmap.merger.engine.Merger.scan_poses`).
 """
 
 from __future__ import annotations
@@ -41,8 +42,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.logs import read_ranges_jsonl
-from fleetmap.shared.io.messages import LocalMap, Message
-from fleetmap.shared.io.occupancy import placed_scans
+from fleetmap.shared.io.messages import LocalMap, Message, Scan
 
 STEP_SECONDS = 5.0
 """Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
@@ -229,6 +229,8 @@ def map_logs(
             log.add(m)
             if isinstance(m, LocalMap):
                 merger.receive(keys.localmap(m.robot), m.to_msgpack())
+            elif isinstance(m, Scan):
+                merger.receive(keys.scan(m.robot), m.to_msgpack())
 
     def steps_due() -> None:
         if merger.has_work:
@@ -262,20 +264,12 @@ def map_logs(
         behind.finish(cancel=True)
         raise
     behind.finish()
-    result = merger.result
     poses: list[tuple[str, float, int, Transform2D]] = []
-    if result is not None:
-        stamps = {p.robot: p.stamps for p in pieces}
-        tables = {
-            k: (m.scan_indices, m.scan_poses)
-            for k, m in merger.submaps.items()
-            if m.scan_indices is not None and m.scan_poses is not None
-        }
-        for n, component in enumerate(result.components):
-            for (robot, index), (_, pose) in placed_scans(component.poses, tables).items():
-                stamp = stamps[robot].get(index)
-                if stamp is not None:
-                    poses.append((robot, stamp, n, pose))
+    stamps = {p.robot: p.stamps for p in pieces}
+    for (robot, index), (n, pose) in merger.scan_poses().items():
+        stamp = stamps[robot].get(index)
+        if stamp is not None:
+            poses.append((robot, stamp, n, pose))
     order = {p.robot: n for n, p in enumerate(pieces)}
     poses.sort(key=lambda x: (order[x[0]], x[1]))
     report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
@@ -333,6 +327,8 @@ def _summary(
         "integrations": merger.stats.integrations,
         "integrations_near": merger.stats.near,
         "integrations_idle": merger.stats.idle,
+        "key_scans": merger.stats.key_scans,
+        "scan_constraints": merger.stats.scan_constraints,
         "duration_s": duration,
         "session_s": session,
         "seconds": seconds,
