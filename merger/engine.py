@@ -801,7 +801,9 @@ class Merger:
                 keys = [k for key in c.members for k in self._key_scans.get(key, ())]
                 walls = {key: np.asarray(self.submaps[key].segments) for key in c.members if key in self.submaps}
                 integrations = [
-                    IntegrationEdge(e.a, e.b, e.transform, self.graph.edge_noise(e))
+                    IntegrationEdge(
+                        e.a, e.b, e.transform, self.graph.edge_noise(e, robust=False), self.graph.edge_noise(e)
+                    )
                     for e in edges
                     if e.a in c.poses and e.b in c.poses
                 ]

@@ -741,9 +741,9 @@ class PoseGraph(MapGraph):
                 poses[e.b] = held[2] if held is not None and same else poses[k].compose(e.transform)
         return poses
 
-    def edge_noise(self, e: Edge) -> gtsam.noiseModel.Base:
-        """How an edge weighs in the refinement, robust loss included (:meth:`_noise`)."""
-        return self._noise(e)
+    def edge_noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
+        """How an edge weighs in the refinement (:meth:`_noise`)."""
+        return self._noise(e, robust)
 
     def _noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
         """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix

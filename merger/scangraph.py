@@ -23,7 +23,9 @@ constraints; Hess et al. 2016, section V). Here, once the submap graph is solved
 - **Integrations** the graph kept stay, between key scans of their two submaps, for the pairs of
   submaps no scan-to-submap edge joins (a robot met once).
 - All key scans are solved together (Levenberg-Marquardt over SE(2)), the component's anchor's
-  first key scan fixed; a part of the graph that nothing joins to it keeps its poses.
+  first key scan fixed, every edge as a Gaussian first and then from there through its robust
+  loss (as the submap graph is solved); a part of the graph that nothing joins to the anchor keeps
+  its poses.
 
 Every other scan follows the key scan before it in its submap, by its tracking.
 Measured on the whole logs (decision record 002): relations more than 30 s apart within 0.10 m
@@ -42,6 +44,8 @@ from fleetmap.shared.config import MergeParams, TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, drift_covariance, register, sample_segments
 from scipy.spatial import cKDTree
+
+_Noise = gtsam.noiseModel.Base
 
 MIN_STRETCH = 0.1
 """Chain edges shorter than this (m; a robot turning on the spot) drift as much as this length."""
@@ -69,7 +73,10 @@ class IntegrationEdge:
     a: str
     b: str
     transform: Transform2D
-    noise: gtsam.noiseModel.Base
+    gaussian: gtsam.noiseModel.Base
+    """How it weighs ..."""
+    robust: gtsam.noiseModel.Base
+    """... and the same through its robust loss."""
 
 
 @dataclass
@@ -128,7 +135,7 @@ def refine_key_scans(
         return ScanRefinement({})
     start = [submap_poses[k.submap].compose(k.pose) for k in keys]
     ids = {(k.robot, k.index): i for i, k in enumerate(keys)}
-    graph = gtsam.NonlinearFactorGraph()
+    factors: list[tuple[int, int, Transform2D, _Noise, _Noise]] = []
     parent = list(range(len(keys)))
 
     def root(i: int) -> int:
@@ -137,8 +144,8 @@ def refine_key_scans(
             i = parent[i]
         return i
 
-    def add(i: int, j: int, between: Transform2D, noise: gtsam.noiseModel.Base) -> None:
-        graph.add(gtsam.BetweenFactorPose2(i, j, _pose2(between), noise))
+    def add(i: int, j: int, between: Transform2D, gaussian: _Noise, robust: _Noise) -> None:
+        factors.append((i, j, between, gaussian, robust))
         parent[root(i)] = root(j)
 
     # chain edges: consecutive key scans of an epoch, by the robot's tracking
@@ -150,7 +157,8 @@ def refine_key_scans(
         if between is None:
             continue
         length = max(math.hypot(between.x, between.y), MIN_STRETCH)
-        add(i, i + 1, between, gtsam.noiseModel.Gaussian.Covariance(drift_covariance(tracking, length)))
+        chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(tracking, length))
+        add(i, i + 1, between, chain, chain)
 
     # scan-to-submap edges
     positions = np.array([[p.x, p.y] for p in start])
@@ -191,8 +199,8 @@ def refine_key_scans(
                 continue
             there = keys[j].pose  # the submap's key scan nearest to it, in the submap's frame
             information = _rotated(fit.scan_information, there.theta) + np.eye(3) * 1e-6
-            noise = gtsam.noiseModel.Robust.Create(robust, gtsam.noiseModel.Gaussian.Information(information))
-            add(j, i, there.inverse().compose(fit.pose), noise)
+            gaussian = gtsam.noiseModel.Gaussian.Information(information)
+            add(j, i, there.inverse().compose(fit.pose), gaussian, gtsam.noiseModel.Robust.Create(robust, gaussian))
             joined.add(tuple(sorted((k.submap, submap))))  # type: ignore[arg-type]
             out.constraints += 1
 
@@ -202,24 +210,29 @@ def refine_key_scans(
             continue
         i, j = by_submap[e.a][0], by_submap[e.b][0]
         between = keys[i].pose.inverse().compose(e.transform).compose(keys[j].pose)
-        add(i, j, between, e.noise)
+        add(i, j, between, e.gaussian, e.robust)
 
-    values = gtsam.Values()
-    for i, p in enumerate(start):
-        values.insert(i, _pose2(p))
-    fixed = set()
-    if anchor in by_submap:
-        i = by_submap[anchor][0]
-        graph.add(gtsam.NonlinearEqualityPose2(i, _pose2(start[i])))
-        fixed.add(root(i))
+    held = [by_submap[anchor][0]] if anchor in by_submap else []
+    fixed = {root(i) for i in held}
     for i in range(len(keys)):  # a part nothing joins to the anchor keeps its poses
         if root(i) not in fixed:
-            graph.add(gtsam.NonlinearEqualityPose2(i, _pose2(start[i])))
+            held.append(i)
             fixed.add(root(i))
+    solved = gtsam.Values()
+    for i, p in enumerate(start):
+        solved.insert(i, _pose2(p))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     params.setRelativeErrorTol(1e-6)
-    solved = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    # a graduated non-convexity in its simplest form, as the submap graph's (posegraph._optimized):
+    # every edge as a Gaussian first, then from there with the Cauchy loss
+    for with_loss in (False, True):
+        graph = gtsam.NonlinearFactorGraph()
+        for i in held:
+            graph.add(gtsam.NonlinearEqualityPose2(i, _pose2(start[i])))
+        for i, j, between, plain, loss in factors:
+            graph.add(gtsam.BetweenFactorPose2(i, j, _pose2(between), loss if with_loss else plain))
+        solved = gtsam.LevenbergMarquardtOptimizer(graph, solved, params).optimize()
     for (robot, index), i in ids.items():
         q = solved.atPose2(i)
         out.poses[(robot, index)] = Transform2D(q.x(), q.y(), q.theta())

@@ -35,7 +35,10 @@ def key(robot: str, index: int, submap: str, frame: Transform2D, truth: Transfor
     return KeyScan(robot, 0, index, submap, frame.inverse().compose(truth), key_samples(seen_from(truth), TRACKING))
 
 
-def test_key_scans_a_merge_left_centimetres_off_go_back_to_where_their_scans_say() -> None:
+@pytest.mark.parametrize("with_a_lie", [False, True])
+def test_key_scans_a_merge_left_centimetres_off_go_back_to_where_their_scans_say(with_a_lie: bool) -> None:
+    """With ``with_a_lie``, one more key scan of b was taken 0.3 m and 3 degrees from where its
+    tracking says (a slip): its fit pulls, and the others stay where their scans say."""
     a_frame = Transform2D(0.0, 0.0, 0.0)
     b0 = Transform2D(2.0, 1.0, 0.3)
     link = Transform2D(2.5, 0.5, 0.4)
@@ -51,6 +54,10 @@ def test_key_scans_a_merge_left_centimetres_off_go_back_to_where_their_scans_say
     keys = [key("a", i, "a/0/0", a_frame, t) for i, t in enumerate(a_truth)]
     keys += [key("b", i, "b/0/0", b0, t) for i, t in enumerate(b0_truth)]
     keys += [key("b", 10 + i, "b/0/1", b1, t) for i, t in enumerate(b1_truth)]
+    if with_a_lie:
+        said, taken = Transform2D(5.0, 2.6, 0.7), Transform2D(5.25, 2.45, 0.75)
+        lie = key("b", 5, "b/0/0", b0, taken)
+        keys.append(KeyScan("b", 0, 5, "b/0/0", b0.inverse().compose(said), lie.samples))
     # the merge put b's submaps a few centimetres and a degree off, and its integration says the same
     merged = {
         "a/0/0": a_frame,
@@ -66,12 +73,12 @@ def test_key_scans_a_merge_left_centimetres_off_go_back_to_where_their_scans_say
         "a/0/0",
         walls,
         {"b/0/1": ("b/0/0", link)},
-        [IntegrationEdge("a/0/0", "b/0/0", wrong, noise)],
+        [IntegrationEdge("a/0/0", "b/0/0", wrong, noise, noise)],
         MERGE,
         TRACKING,
     )
     assert refined.constraints >= 4
-    for k, truth in zip(keys[len(a_truth) :], b0_truth + b1_truth, strict=True):
+    for k, truth in zip(keys[len(a_truth) : len(a_truth) + 6], b0_truth + b1_truth, strict=True):
         before = merged[k.submap].compose(k.pose)
         after = refined.poses[(k.robot, k.index)]
         assert math.hypot(before.x - truth.x, before.y - truth.y) > 0.03  # the merge left it off ...
