@@ -45,7 +45,7 @@ from fleetmap.merger.graph import (
     _unite,
 )
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
-from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
 from fleetmap.shared.core.integration import GridFreeSpace, align_near
 from fleetmap.shared.core.mapgrid import grid_scores
 from fleetmap.shared.core.segmap import SegmentMap
@@ -749,14 +749,17 @@ class PoseGraph(MapGraph):
         """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
         it (with a share of its value in every direction), else by its value alone, through a
         Cauchy loss."""
-        if e.link and e.information is not None:
-            return gtsam.noiseModel.Gaussian.Information(np.array(e.information).reshape(3, 3))
+        # a link's covariance and an integration's information are on b's pose in a's frame; the
+        # between factor's error is in b's frame
+        given = None if e.information is None else pose_information_in_own_frame(e.information, e.transform.theta)
+        if e.link and given is not None:
+            return gtsam.noiseModel.Gaussian.Information(given)
         w2 = max(e.value, 1e-3)
         sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
         iso = np.diag([w2 / sigma_t**2, w2 / sigma_t**2, w2 / sigma_r**2])
         information = iso
-        if e.information is not None:
-            candidate = np.array(e.information).reshape(3, 3) / sigma_t**2 + self.merge.isotropic_share * iso
+        if given is not None:
+            candidate = given / sigma_t**2 + self.merge.isotropic_share * iso
             if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
                 information = candidate
         gaussian = gtsam.noiseModel.Gaussian.Information(information)

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from fleetmap.shared.config import MergeParams, TrackingParams
-from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
 from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, drift_covariance, register, sample_segments
 from scipy.spatial import cKDTree
 
@@ -105,14 +105,6 @@ def key_samples(segments: Array, tracking: TrackingParams) -> ScanSamples:
 
 def _pose2(t: Transform2D) -> gtsam.Pose2:
     return gtsam.Pose2(t.x, t.y, t.theta)
-
-
-def _rotated(information: Array, theta: float) -> Array:
-    """An information matrix on (x, y, theta) in one frame, expressed in a frame turned by ``theta``
-    relative to it."""
-    c, s = math.cos(theta), math.sin(theta)
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r.T @ information @ r
 
 
 def refine_key_scans(
@@ -183,6 +175,8 @@ def refine_key_scans(
         for submap in sorted(nearest):
             j = nearest[submap][1]
             reference = references.get(submap)
+            if reference is None and submap not in walls:
+                continue
             if reference is None:
                 reference = references[submap] = ReferenceMap(tracking.voxel_size)
                 reference.insert(sample_segments(walls[submap], tracking.sample_spacing))
@@ -198,7 +192,7 @@ def refine_key_scans(
             ):
                 continue
             there = keys[j].pose  # the submap's key scan nearest to it, in the submap's frame
-            information = _rotated(fit.scan_information, there.theta) + np.eye(3) * 1e-6
+            information = pose_information_in_own_frame(fit.scan_information, fit.pose.theta) + np.eye(3) * 1e-6
             gaussian = gtsam.noiseModel.Gaussian.Information(information)
             add(j, i, there.inverse().compose(fit.pose), gaussian, gtsam.noiseModel.Robust.Create(robust, gaussian))
             joined.add(tuple(sorted((k.submap, submap))))  # type: ignore[arg-type]

@@ -125,6 +125,16 @@ def transform_segments_batch(segments: Array, transforms: Array) -> Array:
     return out
 
 
+def pose_information_in_own_frame(information: Array, theta: float) -> Array:
+    """A pose's information matrix on (x, y, theta) with x, y in the frame it is given in, turned
+    into the pose's own frame (the pose heads ``theta`` in the frame it is given in): what a
+    between factor of a pose graph takes, whose error is in the frame of its second pose
+    (gtsam's ``BetweenFactor``: ``Local(measured, between(a, b))``)."""
+    c, s = math.cos(theta), math.sin(theta)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return r.T @ np.asarray(information, dtype=np.float64).reshape(3, 3) @ r
+
+
 def lengths(segments: Array) -> Array:
     seg = np.asarray(segments, dtype=np.float64)
     return np.hypot(seg[..., 2] - seg[..., 0], seg[..., 3] - seg[..., 1])

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
+import gtsam
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.graph import Edge
+from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
@@ -229,3 +232,25 @@ def test_an_ambiguous_integration_joins_no_two_robots() -> None:
     assert graph._ambiguous(graph.edge(joined.a, joined.b))
     result = graph.solve()
     assert len(result.components) == 2 and all(p is None for p in result.poses.values())
+
+
+@pytest.mark.parametrize("turn", [0.0, 0.6, 1.5708, -2.4])
+def test_an_edge_weighs_along_its_corridor_whatever_the_turn_between_the_two_frames(turn: float) -> None:
+    """A corridor along a's x axis fixes b across it (y) and leaves it free along it (x), in a's
+    frame, however b's frame is turned: moving b along the corridor costs little, across it much."""
+    information = np.diag([1e-4, 400.0, 4e4])  # on b's x, y in a's frame, and its heading
+    transform = Transform2D(3.0, 0.0, turn)
+    for link in (False, True):
+        edge = Edge(
+            "a", "b", transform, 50.0 if not link else math.inf, True, information=tuple(information.ravel()), link=link
+        )
+        noise = PoseGraph().edge_noise(edge, robust=False)
+        factor = gtsam.BetweenFactorPose2(0, 1, gtsam.Pose2(3.0, 0.0, turn), noise)
+
+        def cost(dx: float, dy: float, factor: gtsam.BetweenFactorPose2 = factor) -> float:
+            values = gtsam.Values()
+            values.insert(0, gtsam.Pose2())
+            values.insert(1, gtsam.Pose2(3.0 + dx, dy, turn))
+            return float(factor.error(values))
+
+        assert cost(0.1, 0.0) < 0.05 * cost(0.0, 0.1)
