@@ -751,7 +751,11 @@ class PoseGraph(MapGraph):
         Cauchy loss."""
         # a link's covariance and an integration's information are on b's pose in a's frame; the
         # between factor's error is in b's frame
-        given = None if e.information is None else pose_information_in_own_frame(e.information, e.transform.theta)
+        given = (
+            None
+            if e.information is None
+            else pose_information_in_own_frame(np.asarray(e.information), e.transform.theta)
+        )
         if e.link and given is not None:
             return gtsam.noiseModel.Gaussian.Information(given)
         w2 = max(e.value, 1e-3)
