@@ -59,11 +59,12 @@ from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
 from fleetmap.merger.posegraph import PoseGraph
-from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, key_samples, refine_key_scans
+from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, refine_key_scans
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import sample_segments
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_submap_key
 from fleetmap.shared.io.messages import (
@@ -169,8 +170,17 @@ def _epoch_of(key: str) -> str:
 class Merger:
     """The merger's logic: :meth:`receive` messages, :meth:`step`, publish what it returns."""
 
-    def __init__(self, keys: FleetKeys, config: FleetmapConfig | None = None, executor: Executor | None = None) -> None:
+    def __init__(
+        self,
+        keys: FleetKeys,
+        config: FleetmapConfig | None = None,
+        executor: Executor | None = None,
+        keep_key_scans: bool = False,
+    ) -> None:
+        """``keep_key_scans``: keep the key scans it hears (:meth:`scan_poses` refines with them;
+        ``fleetmap map`` asks for it, a live merger that never calls it does not keep them)."""
         self.keys = keys
+        self.keep_key_scans = keep_key_scans
         self.config = config or FleetmapConfig()
         self.executor: Executor = executor or InlineExecutor()
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
@@ -311,7 +321,12 @@ class Merger:
 
     def _take_scan(self, scan: Scan) -> None:
         """Keep a placed scan that is a key scan of its submap (:func:`fleetmap.merger.scangraph.is_key`)."""
-        if not self.config.merge.scan_constraints or scan.submap is None or scan.pose is None or not len(scan.segments):
+        if (
+            not (self.keep_key_scans and self.config.merge.scan_constraints)
+            or scan.submap is None
+            or scan.pose is None
+            or not len(scan.segments)
+        ):
             return
         key = f"{scan.robot}/{scan.epoch}/{scan.submap}"
         held = self._key_scans.setdefault(key, [])
@@ -319,7 +334,7 @@ class Merger:
             return  # a scan again, or out of order
         if not is_key(held[-1].pose if held else None, scan.pose, self.config.merge):
             return
-        samples = key_samples(np.asarray(scan.segments), self.config.tracking)
+        samples = sample_segments(np.asarray(scan.segments), self.config.tracking.sample_spacing)
         held.append(KeyScan(scan.robot, scan.epoch, scan.index, key, scan.pose, samples))
         self.stats.key_scans += 1
 
@@ -782,8 +797,8 @@ class Merger:
     def scan_poses(self) -> dict[tuple[str, int], tuple[int, Transform2D]]:
         """Every scan the last solve placed, by (robot, index): its component's number and its laser
         pose in that component's frame; with ``merge.scan_constraints``, the key scans registered on
-        the submaps they revisit and all refined together (:mod:`fleetmap.merger.scangraph`), else
-        its submap's pose composed with its pose in the submap."""
+        the submaps they revisit and all refined together (:mod:`fleetmap.merger.scangraph`; a merger
+        made with ``keep_key_scans``), else its submap's pose composed with its pose in the submap."""
         out: dict[tuple[str, int], tuple[int, Transform2D]] = {}
         if self._result is None:
             return out

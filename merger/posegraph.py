@@ -742,10 +742,6 @@ class PoseGraph(MapGraph):
         return poses
 
     def edge_noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
-        """How an edge weighs in the refinement (:meth:`_noise`)."""
-        return self._noise(e, robust)
-
-    def _noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
         """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
         it (with a share of its value in every direction), else by its value alone, through a
         Cauchy loss."""
@@ -792,7 +788,7 @@ class PoseGraph(MapGraph):
             graph = gtsam.NonlinearFactorGraph()
             graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
             for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
-                graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self._noise(e, robust)))
+                graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self.edge_noise(e, robust)))
             values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
 

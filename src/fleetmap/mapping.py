@@ -210,7 +210,7 @@ def map_logs(
                 raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
     keys = FleetKeys()
     agents = {p.robot: Agent(p.robot, config, odometry=p.has_odometry) for p in pieces}
-    merger = Merger(keys, config, executor)
+    merger = Merger(keys, config, executor, keep_key_scans=True)
     log = SessionLog()
     # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))

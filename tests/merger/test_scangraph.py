@@ -9,9 +9,10 @@ import gtsam
 import numpy as np
 import pytest
 from fleetmap.merger.engine import Merger
-from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, key_samples, refine_key_scans
+from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, refine_key_scans
 from fleetmap.shared.config import MergeParams, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.tracking import sample_segments
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import Scan
 
@@ -32,7 +33,8 @@ def seen_from(pose: Transform2D) -> np.ndarray:
 
 def key(robot: str, index: int, submap: str, frame: Transform2D, truth: Transform2D) -> KeyScan:
     """A key scan taken at ``truth`` (world), placed by tracking exactly in its submap at ``frame``."""
-    return KeyScan(robot, 0, index, submap, frame.inverse().compose(truth), key_samples(seen_from(truth), TRACKING))
+    samples = sample_segments(seen_from(truth), TRACKING.sample_spacing)
+    return KeyScan(robot, 0, index, submap, frame.inverse().compose(truth), samples)
 
 
 @pytest.mark.parametrize("with_a_lie", [False, True])
@@ -114,14 +116,16 @@ def test_a_key_scan_every_metre_or_turn() -> None:
     assert is_key(Transform2D(), Transform2D(0.0, 0.0, -MERGE.scan_key_rotation), MERGE)
 
 
-def test_the_merger_keeps_one_scan_per_metre_of_each_submap_off_the_scan_key() -> None:
+def test_a_mapping_merger_keeps_one_scan_per_metre_of_each_submap_off_the_scan_key() -> None:
     keys = FleetKeys("test")
-    merger = Merger(keys)
+    merger, live = Merger(keys, keep_key_scans=True), Merger(keys)
     wall = np.array([[1.0, -1.0, 1.0, 1.0]])
     for i in range(30):  # 3 m at 0.1 m a scan, in submap 0
         scan = Scan("r1", 0, i, 0.1 * i, wall, submap=0, pose=Transform2D(0.1 * i, 0.0, 0.0))
         merger.receive(keys.scan("r1"), scan.to_msgpack())
+        live.receive(keys.scan("r1"), scan.to_msgpack())
     assert merger.stats.key_scans == 3  # at 0, 1.0 and 2.0 m
+    assert live.stats.key_scans == 0  # a live merger that never refines keeps none
     # a scan of submap 1, one not placed, one on another key: only the first is kept
     merger.receive(keys.scan("r1"), Scan("r1", 0, 30, 3.0, wall, submap=1, pose=Transform2D()).to_msgpack())
     merger.receive(keys.scan("r1"), Scan("r1", 0, 31, 3.1, wall).to_msgpack())
