@@ -36,7 +36,7 @@ from results import markdown_table, write_section
 from fleetmap.config_args import add_config_arguments, config_from_args
 
 DATASETS = {
-    # name: (log, no-return reading of its FLASER lines, mounting offset of the relations' frame)
+    # name: (log, no-return reading of its FLASER lines)
     "aces": ("aces/aces.clf.gz", 50.0),
     "fr079": ("fr079/fr079.clf.gz", 81.9),
     "mit-csail": ("mit-csail/mit-csail.clf.gz", 81.9),
