@@ -48,8 +48,9 @@ from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParam
 from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
 from fleetmap.shared.core.integration import GridFreeSpace, align_near
 from fleetmap.shared.core.mapgrid import grid_scores
+from fleetmap.shared.core.refine import fit_information
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.transformation_value import prepare, transformation_value
+from fleetmap.shared.core.transformation_value import PreparedPairs, prepare, transformation_value
 from fleetmap.shared.core.validity import is_valid, max_map_violation
 from fleetmap.shared.core.walls import WallMap
 from fleetmap.shared.errors import BadInput
@@ -58,6 +59,11 @@ log = logging.getLogger(__name__)
 
 
 VERDICT_VERSIONS = 5
+
+Verdict = tuple[float, float, Array | None]
+"""What a pair says of a join (:meth:`PoseGraph._pair_verdict`): the value it bears it out with,
+the wall against it, and, where it bears it out, how firmly its walls fix the translation (2x2, in
+the pair's first submap's frame; None: they do not)."""
 """A pair's verdict on a join is found again once either submap has this many versions more."""
 
 
@@ -143,7 +149,7 @@ class PoseGraph(MapGraph):
         """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
-        self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], tuple[float, float]]] = {}
+        self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], Verdict]] = {}
         self._discs: dict[str, tuple[int, Array, float]] = {}
         self._looks: dict[tuple[str, str, int, int, int, int, int], tuple[float, float]] = {}
         """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre."""
@@ -416,6 +422,14 @@ class PoseGraph(MapGraph):
         of submaps wrongly, and the neighbours of the pair often bear that out too; along the two
         groups, walls then stand where the other robot saw through.
 
+        The pairs that bear it out must also fix it in every direction: their walls' translation
+        information, summed in one frame (:func:`~fleetmap.shared.core.refine.fit_information` on
+        the submaps' own walls), must leave it within the cycle tolerance at three standard
+        deviations by the edges' noise model (``edge_sigma_translation`` per unit). Down a corridor
+        with no ends in view every pair bears out a join 1 m on or back as well as the right one
+        (aces cut in 4: a robot 0.75 m off along a corridor, joined by pairs whose walls fixed it
+        in no direction; docs/decisions/002-pose-graph.md).
+
         Only the pairs whose place the join fixes well enough are judged: each pair's tolerance is
         the cycle tolerance of the tree path from one submap through the join to the other
         (:meth:`_cycle_tolerance`), and a pair whose chains can have drifted farther than
@@ -479,16 +493,29 @@ class PoseGraph(MapGraph):
                     pairs.append((a, b, implied, math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)))
         looks = [self._look(a, b, implied) for a, b, implied, _, _ in pairs]
         supports, value, against = 0, 0.0, 0.0
+        fixed = np.zeros((2, 2))  # the supporting walls' translation information, in a's root frame
         done: set[int] = set()
 
         def register(i: int) -> None:
-            nonlocal supports, value, against
+            nonlocal supports, value, against, fixed
             a, b, implied, tol_t, tol_r = pairs[i]
-            supported, contradicted = self._pair_verdict(a, b, implied, tol_t, tol_r)
+            supported, contradicted, information = self._pair_verdict(a, b, implied, tol_t, tol_r)
             supports += supported > 0
             value += supported
             against += contradicted
+            if information is not None:
+                c, s = math.cos(rel[a].theta), math.sin(rel[a].theta)
+                turn = np.array([[c, -s], [s, c]])
+                fixed = fixed + turn @ information @ turn.T
             done.add(i)
+
+        def pinned() -> bool:
+            # every direction fixed: the walls that bear the join out leave it, by the edges' own
+            # noise model (edge_sigma_translation per unit of information), within the cycle
+            # tolerance at three standard deviations; along a corridor with no ends they do not
+            worst = float(np.linalg.eigvalsh(fixed)[0])
+            sigma = self.merge.edge_sigma_translation / math.sqrt(worst) if worst > 0 else math.inf
+            return 3.0 * sigma <= self.merge.cycle_translation_tolerance
 
         required = self.merge.join_support
         if not (self._chained(group_a) and self._chained(group_b)):
@@ -511,12 +538,12 @@ class PoseGraph(MapGraph):
                 break
             register(i)
         for i in bearing:
-            if refuted() or (supports >= required and against <= max_map_violation(value, p) * value):
+            if refuted() or (supports >= required and against <= max_map_violation(value, p) * value and pinned()):
                 break
             if i not in done:
                 register(i)
         limit = max_map_violation(value, p) * value
-        holds = supports >= required and against <= limit
+        holds = supports >= required and against <= limit and pinned()
         log.debug(
             "join %s-%s (%.1f m): %d of %d pairs registered, %d bear it out (%.1f m), %.1f m of wall against"
             " (at most %.1f): %s",
@@ -591,9 +618,10 @@ class PoseGraph(MapGraph):
             held = self._looks[key] = (float(hit[0]), float(free[0]))
         return held
 
-    def _pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> tuple[float, float]:
+    def _pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> Verdict:
         """What a pair says of ``implied`` (b's frame in a's): (the value it bears it out with, 0 if
-        not; the wall it puts in the other's seen free space there, 0 unless that refutes it).
+        not; the wall it puts in the other's seen free space there, 0 unless that refutes it; how
+        firmly its walls fix the translation where it bears it out, None if not at all).
         Kept for the pair while the implied pose stays within a third of the tolerances and
         neither submap grew by ``VERDICT_VERSIONS`` versions (an active submap gains a few scans a
         version: what its walls bore out they still bear out)."""
@@ -609,32 +637,30 @@ class PoseGraph(MapGraph):
         self._pair_verdicts[(a, b)] = (implied, versions, verdict)
         return verdict
 
-    def _found_pair_verdict(
-        self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float
-    ) -> tuple[float, float]:
+    def _found_pair_verdict(self, a: str, b: str, implied: Transform2D, tol_t: float, tol_r: float) -> Verdict:
         """:meth:`_pair_verdict` found (the pair's known integration where it is current)."""
         known = self.edge(a, b) if (a, b) in self._edges or (b, a) in self._edges else None
+        na, nb = self._nodes[a], self._nodes[b]
+        p = self.integration
+        prep = prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
         if known is not None and known.valid and known.versions == (self.version_of(a), self.version_of(b)):
             dt, dr = _disagreement(known.transform, implied)
             if dt <= tol_t and dr <= tol_r:
-                return known.value, 0.0
-        na, nb = self._nodes[a], self._nodes[b]
-        p = self.integration
+                return known.value, 0.0, _translation_information(prep, known.transform, p)
         r = align_near(na.map, nb.map, implied, p, self.tracking, self.reference(a), self._index(a), self._index(b))
         dt, dr = _disagreement(r.transform, implied)
         if r.valid and dt <= tol_t and dr <= tol_r:
-            return r.value, 0.0
+            return r.value, 0.0, _translation_information(prep, r.transform, p)
         # registered elsewhere (a repetitive building has several valid alignments) or not valid:
         # what the pair says at the implied pose itself
         free = GridFreeSpace(self._index(a), self._index(b))
         at = implied.as_array()
-        prep = prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
         value = max(transformation_value(prep, at, p, refuse=False), 0.0)
         violation = float(free.violation(at)[0]) if free.active else 0.0
         if violation >= p.validity.valid_refute_violation and violation > max_map_violation(value, p) * value:
             log.debug("pair %s-%s: %.1f m of wall in seen free space against %.1f m matched", a, b, violation, value)
-            return 0.0, violation
-        return 0.0, 0.0
+            return 0.0, violation, None
+        return 0.0, 0.0, None
 
     def _chained(self, group: list[str]) -> bool:
         """Whether a group holds a submap linked to another (a robot's chain, which grows)."""
@@ -817,3 +843,10 @@ def _joins_above(anchor: str, order: list[str], adjacency: dict[str, list[Edge]]
             if e.b not in paths:
                 paths[e.b] = paths[k] if e.link else (*paths[k], (e.a, e.b, *e.transform.as_array().tolist()))
     return paths
+
+
+def _translation_information(prep: PreparedPairs, t: Transform2D, params: IntegrationParams) -> Array | None:
+    """How firmly two maps' matched walls fix b's position at ``t`` (the translation block of
+    :func:`~fleetmap.shared.core.refine.fit_information`, in a's frame); None if they do not."""
+    h = fit_information(prep, t, params)
+    return None if h is None else np.asarray(h)[:2, :2]

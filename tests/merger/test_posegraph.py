@@ -15,6 +15,7 @@ from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap, RobotPose, SubmapLink, decode
 
@@ -254,3 +255,45 @@ def test_an_edge_weighs_along_its_corridor_whatever_the_turn_between_the_two_fra
             return float(factor.error(values))
 
         assert cost(0.1, 0.0) < 0.05 * cost(0.0, 0.1)
+
+
+def _corridor_fleet(jambs: bool) -> PoseGraph:
+    """Two robots' chains of three submaps down one corridor (walls at y = +-1), r2's frames 1.3 m
+    on from r1's, and one valid integration between them; with ``jambs``, door jambs along the
+    walls fix where along the corridor each submap lies."""
+    graph = PoseGraph()
+    cov = np.diag([1e-4, 1e-4, 1e-6])
+    doors = [1.5, 5.0, 8.5, 12.0, 15.5]
+
+    def walls(x0: float) -> np.ndarray:
+        # the world's walls seen from a frame at (x0, 0): x0 - 2 .. x0 + 6, each wall facing the corridor
+        out = []
+        for x in np.arange(x0 - 2.0, x0 + 6.0, 1.0):
+            out += [[x - x0, -1.0, x + 1.0 - x0, -1.0], [x + 1.0 - x0, 1.0, x - x0, 1.0]]
+        if jambs:
+            for d in doors:
+                if x0 - 2.0 <= d <= x0 + 6.0:
+                    out += [[d - x0, -1.0, d - x0, -1.3], [d - x0, 1.3, d - x0, 1.0]]
+        return np.array(out)
+
+    for robot, start in (("r1", 0.0), ("r2", 1.3)):
+        for n in range(3):
+            graph.put_map(f"{robot}/0/{n}", SegmentMap(walls(start + 4.0 * n), ordered=False, oriented=True), 1)
+            if n:
+                graph.put_link(f"{robot}/0/{n - 1}", f"{robot}/0/{n}", Transform2D(4.0, 0.0, 0.0), cov)
+    graph.add_edge(Edge("r1/0/1", "r2/0/1", Transform2D(1.3, 0.0, 0.0), 30.0, True))
+    return graph
+
+
+def test_a_join_its_walls_leave_free_along_a_corridor_joins_no_two_robots() -> None:
+    # Two robots down one corridor with no ends in view: their walls match as well 1 m on or
+    # back, so the integration joining them says nothing of where along the corridor one is from
+    # the other (aces cut in 4: a robot placed 0.75 m off along a corridor, by an integration and
+    # pairs whose walls fixed it in no direction). With door jambs to fix it, it joins them.
+    free = _corridor_fleet(jambs=False).solve()
+    assert len(free.components) == 2, "a corridor with no ends joined two robots"
+    assert not any({"r1/0/0", "r2/0/0"} <= set(c.members) for c in free.components)
+    fixed = _corridor_fleet(jambs=True).solve()
+    assert len(fixed.components) == 1, "the jambs fix the join, yet it did not hold"
+    dt, dr = fixed.poses["r1/0/0"].inverse().compose(fixed.poses["r2/0/0"]).distance(Transform2D(1.3, 0.0, 0.0))
+    assert dt < 0.05 and dr < math.radians(0.5)
