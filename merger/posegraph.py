@@ -59,12 +59,12 @@ log = logging.getLogger(__name__)
 
 
 VERDICT_VERSIONS = 5
+"""A pair's verdict on a join is found again once either submap has this many versions more."""
 
 Verdict = tuple[float, float, Array | None]
 """What a pair says of a join (:meth:`PoseGraph._pair_verdict`): the value it bears it out with,
 the wall against it, and, where it bears it out, how firmly its walls fix the translation (2x2, in
 the pair's first submap's frame; None: they do not)."""
-"""A pair's verdict on a join is found again once either submap has this many versions more."""
 
 
 LOOKS_KEPT = 200_000
