@@ -642,11 +642,17 @@ class PoseGraph(MapGraph):
         known = self.edge(a, b) if (a, b) in self._edges or (b, a) in self._edges else None
         na, nb = self._nodes[a], self._nodes[b]
         p = self.integration
-        prep = prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
+
+        def pairs() -> PreparedPairs:
+            return prepare(na.map.segments, nb.map.segments, na.map.oriented and nb.map.oriented, p)
+
         if known is not None and known.valid and known.versions == (self.version_of(a), self.version_of(b)):
             dt, dr = _disagreement(known.transform, implied)
             if dt <= tol_t and dr <= tol_r:
-                return known.value, 0.0, _translation_information(prep, known.transform, p)
+                if known.information is not None:  # fitted on these walls at its transform already
+                    return known.value, 0.0, np.asarray(known.information).reshape(3, 3)[:2, :2]
+                return known.value, 0.0, _translation_information(pairs(), known.transform, p)
+        prep = pairs()
         r = align_near(na.map, nb.map, implied, p, self.tracking, self.reference(a), self._index(a), self._index(b))
         dt, dr = _disagreement(r.transform, implied)
         if r.valid and dt <= tol_t and dr <= tol_r:
