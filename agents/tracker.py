@@ -56,6 +56,7 @@ from fleetmap.shared.core.tracking import (
     register,
     sample_segments,
     see_through,
+    wall_evidence,
 )
 from fleetmap.shared.core.walls import WallMap
 
@@ -92,18 +93,28 @@ class Submap:
     link_covariance: Array | None
     reference: ReferenceMap
     walls: WallMap
+    params: TrackingParams | None = None
+    """The tracking's see-through test (None: every wall is kept)."""
     viewpoints_in: list[Array] = field(default_factory=list)
     """The inserted scans' viewpoints ``[x, y, theta, bearing_min, bearing_max]``."""
+    scans_in: list[tuple[RangeScan, Transform2D]] = field(default_factory=list)
+    """The inserted scans and their poses (what they saw of its walls: :meth:`segment_map`)."""
+    max_range: float = math.inf
+    """How far the robot's extraction reads a beam (m)."""
     placed: list[PlacedScan] = field(default_factory=list)
     """The scans this submap placed (registered on it while it was the matching submap)."""
     path_length: float = 0.0
     inserted: int = 0
     finished: bool = False
     _last_insert: Transform2D | None = None
+    _built: tuple[int, SegmentMap] | None = None
 
-    def insert(self, samples: ScanSamples, segments: Array, pose: Transform2D) -> None:
-        """Add a scan taken at ``pose`` (this submap's frame), its samples and segments in its own."""
+    def insert(self, samples: ScanSamples, segments: Array, pose: Transform2D, scan: RangeScan | None = None) -> None:
+        """Add a scan taken at ``pose`` (this submap's frame), its samples and segments in its own
+        (and the scan itself, whose beams judge the walls)."""
         self.reference.insert(samples.moved(pose))
+        if scan is not None:
+            self.scans_in.append((scan, pose))
         self.walls.add(pose.apply(segments))
         viewpoint = scan_viewpoint(segments)
         if len(viewpoint):
@@ -115,8 +126,20 @@ class Submap:
         self.inserted += 1
 
     def segment_map(self) -> SegmentMap:
-        """Its walls, one segment per stretch of wall (:class:`fleetmap.shared.core.walls.WallMap`)."""
-        return SegmentMap(self.walls.segments, ordered=False, oriented=True)
+        """Its walls, one segment per stretch of wall (:class:`fleetmap.shared.core.walls.WallMap`),
+        less those its own scans saw through more than they saw (:func:`wall_evidence`): people,
+        doors and carts that moved while the robot looked. Another robot's laser, there minutes
+        later, sees through them as well; left in, they would refute the right match of the two
+        robots' submaps (docs/decisions/002-pose-graph.md)."""
+        if self._built is None or self._built[0] != self.inserted:
+            walls = self.walls.segments
+            if self.params is not None:
+                seen, through = wall_evidence(walls, self.scans_in, self.params, self.max_range)
+                walls = walls[through <= seen]
+            self._built = (self.inserted, SegmentMap(walls, ordered=False, oriented=True))
+        if self.finished:
+            self.scans_in = []  # a finished submap never changes: its walls are judged for good
+        return self._built[1]
 
     def viewpoints(self) -> Array:
         return np.array(self.viewpoints_in) if self.viewpoints_in else np.zeros((0, 5))
@@ -232,9 +255,8 @@ class Tracker:
         fit = self._fit(scan, samples, segments, predictions, stamp)
         if fit.good:
             self._held.clear()
-            return [
-                self._place(index, stamp, segments, samples, odometry, fit, "tracked" if fit.why == "" else fit.why)
-            ]
+            status = "tracked" if fit.why == "" else fit.why
+            return [self._place(index, stamp, scan, segments, samples, odometry, fit, status)]
         self._held.append(_Held(index, stamp, scan, segments, samples, odometry))
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._odometry = stamp, odometry if odometry is not None else self._odometry
@@ -424,6 +446,7 @@ class Tracker:
         self,
         index: int,
         stamp: float,
+        scan: RangeScan,
         segments: Array,
         samples: ScanSamples,
         odometry: Transform2D | None,
@@ -445,7 +468,7 @@ class Tracker:
             self._odometry = odometry
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self._due(stamp, pose):
-            self._insert(index, stamp, segments, samples, pose, reg)
+            self._insert(index, stamp, scan, segments, samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
 
     def _due(self, stamp: float, pose: Transform2D) -> bool:
@@ -461,6 +484,7 @@ class Tracker:
         self,
         index: int,
         stamp: float,
+        scan: RangeScan,
         segments: Array,
         samples: ScanSamples,
         pose: Transform2D,
@@ -471,21 +495,27 @@ class Tracker:
         p = self.params
         self._inserted_at = (stamp, pose)
         for submap in self.active:
-            submap.insert(samples, segments, submap.origin.inverse().compose(pose))
+            submap.insert(samples, segments, submap.origin.inverse().compose(pose), scan)
         newest = self.active[-1]
         half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1)
         if half and len(self.active) == 1:
-            self._start_submap(index, pose, segments, samples, reg)
+            self._start_submap(index, pose, scan, segments, samples, reg)
         oldest = self.active[0]
         if len(self.active) > 1 and (oldest.path_length >= p.submap_length or oldest.inserted >= p.submap_scans):
             oldest.finished = True
             self.finished.append(self.active.pop(0))
             newest = self.active[-1]
             if newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1):
-                self._start_submap(index, pose, segments, samples, reg)
+                self._start_submap(index, pose, scan, segments, samples, reg)
 
     def _start_submap(
-        self, index: int, pose: Transform2D, segments: Array, samples: ScanSamples, reg: Registration | None
+        self,
+        index: int,
+        pose: Transform2D,
+        scan: RangeScan,
+        segments: Array,
+        samples: ScanSamples,
+        reg: Registration | None,
     ) -> None:
         previous = self.active[-1] if self.active else None
         link = covariance = None
@@ -494,10 +524,19 @@ class Tracker:
             covariance = _link_covariance(reg, self.params) + drift_covariance(self.params, previous.path_length)
         walls = WallMap(self.config.integration.simplify_tolerance)
         submap = Submap(
-            self.epoch, self._submaps, index, pose, link, covariance, ReferenceMap(self.params.voxel_size), walls
+            self.epoch,
+            self._submaps,
+            index,
+            pose,
+            link,
+            covariance,
+            ReferenceMap(self.params.voxel_size),
+            walls,
+            params=self.params,
+            max_range=self.config.extraction.max_range,
         )
         self._submaps += 1
-        submap.insert(samples, segments, Transform2D())
+        submap.insert(samples, segments, Transform2D(), scan)
         self.active.append(submap)
 
     def _start_epoch(
@@ -523,7 +562,7 @@ class Tracker:
         self._inserted_at = None
         self._held = []
         self._scores.clear()
-        self._start_submap(index, Transform2D(), segments, samples, None)
+        self._start_submap(index, Transform2D(), scan, segments, samples, None)
         self._inserted_at = (stamp, Transform2D())
         self.active[0].placed.append(PlacedScan(index, stamp, Transform2D()))
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)

@@ -358,17 +358,35 @@ def see_through_masks(
     reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
 ) -> tuple[Array, Array]:
     """:func:`see_through`'s cells: which are visible, and which of those are seen through."""
+    visible, through, _ = beam_test(
+        reference.points, reference.normals, reference.support, scan, pose, params, max_range
+    )
+    return visible, through
+
+
+def beam_test(
+    points: Array,
+    normals: Array,
+    support: Array,
+    scan: RangeScan,
+    pose: Transform2D,
+    params: TrackingParams,
+    max_range: float,
+) -> tuple[Array, Array, Array]:
+    """The test of :func:`see_through` on wall points (their normals, and the length of the wall
+    each lies on): which are visible to the scan at ``pose``, which of those its beams pass
+    through, and which of those its beams return from (within the same margin)."""
     ranges = np.asarray(scan.ranges, dtype=np.float64)
     beams = len(ranges)
-    local = (reference.points - (pose.x, pose.y)) @ _rotation(-pose.theta)
-    normals = reference.normals @ _rotation(-pose.theta)
+    local = (points - (pose.x, pose.y)) @ _rotation(-pose.theta)
+    turned = normals @ _rotation(-pose.theta)
     distance = np.hypot(local[:, 0], local[:, 1])
     bearing = np.arctan2(local[:, 1], local[:, 0])
     beam = np.rint((bearing - scan.angle_min) / scan.angle_increment).astype(np.int64)
     # facing the laser: the normal points back towards it; cos of the incidence angle
-    cos_incidence = -(normals * local).sum(axis=1) / np.maximum(distance, 1e-9)
+    cos_incidence = -(turned * local).sum(axis=1) / np.maximum(distance, 1e-9)
     reach = min(scan.range_max, max_range)
-    wide = reference.support >= params.see_through_beams * distance * abs(scan.angle_increment)
+    wide = support >= params.see_through_beams * distance * abs(scan.angle_increment)
     candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
     measured = ranges[np.clip(beam, 0, beams - 1)]
     with np.errstate(invalid="ignore"):
@@ -378,7 +396,33 @@ def see_through_masks(
     tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
     margin = params.see_through_margin + params.see_through_slope * distance * np.maximum(tan_incidence, 1.0)
     through = visible & (measured > distance + margin)
-    return visible, through
+    hit = visible & (np.abs(measured - distance) <= margin)
+    return visible, through, hit
+
+
+def wall_evidence(
+    segments: Array, scans: list[tuple[RangeScan, Transform2D]], params: TrackingParams, max_range: float
+) -> tuple[Array, Array]:
+    """For each wall of a submap, what its own scans (each with its pose in the submap) say of it:
+    ``(seen, through)``, the wall length (m, summed over the scans) their beams returned from, and
+    the length they passed through (:func:`beam_test`). A wall stands where the scans saw it; a
+    person walking past, a door swinging, a cart pushed by, is seen in a few scans and seen
+    through in the others that look at where it was (the hit and miss counts of an occupancy
+    grid, Thrun, Burgard & Fox 2005, 9.2, kept per wall)."""
+    seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    seen, through = np.zeros(len(seg)), np.zeros(len(seg))
+    if len(seg) == 0 or not scans:
+        return seen, through
+    length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
+    kept = np.flatnonzero(length > 1e-9)  # what sample_segments samples
+    samples = sample_segments(seg[kept], params.sample_spacing)
+    owner = np.repeat(kept, np.maximum(1, np.ceil(length[kept] / params.sample_spacing)).astype(np.int64))
+    support = samples.support if samples.support is not None else np.zeros(len(samples))
+    for scan, pose in scans:
+        _, passed, hit = beam_test(samples.points, samples.normals, support, scan, pose, params, max_range)
+        seen += np.bincount(owner[hit], weights=samples.weights[hit], minlength=len(seg))
+        through += np.bincount(owner[passed], weights=samples.weights[passed], minlength=len(seg))
+    return seen, through
 
 
 def drift_covariance(params: TrackingParams, distance: float) -> Array:

@@ -129,3 +129,38 @@ def test_the_wall_map_keeps_one_segment_per_stretch_of_wall():
     # the other side of the lower wall, seen from below, is another wall
     walls.add(np.array([[5.0, -0.02, 3.0, -0.02]]))
     assert len(walls.segments) == 3
+
+
+def test_a_person_who_walked_off_is_not_a_wall_of_the_submap(office):
+    # down the office corridor; for the first scans a person stands 2.5 m ahead, to the left,
+    # then walks off: the later scans see the corridor's wall through where they stood
+    from fleetmap.agents.tracker import Tracker
+
+    person = np.array([[10.4, 7.4, 10.4, 7.7], [10.4, 7.7, 10.7, 7.7], [10.7, 7.7, 10.7, 7.4], [10.7, 7.4, 10.4, 7.4]])
+    tracker = Tracker(odometry=False)
+    for k in range(12):
+        pose = Transform2D(8.0 + 0.15 * k, 7.0, 0.0)
+        walls = np.vstack([office, person]) if k < 3 else office
+        scan = scan_at(walls, pose, seed=k)
+        tracker.add(k, 0.1 * k, scan, extract_segments(scan))
+    submap = tracker.matching
+    assert submap is not None and submap.inserted >= 6
+    kept = submap.segment_map().segments
+    every = submap.walls.segments
+    assert len(every) > len(kept), "the person was seen: the wall map holds them"
+
+    def near(segments, x, y, r):
+        mid = (segments[:, 0:2] + segments[:, 2:4]) / 2
+        return int((np.hypot(mid[:, 0] - x, mid[:, 1] - y) < r).sum())
+
+    # the submap's frame is the first scan's pose (8, 7): the person is 2.4-2.7 m ahead of it
+    assert near(every, 2.55, 0.55, 0.4) > 0
+    assert near(kept, 2.55, 0.55, 0.4) == 0, "the scans that saw through them dropped the person"
+    # the corridor's walls stay: as much wall length as without the person, within 5 %
+    clean = Tracker(odometry=False)
+    for k in range(12):
+        scan = scan_at(office, Transform2D(8.0 + 0.15 * k, 7.0, 0.0), seed=k)
+        clean.add(k, 0.1 * k, scan, extract_segments(scan))
+    assert clean.matching is not None
+    length = lambda s: float(np.hypot(s[:, 2] - s[:, 0], s[:, 3] - s[:, 1]).sum())  # noqa: E731
+    assert length(kept) == pytest.approx(length(clean.matching.segment_map().segments), rel=0.05)
