@@ -29,6 +29,12 @@ frame. So consecutive submaps overlap by half, and each is chained to the previo
 *link*: its frame in the previous submap's frame, with the uncertainty of the registration that
 placed it. A finished submap never changes.
 
+**What a submap publishes** is its walls less those its own scans saw through more than they saw
+(:func:`fleetmap.shared.core.tracking.wall_evidence`, the see-through test of the fit's check on
+each inserted scan's beams): a person walking past, a door swinging, a cart pushed by. Another
+robot there minutes later sees through them too, and left in, they refute the right match of the
+two robots' submaps (docs/decisions/002-pose-graph.md). Registration keeps every wall.
+
 The tracker is pure: scans and odometry in, poses and submaps out; no clock, no I/O.
 """
 
