@@ -99,14 +99,14 @@ class Submap:
     link_covariance: Array | None
     reference: ReferenceMap
     walls: WallMap
-    params: TrackingParams | None = None
-    """The tracking's see-through test (None: every wall is kept)."""
+    params: TrackingParams
+    """The tracking's see-through test, which judges the walls (:meth:`segment_map`)."""
+    max_range: float
+    """How far the robot's extraction reads a beam (m)."""
     viewpoints_in: list[Array] = field(default_factory=list)
     """The inserted scans' viewpoints ``[x, y, theta, bearing_min, bearing_max]``."""
     scans_in: list[tuple[RangeScan, Transform2D]] = field(default_factory=list)
     """The inserted scans and their poses (what they saw of its walls: :meth:`segment_map`)."""
-    max_range: float = math.inf
-    """How far the robot's extraction reads a beam (m)."""
     placed: list[PlacedScan] = field(default_factory=list)
     """The scans this submap placed (registered on it while it was the matching submap)."""
     path_length: float = 0.0
@@ -115,12 +115,11 @@ class Submap:
     _last_insert: Transform2D | None = None
     _built: tuple[int, SegmentMap] | None = None
 
-    def insert(self, samples: ScanSamples, segments: Array, pose: Transform2D, scan: RangeScan | None = None) -> None:
-        """Add a scan taken at ``pose`` (this submap's frame), its samples and segments in its own
-        (and the scan itself, whose beams judge the walls)."""
+    def insert(self, scan: RangeScan, samples: ScanSamples, segments: Array, pose: Transform2D) -> None:
+        """Add a scan taken at ``pose`` (this submap's frame): its beams (which judge the walls),
+        and its samples and segments in its own frame."""
         self.reference.insert(samples.moved(pose))
-        if scan is not None:
-            self.scans_in.append((scan, pose))
+        self.scans_in.append((scan, pose))
         self.walls.add(pose.apply(segments))
         viewpoint = scan_viewpoint(segments)
         if len(viewpoint):
@@ -139,9 +138,8 @@ class Submap:
         robots' submaps (docs/decisions/002-pose-graph.md)."""
         if self._built is None or self._built[0] != self.inserted:
             walls = self.walls.segments
-            if self.params is not None:
-                seen, through = wall_evidence(walls, self.scans_in, self.params, self.max_range)
-                walls = walls[through <= seen]
+            seen, through = wall_evidence(walls, self.scans_in, self.params, self.max_range)
+            walls = walls[through <= seen]
             self._built = (self.inserted, SegmentMap(walls, ordered=False, oriented=True))
         if self.finished:
             self.scans_in = []  # a finished submap never changes: its walls are judged for good
@@ -501,7 +499,7 @@ class Tracker:
         p = self.params
         self._inserted_at = (stamp, pose)
         for submap in self.active:
-            submap.insert(samples, segments, submap.origin.inverse().compose(pose), scan)
+            submap.insert(scan, samples, segments, submap.origin.inverse().compose(pose))
         newest = self.active[-1]
         half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1)
         if half and len(self.active) == 1:
@@ -538,11 +536,11 @@ class Tracker:
             covariance,
             ReferenceMap(self.params.voxel_size),
             walls,
-            params=self.params,
-            max_range=self.config.extraction.max_range,
+            self.params,
+            self.config.extraction.max_range,
         )
         self._submaps += 1
-        submap.insert(samples, segments, Transform2D(), scan)
+        submap.insert(scan, samples, segments, Transform2D())
         self.active.append(submap)
 
     def _start_epoch(

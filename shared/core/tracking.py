@@ -62,6 +62,8 @@ class ScanSamples:
     """``(n,)``: the wall length (m) each point stands for."""
     support: Array | None = None
     """``(n,)``: the length (m) of the segment each point lies on (None: unknown)."""
+    segment: Array | None = None
+    """``(n,)``: the index of that segment among those sampled (None: unknown)."""
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -75,19 +77,20 @@ class ScanSamples:
         c, s = math.cos(pose.theta), math.sin(pose.theta)
         rotation = np.array([[c, s], [-s, c]])
         return ScanSamples(
-            self.points @ rotation + (pose.x, pose.y), self.normals @ rotation, self.weights, self.support
+            self.points @ rotation + (pose.x, pose.y), self.normals @ rotation, self.weights, self.support, self.segment
         )
 
 
 def sample_segments(segments: Array, spacing: float) -> ScanSamples:
     """Points every ``spacing`` metres along each segment (at least one, at the middle of equal
-    stretches), with the segment's left normal and the length of its stretch."""
+    stretches), with the segment's left normal, the length of its stretch, the segment's length and its
+    index among ``segments`` (a segment of no length gives no point)."""
     seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
     if len(seg) == 0:
-        return ScanSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+        return ScanSamples(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     d = seg[:, 2:4] - seg[:, 0:2]
     length = np.hypot(d[:, 0], d[:, 1])
-    keep = length > 1e-9
+    keep = np.flatnonzero(length > 1e-9)
     seg, d, length = seg[keep], d[keep], length[keep]
     count = np.maximum(1, np.ceil(length / spacing)).astype(np.int64)
     owner = np.repeat(np.arange(len(seg)), count)
@@ -95,7 +98,7 @@ def sample_segments(segments: Array, spacing: float) -> ScanSamples:
     fraction = (np.arange(int(count.sum())) - first + 0.5) / count[owner]
     points = seg[owner, 0:2] + d[owner] * fraction[:, None]
     normals = np.column_stack([-d[owner, 1], d[owner, 0]]) / length[owner, None]
-    return ScanSamples(points, normals, (length / count)[owner], length[owner])
+    return ScanSamples(points, normals, (length / count)[owner], length[owner], keep[owner])
 
 
 class ReferenceMap:
@@ -413,11 +416,10 @@ def wall_evidence(
     seen, through = np.zeros(len(seg)), np.zeros(len(seg))
     if len(seg) == 0 or not scans:
         return seen, through
-    length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
-    kept = np.flatnonzero(length > 1e-9)  # what sample_segments samples
-    samples = sample_segments(seg[kept], params.sample_spacing)
-    owner = np.repeat(kept, np.maximum(1, np.ceil(length[kept] / params.sample_spacing)).astype(np.int64))
-    support = samples.support if samples.support is not None else np.zeros(len(samples))
+    samples = sample_segments(seg, params.sample_spacing)
+    owner, support = samples.segment, samples.support
+    if owner is None or support is None:  # pragma: no cover - sample_segments gives both
+        raise RuntimeError("the wall samples do not say which wall each lies on")
     for scan, pose in scans:
         _, passed, hit = beam_test(samples.points, samples.normals, support, scan, pose, params, max_range)
         seen += np.bincount(owner[hit], weights=samples.weights[hit], minlength=len(seg))

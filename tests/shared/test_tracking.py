@@ -7,11 +7,12 @@ import math
 
 import numpy as np
 import pytest
+from fleetmap.agents.tracker import Tracker
 from fleetmap.scenarios import get_world
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.extraction import extract_segments
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D, lengths
 from fleetmap.shared.core.motion import from_odometry, odometry_increment
 from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments, see_through
 from fleetmap.shared.core.walls import WallMap
@@ -134,8 +135,6 @@ def test_the_wall_map_keeps_one_segment_per_stretch_of_wall():
 def test_a_person_who_walked_off_is_not_a_wall_of_the_submap(office):
     # down the office corridor; for the first scans a person stands 2.5 m ahead, to the left,
     # then walks off: the later scans see the corridor's wall through where they stood
-    from fleetmap.agents.tracker import Tracker
-
     person = np.array([[10.4, 7.4, 10.4, 7.7], [10.4, 7.7, 10.7, 7.7], [10.7, 7.7, 10.7, 7.4], [10.7, 7.4, 10.4, 7.4]])
     tracker = Tracker(odometry=False)
     for k in range(12):
@@ -162,5 +161,4 @@ def test_a_person_who_walked_off_is_not_a_wall_of_the_submap(office):
         scan = scan_at(office, Transform2D(8.0 + 0.15 * k, 7.0, 0.0), seed=k)
         clean.add(k, 0.1 * k, scan, extract_segments(scan))
     assert clean.matching is not None
-    length = lambda s: float(np.hypot(s[:, 2] - s[:, 0], s[:, 3] - s[:, 1]).sum())  # noqa: E731
-    assert length(kept) == pytest.approx(length(clean.matching.segment_map().segments), rel=0.05)
+    assert lengths(kept).sum() == pytest.approx(lengths(clean.matching.segment_map().segments).sum(), rel=0.05)
