@@ -23,7 +23,10 @@ just joined, or lost its place), as its active submap grows (each time its versi
   segment-orientation histograms, the cheap descriptor), at most ``MergeParams.far_candidates``,
   by the paper's pose-free integration; every ``loop_sweep_every``-th final
   submap also tries the most similar submap of its own component beyond its reach (a loop its
-  drift hides from the near search).
+  drift hides from the near search);
+- *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups
+  whose walls now meet, registered near where the join puts them (at most ``near_candidates``
+  a submap): the near search of a submap that arrived before the join only saw its own group.
 
 So integrating n submaps costs O(n) integrations, not n^2 (:attr:`MergerStats.integrations`).
 
@@ -118,6 +121,8 @@ class MergerStats:
     """... of which registered near where the graph predicts them ..."""
     idle: int = 0
     """... and pose-free tries for a robot nobody has placed, taken when nothing else was due."""
+    join_pairs: int = 0
+    """Near registrations queued between the groups of submaps a join put in one frame."""
     failed: int = 0
     """Integrations that failed where they ran (a worker that died more often than it is retried,
     a Ray task's error): logged and dropped, the merger goes on."""
@@ -143,6 +148,7 @@ class MergerStats:
             "integrations": self.integrations,
             "near": self.near,
             "idle": self.idle,
+            "join_pairs": self.join_pairs,
             "failed": self.failed,
             "poses_dropped": self.poses_dropped,
             "key_scans": self.key_scans,
@@ -448,10 +454,12 @@ class Merger:
             said = MergeEdge(e.a, e.b, t.x, t.y, t.theta, max(e.value, 0.0), e.valid, self.stamp)
             out.append(Outgoing(self.keys.edges, said.to_msgpack()))
         solving = time.perf_counter()
+        apart = {epoch: frozenset(self._epochs_in[i]) for epoch, i in self._epoch_where.items()}
         self._result = self.graph.solve(fuse_maps=fuse)
         self.solve_seconds = time.perf_counter() - solving
         self._unfused = not fuse
         self._index_result()
+        self._queue_joined(apart)
         self._global = self._global_map(self._result)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += self._robot_poses()
@@ -578,6 +586,52 @@ class Merger:
             # searches it, and one direction is enough
             for other in self._far(key, mine, within=False)[: mp.far_candidates]:
                 self._queue_far(key, other)
+
+    def _queue_joined(self, apart: dict[str, frozenset[str]]) -> int:
+        """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs
+        before it): queue near registrations between the final submaps of the groups now joined
+        whose walls meet at their refined poses and that no integration relates yet, at most
+        ``near_candidates`` a submap, nearest first; how many were queued.
+
+        A final submap searches near its prediction once, when it arrives, among the submaps of its
+        component then: two robots' submaps that meet only once a later join puts them in one frame
+        would never be registered on each other, and the join would rest on its few integrations
+        while the chains around it bend. These are the join's own loop closures, as Cartographer's
+        constraint builder finds them for a trajectory it has just placed; bounded by the pairs
+        that meet, so the work stays O(n)."""
+        if self._result is None:
+            return 0
+        limit = self.config.merge.near_candidates
+        at = {k: p for k, p in self._result.poses.items() if p is not None}
+        queued = 0
+        for component in self._result.components:
+            groups: dict[frozenset[str], list[str]] = {}
+            for key in sorted(component.members):
+                if self.submaps[key].final and key in at:
+                    epoch = _epoch_of(key)
+                    groups.setdefault(apart.get(epoch, frozenset({epoch})), []).append(key)
+            if len(groups) < 2:
+                continue
+            found: list[tuple[float, str, str]] = []
+            ordered = sorted(groups.values())
+            for n, group_a in enumerate(ordered):
+                for group_b in ordered[n + 1 :]:
+                    meets = self.graph.meeting(group_a, at, group_b, at)
+                    for ia, ib in np.argwhere(meets):
+                        a, b = _ordered(group_a[ia], group_b[ib])
+                        if (a, b) in self._queue or self.graph.edge(a, b) is not None:
+                            continue
+                        found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
+            count: Counter[str] = Counter()
+            for _, a, b in sorted(found):
+                if count[a] >= limit or count[b] >= limit:
+                    continue
+                if self._enqueue((a, b), at[a].inverse().compose(at[b])):
+                    count[a] += 1
+                    count[b] += 1
+                    queued += 1
+        self.stats.join_pairs += queued
+        return queued
 
     def _in_global_map(self, key: str) -> bool:
         """Whether a submap (or its predecessor, for a new one) is in the largest component, the

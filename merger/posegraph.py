@@ -472,7 +472,7 @@ class PoseGraph(MapGraph):
         side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
         reach_t, reach_r = self.tracking.max_correspondence, math.radians(5.0)
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
-        meeting = self._meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
+        meeting = self.meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
         for i, a in enumerate(group_a):
             sa = side_a.get(a)
             if sa is None:
@@ -672,7 +672,7 @@ class PoseGraph(MapGraph):
         """Whether a group holds a submap linked to another (a robot's chain, which grows)."""
         return any(k in self._links or k in self._link_sources for k in group)
 
-    def _meeting(
+    def meeting(
         self, group_a: list[str], at_a: dict[str, Transform2D], group_b: list[str], at_b: dict[str, Transform2D]
     ) -> Array:
         """Which submaps of two groups, placed in one frame, can touch: the discs about their walls

@@ -327,6 +327,7 @@ def _summary(
         "integrations": merger.stats.integrations,
         "integrations_near": merger.stats.near,
         "integrations_idle": merger.stats.idle,
+        "join_pairs": merger.stats.join_pairs,
         "key_scans": merger.stats.key_scans,
         "scan_constraints": merger.stats.scan_constraints,
         "duration_s": duration,

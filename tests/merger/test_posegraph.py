@@ -297,3 +297,38 @@ def test_a_join_its_walls_leave_free_along_a_corridor_joins_no_two_robots() -> N
     assert len(fixed.components) == 1, "the jambs fix the join, yet it did not hold"
     dt, dr = fixed.poses["r1/0/0"].inverse().compose(fixed.poses["r2/0/0"]).distance(Transform2D(1.3, 0.0, 0.0))
     assert dt < 0.05 and dr < math.radians(0.5)
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(fleet: Fleet) -> None:
+    # r2's submaps find nobody while they arrive (no pose-free search: as where every view looks
+    # alike), then its last submap joins it to r1. Its earlier submaps lie over r1's: each must be
+    # registered on the r1 submaps it meets, not hang on the one join through r2's chain.
+    config = FleetmapConfig()
+    apart = replace(config, merge=replace(config.merge, far_candidates=0, far_budget=0))
+    merger = Merger(KEYS, apart)
+    mine = [m for m in fleet.finals if m.robot in ("r1", "r2")]
+    last = max(m.submap_key for m in mine if m.robot == "r2")
+    for m in mine:
+        if m.submap_key != last:
+            merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+            merger.step()
+    assert merger.result is not None and len(merger.result.components) == 2
+    merger.config = config  # the last submap searches as usual
+    merger.receive(KEYS.localmap("r2"), next(m for m in mine if m.submap_key == last).to_msgpack())
+    while merger.has_work:
+        merger.step()
+    assert merger.result is not None and len(merger.result.components) == 1, "r2's last submap joined nobody"
+    keys = sorted(merger.result.components[0].members)
+    meets = merger.graph.meeting(keys, fleet.truth, keys, fleet.truth)
+    tied: dict[str, set[str]] = {k: set() for k in keys}
+    for e in merger.graph.edges:
+        if not e.link and e.a.split("/")[0] != e.b.split("/")[0]:
+            tied[e.a].add(e.b)
+            tied[e.b].add(e.a)
+    early = [k for k in keys if k.startswith("r2/") and k != last]
+    over_r1 = [k for k in early if any(meets[keys.index(k), j] for j, o in enumerate(keys) if o.startswith("r1/"))]
+    loose = [k for k in over_r1 if not tied[k]]
+    assert not loose, f"r2's submaps over r1's registered on none of them: {loose}"
+    errors = _errors(merger, {k: fleet.truth[k] for k in keys})
+    assert max(e[0] for e in errors.values()) < 0.10 and np.mean([e[0] for e in errors.values()]) < 0.05
