@@ -645,8 +645,8 @@ class Merger:
             self._far_tries[key] = self._far_tries.get(key, 0) + 1
 
     def _idle_pairs(self) -> int:
-        """With nothing else to do: one more pose-free pair for a submap of each component whose
-        maps are merged with no other epoch's (a robot nobody has placed yet), its next most
+        """With nothing else to do: one more pose-free pair for a submap of each component apart
+        from the global map (:meth:`_idle_candidates`: robots nobody has placed yet), its next most
         similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
         how many were queued. Every submap's candidates are tried in turn: in a building where
         most views look alike (racks), the descriptor ranks the right partner anywhere."""
@@ -674,13 +674,14 @@ class Merger:
     def _idle_candidates(self) -> list[str]:
         """The submaps the idle search tries (:meth:`_idle_pairs`), whose tries :attr:`_searching`
         counts (they must be the same, or a step with nothing to queue would have work for ever):
-        of each component merged with no other epoch, its final submaps, or all of them if none is
-        final yet."""
+        of each component but the global map, its final submaps, or all of them if none is final
+        yet. Robots placed among themselves and not in the global map search on: two robots that
+        joined each other are still apart from the fleet."""
         if self._result is None:
             return []
         out: list[str] = []
         for i, component in enumerate(self._result.components):
-            if len(self._epochs_in[i]) > 1:
+            if i == 0 and len(self._epochs_in[i]) > 1:
                 continue
             finals = [k for k in component.members if self.submaps[k].final]
             out += finals or list(component.members)

@@ -415,9 +415,12 @@ class PoseGraph(MapGraph):
         looked at: a pair that registers validly near there (within the cycle tolerance) bears the
         join out (its value counts for it); a pair that puts ``valid_refute_violation`` m of wall
         or more where the other saw free space, more than the validity rule allows it, contradicts
-        it (that wall counts against). The join holds if at least ``join_support`` pairs bear it
-        out, itself included (every pair there is, up to that, where a group can never grow), and
-        the wall against is within what the validity rule allows their value (``max_map_violation``).
+        it (that wall counts against). The wall is measured as the validity rule measures it: solid
+        walls clear of the other's (``map_free_space_min_length``, ``map_free_space_clearance``),
+        not the clutter of chairs and people that moved between two visits. The join holds if at
+        least ``join_support`` pairs bear it out, itself included (every pair there is, up to that,
+        where a group can never grow), and the wall against is within what the validity rule allows
+        their value (``max_map_violation``).
         A repetitive building (racks, a corridor that looks the same turned round) matches one pair
         of submaps wrongly, and the neighbours of the pair often bear that out too; along the two
         groups, walls then stand where the other robot saw through.
@@ -658,11 +661,12 @@ class PoseGraph(MapGraph):
         if r.valid and dt <= tol_t and dr <= tol_r:
             return r.value, 0.0, _translation_information(prep, r.transform, p)
         # registered elsewhere (a repetitive building has several valid alignments) or not valid:
-        # what the pair says at the implied pose itself
+        # what the pair says at the implied pose itself, its wall in free space as the validity
+        # rule limits it (solid walls: the integration that made the join was valid by that)
         free = GridFreeSpace(self._index(a), self._index(b))
         at = implied.as_array()
         value = max(transformation_value(prep, at, p, refuse=False), 0.0)
-        violation = float(free.violation(at)[0]) if free.active else 0.0
+        violation = float(free.violation(at, solid=True)[0]) if free.active else 0.0
         if violation >= p.validity.valid_refute_violation and violation > max_map_violation(value, p) * value:
             log.debug("pair %s-%s: %.1f m of wall in seen free space against %.1f m matched", a, b, violation, value)
             return 0.0, violation, None

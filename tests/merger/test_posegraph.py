@@ -332,3 +332,24 @@ def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(flee
     assert not loose, f"r2's submaps over r1's registered on none of them: {loose}"
     errors = _errors(merger, {k: fleet.truth[k] for k in keys})
     assert max(e[0] for e in errors.values()) < 0.10 and np.mean([e[0] for e in errors.values()]) < 0.05
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_robots_placed_among_themselves_search_on_until_the_fleet_is_one_map(fleet: Fleet) -> None:
+    # Six robots (each robot's chain cut in two, the second half a robot of its own) that search
+    # only when idle: groups of robots that have joined each other, but not the global map, must
+    # go on searching until the fleet is one map (aces cut in 8 stayed in 4 components).
+    config = FleetmapConfig()
+    merger = Merger(KEYS, replace(config, merge=replace(config.merge, far_candidates=0)))
+    for m in fleet.finals:
+        if m.submap is not None and m.submap >= 3:
+            link = None if m.link is None or m.submap == 3 else replace(m.link, submap=m.link.submap - 3)
+            m = replace(m, robot=m.robot + "b", submap=m.submap - 3, link=link)
+        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+        merger.step()
+    while merger.has_work:
+        merger.step()
+    assert merger.result is not None
+    groups = [sorted({k.split("/")[0] for k in c.members}) for c in merger.result.components]
+    assert len(groups) == 1, f"the fleet stayed apart: {groups}"
+    assert len(groups[0]) == 6
