@@ -321,7 +321,7 @@ class Tracker:
         share = self.params.typical_score_share
         typical = float(np.median(self._scores)) if len(self._scores) >= 3 else 0.0
         floor = share * typical
-        tried: list[tuple[Transform2D, Prediction]] = []
+        tried: list[Transform2D] = []
         fits: list[_Fit] = []
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
         standing = Prediction(Transform2D(), predictions[-1].sigma_translation, predictions[-1].sigma_rotation, "still")
@@ -340,9 +340,9 @@ class Tracker:
             # the robot standing still where it was last placed; the models from its last pose
             base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
             predicted = submap.origin.inverse().compose(base)
-            if any(_within(predicted, other, p) for other, p in tried):
+            if any(_same_start(predicted, other, self.params) for other in tried):
                 continue
-            tried.append((predicted, prediction))
+            tried.append(predicted)
             reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
             why = self._judge(reg, scan, submap, stamp)
             fits.append(_Fit(reg, why == "", why))
@@ -590,10 +590,18 @@ class Tracker:
         return iter(self.active)
 
 
-def _within(a: Transform2D, b: Transform2D, prediction: Prediction) -> bool:
-    """Whether two predicted poses lie within one standard deviation of ``prediction`` of each other."""
+REACH_ROTATION = math.radians(5.0)
+"""How far in heading a registration started from one pose settles into the same minimum as one
+started from another (with the correspondence distance in translation; the merger's reach too)."""
+
+
+def _same_start(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
+    """Whether registering from ``a`` only repeats registering from ``b``: they lie within
+    registration's reach of each other (``max_correspondence``, :data:`REACH_ROTATION`). Not the
+    motion model's uncertainty: on a fast turn the odometry's is 20 degrees, and a velocity
+    prediction 14 degrees from it starts a registration the odometry's could not (mit-csail)."""
     d, r = a.distance(b)
-    return d <= prediction.sigma_translation and r <= prediction.sigma_rotation
+    return d <= p.max_correspondence and r <= REACH_ROTATION
 
 
 def _link_covariance(reg: Registration | None, p: TrackingParams) -> Array:
