@@ -216,6 +216,8 @@ class Merger:
         """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
         self._idle: set[tuple[str, str]] = set()
         """Queued pairs that :meth:`_idle_pairs` chose."""
+        self._joined: set[tuple[str, str]] = set()
+        """Pairs :meth:`_queue_joined` queued (each once: a pair that did not register stays so)."""
         self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
         self._unfused = False
@@ -590,8 +592,9 @@ class Merger:
     def _queue_joined(self, apart: dict[str, frozenset[str]]) -> int:
         """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs
         before it): queue near registrations between the final submaps of the groups now joined
-        whose walls meet at their refined poses and that no integration relates yet, at most
-        ``near_candidates`` a submap, nearest first; how many were queued.
+        whose walls meet at their refined poses and that no valid integration relates yet (a pair
+        tried pose-free while apart, ambiguous then, may register near the join), each pair once,
+        at most ``near_candidates`` a submap, nearest first; how many were queued.
 
         A final submap searches near its prediction once, when it arrives, among the submaps of its
         component then: two robots' submaps that meet only once a later join puts them in one frame
@@ -619,7 +622,8 @@ class Merger:
                     meets = self.graph.meeting(group_a, at, group_b, at)
                     for ia, ib in np.argwhere(meets):
                         a, b = _ordered(group_a[ia], group_b[ib])
-                        if (a, b) in self._queue or self.graph.edge(a, b) is not None:
+                        known = self.graph.edge(a, b)
+                        if (a, b) in self._queue or (a, b) in self._joined or (known is not None and known.valid):
                             continue
                         found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
             count: Counter[str] = Counter()
@@ -627,6 +631,7 @@ class Merger:
                 if count[a] >= limit or count[b] >= limit:
                     continue
                 if self._enqueue((a, b), at[a].inverse().compose(at[b])):
+                    self._joined.add((a, b))
                     count[a] += 1
                     count[b] += 1
                     queued += 1
