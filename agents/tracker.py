@@ -55,6 +55,7 @@ from fleetmap.shared.core.motion import Prediction, from_odometry, from_velocity
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
+    REACH_ROTATION,
     ReferenceMap,
     Registration,
     ScanSamples,
@@ -588,11 +589,6 @@ class Tracker:
     def submaps(self) -> Iterator[Submap]:
         """The active submaps, oldest first."""
         return iter(self.active)
-
-
-REACH_ROTATION = math.radians(5.0)
-"""How far in heading a registration started from one pose settles into the same minimum as one
-started from another (with the correspondence distance in translation; the merger's reach too)."""
 
 
 def _same_start(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:

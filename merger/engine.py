@@ -67,7 +67,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import sample_segments
+from fleetmap.shared.core.tracking import REACH_ROTATION, sample_segments
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_submap_key
 from fleetmap.shared.io.messages import (
@@ -120,7 +120,7 @@ class MergerStats:
     near: int = 0
     """... of which registered near where the graph predicts them ..."""
     idle: int = 0
-    """... and pose-free tries for a robot nobody has placed, taken when nothing else was due."""
+    """... and pose-free tries for robots apart from the global map, taken when nothing else was due."""
     join_pairs: int = 0
     """Near registrations queued between the groups of submaps a join put in one frame."""
     failed: int = 0
@@ -380,8 +380,8 @@ class Merger:
 
     @property
     def has_work(self) -> bool:
-        """Whether a step has something to do: submaps pending, pairs to integrate, or a robot
-        nobody has placed whose submaps have candidates left to try (:meth:`_idle_pairs`)."""
+        """Whether a step has something to do: submaps pending, pairs to integrate, or robots
+        apart from the global map whose submaps have candidates left to try (:meth:`_idle_pairs`)."""
         return bool(self._pending) or bool(self._queue) or self._searching
 
     @property
@@ -589,12 +589,12 @@ class Merger:
             for other in self._far(key, mine, within=False)[: mp.far_candidates]:
                 self._queue_far(key, other)
 
-    def _queue_joined(self, apart: dict[str, frozenset[str]]) -> int:
+    def _queue_joined(self, apart: dict[str, frozenset[str]]) -> None:
         """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs
         before it): queue near registrations between the final submaps of the groups now joined
         whose walls meet at their refined poses and that no valid integration relates yet (a pair
         tried pose-free while apart, ambiguous then, may register near the join), each pair once,
-        at most ``near_candidates`` a submap, nearest first; how many were queued.
+        at most ``near_candidates`` a submap, nearest first.
 
         A final submap searches near its prediction once, when it arrives, among the submaps of its
         component then: two robots' submaps that meet only once a later join puts them in one frame
@@ -603,7 +603,7 @@ class Merger:
         constraint builder finds them for a trajectory it has just placed; bounded by the pairs
         that meet, so the work stays O(n)."""
         if self._result is None:
-            return 0
+            return
         limit = self.config.merge.near_candidates
         at = {k: p for k, p in self._result.poses.items() if p is not None}
         queued = 0
@@ -623,7 +623,7 @@ class Merger:
                     for ia, ib in np.argwhere(meets):
                         a, b = _ordered(group_a[ia], group_b[ib])
                         known = self.graph.edge(a, b)
-                        if (a, b) in self._queue or (a, b) in self._joined or (known is not None and known.valid):
+                        if (a, b) in self._joined or (known is not None and known.valid):
                             continue
                         found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
             count: Counter[str] = Counter()
@@ -636,7 +636,6 @@ class Merger:
                     count[b] += 1
                     queued += 1
         self.stats.join_pairs += queued
-        return queued
 
     def _in_global_map(self, key: str) -> bool:
         """Whether a submap (or its predecessor, for a new one) is in the largest component, the
@@ -651,7 +650,7 @@ class Merger:
 
     def _idle_pairs(self) -> int:
         """With nothing else to do: one more pose-free pair for a submap of each component apart
-        from the global map (:meth:`_idle_candidates`: robots nobody has placed yet), its next most
+        from the global map (:meth:`_idle_candidates`: robots not in it yet), its next most
         similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
         how many were queued. Every submap's candidates are tried in turn: in a building where
         most views look alike (racks), the descriptor ranks the right partner anywhere."""
@@ -731,7 +730,7 @@ class Merger:
         drift = self.graph.chain_drift(a, b)
         if drift is None:
             return True
-        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= math.radians(5.0)
+        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
 
     def _neighbours(self, a: str, b: str) -> bool:
         """Whether two submaps are within two of each other on one robot's chain (they share

@@ -50,6 +50,7 @@ from fleetmap.shared.core.integration import GridFreeSpace, align_near
 from fleetmap.shared.core.mapgrid import grid_scores
 from fleetmap.shared.core.refine import fit_information
 from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import REACH_ROTATION
 from fleetmap.shared.core.transformation_value import PreparedPairs, prepare, transformation_value
 from fleetmap.shared.core.validity import is_valid, max_map_violation
 from fleetmap.shared.core.walls import WallMap
@@ -473,7 +474,7 @@ class PoseGraph(MapGraph):
         # c p_i and c |p_i|^2, so a pair costs a few operations, not a walk along its path
         side_a = self._path_sums(_tree_paths(adjacency, e.a), {k: rel[k] for k in group_a}, toward_start=True)
         side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
-        reach_t, reach_r = self.tracking.max_correspondence, math.radians(5.0)
+        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
         meeting = self.meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
         for i, a in enumerate(group_a):

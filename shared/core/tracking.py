@@ -427,6 +427,12 @@ def wall_evidence(
     return seen, through
 
 
+REACH_ROTATION = math.radians(5.0)
+"""How far in heading a registration (:func:`register`) started from one pose settles into the same
+minimum as one started from another; in translation, ``TrackingParams.max_correspondence``. The
+tracker's second starts, the merger's near search and its join check all read it."""
+
+
 def drift_covariance(params: TrackingParams, distance: float) -> Array:
     """What tracking adds up over ``distance`` metres driven (a random walk,
     :attr:`~fleetmap.shared.config.TrackingParams.drift_translation`)."""
