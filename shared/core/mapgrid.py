@@ -328,6 +328,11 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     spacing = float(s.weight[0])
     uniform = bool(np.all(s.weight == spacing))
     step = max(1, CHUNK // len(s.points))
+    # in single precision from here: a cell's coordinate is off by at most a hundred-thousandth of
+    # a cell (a point that close to a cell's edge may fall in its neighbour), and every array
+    # takes half the memory traffic, which is what the lookups cost
+    move_x = (t[:, 0] / res).astype(np.float32)
+    move_y = (t[:, 1] / res).astype(np.float32)
     for c0 in range(0, len(t), step):
         # The chunk's rotation groups, each turned once (at most ``step`` of them: memory stays
         # within CHUNK points per array, whatever the number of groups in all).
@@ -336,18 +341,20 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
         th = th_all[used]
         c, sn = cos_all[used, None], sin_all[used, None]
         # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
-        px = (c * x - sn * y - ox) / res + 1.0
-        py = (sn * x + c * y - oy) / res + 1.0
-        layer = _channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)
-        ci = px[g] + (t[c0 : c0 + step, 0] / res)[:, None]
+        px = ((c * x - sn * y - ox) / res + 1.0).astype(np.float32)
+        py = ((sn * x + c * y - oy) / res + 1.0).astype(np.float32)
+        layer = (_channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)).astype(np.int32)
+        ci = px[g]
+        ci += move_x[c0 : c0 + step, None]
         np.floor(ci, out=ci)
         np.clip(ci, 0, nx - 1, out=ci)
-        cj = py[g] + (t[c0 : c0 + step, 1] / res)[:, None]
+        cj = py[g]
+        cj += move_y[c0 : c0 + step, None]
         np.floor(cj, out=cj)
         np.clip(cj, 0, ny - 1, out=cj)
-        ci *= ny
-        ci += cj
-        cell = ci.astype(np.int64)
+        cell = ci.astype(np.int32)
+        cell *= ny
+        cell += cj.astype(np.int32)
         cell += layer[g]
         codes = code[cell]
         if uniform:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
@@ -296,8 +297,8 @@ def transformation_values(
 def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> tuple[IntArray, IntArray, Array]:
     """Pairs (i in S1, k in S2) with a positive matching value under one transformation.
 
-    One transformation needs no sorting: the same orientation and midpoint filters run densely
-    over the n1 x n2 pairs.
+    The pairs near parallel under its rotation come from the pairs sorted by rotation
+    (:func:`_dense_parallel`; from a k-d tree of S1 for large maps), then the midpoint filter.
     """
     x, y, theta = (float(v) for v in np.asarray(t, dtype=np.float64).reshape(3))
     c, s = math.cos(theta), math.sin(theta)
@@ -313,13 +314,12 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
     if len(prep.s1) * len(prep.s2) <= DENSE_PAIRS:
-        i, k, dphi = _dense_pairs(prep)
+        i, k = _dense_parallel(prep, theta, params.pair_angle_limit)
     else:
         i, k = _tree_pairs(prep, mid2, d_max)
-        dphi = prep.phi1[i] - prep.phi2[k]
-    rot = np.mod(dphi - theta + prep.period / 2, prep.period) - prep.period / 2
-    parallel = np.flatnonzero(np.abs(rot) <= params.pair_angle_limit)
-    i, k = i[parallel], k[parallel]
+        rot = np.mod(prep.phi1[i] - prep.phi2[k] - theta + prep.period / 2, prep.period) - prep.period / 2
+        parallel = np.flatnonzero(np.abs(rot) <= params.pair_angle_limit)
+        i, k = i[parallel], k[parallel]
     dx = prep.mid1[i, 0] - mid2[k, 0]
     dy = prep.mid1[i, 1] - mid2[k, 1]
     reach = prep.half1[i] + prep.half2[k] + d_max
@@ -332,14 +332,45 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     return i[keep].astype(np.int64), k[keep].astype(np.int64), mv[keep]
 
 
-def _dense_pairs(prep: PreparedPairs) -> tuple[IntArray, IntArray, Array]:
-    """All pairs (i, k) row by row and their orientation differences, built once per S1 x S2."""
+SORT_AFTER = 8
+"""One transformation's pairs are found by a pass over all of S1 x S2 this many times for the same
+two maps; from then on, from the pairs sorted by rotation (sorting costs about that many passes)."""
+
+
+def _dense_parallel(prep: PreparedPairs, theta: float, limit: float) -> tuple[IntArray, IntArray]:
+    """All pairs (i, k) within ``limit`` of parallel under rotation ``theta``, in row order.
+
+    A pass over the n1 x n2 pairs; once the same two maps have been asked SORT_AFTER times (a
+    refinement evaluates them a few dozen times), the pairs sorted by the rotation that makes them
+    parallel (as :func:`_blocks` sorts them for many candidates): one rotation's pairs are then a
+    binary search away. Taken back in row order, the sums that follow add in the same order."""
     dense = prep.cache.get("dense")
     if dense is None:
         i, k = (a.ravel() for a in np.indices((len(prep.s1), len(prep.s2))))
-        dense = (i, k, prep.phi1[i] - prep.phi2[k])
-        prep.cache["dense"] = dense
-    return dense  # type: ignore[return-value]
+        rot = np.mod(prep.phi1[i] - prep.phi2[k] + prep.period / 2, prep.period) - prep.period / 2
+        dense = prep.cache["dense"] = (i, k, rot)
+    i, k, rot = cast("tuple[IntArray, IntArray, Array]", dense)
+    by_rotation = prep.cache.get("by_rotation")
+    if by_rotation is None:
+        asked = prep.cache["asked"] = cast(int, prep.cache.get("asked", 0)) + 1
+        if asked < SORT_AFTER:
+            turned = np.mod(rot - theta + prep.period / 2, prep.period) - prep.period / 2
+            rows = np.flatnonzero(np.abs(turned) <= limit)
+            return i[rows], k[rows]
+        order = np.argsort(rot, kind="stable")
+        rs = rot[order]
+        by_rotation = prep.cache["by_rotation"] = (
+            np.concatenate([order, order, order]),
+            np.concatenate([rs - prep.period, rs, rs + prep.period]),
+        )
+    order, ext = cast("tuple[IntArray, Array]", by_rotation)
+    centre = math.remainder(theta, prep.period)
+    lo = int(np.searchsorted(ext, centre - limit, side="left"))
+    hi = int(np.searchsorted(ext, centre + limit, side="right"))
+    chosen = np.zeros(len(i), dtype=bool)
+    chosen[order[lo:hi]] = True
+    rows = np.flatnonzero(chosen)
+    return i[rows], k[rows]
 
 
 PIECE = 1.0

@@ -14,7 +14,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.transformation_value import prepare, refused, transformation_values
+from fleetmap.shared.core.transformation_value import matched_pairs, prepare, refused, transformation_values
 from fleetmap.shared.core.validity import is_valid
 from fleetmap.shared.errors import BadInput
 
@@ -147,6 +147,31 @@ def test_early_stop_keeps_the_best_transformation() -> None:
     pruned = transformation_values(prep, t, p, best_known=0.9 * best)
     assert int(np.argmax(pruned)) == int(np.argmax(full)) and pruned.max() == best
     assert (pruned == -1).sum() > (full == -1).sum()  # some hopeless candidates were dropped
+
+
+@pytest.mark.parametrize("oriented", [True, False])
+def test_one_transformations_matched_pairs_are_the_same_whether_found_in_one_pass_or_by_rotation(
+    oriented: bool,
+) -> None:
+    # A refinement asks the same two maps for one transformation's pairs dozens of times: after
+    # SORT_AFTER asks they come from the pairs sorted by rotation, and must be the very pairs (in
+    # the same order, so the sums that follow are the same to the bit) a first ask finds.
+    a, b, truth = PAIRS[3]
+    p = IntegrationParams()
+    rng = np.random.default_rng(11)
+    near = truth.as_array() + np.column_stack(
+        [rng.normal(0, 0.05, 30), rng.normal(0, 0.05, 30), rng.normal(0, 0.02, 30)]
+    )
+    anywhere = np.column_stack([rng.uniform(-3, 3, 30), rng.uniform(-3, 3, 30), rng.uniform(-4, 4, 30)])
+    asked = prepare(a.segments, b.segments, oriented, p)
+    matched = 0
+    for t in np.vstack([near, anywhere, near]):
+        fresh = matched_pairs(prepare(a.segments, b.segments, oriented, p), t, p)
+        again = matched_pairs(asked, t, p)
+        for x, y in zip(fresh, again, strict=True):
+            assert np.array_equal(x, y)
+        matched += len(fresh[0])
+    assert "by_rotation" in asked.cache and matched > 100
 
 
 def test_maps_of_different_places_give_an_invalid_integration() -> None:
