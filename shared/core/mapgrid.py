@@ -328,9 +328,10 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     spacing = float(s.weight[0])
     uniform = bool(np.all(s.weight == spacing))
     step = max(1, CHUNK // len(s.points))
-    # in single precision from here: a cell's coordinate is off by at most a hundred-thousandth of
-    # a cell (a point that close to a cell's edge may fall in its neighbour), and every array
-    # takes half the memory traffic, which is what the lookups cost
+    # in single precision from here: a cell coordinate is off by a few parts in 1e8 of its value
+    # (a ten-thousandth of a cell on a grid a thousand cells wide: a point that close to a cell's
+    # edge may fall in its neighbour), and every array takes half the memory traffic, which is
+    # what the lookups cost
     move_x = (t[:, 0] / res).astype(np.float32)
     move_y = (t[:, 1] / res).astype(np.float32)
     for c0 in range(0, len(t), step):
