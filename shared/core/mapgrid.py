@@ -334,6 +334,7 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     # what the lookups cost
     move_x = (t[:, 0] / res).astype(np.float32)
     move_y = (t[:, 1] / res).astype(np.float32)
+    whole = np.int32 if code.size < 2**31 else np.int64  # cell numbers (a grid of 2**31 cells is 2 GB)
     for c0 in range(0, len(t), step):
         # The chunk's rotation groups, each turned once (at most ``step`` of them: memory stays
         # within CHUNK points per array, whatever the number of groups in all).
@@ -344,7 +345,7 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
         # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
         px = ((c * x - sn * y - ox) / res + 1.0).astype(np.float32)
         py = ((sn * x + c * y - oy) / res + 1.0).astype(np.float32)
-        layer = (_channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)).astype(np.int32)
+        layer = (_channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)).astype(whole)
         ci = px[g]
         ci += move_x[c0 : c0 + step, None]
         np.floor(ci, out=ci)
@@ -353,9 +354,9 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
         cj += move_y[c0 : c0 + step, None]
         np.floor(cj, out=cj)
         np.clip(cj, 0, ny - 1, out=cj)
-        cell = ci.astype(np.int32)
+        cell = ci.astype(whole)
         cell *= ny
-        cell += cj.astype(np.int32)
+        cell += cj.astype(whole)
         cell += layer[g]
         codes = code[cell]
         if uniform:
