@@ -126,14 +126,25 @@ def _blocks(prep: PreparedPairs) -> tuple[list[tuple[IntArray, Array, IntArray, 
         rows = order1[edges[b] : edges[b + 1]]
         i = np.repeat(rows, n2)
         k = np.tile(np.arange(n2), len(rows))
-        rot = np.mod(phi1[i] - phi2[k] + period / 2, period) - period / 2
-        order = np.argsort(rot, kind="stable")
-        rs = rot[order]
-        ext = np.concatenate([rs - period, rs, rs + period])
-        block_list.append((np.concatenate([order, order, order]), ext, i, k))
+        order, ext = _by_rotation(_wrapped(phi1[i] - phi2[k], period), period)
+        block_list.append((order, ext, i, k))
         remaining.append(total - float(cum[edges[b + 1] - 1]))
     prep.cache["blocks"] = (block_list, remaining)
     return block_list, remaining
+
+
+def _wrapped(a: Array, period: float) -> Array:
+    """Angles wrapped to [-period / 2, period / 2)."""
+    return np.mod(a + period / 2, period) - period / 2
+
+
+def _by_rotation(rot: Array, period: float) -> tuple[IntArray, Array]:
+    """Pairs sorted by the rotation that makes them parallel (``rot``, wrapped), the sorted
+    rotations repeated a period below and above so that a window wrapping round is one slice:
+    the pairs' order three times over, and those rotations."""
+    order = np.argsort(rot, kind="stable")
+    rs = rot[order]
+    return np.concatenate([order, order, order]), np.concatenate([rs - period, rs, rs + period])
 
 
 BLOCK_FRACTIONS = (0.5, 0.8, 1.0)
@@ -211,7 +222,7 @@ def _block_values(
     """Sum of matching values over the pairs of one S1 block, for each candidate."""
     order, ext, pi, pk = prep.blocks[block]
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
-    theta = np.mod(t[:, 2] + prep.period / 2, prep.period) - prep.period / 2
+    theta = _wrapped(t[:, 2], prep.period)
     lo = np.searchsorted(ext, theta - params.pair_angle_limit, side="left")
     hi = np.searchsorted(ext, theta + params.pair_angle_limit, side="right")
     values = np.zeros(len(t))
@@ -317,8 +328,9 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
         i, k = _dense_parallel(prep, theta, params.pair_angle_limit)
     else:
         i, k = _tree_pairs(prep, mid2, d_max)
-        rot = np.mod(prep.phi1[i] - prep.phi2[k] - theta + prep.period / 2, prep.period) - prep.period / 2
-        parallel = np.flatnonzero(np.abs(rot) <= params.pair_angle_limit)
+        parallel = np.flatnonzero(
+            np.abs(_wrapped(prep.phi1[i] - prep.phi2[k] - theta, prep.period)) <= params.pair_angle_limit
+        )
         i, k = i[parallel], k[parallel]
     dx = prep.mid1[i, 0] - mid2[k, 0]
     dy = prep.mid1[i, 1] - mid2[k, 1]
@@ -347,22 +359,15 @@ def _dense_parallel(prep: PreparedPairs, theta: float, limit: float) -> tuple[In
     dense = prep.cache.get("dense")
     if dense is None:
         i, k = (a.ravel() for a in np.indices((len(prep.s1), len(prep.s2))))
-        rot = np.mod(prep.phi1[i] - prep.phi2[k] + prep.period / 2, prep.period) - prep.period / 2
-        dense = prep.cache["dense"] = (i, k, rot)
+        dense = prep.cache["dense"] = (i, k, _wrapped(prep.phi1[i] - prep.phi2[k], prep.period))
     i, k, rot = cast("tuple[IntArray, IntArray, Array]", dense)
     by_rotation = prep.cache.get("by_rotation")
     if by_rotation is None:
         asked = prep.cache["asked"] = cast(int, prep.cache.get("asked", 0)) + 1
         if asked < SORT_AFTER:
-            turned = np.mod(rot - theta + prep.period / 2, prep.period) - prep.period / 2
-            rows = np.flatnonzero(np.abs(turned) <= limit)
+            rows = np.flatnonzero(np.abs(_wrapped(rot - theta, prep.period)) <= limit)
             return i[rows], k[rows]
-        order = np.argsort(rot, kind="stable")
-        rs = rot[order]
-        by_rotation = prep.cache["by_rotation"] = (
-            np.concatenate([order, order, order]),
-            np.concatenate([rs - prep.period, rs, rs + prep.period]),
-        )
+        by_rotation = prep.cache["by_rotation"] = _by_rotation(rot, prep.period)
     order, ext = cast("tuple[IntArray, Array]", by_rotation)
     centre = math.remainder(theta, prep.period)
     lo = int(np.searchsorted(ext, centre - limit, side="left"))
