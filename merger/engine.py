@@ -19,8 +19,8 @@ just joined, or lost its place), as its active submap grows (each time its versi
   ``MergeParams.near_candidates``, registered near that prediction
   (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
   searches near a trajectory;
-- *far*: the submaps of the other components most like it (a rotation-invariant correlation of
-  segment-orientation histograms, the cheap descriptor), at most ``MergeParams.far_candidates``,
+- *far*: the submaps of the other components most like it (the cosine of
+  pairwise geometric histograms of the walls, the cheap descriptor), at most ``MergeParams.far_candidates``,
   by the paper's pose-free integration; every ``loop_sweep_every``-th final
   submap also tries the most similar submap of its own component beyond its reach (a loop its
   drift hides from the near search);
@@ -60,10 +60,11 @@ import numpy as np
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
 from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Component as GraphComponent
-from fleetmap.merger.graph import Edge, MergeResult, orientation_histogram, similarity
+from fleetmap.merger.graph import Edge, MergeResult
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, refine_key_scans
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.descriptor import similarity
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
@@ -218,7 +219,6 @@ class Merger:
         """Queued pairs that :meth:`_idle_pairs` chose."""
         self._joined: set[tuple[str, str]] = set()
         """Pairs :meth:`_queue_joined` queued (each once: a pair that did not register stays so)."""
-        self._histograms: dict[str, tuple[int, Any]] = {}
         self._last_out: list[Outgoing] = []
         self._unfused = False
         """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
@@ -574,8 +574,8 @@ class Merger:
                 else:
                     beyond.append(other)
             if beyond:
-                h = self._histogram(key)
-                best = max(beyond, key=lambda k: (similarity(self._histogram(k), h), k))
+                h = self.graph.descriptor(key)
+                best = max(beyond, key=lambda k: (similarity(self.graph.descriptor(k), h), k))
                 self._enqueue(_ordered(best, key), None)
             if m.final:
                 self._finals += 1
@@ -747,9 +747,9 @@ class Merger:
         return float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max())
 
     def _far(self, key: str, mine: set[str], within: bool) -> list[str]:
-        """Submaps most like ``key`` (orientation histograms), of the other components, or of its
+        """Submaps most like ``key`` (pairwise geometric histograms), of the other components, or of its
         own beyond its reach (``within``), most similar first."""
-        h = self._histogram(key)
+        h = self.graph.descriptor(key)
         here = self._predicted(key)
         candidates = []
         for other in self.graph.keys:
@@ -763,19 +763,9 @@ class Merger:
                     continue  # within reach: the near search's
             if not self.graph.seen_enough(key, other) or self.graph.is_current(*_ordered(other, key)):
                 continue
-            candidates.append((-similarity(self._histogram(other), h), other))
+            candidates.append((-similarity(self.graph.descriptor(other), h), other))
         candidates.sort()
         return [other for _, other in candidates]
-
-    def _histogram(self, key: str) -> Any:
-        version = self.graph.version_of(key)
-        held = self._histograms.get(key)
-        if held is None or held[0] != version:
-            held = self._histograms[key] = (
-                version,
-                orientation_histogram(self.graph.map_of(key).segments, self.config.merge.histogram_bins),
-            )
-        return held[1]
 
     def _job(self, pair: tuple[str, str], predicted: Transform2D | None) -> PairJob | None:
         """The integration a queued pair is due: near its prediction, or pose-free (once per

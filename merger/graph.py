@@ -20,7 +20,7 @@ with its transform, transformation value and validity. The merge order is read o
    is fused again and again).
 
 The graph is incremental: a new map is integrated with the existing ones, most similar first (a
-rotation-invariant correlation of segment-orientation histograms), and pairs already integrated
+pairwise geometric histogram of their walls, fleetmap.shared.core.descriptor), and pairs already integrated
 are never integrated again. Anchors are stable: by default the first map of a component stays its
 anchor as maps are added.
 """
@@ -36,8 +36,9 @@ import networkx as nx
 import numpy as np
 from fleetmap.merger.executor import Indexes, PairJob, PairResult, fitted, reference_of, run_pair
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
+from fleetmap.shared.core.descriptor import pairwise_histogram, similarity
 from fleetmap.shared.core.fusion import fuse
-from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientations, wrap_angle
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import index_for
 from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.core.segmap import SegmentMap
@@ -119,7 +120,8 @@ class _Node:
     map: SegmentMap
     order: int
     version: int
-    histogram: Array
+    descriptor: Array | None
+    """Its pairwise geometric histogram (:meth:`MapGraph.descriptor`), built on first use."""
     work: SegmentMap
     """The map as integrated and fused: simplified (fleetmap.shared.core.simplify) unless it is a scan."""
     index: MapIndex | None = None
@@ -162,21 +164,6 @@ class _GraphIndexes(Indexes):
         if key not in self._graph or self._graph.version_of(key) != version:
             return build()  # a job of a version the graph no longer holds
         return self._graph._index(key) if kind == "index" else self._graph.reference(key)
-
-
-def orientation_histogram(segments: Array, count: int) -> Array:
-    """Length-weighted histogram of segment directions in ``count`` bins (unit norm), for similarity."""
-    bins = np.floor((orientations(segments) + math.pi) / (2 * math.pi) * count).astype(np.int64)
-    h = np.bincount(np.clip(bins, 0, count - 1), weights=lengths(segments), minlength=count)
-    # Segments without an orientation convention count both ways.
-    n = np.linalg.norm(h)
-    return h / n if n > 0 else h
-
-
-def similarity(h1: Array, h2: Array) -> float:
-    """Rotation-invariant similarity: the best circular correlation of two histograms."""
-    spectrum = np.fft.irfft(np.fft.rfft(h1) * np.conj(np.fft.rfft(h2)), n=len(h1))
-    return float(spectrum.max())
 
 
 def _same_geometry(a: SegmentMap, b: SegmentMap) -> bool:
@@ -235,11 +222,21 @@ class MapGraph:
     def edges(self) -> list[Edge]:
         return list(self._edges.values())
 
+    def descriptor(self, key: str) -> Array:
+        """The cheap descriptor of a map's walls that ranks candidates (a pairwise geometric
+        histogram, :func:`~fleetmap.shared.core.descriptor.pairwise_histogram`), for its version."""
+        node = self._nodes[key]
+        if node.descriptor is None:
+            node.descriptor = pairwise_histogram(
+                node.map.segments, self.merge.descriptor_step, self.merge.descriptor_reach
+            )
+        return node.descriptor
+
     def candidates_for(self, key: str) -> list[str]:
         """Existing maps to integrate ``key`` with, most similar first (at most max_candidates)."""
-        h = self._nodes[key].histogram
+        h = self.descriptor(key)
         others = [k for k in self.keys if k != key]
-        ranked = sorted(others, key=lambda k: (-similarity(self._nodes[k].histogram, h), self._nodes[k].order))
+        ranked = sorted(others, key=lambda k: (-similarity(self.descriptor(k), h), self._nodes[k].order))
         limit = self.merge.max_candidates
         return ranked[:limit] if limit > 0 else ranked
 
@@ -270,7 +267,7 @@ class MapGraph:
                             self._edges[k] = replace(e, versions=(version, vb) if e.a == key else (va, version))
                 return True
             node.map, node.version = segment_map, version
-            node.histogram = orientation_histogram(segment_map.segments, self.merge.histogram_bins)
+            node.descriptor = None
             node.work, node.index = self._work(segment_map), None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
@@ -280,7 +277,7 @@ class MapGraph:
             segment_map,
             self._counter,
             version,
-            orientation_histogram(segment_map.segments, self.merge.histogram_bins),
+            None,
             self._work(segment_map),
         )
         self._counter += 1

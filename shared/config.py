@@ -296,8 +296,12 @@ class MergeParams:
     search_growth: int = ours(2)
     """An unplaced robot's active submap is searched again once its version is this many times the
     version last searched (a submap of v versions costs about log(v) searches)."""
-    histogram_bins: int = ours(36)
-    """Bins of the segment-orientation histogram, the cheap descriptor that ranks far candidates."""
+    descriptor_step: float = ours(0.5)
+    """The cheap descriptor that ranks far candidates (a pairwise geometric histogram of the walls,
+    fleetmap.shared.core.descriptor) bins how far two walls lie apart in steps of this (m) ...
+    """
+    descriptor_reach: float = ours(12.0)
+    """... up to this (m; farther in the last bin): about a submap's extent."""
     join_support: int = ours(2)
     """An integration joins two groups of submaps only if at least this many pairs of their submaps,
     itself included, bear it out and none contradicts it."""
