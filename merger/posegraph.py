@@ -62,6 +62,10 @@ log = logging.getLogger(__name__)
 VERDICT_VERSIONS = 5
 """A pair's verdict on a join is found again once either submap has this many versions more."""
 
+RIVAL_JOINS = 3
+"""At most this many clearly different alignments of two groups are judged before a join of them
+(:meth:`PoseGraph._rival_join`): each costs a join check."""
+
 Verdict = tuple[float, float, Array | None]
 """What a pair says of a join (:meth:`PoseGraph._pair_verdict`): the value it bears it out with,
 the wall against it, and, where it bears it out, how firmly its walls fix the translation (2x2, in
@@ -362,6 +366,12 @@ class PoseGraph(MapGraph):
         loops: list[Edge] = []
         conflicts: list[Edge] = []
         adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        edges = list(edges)
+        by_node: dict[str, list[Edge]] = {}
+        for e in edges:
+            if not e.link:
+                by_node.setdefault(e.a, []).append(e)
+                by_node.setdefault(e.b, []).append(e)
         for e in edges:
             ra, rb = root[e.a], root[e.b]
             if not e.valid:
@@ -383,6 +393,21 @@ class PoseGraph(MapGraph):
             elif ra != rb and not e.link and not self._join_holds(e, members[ra], members[rb], rel, adjacency):
                 conflicts.append(e)
                 continue
+            elif ra != rb and not e.link:
+                rival = self._rival_join(e, members[ra], members[rb], rel, adjacency, by_node)
+                if rival is not None:
+                    log.debug(
+                        "join %s-%s refused: %s-%s puts the two groups %.1f m and %.0f degrees apart from it, and"
+                        " they bear that out too",
+                        e.a,
+                        e.b,
+                        rival[0].a,
+                        rival[0].b,
+                        rival[1],
+                        math.degrees(rival[2]),
+                    )
+                    conflicts.append(e)
+                    continue
             if ra != rb:
                 _unite(e, root, rel, members, tree, adjacency)
             elif e.link:
@@ -392,6 +417,58 @@ class PoseGraph(MapGraph):
                 tol_t, tol_r = self._cycle_tolerance(_tree_path(adjacency, e.a, e.b))
                 (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
         return tree, loops, conflicts, adjacency
+
+    def _rival_join(
+        self,
+        e: Edge,
+        group_a: list[str],
+        group_b: list[str],
+        rel: dict[str, Transform2D],
+        adjacency: dict[str, list[Edge]],
+        by_node: dict[str, list[Edge]],
+    ) -> tuple[Edge, float, float] | None:
+        """Another way the two groups a join would unite lie on each other, that they bear out as
+        well (:meth:`_join_holds`), if any: with how far and how much turned (rad) it puts group b
+        from where ``e`` puts it. The paper's ambiguity rule on the two groups as wholes: an
+        integration is refused when a clearly different alignment scores about as well, and two
+        groups are not joined while two clearly different alignments of them both hold.
+
+        The alignments looked at are the other integrations between the groups, their best and
+        their rivals (``join_hypotheses`` of them), most valuable first, at most ``RIVAL_JOINS``
+        clearly different ones. In a warehouse every aisle looks like the next: a young robot's
+        submaps down one aisle integrate validly with another robot's of the aisle 14 m along, where
+        nobody had yet mapped the robot's own aisle well, and every pair of their submaps bears that
+        out; the right alignment is then an ambiguous integration or a rival, borne out as well
+        (warehouse-events: r4 and r1's second epoch merged 14 m off;
+        docs/decisions/002-pose-graph.md)."""
+        in_a, in_b = set(group_a), set(group_b)
+        joined = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())  # b's root in a's, by e
+        hypotheses: list[tuple[float, str, str, Edge]] = []
+        for k in group_a if len(group_a) <= len(group_b) else group_b:
+            for f in by_node.get(k, ()):
+                if f.key() == e.key() or not ((f.a in in_a and f.b in in_b) or (f.a in in_b and f.b in in_a)):
+                    continue
+                g = f if f.a in in_a else f.reversed()
+                rivals = g.rivals[: self.merge.join_hypotheses - 1]
+                hypotheses.append((g.value, g.a, g.b, g))
+                hypotheses += [(g.runner_up, g.a, g.b, replace(g, transform=t)) for t in rivals]
+        hypotheses.sort(key=lambda h: (-h[0], h[1], h[2]))
+        looked: list[Transform2D] = [joined]
+        for _, _, _, h in hypotheses:
+            if len(looked) > RIVAL_JOINS:
+                break
+            other = rel[h.a].compose(h.transform).compose(rel[h.b].inverse())
+            # compared where each puts h's own submap b, through the tree paths on either side
+            path = [*_tree_path(adjacency, h.a, e.a), e, *_tree_path(adjacency, e.b, h.b)]
+            tol_t, tol_r = self._cycle_tolerance(path)
+            at_b = rel[h.b]
+            if any(_within(g.compose(at_b), other.compose(at_b), tol_t, tol_r) for g in looked):
+                continue
+            looked.append(other)
+            if self._join_holds(replace(h, valid=True), group_a, group_b, rel, adjacency):
+                apart = joined.compose(at_b).inverse().compose(other.compose(at_b))
+                return h, math.hypot(apart.x, apart.y), abs(apart.theta)
+        return None
 
     def _ambiguous(self, e: Edge) -> bool:
         """Whether an integration is invalid for its rivals alone (its value and free space would

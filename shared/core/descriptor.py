@@ -36,9 +36,9 @@ def pairwise_histogram(segments: Array, step: float, reach: float) -> Array:
     if len(seg) > MOST_WALLS:
         keep = np.argsort(-ln, kind="stable")[:MOST_WALLS]
         seg, ln = seg[keep], ln[keep]
-    h = np.zeros(ANGLE_BINS * dbins)
+    size = ANGLE_BINS * dbins
     if len(seg) < 2:
-        return h
+        return np.zeros(size)
     direction = np.arctan2(seg[:, 3] - seg[:, 1], seg[:, 2] - seg[:, 0])
     mid = 0.5 * (seg[:, :2] + seg[:, 2:])
     normal = np.column_stack([-np.sin(direction), np.cos(direction)])
@@ -54,8 +54,7 @@ def pairwise_histogram(segments: Array, step: float, reach: float) -> Array:
     share = u - d
     weight = ln[:, None] * ln[None, :]
     np.fill_diagonal(weight, 0.0)
-    size = ANGLE_BINS * dbins
-    h = np.bincount((a + d).ravel(), weights=(weight * (1.0 - share)).ravel(), minlength=size)
+    h: Array = np.bincount((a + d).ravel(), weights=(weight * (1.0 - share)).ravel(), minlength=size)
     if dbins > 1:
         h += np.bincount((a + d + 1).ravel(), weights=(weight * share).ravel(), minlength=size)
     norm = float(np.linalg.norm(h))

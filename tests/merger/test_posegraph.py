@@ -353,3 +353,15 @@ def test_robots_placed_among_themselves_search_on_until_the_fleet_is_one_map(fle
     groups = [sorted({k.split("/")[0] for k in c.members}) for c in merger.result.components]
     assert len(groups) == 1, f"the fleet stayed apart: {groups}"
     assert len(groups[0]) == 6
+
+
+def test_two_robots_whose_submaps_lie_on_each_other_two_ways_stay_apart() -> None:
+    # Doors every 3.5 m down one corridor: r2's submaps lie on r1's where they are and 3.5 m on as
+    # well, and the pairs of submaps bear out both. An integration at each alignment (the wrong one
+    # worth more) must join neither (warehouse-events: r4's aisle lay on the aisle 14 m west as
+    # well as on its own, and r4 was merged 14 m off).
+    graph = _corridor_fleet(jambs=True)
+    graph.add_edge(Edge("r1/0/1", "r2/0/0", Transform2D(-2.7 + 3.5, 0.0, 0.0), 35.0, True))
+    result = graph.solve()
+    assert len(result.components) == 2, "a join two alignments bear out merged the robots"
+    assert not any({"r1/0/0", "r2/0/0"} <= set(c.members) for c in result.components)
