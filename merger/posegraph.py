@@ -62,6 +62,8 @@ log = logging.getLogger(__name__)
 VERDICT_VERSIONS = 5
 """A pair's verdict on a join is found again once either submap has this many versions more."""
 
+RIVALS_KEPT = 10_000
+"""Rival verdicts kept (:meth:`PoseGraph._rival_join`) before they are forgotten all at once."""
 RIVAL_JOINS = 3
 """At most this many clearly different alignments of two groups are judged before a join of them
 (:meth:`PoseGraph._rival_join`): each costs a join check."""
@@ -154,6 +156,8 @@ class PoseGraph(MapGraph):
         """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
         self._verdicts: dict[object, bool] = {}
         """Whether each join of two groups of submaps held (:meth:`_join_holds`)."""
+        self._rivals: dict[object, tuple[Edge, float, float] | None] = {}
+        """Each join's rival alignment of its two groups, if any (:meth:`_rival_join`)."""
         self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], Verdict]] = {}
         self._discs: dict[str, tuple[int, Array, float]] = {}
         self._looks: dict[tuple[str, str, int, int, int, int, int], tuple[float, float]] = {}
@@ -445,7 +449,6 @@ class PoseGraph(MapGraph):
         submaps bears that out, and the rivals one and six aisles along are borne out as well:
         nothing yet says which is right (warehouse-events: r4 and r1's second epoch merged 14 m off;
         docs/decisions/002-pose-graph.md)."""
-        p = self.integration
         in_a, in_b = set(group_a), set(group_b)
         joined = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())  # b's root in a's, by e
         hypotheses: list[tuple[float, str, str, Edge]] = []
@@ -458,6 +461,34 @@ class PoseGraph(MapGraph):
                 hypotheses.append((g.value, g.a, g.b, g))
                 hypotheses += [(g.runner_up, g.a, g.b, replace(g, transform=t)) for t in rivals]
         hypotheses.sort(key=lambda h: (-h[0], h[1], h[2]))
+        # kept for the two groups and the alignments between them: every round of a solve asks again
+        key = (
+            frozenset(group_a),
+            frozenset(group_b),
+            tuple(
+                (h.a, h.b, h.versions, *(round(v, 3) for v in h.transform.as_array()))
+                for *_, h in [(0, 0, 0, e), *hypotheses]
+            ),
+        )
+        if key in self._rivals:
+            return self._rivals[key]
+        if len(self._rivals) > RIVALS_KEPT:
+            self._rivals.clear()
+        rival = self._rivals[key] = self._found_rival_join(e, joined, hypotheses, group_a, group_b, rel, adjacency)
+        return rival
+
+    def _found_rival_join(
+        self,
+        e: Edge,
+        joined: Transform2D,
+        hypotheses: list[tuple[float, str, str, Edge]],
+        group_a: list[str],
+        group_b: list[str],
+        rel: dict[str, Transform2D],
+        adjacency: dict[str, list[Edge]],
+    ) -> tuple[Edge, float, float] | None:
+        """:meth:`_rival_join` found, from the alignments between the groups, most valuable first."""
+        p = self.integration
         looked: list[Transform2D] = [joined]
         for _, _, _, h in hypotheses:
             if len(looked) > RIVAL_JOINS:
