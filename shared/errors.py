@@ -19,6 +19,12 @@ class BadInput(FleetmapError):
         self.reason = reason
         super().__init__(f"{source}: {reason}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, str]]:
+        # pickled by what it was made from, not by its one-line message (Exception's default), so
+        # that it crosses a process pool: unpickling it by the message alone fails in the pool's
+        # result thread, and the pool then waits for the result for ever
+        return type(self), (self.source, self.reason)
+
 
 class ConfigError(BadInput):
     """A configuration file or override that names an unknown field or a bad value."""

@@ -86,6 +86,9 @@ class BadMessage(BadInput):
         self.field = field
         super().__init__(schema if field is None else f"{schema} field {field!r}", reason)
 
+    def __reduce__(self) -> tuple[type, tuple[str, str | None, str]]:  # type: ignore[override]
+        return type(self), (self.schema, self.field, self.reason)
+
 
 # --- field validators: (schema, field, value) -> the value, normalised; BadMessage otherwise ---
 
