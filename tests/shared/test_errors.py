@@ -24,7 +24,7 @@ def _raise(n: int) -> None:
 def test_an_error_raised_in_a_pool_worker_reaches_the_caller_as_itself(n: int) -> None:
     # Pickled by its message alone, a BadMessage could not be rebuilt in the pool's result thread,
     # and the pool then waited for the result for ever (benchmarks/merge.py hung on a bad local map).
-    with multiprocessing.get_context("fork").Pool(1) as pool:
+    with multiprocessing.get_context("spawn").Pool(1) as pool:  # no fork of a process with threads
         pending = pool.apply_async(_raise, (n,))
         with pytest.raises(type(ERRORS[n])) as raised:
             pending.get(timeout=60)
