@@ -19,9 +19,9 @@ just joined, or lost its place), as its active submap grows (each time its versi
   ``MergeParams.near_candidates``, registered near that prediction
   (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
   searches near a trajectory;
-- *far*: the submaps of the other components most like it (the cosine of
-  pairwise geometric histograms of the walls, the cheap descriptor), at most ``MergeParams.far_candidates``,
-  by the paper's pose-free integration; every ``loop_sweep_every``-th final
+- *far*: the submaps of the other components most like it (the cosine of pairwise geometric
+  histograms of the walls, the cheap descriptor), at most ``MergeParams.far_candidates``, by the
+  paper's pose-free integration; every ``loop_sweep_every``-th final
   submap also tries the most similar submap of its own component beyond its reach (a loop its
   drift hides from the near search);
 - *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups

@@ -451,24 +451,21 @@ class PoseGraph(MapGraph):
         docs/decisions/002-pose-graph.md)."""
         in_a, in_b = set(group_a), set(group_b)
         joined = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())  # b's root in a's, by e
-        hypotheses: list[tuple[float, str, str, Edge]] = []
+        scored: list[tuple[float, Edge]] = []  # each alignment with what it scored
         for k in group_a if len(group_a) <= len(group_b) else group_b:
             for f in by_node.get(k, ()):
                 if f.key() == e.key() or not ((f.a in in_a and f.b in in_b) or (f.a in in_b and f.b in in_a)):
                     continue
                 g = f if f.a in in_a else f.reversed()
-                rivals = g.rivals[: self.merge.join_hypotheses - 1]
-                hypotheses.append((g.value, g.a, g.b, g))
-                hypotheses += [(g.runner_up, g.a, g.b, replace(g, transform=t)) for t in rivals]
-        hypotheses.sort(key=lambda h: (-h[0], h[1], h[2]))
+                scored.append((g.value, g))
+                scored += [(g.runner_up, replace(g, transform=t)) for t in g.rivals[: self.merge.join_hypotheses - 1]]
+        scored.sort(key=lambda s: (-s[0], s[1].a, s[1].b))
+        hypotheses = [h for _, h in scored]
         # kept for the two groups and the alignments between them: every round of a solve asks again
         key = (
             frozenset(group_a),
             frozenset(group_b),
-            tuple(
-                (h.a, h.b, h.versions, *(round(v, 3) for v in h.transform.as_array()))
-                for *_, h in [(0, 0, 0, e), *hypotheses]
-            ),
+            tuple((h.a, h.b, h.versions, *(round(v, 3) for v in h.transform.as_array())) for h in [e, *hypotheses]),
         )
         if key in self._rivals:
             return self._rivals[key]
@@ -481,7 +478,7 @@ class PoseGraph(MapGraph):
         self,
         e: Edge,
         joined: Transform2D,
-        hypotheses: list[tuple[float, str, str, Edge]],
+        hypotheses: list[Edge],
         group_a: list[str],
         group_b: list[str],
         rel: dict[str, Transform2D],
@@ -490,7 +487,7 @@ class PoseGraph(MapGraph):
         """:meth:`_rival_join` found, from the alignments between the groups, most valuable first."""
         p = self.integration
         looked: list[Transform2D] = [joined]
-        for _, _, _, h in hypotheses:
+        for h in hypotheses:
             if len(looked) > RIVAL_JOINS:
                 break
             other = rel[h.a].compose(h.transform).compose(rel[h.b].inverse())

@@ -64,7 +64,7 @@ def test_a_corridor_seen_twice_is_more_alike_than_a_hall_whose_walls_run_the_sam
             assert similarity(corridor, again) > similarity(corridor, hall) + 0.05, (seed, width)
 
 
-def test_fewer_than_two_walls_have_an_empty_descriptor_and_a_map_file_of_thousands_is_cheap() -> None:
+def test_fewer_than_two_walls_have_an_empty_descriptor_and_a_map_of_thousands_has_a_whole_one() -> None:
     assert not pairwise_histogram(np.zeros((0, 4)), STEP, REACH).any()
     assert not pairwise_histogram(np.array([[0.0, 0.0, 1.0, 0.0]]), STEP, REACH).any()
     rng = np.random.default_rng(1)
