@@ -10,7 +10,8 @@ never given to the algorithms, but for the reference ``--local-maps truth``):
    the motion bound and prior, as a live agent's stamps do), one local map per epoch: a new one when
    ``--kidnap-after`` scans in a row cannot be placed, or one cannot be placed on a local map of
    one scan, started again from the unplaced scans (the agent's rules; see its module);
-3. shuffle the local maps and merge them with the map graph (``--order unknown``);
+3. shuffle the local maps and merge them as ``fleetmap merge --order unknown`` does (the pose graph,
+   no links);
 4. compare each placed map's pose (its first scan's frame, in the anchor's frame) with the
    corrected poses.
 
@@ -60,7 +61,7 @@ from pathlib import Path
 import numpy as np
 from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.agents.pivot import PivotFrontEnd
-from fleetmap.merger.graph import MapGraph
+from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
@@ -247,7 +248,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     content = {key: lm.content for key, _, lm in local if lm.content is not None}
     order = list(range(len(local)))
     random.Random(args.shuffle_seed).shuffle(order)
-    graph = MapGraph(config.integration, config.merge, anchor="largest")
+    graph = PoseGraph(config.integration, config.merge, anchor="largest")
     start = time.perf_counter()
     for n in order:
         graph.add_map(local[n][0], local[n][2].map)
@@ -351,10 +352,12 @@ HEADER = [
 EXPLAINED = (
     "Each SLAM-corrected log (its corrected poses are the truth, given to no algorithm) cut into K "
     "consecutive pieces, one robot each; each piece's local maps built from its scans alone by the pivot "
-    "agent's front end, shuffled and merged with the map graph (order unknown). Local maps: those merged "
-    "(at least `--min-scans` scans); within: in the largest component, within (0.2 m, 3°) of where the "
-    "corrected poses put it; wrong: more than 1 m or 10° off relative to its component's anchor, in any "
-    "component; unplaced: merged with nothing, or not wrong but in a smaller component (a map in the largest "
+    "agent's front end, shuffled and merged as `fleetmap merge` does (the pose graph without links, order "
+    "unknown). Local maps: those merged (at least `--min-scans` scans); within: in the largest component, "
+    "within (0.2 m, 3°) of where the corrected poses put it; wrong: more than 1 m or 10° off relative to its "
+    "component's anchor, in any component, judged by its first scan's frame and, in brackets, by where its "
+    "content lies (a local map bent by its front end reads off at its first scan though its walls lie "
+    "right); unplaced: merged with nothing, or not wrong but in a smaller component (a map in the largest "
     "but 0.2-1 m or 3-10° off is in none of the three: see the totals below); scans in maps within: the "
     "share of the pieces' scans in maps placed within; merge time: adding the maps to the graph and solving "
     "it (building the local maps not counted); segments per map: the smallest and largest map's."
@@ -369,7 +372,7 @@ def table(rows: list[dict]) -> str:
             str(r["k"]),
             str(r["maps"]),
             str(r["good"]),
-            str(r["wrong"]),
+            f"{r['wrong']} ({r['wrong_content']})",
             str(r["unplaced"]),
             f"{100 * r['scans_good'] / max(r['scans'], 1):.0f} %",
             f"{r['merge_s']:.1f} s",

@@ -184,14 +184,14 @@ def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: Fleetma
     """
     try:
         from fleetmap.agents.localmap import PivotMapBuilder
-        from fleetmap.merger.graph import MapGraph
+        from fleetmap.merger.posegraph import PoseGraph
     except ImportError:
         print("merge: not available yet")
         return None
     start = time.perf_counter()
     local = [m for robot, robot_scans in scans.items() for m in local_maps(robot, robot_scans, config, PivotMapBuilder)]
     true_pose = {key: first.truth.pose for key, first, _ in local}
-    graph = MapGraph(config.integration, config.merge)
+    graph = PoseGraph(config.integration, config.merge)
     for key, _, m in sorted(local, key=lambda x: x[1].truth.stamp):
         graph.add_map(key, m)
     result = graph.solve()

@@ -1,44 +1,30 @@
-"""The map graph: merging partial maps whose order nobody knows (the paper's future work, VI).
+"""The map graph: partial maps and the paper's integrations between them.
 
-Nodes are partial maps (a robot's local map, one per epoch); edges are integration attempts, each
-with its transform, transformation value and validity. The merge order is read off the graph:
+Nodes are partial maps (a robot's submap or local map, a map file); edges are integration
+attempts, each with its transform, transformation value and validity. The graph is incremental: a
+new map is integrated with the existing ones, most similar first (a pairwise geometric histogram of
+their walls, fleetmap.shared.core.descriptor), and pairs already integrated are never integrated
+again.
 
-1. **Maximum spanning forest** over the valid edges, weighted by transformation value (Kruskal,
-   best value first), with a *cycle check* on every edge that closes a cycle: its transform must
-   agree with the composition of the tree path between its ends. Edges that agree are kept as
-   loop closures; edges that disagree are rejected. If more rejected edges accuse one tree edge
-   than loop closures (and the edge itself) support it, that tree edge is the wrong one: it is
-   rejected and the forest is built again. So one wrong integration,
-   however high its value, cannot corrupt a map that has redundant evidence (ROS map_merge trusts
-   one tree and lets the map jump). An edge that no cycle can check (a *bridge* of the valid
-   edges: without it the maps on either side fall apart) joins them only if its value is at
-   least ``bridge_min_value`` (fleetmap): it is rejected otherwise.
-2. **Placement**: each tree is one global map; every map is placed by composing transforms along
-   the tree from the component's anchor, and where loop closures exist all poses are refined
-   together by least squares over SE(2) (value-weighted, robust loss, anchor fixed).
-3. **Fusion**: each map is fused once into the global frame (the pivot method's lesson: no line
-   is fused again and again).
-
-The graph is incremental: a new map is integrated with the existing ones, most similar first (a
-pairwise geometric histogram of their walls, fleetmap.shared.core.descriptor), and pairs already integrated
-are never integrated again. Anchors are stable: by default the first map of a component stays its
-anchor as maps are added.
+The merge order nobody gave is read off the graph by :class:`~fleetmap.merger.posegraph.PoseGraph`
+(a maximum spanning forest of valid integrations, each join borne out by the maps it joins, every
+other edge checked against its cycle, then all poses refined together); this module holds what
+that solve is made of: the forest's union, tree paths and the cycle-vote culprit rule. Maps with
+no links (``fleetmap merge`` on map files) are solved there the same way, without links.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
-import networkx as nx
 import numpy as np
 from fleetmap.merger.executor import Indexes, PairJob, PairResult, fitted, reference_of, run_pair
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.descriptor import pairwise_histogram, similarity
-from fleetmap.shared.core.fusion import fuse
-from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.integration import index_for
 from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.core.segmap import SegmentMap
@@ -46,7 +32,6 @@ from fleetmap.shared.core.simplify import simplify
 from fleetmap.shared.core.tracking import ReferenceMap
 from fleetmap.shared.core.validity import seen_from_enough_places
 from fleetmap.shared.errors import BadInput
-from scipy.optimize import least_squares
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +166,8 @@ def _disagreement(a: Transform2D, b: Transform2D) -> tuple[float, float]:
 
 
 class MapGraph:
-    """Partial maps and their pairwise integrations; :meth:`solve` gives the global maps."""
+    """Partial maps and their pairwise integrations; :class:`~fleetmap.merger.posegraph.PoseGraph`
+    adds the robots' links and solves them into global maps."""
 
     def __init__(
         self,
@@ -447,200 +433,21 @@ class MapGraph:
         a, b = (x, y) if x < y else (y, x)
         return self.integrate_pair(a, b)
 
-    # -- solving ---------------------------------------------------------------------------
-    def solve(self, fuse_maps: bool = True) -> MergeResult:
-        valid = [e for e in self._edges.values() if e.valid]
-        order = {k: n.order for k, n in self._nodes.items()}
-        valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
-        partial = {k for k, n in self._nodes.items() if not n.map.ordered}
-        # A weak edge is rejected if it is a bridge of the edges the cycle check accepts: then no
-        # cycle checks it, or only one that disagrees (two weak edges that join the same two
-        # groups of maps differently are a conflict, and the stronger must not win by default).
-        weak: dict[tuple[str, str], Edge] = {}
-        while True:
-            kept = [e for e in valid if e.key() not in weak]
-            excluded: set[tuple[str, str]] = set()
-            while True:
-                tree, loops, conflicts, adjacency = self._kruskal([e for e in kept if e.key() not in excluded])
-                culprit = _culprit(tree, loops, conflicts, adjacency)
-                if culprit is None:
-                    break
-                log.debug("rejecting edge %s-%s: the cycles through it disagree", culprit.a, culprit.b)
-                excluded.add(culprit.key())
-            found = _weak_bridges(tree + loops, self.merge.bridge_min_value, partial)
-            if not found:
-                break
-            weak.update(found)
-        for e in weak.values():
-            log.debug(
-                "rejecting edge %s-%s: no cycle checks it and its value %.1f m is under %.1f m",
-                e.a,
-                e.b,
-                e.value,
-                self.merge.bridge_min_value,
-            )
-        rejected = conflicts + [e for e in kept if e.key() in excluded] + list(weak.values())
-        components = self._components(tree, loops, fuse_maps)
-        poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
-        for c in components:
-            if len(c.members) > 1:
-                poses.update(c.poses)
-        return MergeResult(poses, components, tree, loops, rejected)
-
+    # -- solving (the forest's pieces; PoseGraph.solve) ------------------------------------
     def _tolerance(self, hops: int) -> tuple[float, float]:
         s = math.sqrt(max(hops, 1))
         return self.merge.cycle_translation_tolerance * s, self.merge.cycle_rotation_tolerance * s
-
-    def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
-        """Maximum spanning forest with the cycle check; poses relative to each tree's root."""
-        root = {k: k for k in self._nodes}
-        rel = {k: Transform2D.identity() for k in self._nodes}  # pose of k in root[k]'s frame
-        members = {k: [k] for k in self._nodes}
-        tree: list[Edge] = []
-        loops: list[Edge] = []
-        conflicts: list[Edge] = []
-        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
-        for e in edges:
-            ra, rb = root[e.a], root[e.b]
-            if ra != rb:
-                _unite(e, root, rel, members, tree, adjacency)
-            else:
-                predicted = rel[e.a].inverse().compose(rel[e.b])
-                dt, dr = _disagreement(predicted, e.transform)
-                hops = len(_tree_path(adjacency, e.a, e.b))
-                tol_t, tol_r = self._tolerance(hops)
-                (loops if dt <= tol_t and dr <= tol_r else conflicts).append(e)
-        return tree, loops, conflicts, adjacency
-
-    def _components(self, tree: list[Edge], loops: list[Edge], fuse_maps: bool) -> list[Component]:
-        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
-        for e in tree:
-            adjacency[e.a].append(e)
-            adjacency[e.b].append(e.reversed())
-        seen: set[str] = set()
-        out = []
-        for start in self.keys:
-            if start in seen:
-                continue
-            # Breadth-first from any member to collect the component, then from its anchor.
-            group = _bfs_order(adjacency, start)
-            seen.update(group)
-            anchor = self._pick_anchor(group)
-            order = _bfs_order(adjacency, anchor)
-            poses = {anchor: Transform2D.identity()}
-            via: dict[str, Edge] = {}
-            for k in order:
-                for e in adjacency[k]:
-                    if e.b not in poses:
-                        poses[e.b] = poses[k].compose(e.transform)
-                        via[e.b] = e
-            group_set = set(group)
-            cycle_edges = [e for e in loops if e.a in group_set]
-            if cycle_edges:
-                # Each edge as it was integrated, not as the walk from the anchor met it: the residual
-                # of an edge is not that of its reverse, and the anchor (the first map to arrive)
-                # must not change the relative poses (a restarted merger gets the same map).
-                tree_edges = [self._edges[via[k].key()] for k in order if k in via]
-                poses = self._least_squares(anchor, poses, tree_edges + cycle_edges)
-            segments = self._fuse(order, poses) if fuse_maps else np.zeros((0, 4))
-            out.append(Component(anchor, tuple(order), poses, segments))
-        out.sort(key=lambda c: (-len(c.members), -sum(self._nodes[k].map.total_length for k in c.members)))
-        return out
 
     def _pick_anchor(self, group: list[str]) -> str:
         if self.anchor == "first":
             return min(group, key=lambda k: self._nodes[k].order)
         return min(group, key=lambda k: (-self._nodes[k].map.total_length, k))
 
-    def _least_squares(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
-        """All poses of a component refined together over SE(2) (robust loss).
-
-        An edge whose :attr:`Edge.information` is known weighs as its walls fix it: its residual is
-        the difference of its transform and the poses' (x, y, heading) through the square root of
-        that information (over ``edge_sigma_translation`` squared) with ``isotropic_share`` of the value-weighted weight
-        below added, so that no direction is entirely free. Along a corridor one edge may be 0.3 m
-        off while another, whose walls end there, is right: weighted by value alone in every
-        direction, the wrong one would pull the map along the corridor
-        (docs/decisions/008-pivot-local-maps.md). Another edge, or one whose information is not a
-        weight (not positive definite with that share added), weighs by its value, the same in
-        every direction. Only a component with a cycle is refined: a tree's poses are its edges'."""
-        free = [k for k in poses if k != anchor]
-        index = {k: i for i, k in enumerate(free)}
-        x0 = np.concatenate([poses[k].as_array() for k in free])
-        weights = np.sqrt(np.array([max(e.value, 1e-3) for e in edges]))
-        sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
-        roots: list[Array | None] = []
-        for e, w in zip(edges, weights, strict=True):
-            if e.information is None:
-                roots.append(None)
-                continue
-            iso = np.diag([1 / sigma_t**2, 1 / sigma_t**2, 1 / sigma_r**2]) * w**2 * self.merge.isotropic_share
-            try:
-                root = np.linalg.cholesky(np.array(e.information).reshape(3, 3) / sigma_t**2 + iso).T
-            except np.linalg.LinAlgError:
-                root = None
-            roots.append(root if root is not None and np.isfinite(root).all() else None)
-
-        def pose(x: Array, k: str) -> Transform2D:
-            if k == anchor:
-                return poses[anchor]
-            i = index[k]
-            return Transform2D(x[3 * i], x[3 * i + 1], x[3 * i + 2])
-
-        def residuals(x: Array) -> Array:
-            out = np.empty(3 * len(edges))
-            for j, e in enumerate(edges):
-                between = pose(x, e.a).inverse().compose(pose(x, e.b))
-                root = roots[j]
-                if root is not None:
-                    t = e.transform
-                    diff = np.array([between.x - t.x, between.y - t.y, float(wrap_angle(between.theta - t.theta))])
-                    out[3 * j : 3 * j + 3] = root @ diff
-                    continue
-                err = e.transform.inverse().compose(between)
-                out[3 * j : 3 * j + 3] = (
-                    np.array([err.x / sigma_t, err.y / sigma_t, float(wrap_angle(err.theta)) / sigma_r]) * weights[j]
-                )
-            return out
-
-        sol = least_squares(residuals, x0, loss="soft_l1", f_scale=3.0, x_scale="jac")
-        refined = {anchor: poses[anchor]}
-        for k in free:
-            refined[k] = Transform2D.from_array(sol.x[3 * index[k] : 3 * index[k] + 3])
-        return refined
-
-    def _fuse(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
-        """Each map fused once into the global frame, in tree order from the anchor."""
-        merged: SegmentMap | None = None
-        for k in order:
-            m = self._nodes[k].work
-            if merged is None:
-                merged = SegmentMap(poses[k].apply(m.segments), ordered=False, oriented=m.oriented)
-            else:
-                merged = fuse(merged, m, poses[k], self.integration)
-        return merged.segments if merged is not None else np.zeros((0, 4))
-
 
 def _inverse_jacobian(t: Transform2D) -> Array:
     """How the parameters (x, y, heading) of a transform's inverse move with those of ``t``."""
     c, s = math.cos(t.theta), math.sin(t.theta)
     return np.array([[-c, -s, s * t.x - c * t.y], [s, -c, c * t.x + s * t.y], [0.0, 0.0, -1.0]])
-
-
-def _weak_bridges(edges: list[Edge], min_value: float, partial: set[str]) -> dict[tuple[str, str], Edge]:
-    """The ``edges`` between two partial maps (in ``partial``; not scans) that no cycle of them
-    can check (bridges of their graph) and whose value is under ``min_value``, by key.
-    The paper's right merges of local maps scored about 10 m and its wrong ones about 5 m; a
-    wrong one just over ``valid_min_map_value`` that joins two groups of maps has nothing to
-    contradict it (see ``MergeParams.bridge_min_value``; docs/decisions/008-pivot-local-maps.md)."""
-    if min_value <= 0 or not edges:
-        return {}
-    g = nx.Graph()
-    g.add_edges_from((e.a, e.b) for e in edges)
-    bridges = {(a, b) if a <= b else (b, a) for a, b in nx.bridges(g)}  # as Edge.key orders them
-    return {
-        e.key(): e for e in edges if e.value < min_value and e.a in partial and e.b in partial and e.key() in bridges
-    }
 
 
 def _culprit(

@@ -10,9 +10,10 @@ Nodes are submaps (``<robot>/<epoch>/<submap>``). Edges are of two kinds:
   (:func:`~fleetmap.shared.core.integration.align_near`); each with its transformation value, validity
   and how firmly its walls fix it.
 
-The merge order is read off the graph as in :class:`~fleetmap.merger.graph.MapGraph`: a maximum
-spanning forest (links first, then valid integrations by value), every other valid integration
-checked against its cycle, a tree integration that more cycles accuse than support rejected. The
+The merge order nobody gave is read off the graph: a maximum spanning forest (links first, then
+valid integrations by value), every other valid integration checked against its cycle, a tree
+integration that more cycles accuse than support rejected. Map files (``fleetmap merge``) are
+nodes with no links, solved the same way. The
 cycle check allows what the path can have drifted: the base tolerance for each integration on the
 path, and three standard deviations of what its links' covariances add up to, so a long loop of a
 robot's own submaps closes and a wrong match across a room does not. Each component's poses are
@@ -217,12 +218,11 @@ class PoseGraph(MapGraph):
         order = {k: n.order for k, n in self._nodes.items()}
         valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
-        partial = {k for k, n in self._nodes.items() if not n.map.ordered}
         disagreeing: set[tuple[str, str]] = set()
         self._last_walls, self._walls_now = self._walls_now, {}
         self._last_refined, self._refined_now = self._refined_now, {}
         for _ in range(self.merge.max_rejection_rounds):
-            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], partial)
+            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing])
             components, off = self._refined_components(tree, loops)
             if not off:
                 break
@@ -238,16 +238,12 @@ class PoseGraph(MapGraph):
                 poses.update(c.poses)
         return MergeResult(poses, components, tree, loops, rejected)
 
-    def _forest(
-        self, links: list[Edge], valid: list[Edge], partial: set[str]
-    ) -> tuple[list[Edge], list[Edge], list[Edge]]:
+    def _forest(self, links: list[Edge], valid: list[Edge]) -> tuple[list[Edge], list[Edge], list[Edge]]:
         """The spanning forest (links first), its loop closures, and the integrations rejected: by
-        the cycle check, by the culprit rule (MapGraph.solve's), and joins that the two groups they
+        the cycle check, by the culprit rule (:meth:`_culprit`), and joins that the two groups they
         join do not bear out once the forest is whole (:meth:`_join_holds` on the two sides of the
         tree edge: the forest is built greedily, and a join checked when its groups were small
-        may fail against what later joined them). ``partial`` is unused: a join must be borne out
-        by several pairs, which takes the place of MapGraph's bridge rule."""
-        del partial
+        may fail against what later joined them)."""
         excluded: set[tuple[str, str]] = set()
         while True:
             tree, loops, conflicts, adjacency = self._kruskal(links + [e for e in valid if e.key() not in excluded])
@@ -267,7 +263,7 @@ class PoseGraph(MapGraph):
     def _culprit(
         self, tree: list[Edge], loops: list[Edge], conflicts: list[Edge], adjacency: dict[str, list[Edge]]
     ) -> Edge | None:
-        """The tree integration that more cycles accuse than support (MapGraph's rule), counting
+        """The tree integration that more cycles accuse than support (:func:`~fleetmap.merger.graph._culprit`), counting
         only the accusers that the maps they would join bear out: cut the accused edge, and an
         accuser joins its two sides; if :meth:`_join_holds` says the two sides do not bear it out,
         it is no evidence against anything. Two submaps of one robot's chain overlap, so one wrong
@@ -651,14 +647,17 @@ class PoseGraph(MapGraph):
             sigma = self.merge.edge_sigma_translation / math.sqrt(worst) if worst > 0 else math.inf
             return 3.0 * sigma <= self.merge.cycle_translation_tolerance
 
-        required = self.merge.join_support
-        if not (self._chained(group_a) and self._chained(group_b)):
-            # a map no link will ever extend (a map file, a robot's only submap) has only the pairs
-            # it has to bear a join out: the paper's validity of the one integration may be all
-            required = min(required, len(pairs))
         bearing = sorted(
             (i for i, look in enumerate(looks) if look[0] >= p.validity.valid_min_value), key=lambda i: -looks[i][0]
         )
+        required = self.merge.join_support
+        if not (self._chained(group_a) and self._chained(group_b)):
+            # a map no link will ever extend (a map file, a robot's only submap) has only the pairs
+            # it has to bear a join out, and a pair with less wall on wall than a valid integration
+            # of two maps holds (``valid_min_map_value``) can bear nothing out: the paper's
+            # validity of the one integration may be all
+            able = sum(looks[i][0] >= p.validity.valid_min_map_value for i in bearing)
+            required = min(required, max(able, 1))
 
         def refuted() -> bool:
             # the wall against outweighs what every pair not registered yet could add, at most its

@@ -308,9 +308,6 @@ class MergeParams:
     join_hypotheses: int = ours(3)
     """An ambiguous integration proposes to a cycle its alignment and its next best rivals, this many
     in all (it joins no two groups)."""
-    bridge_min_value: float = ours(10.0)
-    """A valid integration of two partial maps that no cycle can check (a bridge) joins them only if
-    its value is at least this (m; 0: no such rule)."""
     polish_edges: bool = ours(True)
     """An integration of a partial map integrated simplified is fitted again by least squares on the
     maps as they are (within the witness tolerances)."""
@@ -586,7 +583,9 @@ def _coerce(section: str, name: str, kind: Any, value: Any, source: str) -> Any:
     raise ConfigError(where, f"unsupported type {kind!r}")  # pragma: no cover - a field we forgot
 
 
-RETIRED: dict[str, frozenset[str]] = {"merge": frozenset({"carried_max_ambiguity"})}
+RETIRED: dict[str, frozenset[str]] = {
+    "merge": frozenset({"carried_max_ambiguity", "histogram_bins", "bridge_min_value"}),
+}
 """Parameters the code does not read: a config file or a recording's config that names one still
 loads (it is ignored, said at INFO)."""
 

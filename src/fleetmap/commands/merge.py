@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from fleetmap.config_args import add_config_arguments, config_from_args
-from fleetmap.merger.graph import MapGraph
+from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.sequence import pivot, sequential, tree
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
@@ -22,8 +22,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "merge",
         help="merge partial maps into one global map",
-        description="Merge partial maps. --order unknown (default) resolves the order from the map graph "
-        "(maximum spanning forest of valid integrations, cycle-checked); sequential, tree and pivot are the "
+        description="Merge partial maps. --order unknown (default) resolves the order from the pose graph the merger "
+        "solves (maximum spanning forest of valid integrations, each join borne out by the maps it joins, "
+        "cycle-checked); sequential, tree and pivot are the "
         "paper's methods (IV) for maps given in sequence order. Poses are in the frame of the anchor map.",
     )
     p.add_argument("maps", nargs="+", metavar="MAP", help="map files (JSON)")
@@ -31,7 +32,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--order",
         choices=("unknown", "sequential", "tree", "pivot"),
         default="unknown",
-        help="unknown: the map graph finds the merge order (default); or the paper's sequential, tree or pivot "
+        help="unknown: the pose graph finds the merge order (default); or the paper's sequential, tree or pivot "
         "merging of the maps in the order given",
     )
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     notes: list[str] = []
     poses: dict[str, Transform2D | None]
     if args.order == "unknown":
-        graph = MapGraph(config.integration, config.merge, anchor="largest")
+        graph = PoseGraph(config.integration, config.merge, anchor="largest")
         for name, m in zip(names, maps, strict=True):
             graph.add_map(name, m)
         result = graph.solve()
