@@ -254,7 +254,7 @@ class MapGraph:
                 return True
             node.map, node.version = segment_map, version
             node.descriptor = None
-            node.work, node.index = self._work(segment_map), None
+            node.work, node.index = self._work(key, segment_map), None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
                     del self._edges[k]
@@ -264,12 +264,13 @@ class MapGraph:
             self._counter,
             version,
             None,
-            self._work(segment_map),
+            self._work(key, segment_map),
         )
         self._counter += 1
         return True
 
-    def _work(self, m: SegmentMap) -> SegmentMap:
+    def _work(self, key: str, m: SegmentMap) -> SegmentMap:
+        del key
         tol = self.integration.simplify_tolerance
         return simplify(m, tol) if tol > 0 and not m.ordered else m
 

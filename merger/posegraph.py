@@ -208,9 +208,11 @@ class PoseGraph(MapGraph):
         self._pair_verdicts = {p: v for p, v in self._pair_verdicts.items() if key not in p}
         self._looks = {k: v for k, v in self._looks.items() if key not in k[:2]}
 
-    def _work(self, m: SegmentMap) -> SegmentMap:
-        # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls)
-        return m
+    def _work(self, key: str, m: SegmentMap) -> SegmentMap:
+        # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);
+        # a map file (a pivot local map: many short pieces of each wall) is simplified as the map
+        # graph simplifies it
+        return m if _parts(key)[0] is not None else super()._work(key, m)
 
     # -- solving -----------------------------------------------------------------------------
     def solve(self, fuse_maps: bool = True) -> MergeResult:

@@ -68,12 +68,12 @@ def test_merged_maps_are_placed_as_their_walls_fit_not_as_their_simplified_copie
 def test_an_edge_off_along_a_corridor_gives_way_to_the_edges_whose_walls_fix_that_direction(datasets: Path) -> None:
     # orebro, pieces 0-3 of 8: edge 0-1 lays map 1 0.29 m off along a corridor whose walls leave
     # that direction nearly free (its fit's normal matrix: 1.1 along it, 29 across), while the
-    # cycle 0-3-2-1 places it right. Weighted as their walls fix them, every map lies within the
-    # benchmark's 0.2 m. (The scipy refinement this replaced put maps 1 and 2 0.26 and 0.22 m off
-    # when every edge weighed by its value alone; the pose graph's Cauchy round, started from the
-    # Gaussian one, places them within 0.06 m either way.)
+    # cycle 0-3-2-1 places it right. Weighted by value alone in every direction, the poses
+    # refined together put maps 1 and 2 0.28 and 0.30 m off; weighted as their walls fix them,
+    # every map lies within the benchmark's 0.2 m.
     pieces = _pieces(datasets, "orebro", [0, 1, 2, 3])
-    for merge in (MergeParams(), replace(MergeParams(), edge_information=False)):
-        errors = _errors(pieces, merge)
-        for key, (dt, dr) in errors.items():
-            assert dt <= 0.2 and dr <= 0.5, (key, merge.edge_information, errors)
+    errors = _errors(pieces, MergeParams())
+    for key, (dt, dr) in errors.items():
+        assert dt <= 0.2 and dr <= 0.5, (key, errors)
+    by_value = _errors(pieces, replace(MergeParams(), edge_information=False))
+    assert max(dt for dt, _ in by_value.values()) > 0.2, by_value
