@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from fleetmap.merger.executor import Indexes, PairJob, PairResult, fitted, reference_of, run_pair
+from fleetmap.merger.executor import Indexes, PairJob, PairResult, reference_of, run_pair
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.descriptor import pairwise_histogram, similarity
 from fleetmap.shared.core.geometry import Array, Transform2D
@@ -291,15 +291,6 @@ class MapGraph:
         if edge.a not in self._nodes or edge.b not in self._nodes:
             raise BadInput(f"edge {edge.a}-{edge.b}", "names a map that is not in the graph")
         self._edges[edge.key()] = edge
-
-    def fit_edges(self) -> int:
-        """Fit every valid edge that carries no information (restored from a state
-        file that does not carry it) as a new integration's would be; how many."""
-        missing = [e for e in self._edges.values() if e.valid and e.information is None]
-        for e in missing:
-            transform, information = fitted(self.pair_job(e.a, e.b), e.transform)
-            self._edges[e.key()] = replace(e, transform=transform, information=information)
-        return len(missing)
 
     def edge(self, a: str, b: str) -> Edge | None:
         e = self._edges.get((a, b) if a <= b else (b, a))

@@ -92,6 +92,12 @@ def _parts(key: str) -> tuple[str | None, str | None, int | None]:
     return parts[0], parts[1], int(parts[2])
 
 
+def _map_file(key: str) -> bool:
+    """Whether a node is a map no link will ever extend (``fleetmap merge``'s map files, a
+    benchmark's local maps), not a robot's submap (``robot/epoch/n``)."""
+    return _parts(key)[0] is None
+
+
 def _chain_of(key: str) -> str:
     """The chain a node belongs to: a submap's robot epoch (``robot/epoch``), else the node itself."""
     parts = key.split("/")
@@ -212,7 +218,7 @@ class PoseGraph(MapGraph):
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);
         # a map file (a pivot local map: many short pieces of each wall) is simplified as the map
         # graph simplifies it
-        return m if _parts(key)[0] is not None else super()._work(key, m)
+        return super()._work(key, m) if _map_file(key) else m
 
     # -- solving -----------------------------------------------------------------------------
     def solve(self, fuse_maps: bool = True) -> MergeResult:
@@ -657,7 +663,7 @@ class PoseGraph(MapGraph):
             # a group no link extends yet (a robot's only submap) has only the pairs it has to bear
             # a join out: the paper's validity of the one integration may be all
             required = min(required, len(pairs))
-            if all(_parts(k)[0] is None for k in (*group_a, *group_b)):
+            if all(_map_file(k) for k in (*group_a, *group_b)):
                 # map files, which no link will ever extend: a pair with less wall on wall than a
                 # valid integration of two maps holds (``valid_min_map_value``) can bear nothing
                 # out (edmonton's local maps at their true poses: two joins refused for a pair that
