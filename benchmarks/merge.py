@@ -254,7 +254,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         graph.add_map(local[n][0], local[n][2].map)
     result = graph.solve()
     seconds = time.perf_counter() - start
-    good = wrong = unplaced = scans_good = wrong_content = 0
+    good = wrong = unplaced = scans_good = wrong_content = good_content = 0
     # Why the maps not within are not: merged with nothing, right in a smaller component (and of
     # those, how many lie within their anchor's frame), or in the largest but 0.2-1 m (or 3-10
     # degrees) off.
@@ -274,6 +274,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         dt, dr = truth[comp.anchor].compose(comp.poses[key]).distance(truth[key])
         ct, cr = content[comp.anchor].compose(comp.poses[key]).distance(content[key])
         wrong_content += ct > 1.0 or math.degrees(cr) > 10
+        good_content += comp is largest and ct <= 0.2 and math.degrees(cr) <= 3
         mark = "" if comp is largest else f"({comp.anchor})"
         if dt > 1.0 or math.degrees(dr) > 10:
             wrong += 1
@@ -319,6 +320,7 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
         "good": good,
         "wrong": wrong,
         "wrong_content": wrong_content,
+        "good_content": good_content,
         "unplaced": unplaced,
         "alone": alone,
         "side": side,
@@ -354,7 +356,9 @@ EXPLAINED = (
     "consecutive pieces, one robot each; each piece's local maps built from its scans alone by the pivot "
     "agent's front end, shuffled and merged as `fleetmap merge` does (the pose graph without links, order "
     "unknown). Local maps: those merged (at least `--min-scans` scans); within: in the largest component, "
-    "within (0.2 m, 3°) of where the corrected poses put it; wrong: more than 1 m or 10° off relative to its "
+    "within (0.2 m, 3°) of where the corrected poses put it, relative to its anchor, judged by its first "
+    "scan's frame and, in brackets, by where its content lies (a bent anchor moves every map measured "
+    "from its first scan); wrong: more than 1 m or 10° off relative to its "
     "component's anchor, in any component, judged by its first scan's frame and, in brackets, by where its "
     "content lies (a local map bent by its front end reads off at its first scan though its walls lie "
     "right); unplaced: merged with nothing, or not wrong but in a smaller component (a map in the largest "
@@ -371,7 +375,7 @@ def table(rows: list[dict]) -> str:
             r["dataset"],
             str(r["k"]),
             str(r["maps"]),
-            str(r["good"]),
+            f"{r['good']} ({r['good_content']})",
             f"{r['wrong']} ({r['wrong_content']})",
             str(r["unplaced"]),
             f"{100 * r['scans_good'] / max(r['scans'], 1):.0f} %",
@@ -389,13 +393,15 @@ def totals(rows: list[dict]) -> list[str]:
     good = sum(r["good"] for r in rows)
     wrong = sum(r["wrong"] for r in rows)
     wrong_content = sum(r["wrong_content"] for r in rows)
+    good_content = sum(r["good_content"] for r in rows)
     scans = sum(r["scans"] for r in rows)
     scans_good = sum(r["scans_good"] for r in rows)
     alone, side, side_within, off = (sum(r[k] for r in rows) for k in ("alone", "side", "side_within", "off"))
     return [
         f"not within: {alone} merged with nothing, {side} in a smaller component (not wrong; {side_within} of "
         f"them within its anchor's frame), {off} in the largest but 0.2-1 m or 3-10 deg off",
-        f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %), "
+        f"overall: {good}/{total} local maps within (0.2 m, 3 deg) ({100 * good / max(total, 1):.1f} %; "
+        f"{good_content} by where their content lies), "
         f"{wrong} wrong ({wrong_content} by where their content lies); "
         f"{100 * scans_good / max(scans, 1):.1f} % of the scans in maps placed within",
     ]
