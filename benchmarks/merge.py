@@ -13,7 +13,7 @@ never given to the algorithms, but for the reference ``--local-maps truth``):
 3. shuffle the local maps and merge them as ``fleetmap merge --order unknown`` does (the pose graph,
    no links);
 4. compare each placed map's pose (its first scan's frame, in the anchor's frame) with the
-   corrected poses.
+   corrected poses, and where its content lies (the frame that puts its scans nearest them).
 
 Prints per dataset and K: local maps placed within (0.2 m, 3 deg) in the largest component,
 placed wrongly (> 1 m or > 10 deg) relative to their component's anchor, in any component,

@@ -20,8 +20,9 @@ conventions)::
 Robot ids and fleet names have one format, ``^[a-z][a-z0-9_-]{0,31}$``: short, lower case, safe
 in a key expression (no ``/``, ``*``, ``$`` or ``?``) and in a file name. A robot writes only
 under its own ``robots/<robot>/`` and ``alive/<robot>`` keys, so a router's access control can hold
-it to them (:mod:`fleetmap.shared.io.security`). A local map is named by
-its *map key* ``<robot>/<epoch>``, the node name of the merger's map graph.
+it to them (:mod:`fleetmap.shared.io.security`). A robot's epoch is named by
+its *map key* ``<robot>/<epoch>``, and each submap of it by ``<robot>/<epoch>/<submap>``, the node
+name of the merger's pose graph.
 """
 
 from __future__ import annotations

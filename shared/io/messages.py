@@ -415,7 +415,7 @@ def _int_rows(schema: str, name: str, value: Any, limit: int) -> Array:
 
 @dataclass(frozen=True, eq=False)
 class Component:
-    """One connected component of the map graph: local maps merged into one global map.
+    """One connected component of the pose graph: submaps (or map files) merged into one global map.
 
     ``poses[key]`` places local map ``key`` in the component's frame, which is the anchor's frame;
     ``segments`` is the merged map in that frame.
@@ -688,7 +688,7 @@ class MergeEdge(WireMessage):
 
 @dataclass(frozen=True, eq=False)
 class GlobalMap(WireMessage):
-    """The merger's global maps: one per connected component of the map graph."""
+    """The merger's global maps: one per connected component of the pose graph."""
 
     SCHEMA: ClassVar[str] = "fleetmap.GlobalMap"
 

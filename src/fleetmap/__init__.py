@@ -4,7 +4,7 @@ Following Amigoni, Gasparini & Gini, "Building Segment-Based Maps Without Pose I
 (Proc. IEEE 94(7), 2006). The library lives in subpackages:
 
 - ``fleetmap.shared``: geometry, segment extraction, integration and fusion, config, file formats
-- ``fleetmap.merger``: merging many maps (known order and the map graph)
+- ``fleetmap.merger``: merging many maps (the paper's known-order merges, and the pose graph for an unknown order)
 - ``fleetmap.agents``: the robot agent
 - ``fleetmap.scenarios``: simulated worlds, the laser simulator and ground-truth metrics
 """

@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "merger",
         help="run the merger service",
-        description="Subscribe to the local maps of every robot, keep the map graph, and publish the global "
+        description="Subscribe to the submaps of every robot, keep the pose graph, and publish the global "
         "map(s) and every robot's pose in the global frame whenever they change. With --state it keeps its "
         "graph in a file and resumes from it when restarted.",
     )
