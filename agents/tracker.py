@@ -44,14 +44,22 @@ import logging
 import math
 from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import scan_viewpoint
-from fleetmap.shared.core.motion import Prediction, from_odometry, from_velocity, odometry_increment, velocity_between
+from fleetmap.shared.core.motion import (
+    Prediction,
+    ScanClock,
+    from_odometry,
+    from_velocity,
+    fused,
+    odometry_increment,
+    velocity_between,
+)
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
@@ -174,6 +182,7 @@ class TrackStep:
 class _Held:
     """A scan that did not fit, kept until the robot finds its place again or starts an epoch."""
 
+    seq: int
     index: int
     stamp: float
     scan: RangeScan
@@ -206,14 +215,17 @@ class Tracker:
         self._pose: Transform2D | None = None
         """The robot's pose in the epoch's frame after the last scan (predicted if unplaced)."""
         self._stamp: float | None = None
+        self._seq = 0
+        """The last scan's number in the robot's sequence of scans (from 1)."""
         self._odometry: Transform2D | None = None
-        self._good: tuple[float, Transform2D] | None = None
-        """Stamp and epoch-frame pose of the last placed scan."""
+        self._good: tuple[float, Transform2D, int] | None = None
+        """Stamp, epoch-frame pose and sequence number of the last placed scan."""
         self._velocity = np.zeros(3)
-        """Per second (or per scan where stamps do not advance), in the laser's frame."""
-        self._per_scan = False
+        """Per second of :attr:`clock` time, in the laser's frame."""
         self._velocity_known = False
-        """Whether two placed scans of the epoch with times between them gave the velocity."""
+        """Whether two placed scans of the epoch gave the velocity."""
+        self.clock = ScanClock(self.config.integration.motion.max_speed)
+        """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
         self._held: list[_Held] = []
         self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
@@ -250,63 +262,104 @@ class Tracker:
     ) -> list[TrackStep]:
         """Track one scan; the steps it caused (more than one when it starts an epoch: then the
         scans held since the robot lost its place are tracked into it too, in order)."""
+        previous = self.clock.previous
+        self.clock.tick(stamp)
+        if previous is not None and self.clock.distrusted_at == self.clock.scans:
+            said = "repeats" if stamp == previous else f"is {previous - stamp:.4f} s before"
+            self._say_clock(f"scan {index}'s stamp {said} the previous scan's")
+        return self._track(self.clock.scans, index, stamp, scan, segments, odometry)
+
+    # -- internals ---------------------------------------------------------------------------
+    def _track(
+        self, seq: int, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None
+    ) -> list[TrackStep]:
         samples = sample_segments(segments, self.params.sample_spacing)
         if len(samples) == 0:
-            self._advance_blind(stamp, odometry)
+            self._advance_blind(seq, stamp, odometry)
             return [TrackStep("empty", max(self.epoch, 0), None, None)]
         if self.epoch < 0:
-            return [self._start_epoch(index, stamp, scan, segments, samples, odometry, new=False)]
-        predictions = self._predictions(stamp, odometry)
-        fit = self._fit(scan, samples, segments, predictions, stamp)
+            return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
+        predictions = self._predictions(seq, stamp, odometry)
+        fit = self._fit(scan, samples, segments, predictions, seq, stamp)
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
-            return [self._place(index, stamp, scan, segments, samples, odometry, fit, status)]
-        self._held.append(_Held(index, stamp, scan, segments, samples, odometry))
+            return [self._place(seq, index, stamp, scan, segments, samples, odometry, fit, status)]
+        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
         self._pose = self._pose_in_epoch(predictions[0])
-        self._stamp, self._odometry = stamp, odometry if odometry is not None else self._odometry
+        self._stamp, self._seq = stamp, seq
+        self._odometry = odometry if odometry is not None else self._odometry
         if len(self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
 
-    # -- internals ---------------------------------------------------------------------------
+    def _typical_floor(self) -> float:
+        """The score below which a fit is not typical of the robot's recent ones (:meth:`_fit`)."""
+        if len(self._scores) < 3:
+            return 0.0
+        return self.params.typical_score_share * float(np.median(self._scores))
+
     def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
         base = self._pose if self._pose is not None else Transform2D()
         return base.compose(prediction.increment)
 
-    def _advance_blind(self, stamp: float, odometry: Transform2D | None) -> None:
+    def _advance_blind(self, seq: int, stamp: float, odometry: Transform2D | None) -> None:
         """A scan with nothing to track: the pose moves by odometry (or velocity) alone."""
         if self._pose is not None and self._stamp is not None:
-            self._pose = self._pose_in_epoch(self._predictions(stamp, odometry)[0])
-            self._stamp = stamp
+            self._pose = self._pose_in_epoch(self._predictions(seq, stamp, odometry)[0])
+            self._stamp, self._seq = stamp, seq
             if odometry is not None:
                 self._odometry = odometry
 
-    def _predictions(self, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
+    def _predictions(self, seq: int, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
         """Where the scan should be: by odometry when the robot has it, then by constant velocity
         (each a motion model that can be wrong: a real robot's odometry is off by ten degrees or
-        more on some fast turns, and a robot brakes or turns where constant velocity goes on)."""
+        more on some fast turns, and a robot brakes or turns where constant velocity goes on).
+        The time since the last scan is the clock's (:class:`ScanClock`): the stamps while they
+        agree with the motion, else the scans' sequence. Odometry read at a stamp the clock does
+        not trust is as wrong as the stamp: its uncertainty then grows by the motion over the
+        stamp's error, and the first start is the two models fused by their information."""
         integration = self.config.integration
         seconds = stamp - self._stamp if self._stamp is not None else 0.0
+        elapsed = self.clock.elapsed(seconds, seq - self._seq)
+        velocity = from_velocity(self._velocity, elapsed, self.params, integration.motion.max_acceleration)
         out = []
         if self.use_odometry and odometry is not None:
-            increment, why = odometry_increment(self._odometry, odometry, seconds, integration.motion.max_speed)
+            increment, why = odometry_increment(self._odometry, odometry, elapsed, integration.motion.max_speed)
             if increment is not None:
-                out.append(from_odometry(increment, self.params))
+                odometry_prediction = from_odometry(increment, self.params)
+                if not self.clock.trusted:
+                    # read at a wrong stamp, the odometry is off by the robot's motion over the
+                    # stamp's error: the stamps' interval less the sequence's, a period at least
+                    error = max(self.clock.period, abs(seconds - elapsed))
+                    step = self._velocity * error
+                    odometry_prediction = replace(
+                        odometry_prediction,
+                        sigma_translation=odometry_prediction.sigma_translation + math.hypot(step[0], step[1]),
+                        sigma_rotation=odometry_prediction.sigma_rotation + abs(float(step[2])),
+                    )
+                out.append(odometry_prediction)
             elif self._odometry is not None:
                 self.bad_odometry += 1
                 if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
                     log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
-        if seconds > 0 and not self._per_scan:
-            out.append(from_velocity(self._velocity, seconds, self.params, integration.motion.max_acceleration))
+        if self.clock.trusted or not out:
+            out.append(velocity)
         else:
-            # stamps that do not advance (a log without times): the last step again
-            out.append(from_velocity(self._velocity, 1.0, self.params, integration.motion.max_acceleration))
+            # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
+            # does not drift but is off scan by scan; each is also a start of its own
+            out = [fused(velocity, out[0]), velocity, out[0]]
         return out
 
     def _fit(
-        self, scan: RangeScan, samples: ScanSamples, segments: Array, predictions: list[Prediction], stamp: float
+        self,
+        scan: RangeScan,
+        samples: ScanSamples,
+        segments: Array,
+        predictions: list[Prediction],
+        seq: int,
+        stamp: float,
     ) -> _Fit:
         """The scan's fit on the matching submap.
 
@@ -320,8 +373,7 @@ class Tracker:
         stands). Failing all, the first fit, not good."""
         submap = self.active[0]
         share = self.params.typical_score_share
-        typical = float(np.median(self._scores)) if len(self._scores) >= 3 else 0.0
-        floor = share * typical
+        floor = self._typical_floor()
         tried: list[Transform2D] = []
         fits: list[_Fit] = []
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
@@ -345,7 +397,7 @@ class Tracker:
                 continue
             tried.append(predicted)
             reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
-            why = self._judge(reg, scan, submap, stamp)
+            why = self._judge(reg, scan, submap)
             fits.append(_Fit(reg, why == "", why))
         best = None
         for n, fit in enumerate(fits):
@@ -356,7 +408,7 @@ class Tracker:
             # a scan re-acquired by pose-free integration must fit as well as the robot's scans
             # usually do: one that explains a fraction of what they did matched a look-alike (a
             # carried robot's view of one corridor on another)
-            again = self._reacquire(scan, samples, segments, submap, stamp)
+            again = self._reacquire(scan, samples, segments, submap, seq, stamp)
             if (
                 again is not None
                 and again.registration.score >= floor
@@ -368,19 +420,20 @@ class Tracker:
             return best
         return fits[0]
 
-    def _judge(self, reg: Registration, scan: RangeScan, submap: Submap, stamp: float) -> str:
-        """Why the fit is not good ("" when it is)."""
+    def _judge(self, reg: Registration, scan: RangeScan, submap: Submap) -> str:
+        """Why the fit is not good ("" when it is): the walls' evidence alone. How far the robot can
+        have driven does not judge a registration started near the prediction (the clock may be
+        wrong; the walls are not): it bounds only where the pose-free search looks
+        (:meth:`_reacquire`)."""
         p = self.params
         if reg.matched_length < p.min_matched_length or reg.matched_share < p.min_matched_share:
             return f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
         through, visible = see_through(submap.reference, scan, reg.pose, p, self.config.extraction.max_range)
         if visible > 0 and through > p.max_see_through * visible:
             return f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
-        if not self._reachable(submap.origin.compose(reg.pose), stamp):
-            return "farther than the robot can have driven"
         return ""
 
-    def _reachable(self, pose: Transform2D, stamp: float) -> bool:
+    def _reachable(self, pose: Transform2D, seq: int, stamp: float) -> bool:
         """Whether the robot can have driven to ``pose`` (epoch frame) since its last placed scan:
         no farther than ``max_speed`` allows, and, once its velocity is known, no farther from where
         that velocity takes it than ``max_acceleration`` allows (plus ``witness_translation`` for the
@@ -389,9 +442,7 @@ class Tracker:
         integration = self.config.integration
         if self._good is None:
             return True
-        seconds = stamp - self._good[0]
-        if seconds <= 0:
-            return True  # no usable time: no bound
+        seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
         last = self._good[1]
         margin = integration.pivot.witness_translation
         if integration.motion.max_speed > 0 and math.hypot(pose.x - last.x, pose.y - last.y) > (
@@ -411,14 +462,16 @@ class Tracker:
         samples: ScanSamples,
         segments: Array,
         submap: Submap,
+        seq: int,
         stamp: float,
     ) -> _Fit | None:
         """The paper's pose-free integration of the scan on the submap, within the robot's reach of
-        its last placed scan (any heading), then registered and checked: a fit, or None."""
+        its last placed scan (any heading), then registered and checked: a fit where the robot can
+        have driven, or None."""
         built = submap.segment_map()
         if len(built) == 0:
             return None
-        reach = self._reach(stamp)
+        reach = self._reach(seq, stamp)
         last = submap.origin.inverse().compose(self._good[1] if self._good is not None else self._pose or Transform2D())
         near = _near(built, last, reach + self.config.extraction.max_range)
         if len(near) == 0:
@@ -433,22 +486,21 @@ class Tracker:
         # the prior is the integration's pose, loosely: the walls decide
         loose = np.diag([1.0 / 0.25**2, 1.0 / 0.25**2, 1.0 / 0.1**2])
         reg = register(samples, submap.reference, start, start, loose, self.params)
-        if self._judge(reg, scan, submap, stamp) != "":
+        if self._judge(reg, scan, submap) != "" or not self._reachable(submap.origin.compose(reg.pose), seq, stamp):
             return None
         return _Fit(reg, True, "reacquired")
 
-    def _reach(self, stamp: float) -> float:
+    def _reach(self, seq: int, stamp: float) -> float:
         """How far (m) the robot can have driven since its last placed scan."""
         integration = self.config.integration
         if self._good is None or integration.motion.max_speed <= 0:
             return self.config.extraction.max_range
-        seconds = stamp - self._good[0]
-        if seconds <= 0:
-            return self.config.extraction.max_range
+        seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
         return integration.motion.max_speed * seconds + integration.pivot.witness_translation
 
     def _place(
         self,
+        seq: int,
         index: int,
         stamp: float,
         scan: RangeScan,
@@ -462,19 +514,46 @@ class Tracker:
         reg = fit.registration
         pose = submap.origin.compose(reg.pose)
         if self._good is not None:
-            seconds = stamp - self._good[0]
-            if seconds > 0:
-                self._velocity, self._per_scan = velocity_between(self._good[1], pose, seconds), False
-                self._velocity_known = True
-            else:
-                self._velocity, self._per_scan = velocity_between(self._good[1], pose, 1.0), True
-        self._pose, self._stamp, self._good = pose, stamp, (stamp, pose)
+            self._check_clock(index, stamp, pose, reg)
+            seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
+            self._velocity, self._velocity_known = velocity_between(self._good[1], pose, seconds), True
+        self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
         if odometry is not None:
             self._odometry = odometry
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self._due(stamp, pose):
             self._insert(index, stamp, scan, segments, samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
+
+    def _check_clock(self, index: int, stamp: float, pose: Transform2D, reg: Registration) -> None:
+        """Judge the stamps by the motion since the last placed scan (:meth:`ScanClock.check`),
+        uncertain as the walls fix the two poses along it; say once when they fail."""
+        if self._good is None:
+            return
+        last = self._good[1]
+        dx, dy = pose.x - last.x, pose.y - last.y
+        distance = math.hypot(dx, dy)
+        if distance == 0:
+            return
+        sigma = _sigma_along(reg.scan_information, self.active[0].origin.theta, dx / distance, dy / distance)
+        was = self.clock.trusted
+        self.clock.check(stamp - self._good[0], distance, math.sqrt(2.0) * sigma)
+        if was and not self.clock.trusted:
+            seconds = stamp - self._good[0]
+            self._say_clock(f"scan {index} moved {distance:.2f} m in the {seconds:.4f} s its stamp allows")
+
+    def _say_clock(self, evidence: str) -> None:
+        """Say once per log that its stamps are not its scans' times, and why."""
+        c = self.clock
+        log.warning(
+            "%s: the stamps are not the scans' times; tracking by their sequence at the log's mean period "
+            "(%.3f s so far) from here (%d scans in: %d stamps repeated, %d going back)",
+            evidence,
+            c.period,
+            c.scans,
+            c.repeated,
+            c.backwards,
+        )
 
     def _due(self, stamp: float, pose: Transform2D) -> bool:
         p = self.params
@@ -546,6 +625,7 @@ class Tracker:
 
     def _start_epoch(
         self,
+        seq: int,
         index: int,
         stamp: float,
         scan: RangeScan,
@@ -561,9 +641,9 @@ class Tracker:
         self.active = []
         self.epoch += 1
         self._submaps = 0
-        self._pose, self._stamp, self._good = Transform2D(), stamp, (stamp, Transform2D())
+        self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
         self._odometry = odometry
-        self._velocity, self._per_scan, self._velocity_known = np.zeros(3), False, False
+        self._velocity, self._velocity_known = np.zeros(3), False
         self._inserted_at = None
         self._held = []
         self._scores.clear()
@@ -579,11 +659,11 @@ class Tracker:
         log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))
         steps = [
             self._start_epoch(
-                first.index, first.stamp, first.scan, first.segments, first.samples, first.odometry, new=True
+                first.seq, first.index, first.stamp, first.scan, first.segments, first.samples, first.odometry, new=True
             )
         ]
         for h in held[1:]:
-            steps += self.add(h.index, h.stamp, h.scan, h.segments, h.odometry)
+            steps += self._track(h.seq, h.index, h.stamp, h.scan, h.segments, h.odometry)
         return steps
 
     def submaps(self) -> Iterator[Submap]:
@@ -622,3 +702,17 @@ def _near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:
         axis=1
     )
     return SegmentMap(seg[near], ordered=False, oriented=m.oriented)
+
+
+def _sigma_along(information: Array, heading: float, ux: float, uy: float) -> float:
+    """The standard deviation (m) along the unit direction ``(ux, uy)`` (epoch frame) of a pose
+    fixed with ``information`` in a frame turned by ``heading``; infinite where the walls leave that
+    direction free."""
+    c, s = math.cos(heading), math.sin(heading)
+    u = np.array([c * ux + s * uy, -s * ux + c * uy, 0.0])
+    try:
+        covariance = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        return math.inf
+    variance = float(u @ covariance @ u)
+    return math.sqrt(variance) if variance > 0 and math.isfinite(variance) else math.inf

@@ -7,7 +7,14 @@ most 10 s apart: a relation is *joined* when both scans are placed in one epoch 
 the two scans' poses in that epoch's frame), and *within* (0.10 m, 2 deg) or (0.30 m, 5 deg) when
 the estimate's error is; a relation not joined counts as not within. Also the epochs started
 per 1,000 scans (these logs have no kidnap: every epoch after the first is a failure) and the
-agent's median time per scan (extraction, tracking, submaps and messages, serialised).
+agent's median time per scan (extraction, tracking, submaps and messages, serialised). The
+SLAM-corrected logs (``corrected/NAME``, a scan about every metre) run the same way, scored with
+relations made from their corrected poses (:data:`CORRECTED_APART`).
+
+**Clocks** (``--clock``): each log as a robot with a broken clock would have recorded it
+(:mod:`fleetmap.scenarios.clocks`: stamps in bursts, jittered, repeated, a scan in ten dropped,
+odometry on a skewed clock); a relation counts only where the log still has both its scans. A
+log whose own stamps do not increase has no clock to break, and says so.
 
 **Scenarios**: every bundled scenario's robots through their agents: epochs started (against the
 kidnaps the scenario has), scans placed, and the placed scans' pose error against the truth,
@@ -15,6 +22,7 @@ relative to their epoch's first scan (mean and 95th percentile).
 
     python benchmarks/tracking.py                      # everything
     python benchmarks/tracking.py --logs mit-csail --no-scenarios
+    python benchmarks/tracking.py --clock true,burst,jitter,drop,skew,repeat --no-scenarios
     python benchmarks/tracking.py --write-results      # and update benchmarks/RESULTS.md
 """
 
@@ -33,9 +41,11 @@ import numpy as np
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.sources import CarmenSource
 from fleetmap.scenarios import load_scenario, robot_stream
+from fleetmap.scenarios.clocks import CLOCKS, break_clock
 from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.logs import read_carmen
 from results import write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
@@ -46,6 +56,22 @@ LOGS = {
     "mit-csail": ("mit-csail/mit-csail.clf.gz", 81.91),
 }
 """Full-rate logs with their relations: file under the data folder, and the no-return reading."""
+CORRECTED = (
+    "aces",
+    "acapulco",
+    "belgioioso",
+    "csail",
+    "edmonton",
+    "freiburg-079",
+    "freiburg-101",
+    "freiburg-campus",
+    "infinite-corridor",
+    "orebro",
+)
+"""SLAM-corrected logs (``corrected/<name>-corrected.log.gz``, a scan about every metre, freiburg-079's
+every 0.1 m): their relations are made from their corrected poses, each scan with the next
+:data:`CORRECTED_APART` (the corrected poses are given to no algorithm)."""
+CORRECTED_APART = 5
 MAX_SECONDS = 10.0
 WITHIN = ((0.10, 2.0), (0.30, 5.0))
 
@@ -60,6 +86,7 @@ def data_folder() -> Path:
 @dataclass(frozen=True)
 class LogResult:
     name: str
+    clock: str
     odometry: bool
     scans: int
     relations: int
@@ -76,15 +103,44 @@ def relative(a: Transform2D, b: Transform2D) -> Transform2D:
     return a.inverse().compose(b)
 
 
-def run_log(job: tuple[str, bool, FleetmapConfig, Path]) -> LogResult:
-    name, odometry, config, data = job
-    path, range_max = LOGS[name]
-    source = CarmenSource(data / path, range_max=range_max)
+def corrected_relations(path: Path) -> tuple[list[tuple[int, int, Transform2D]], dict[int, int]]:
+    """Relations ``(key1, key2, pose 2 in pose 1's frame)`` between each corrected scan and the next
+    :data:`CORRECTED_APART`, keyed by scan index (a key per scan: their stamps may repeat)."""
+    poses = [Transform2D(*scan.odometry) for scan in read_carmen(path) if scan.odometry is not None]
+    out = []
+    for i, a in enumerate(poses):
+        for j in range(i + 1, min(i + 1 + CORRECTED_APART, len(poses))):
+            out.append((i, j, a.inverse().compose(poses[j])))
+    return out, {i: i for i in range(len(poses))}
+
+
+def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
+    name, odometry, config, data, clock = job
+    if name.startswith("corrected/"):
+        path, range_max = f"{name}-corrected.log.gz", math.inf
+    else:
+        path, range_max = LOGS[name]
+    source = list(CarmenSource(data / path, range_max=range_max))
+    if name.startswith("corrected/"):
+        relations, true_stamp = corrected_relations(data / path)
+    else:
+        true_stamp = {s.index: round(s.stamp, 4) for s in source}
+        relations = [
+            (round(t1, 4), round(t2, 4), Transform2D(x, y, yaw))
+            for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(data / "relations" / f"{name}.relations")
+            if abs(t2 - t1) <= MAX_SECONDS
+        ]
+    try:
+        scans_given = list(break_clock(source, clock))
+    except ValueError as e:
+        return LogResult(name, f"{clock} ({e})", odometry, 0, 0, 0, (math.nan, math.nan), math.nan, math.nan, 0, 0, 0)
     agent = Agent("r1", config, odometry=odometry)
     poses: dict[float, tuple[int, Transform2D]] = {}
     times = []
     scans = 0
-    for s in source:
+    given: list[int] = []
+    for s in scans_given:
+        given.append(s.index)
         start = time.perf_counter()
         for message in agent.add_scan(s.index, s.stamp, s.scan, s.odometry):
             message.to_msgpack()
@@ -92,18 +148,19 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path]) -> LogResult:
         scans += 1
         pose = agent.epoch_pose
         if pose is not None:
-            poses[round(s.stamp, 4)] = (agent.epoch, pose)
+            poses[true_stamp[s.index]] = (agent.epoch, pose)
     for message in agent.finish():
         message.to_msgpack()
     errors_t, errors_r, counted, hits = [], [], 0, [0, 0]
-    for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(data / "relations" / f"{name}.relations"):
-        if abs(t2 - t1) > MAX_SECONDS:
-            continue
+    kept = {true_stamp[i] for i in given}
+    for k1, k2, truth in relations:
+        if k1 not in kept or k2 not in kept:
+            continue  # a relation of a scan the broken clock dropped is nobody's to join
         counted += 1
-        a, b = poses.get(round(t1, 4)), poses.get(round(t2, 4))
+        a, b = poses.get(k1), poses.get(k2)
         if a is None or b is None or a[0] != b[0]:
             continue
-        error = Transform2D(x, y, yaw).inverse().compose(relative(a[1], b[1]))
+        error = truth.inverse().compose(relative(a[1], b[1]))
         et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
         errors_t.append(et)
         errors_r.append(er)
@@ -111,6 +168,7 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path]) -> LogResult:
             hits[k] += et < tt and er < rr
     return LogResult(
         name,
+        clock,
         odometry,
         scans,
         counted,
@@ -180,13 +238,13 @@ def run_scenario(job: tuple[str, FleetmapConfig]) -> list[ScenarioResult]:
 
 def log_table(results: list[LogResult]) -> str:
     rows = [
-        "| log | odometry | scans | relations (<= 10 s) | joined | within 0.10 m, 2 deg | within 0.30 m, 5 deg "
+        "| log | clock | odometry | scans | relations (<= 10 s) | joined | within 0.10 m, 2 deg | within 0.30 m, 5 deg "
         "| mean error | epochs per 1,000 scans | ms per scan (median / p95) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         rows.append(
-            f"| {r.name} | {'on' if r.odometry else 'off'} | {r.scans} | {r.relations} | {r.joined} "
+            f"| {r.name} | {r.clock} | {'on' if r.odometry else 'off'} | {r.scans} | {r.relations} | {r.joined} "
             f"| {100 * r.within[0]:.1f} % | {100 * r.within[1]:.1f} % "
             f"| {r.mean_translation:.3f} m, {r.mean_rotation_deg:.2f} deg "
             f"| {1000 * (r.epochs - 1) / max(r.scans, 1):.2f} ({r.epochs - 1} in all) "
@@ -210,12 +268,21 @@ def scenario_table(results: list[ScenarioResult]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--logs", default=",".join(LOGS), help="full-rate logs to run (comma-separated)")
+    ap.add_argument(
+        "--logs",
+        default=",".join([*LOGS, *(f"corrected/{n}" for n in CORRECTED)]),
+        help="logs to run (comma-separated): full-rate ones by name, SLAM-corrected ones as corrected/NAME",
+    )
     ap.add_argument(
         "--with-odometry",
         choices=("both", "on", "off"),
         default="both",
         help="run the logs with odometry, without, or both",
+    )
+    ap.add_argument(
+        "--clock",
+        default="true",
+        help=f"the logs' clocks, comma-separated: {', '.join(CLOCKS)} (fleetmap.scenarios.clocks; default true)",
     )
     ap.add_argument("--no-scenarios", action="store_true", help="skip the bundled scenarios")
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
@@ -224,12 +291,16 @@ def main() -> int:
     args = ap.parse_args()
     config = config_from_args(args)
     names = [n for n in args.logs.split(",") if n]
-    unknown = [n for n in names if n not in LOGS]
+    unknown = [n for n in names if n not in LOGS and n.removeprefix("corrected/") not in CORRECTED]
     if unknown:
         raise SystemExit(f"unknown log {unknown[0]!r} (known: {', '.join(LOGS)})")
     modes = {"both": (True, False), "on": (True,), "off": (False,)}[args.with_odometry]
     data = data_folder() if names else Path()
-    jobs = [(n, o, config, data) for n in names for o in modes]
+    clocks = [c for c in args.clock.split(",") if c]
+    bad = [c for c in clocks if c not in CLOCKS]
+    if bad:
+        raise SystemExit(f"unknown clock {bad[0]!r} (known: {', '.join(CLOCKS)})")
+    jobs = [(n, o, config, data, c) for n in names for c in clocks for o in modes]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         log_results = list(pool.map(run_log, jobs))
         scenario_results = []

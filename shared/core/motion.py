@@ -92,3 +92,107 @@ def velocity_between(a: Transform2D, b: Transform2D, seconds: float) -> Array:
     if seconds <= 0:
         return np.zeros(3)
     return np.array([step.x, step.y, step.theta]) / seconds
+
+
+CHI2_1DOF_99 = 6.635
+"""The chi-square bound of one degree of freedom at 99 %: how far (in standard deviations, squared)
+a registered motion may lie beyond what the robot can drive before it says the clock is wrong."""
+
+
+class ScanClock:
+    """How much time passed between a robot's scans, as the evidence supports it.
+
+    A log's stamps are not always the scans' times: a logger stamps a burst of scans at receipt a
+    few milliseconds apart, a driver repeats a stamp, stamps jitter with the host's load. The
+    robot's motion is the evidence: a scan registered half a metre from the last one 2 ms later,
+    or at the same stamp, says the clock is wrong, not the robot (no robot drives that fast).
+
+    While the stamps agree with the motion, the time between two scans is their stamps'
+    difference. From the first scan whose registered motion no ordinary robot can have driven in
+    its stamps' interval (beyond ``max_speed``, by more than the registration's own uncertainty at
+    99 %), or whose stamp repeats or goes back, the stamps are not trusted for the rest of the
+    log: the time between two scans is then the number of scans between them times the log's mean
+    scan period (its whole span over its scans, which bursts, jitter and repeats do not change).
+    A laser scans at a steady rate; its sequence is the clock a burst cannot break. A log whose
+    stamps never advance has a period of one "second" per scan: the motion models then run per
+    scan.
+    """
+
+    def __init__(self, max_speed: float) -> None:
+        self.max_speed = max_speed
+        self.scans = 0
+        """Scans seen (:meth:`tick`)."""
+        self.first: float | None = None
+        self.latest: float | None = None
+        self.previous: float | None = None
+        self.trusted = True
+        """Whether the stamps have agreed with the motion so far."""
+        self.repeated = 0
+        """Stamps equal to the previous scan's."""
+        self.backwards = 0
+        """Stamps before the previous scan's."""
+        self.too_fast = 0
+        """Intervals over which the registered motion is farther than ``max_speed`` allows."""
+        self.distrusted_at: int | None = None
+        """The scan (count from 1) at which the stamps were first found wrong."""
+
+    def tick(self, stamp: float) -> None:
+        """A scan with ``stamp`` arrived (every scan, placed or not)."""
+        self.scans += 1
+        if self.previous is not None and stamp <= self.previous:
+            # no laser takes two scans at one instant, or one before the other it took first
+            if stamp == self.previous:
+                self.repeated += 1
+            else:
+                self.backwards += 1
+            self._distrust()
+        self.first = stamp if self.first is None else min(self.first, stamp)
+        self.latest = stamp if self.latest is None else max(self.latest, stamp)
+        self.previous = stamp
+
+    @property
+    def period(self) -> float:
+        """The log's mean time between scans (s); 1.0 where the stamps do not advance."""
+        if self.scans < 2 or self.first is None or self.latest is None or self.latest <= self.first:
+            return 1.0
+        return (self.latest - self.first) / (self.scans - 1)
+
+    def elapsed(self, seconds: float, scans: int) -> float:
+        """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart."""
+        if self.trusted and seconds > 0:
+            return seconds
+        return max(scans, 1) * self.period
+
+    def check(self, seconds: float, distance: float, sigma: float) -> bool:
+        """Judge the stamps by a registered motion: ``distance`` metres (uncertain by ``sigma``)
+        between two placed scans stamped ``seconds`` apart. False (and the clock distrusted from
+        now on) when no robot drives that far in that time."""
+        if self.max_speed <= 0:
+            return self.trusted
+        excess = distance - self.max_speed * max(seconds, 0.0)
+        if excess > 0 and excess * excess > CHI2_1DOF_99 * sigma * sigma:
+            self.too_fast += 1
+            self._distrust()
+        return self.trusted
+
+    def _distrust(self) -> None:
+        if self.trusted:
+            self.trusted = False
+            self.distrusted_at = self.scans
+
+
+def fused(a: Prediction, b: Prediction) -> Prediction:
+    """Two predictions of one increment combined by their information (the product of their
+    Gaussians): where one drifts and the other does not, the other holds it."""
+    ia, ib = a.information().diagonal(), b.information().diagonal()
+    xa, xb = a.increment.as_array(), b.increment.as_array()
+    xb = xb.copy()
+    xb[2] = xa[2] + math.remainder(xb[2] - xa[2], math.tau)
+    x = (ia * xa + ib * xb) / (ia + ib)
+    info = ia + ib
+    return Prediction(
+        Transform2D(float(x[0]), float(x[1]), math.remainder(float(x[2]), math.tau)),
+        1.0 / math.sqrt(info[0]),
+        1.0 / math.sqrt(info[2]),
+        f"{a.source}+{b.source}",
+    )

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
+from fleetmap.agents.sources import CarmenSource
+from fleetmap.scenarios.clocks import break_clock
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 
-from fleetmap.mapping import read_inputs
+from fleetmap.mapping import Piece, map_logs, read_inputs
 
 TURN = (1134865028.0, 1134865040.0)
 """mit-csail's last turn (about 90 degrees a second), where one scan's odometry is 14 degrees off."""
@@ -47,3 +50,34 @@ def test_a_fast_turn_whose_odometry_is_off_is_tracked_within_the_logs_relations(
     assert len(errors) >= 20, "the turn's relations were not tracked"
     off = [e for e in errors if e[2] >= 0.10 or e[3] >= 2.0]
     assert not off, f"relations off on the turn (t1, t2, m, deg): {off}"
+
+
+@pytest.mark.slow  # maps 400 scans of a real log twice (about 40 s)
+def test_a_real_log_restamped_in_bursts_maps_as_one_component_within_5cm_of_its_true_clock(
+    datasets: Path, tmp_path: Path
+) -> None:
+    # Groups of 2-4 scans stamped within 2 ms, the odometry read at those stamps (issue 48): the
+    # tracker took the stamps at their word and started an epoch every few scans.
+    source = CarmenSource(datasets / "mit-csail" / "mit-csail.clf.gz", range_max=81.91, stop=400)
+    scans = list(source)
+    maps = {}
+    for clock in ("true", "burst"):
+        given = list(break_clock(scans, clock, seed=7))
+        piece = Piece("csail", str(source.path), given, True, {s.index: s.stamp for s in given})
+        maps[clock] = (piece, map_logs([piece], tmp_path / clock, FleetmapConfig()))
+    piece, burst = maps["burst"]
+    [robot] = burst.report["map"]["robots"]
+    assert robot["epochs"] == 1 and robot["scans_placed"] == len(scans)
+    assert burst.report["map"]["components"] == 1
+    # the same scan's pose in both maps, where its broken stamp names it alone
+    true_piece, true_map = maps["true"]
+    by_stamp = {stamp: pose for _, stamp, _, pose in true_map.poses}
+    true_pose = {index: by_stamp[stamp] for index, stamp in true_piece.stamps.items() if stamp in by_stamp}
+    counts = Counter(piece.stamps.values())
+    index_of = {stamp: index for index, stamp in piece.stamps.items() if counts[stamp] == 1}
+    off = []
+    for _, stamp, _, pose in burst.poses:
+        if stamp in index_of:
+            off.append(pose.distance(true_pose[index_of[stamp]])[0])
+    assert len(off) >= 0.8 * len(scans)
+    assert max(off) < 0.05, f"{sum(d >= 0.05 for d in off)} scans 5 cm or more apart, the worst {max(off):.3f} m"

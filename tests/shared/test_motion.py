@@ -1,0 +1,65 @@
+"""The motion models and the clock that times them."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.motion import Prediction, ScanClock, fused
+
+
+def test_a_clock_whose_stamps_agree_with_the_motion_is_trusted_and_times_by_its_stamps() -> None:
+    clock = ScanClock(max_speed=2.0)
+    for k in range(10):
+        clock.tick(0.2 * k)
+        assert clock.check(0.2, 0.3, 0.01)  # 1.5 m/s
+    assert clock.trusted and clock.elapsed(0.37, 2) == 0.37
+    assert clock.period == pytest.approx(0.2)
+
+
+def test_motion_no_robot_drives_in_the_stamps_interval_distrusts_the_stamps_for_good() -> None:
+    clock = ScanClock(max_speed=2.0)
+    for stamp in (0.0, 0.2, 0.4, 0.401, 0.6, 0.8):
+        clock.tick(stamp)
+    assert not clock.check(0.001, 0.3, 0.01), "0.3 m in 1 ms"
+    assert clock.too_fast == 1 and clock.distrusted_at == 6
+    # from now on the time between scans is their count times the log's mean period
+    assert clock.elapsed(0.001, 1) == pytest.approx(0.16)
+    assert clock.elapsed(0.5, 3) == pytest.approx(0.48)
+    assert not clock.check(0.2, 0.1, 0.01), "distrusted for the rest of the log"
+
+
+def test_motion_within_the_registrations_own_uncertainty_does_not_distrust() -> None:
+    clock = ScanClock(max_speed=1.0)
+    clock.tick(0.0)
+    clock.tick(0.1)
+    assert clock.check(0.1, 0.12, 0.02), "0.02 m beyond 1 m/s, uncertain by 0.02 m: one sigma"
+    assert not clock.check(0.1, 0.2, 0.02), "five sigma"
+
+
+def test_a_repeated_or_backward_stamp_distrusts_the_clock_and_a_log_without_times_runs_per_scan() -> None:
+    clock = ScanClock(max_speed=1.0)
+    for stamp in (5.0, 5.2, 5.4):
+        clock.tick(stamp)
+    assert clock.trusted
+    clock.tick(5.4)
+    assert not clock.trusted and clock.distrusted_at == 4, "no laser takes two scans at one instant"
+    clock.tick(5.3)
+    assert (clock.repeated, clock.backwards) == (1, 1)
+    flat = ScanClock(max_speed=1.0)
+    for _ in range(4):
+        flat.tick(0.0)
+    assert flat.period == 1.0 and flat.elapsed(0.0, 2) == 2.0
+
+
+def test_two_predictions_fuse_by_their_information() -> None:
+    sure = Prediction(Transform2D(1.0, 0.0, 0.0), 0.1, 0.1, "odometry")
+    loose = Prediction(Transform2D(0.0, 0.0, math.pi - 0.1), 0.3, 0.3, "velocity")
+    both = fused(sure, loose)
+    assert both.increment.x == pytest.approx(0.9)  # weights 100 : 11.1
+    assert both.sigma_translation == pytest.approx(1 / math.sqrt(1 / 0.01 + 1 / 0.09))
+    # headings near +-pi average across the cut, not through zero
+    a = Prediction(Transform2D(0, 0, math.pi - 0.1), 0.1, 0.1, "a")
+    wrapped = fused(a, Prediction(Transform2D(0, 0, -math.pi + 0.1), 0.1, 0.1, "b"))
+    assert abs(abs(wrapped.increment.theta) - math.pi) < 1e-9
