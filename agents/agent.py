@@ -34,6 +34,7 @@ from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths
+from fleetmap.shared.core.motion import ScanClock
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import MIN_SEGMENT_LENGTH
 from fleetmap.shared.errors import BadInput
@@ -87,6 +88,11 @@ class Agent:
     @property
     def counts(self) -> AgentCounts:
         return self._front.counts
+
+    @property
+    def clock(self) -> ScanClock | None:
+        """What the tracking front end made of the scans' stamps (None with the pivot front end)."""
+        return self._front.tracker.clock if isinstance(self._front, TrackingFrontEnd) else None
 
     def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> list[Message]:
         """The messages to publish for one scan, in order (see the module docstring)."""

@@ -45,6 +45,7 @@ from fleetmap.scenarios.clocks import CLOCKS, break_clock
 from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
 from results import write_section
 
@@ -114,13 +115,21 @@ def corrected_relations(path: Path) -> tuple[list[tuple[int, int, Transform2D]],
     return out, {i: i for i in range(len(poses))}
 
 
+def not_run(name: str, why: str, odometry: bool) -> LogResult:
+    """A row that says why a log was not tracked."""
+    return LogResult(name, why, odometry, 0, 0, 0, (math.nan, math.nan), math.nan, math.nan, 0, 0, 0)
+
+
 def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
     name, odometry, config, data, clock = job
     if name.startswith("corrected/"):
         path, range_max = f"{name}-corrected.log.gz", math.inf
     else:
         path, range_max = LOGS[name]
-    source = list(CarmenSource(data / path, range_max=range_max))
+    try:
+        source = list(CarmenSource(data / path, range_max=range_max))
+    except BadInput as e:  # what fleetmap map says of it too
+        return not_run(name, f"{clock} (refused: {e})", odometry)
     if name.startswith("corrected/"):
         relations, true_stamp = corrected_relations(data / path)
     else:
@@ -133,7 +142,7 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
     try:
         scans_given = list(break_clock(source, clock))
     except ValueError as e:
-        return LogResult(name, f"{clock} ({e})", odometry, 0, 0, 0, (math.nan, math.nan), math.nan, math.nan, 0, 0, 0)
+        return not_run(name, f"{clock} ({e})", odometry)
     agent = Agent("r1", config, odometry=odometry)
     poses: dict[float, tuple[int, Transform2D]] = {}
     times = []
@@ -302,7 +311,10 @@ def main() -> int:
         raise SystemExit(f"unknown clock {bad[0]!r} (known: {', '.join(CLOCKS)})")
     jobs = [(n, o, config, data, c) for n in names for c in clocks for o in modes]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        log_results = list(pool.map(run_log, jobs))
+        log_results = []
+        for r in pool.map(run_log, jobs):
+            log_results.append(r)
+            print(log_table([r]).splitlines()[-1], flush=True)
         scenario_results = []
         if not args.no_scenarios:
             for part in pool.map(run_scenario, [(n, config) for n in list_scenarios()]):

@@ -316,6 +316,7 @@ def _summary(
                 "epochs": agents[p.robot].counts.epochs,
                 "scans_placed": placed.get(p.robot, 0),
                 "components": sorted(components.get(p.robot, set())),
+                "clock": _clock(agents[p.robot]),
             }
             for p in pieces
         ],
@@ -336,6 +337,22 @@ def _summary(
         "agent_seconds": agent_seconds,
         "merger_seconds": merger_seconds,
         "time_share": seconds / duration if duration > 0 else None,
+    }
+
+
+def _clock(agent: Agent) -> dict[str, Any] | None:
+    """What the tracker made of a robot's stamps (``stamps_trusted`` false: it timed the scans by
+    their sequence at ``mean_period`` from scan ``distrusted_at`` on)."""
+    clock = agent.clock
+    if clock is None:
+        return None
+    return {
+        "stamps_trusted": clock.trusted,
+        "distrusted_at": clock.distrusted_at,
+        "mean_period": clock.period,
+        "repeated": clock.repeated,
+        "backwards": clock.backwards,
+        "too_fast": clock.too_fast,
     }
 
 

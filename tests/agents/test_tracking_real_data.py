@@ -69,6 +69,8 @@ def test_a_real_log_restamped_in_bursts_maps_as_one_component_within_5cm_of_its_
     [robot] = burst.report["map"]["robots"]
     assert robot["epochs"] == 1 and robot["scans_placed"] == len(scans)
     assert burst.report["map"]["components"] == 1
+    assert robot["clock"]["stamps_trusted"] is False, "report.json says the stamps were not the scans' times"
+    assert maps["true"][1].report["map"]["robots"][0]["clock"]["stamps_trusted"] is True
     # the same scan's pose in both maps, where its broken stamp names it alone
     true_piece, true_map = maps["true"]
     by_stamp = {stamp: pose for _, stamp, _, pose in true_map.poses}
