@@ -17,6 +17,13 @@ map, before the runs; the table gives it, and the shares within as scored in the
 
     python benchmarks/relations.py                       # aces, fr079, mit-csail; K = 1, 2, 4, 8
     python benchmarks/relations.py --logs mit-csail --splits 1,4 --write-results
+    python benchmarks/relations.py --logs corrected --splits 1,4,8   # the SLAM-corrected logs
+
+The SLAM-corrected logs (``corrected/NAME``: a scan about every metre, as long tours are often
+logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan index (their stamps
+repeat, or are all 0) with relations made from their corrected poses: every two scans within
+:data:`CORRECTED_WITHIN` of each other. A log that ``fleetmap map`` refuses (infinite-corridor's
+stamps run negative) says so.
 """
 
 from __future__ import annotations
@@ -29,20 +36,29 @@ import statistics
 import subprocess
 import sys
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fleetmap.merger.executor import make_executor
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io.logs import read_carmen
+from scipy.spatial import cKDTree
+
+from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from relation_frame import measure
 from results import write_section
-from tracking import LOGS, data_folder
+from tracking import CORRECTED, LOGS, data_folder
 
 WITHIN_M, WITHIN_DEG = 0.10, 2.0
 WRONG_M, WRONG_DEG = 1.0, 10.0
+CORRECTED_WITHIN = 2.0
+"""A corrected log's relations: its scans whose corrected poses lie this close (m)."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +166,80 @@ def run(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
     )
 
 
+def corrected_relations(path: Path) -> list[tuple[int, int, Transform2D]]:
+    """The corrected log's relations: every two scans whose corrected poses lie within
+    :data:`CORRECTED_WITHIN` of each other, by scan index, the second's pose in the first's frame
+    (the corrected poses are given to no algorithm)."""
+    poses = [Transform2D(*s.odometry) for s in read_carmen(path) if s.odometry is not None]
+    xy = np.array([[p.x, p.y] for p in poses])
+    out = []
+    for i, j in sorted(cKDTree(xy).query_pairs(CORRECTED_WITHIN)):
+        out.append((i, j, poses[i].inverse().compose(poses[j])))
+    return out
+
+
+def score_by_index(
+    by_index: dict[tuple[str, int], tuple[int, Transform2D]], relations: list[tuple[int, int, Transform2D]]
+) -> tuple[Score, Score]:
+    """:func:`score` for relations named by scan index (a corrected log's stamps repeat)."""
+    poses = {index: (robot, n, pose) for (robot, index), (n, pose) in by_index.items()}
+    counts = {k: [0, 0, 0, 0, 0] for k in ("all", "cross")}
+    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in counts}
+    for i, j, truth in relations:
+        a, b = poses.get(i), poses.get(j)
+        kinds = ["all"] + (["cross"] if a is not None and b is not None and a[0] != b[0] else [])
+        for k in kinds:
+            counts[k][0] += 1
+        if a is None or b is None:
+            continue
+        for k in kinds:
+            counts[k][1] += 1
+        if a[1] != b[1]:
+            continue
+        error = truth.inverse().compose(a[2].inverse().compose(b[2]))
+        et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
+        for k in kinds:
+            counts[k][2] += 1
+            counts[k][3] += et < WITHIN_M and er < WITHIN_DEG
+            counts[k][4] += et > WRONG_M or er > WRONG_DEG
+            errors[k].append((et, er))
+    out = []
+    for k in ("all", "cross"):
+        e = errors[k]
+        mean_t = statistics.fmean(x for x, _ in e) if e else math.nan
+        out.append(Score(*counts[k], mean_t, statistics.fmean(r for _, r in e) if e else math.nan))
+    return out[0], out[1]
+
+
+def run_corrected(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
+    """A corrected log mapped as ``fleetmap map LOG --split K`` maps it (same code, the default
+    executor), in a process of its own; scored by scan index."""
+    name, split, data, _extra, frame = job
+    path = data / "corrected" / f"{name.removeprefix('corrected/')}-corrected.log.gz"
+    pieces = read_inputs([str(path)], split)
+    executor = make_executor("local")
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            result = map_logs(pieces, Path(tmp) / "out", FleetmapConfig(), executor=executor)
+    finally:
+        executor.close()
+    all_, cross = score_by_index(result.by_index, corrected_relations(path))
+    summary = result.report["map"]
+    return Run(
+        name,
+        split,
+        all_,
+        cross,
+        all_,
+        cross,
+        frame,
+        summary["seconds"],
+        summary["duration_s"] or math.nan,
+        summary["integrations"],
+        summary["components"],
+    )
+
+
 def _pct(n: int, d: int) -> str:
     return f"{100 * n / d:.1f} %" if d else "-"
 
@@ -183,27 +273,53 @@ def table(runs: list[Run]) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--logs", default=",".join(LOGS), help="full-rate logs (comma-separated)")
+    ap.add_argument(
+        "--logs",
+        default=",".join(LOGS),
+        help="logs (comma-separated): full-rate ones by name, SLAM-corrected ones as corrected/NAME "
+        "(or 'corrected' for all of them)",
+    )
     ap.add_argument("--splits", default="1,2,4,8", help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
     ap.add_argument("--write-results", action="store_true", help="update benchmarks/RESULTS.md")
     args, extra = ap.parse_known_args()
-    names = [n for n in args.logs.split(",") if n]
-    unknown = [n for n in names if n not in LOGS]
+    names = [
+        m
+        for n in args.logs.split(",")
+        if n
+        for m in ([f"corrected/{c}" for c in CORRECTED] if n == "corrected" else [n])
+    ]
+    unknown = [n for n in names if n not in LOGS and n.removeprefix("corrected/") not in CORRECTED]
     if unknown:
-        raise SystemExit(f"unknown log {unknown[0]!r} (known: {', '.join(LOGS)})")
+        raise SystemExit(f"unknown log {unknown[0]!r} (known: {', '.join(LOGS)}, corrected/NAME)")
     data = data_folder()
-    frames = {n: measure(data / LOGS[n][0], data / "relations" / f"{n}.relations", LOGS[n][1]).offset for n in names}
+    frames = {
+        n: measure(data / LOGS[n][0], data / "relations" / f"{n}.relations", LOGS[n][1]).offset
+        if n in LOGS
+        else Transform2D.identity()
+        for n in names
+    }
     jobs = [(n, int(k), data, extra, frames[n]) for n in names for k in args.splits.split(",")]
-    with ThreadPoolExecutor(max_workers=args.workers) as pool:
-        runs = []
-        for r in pool.map(run, jobs):
+    runs = []
+    with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(max_workers=1) as processes:
+        futures = [threads.submit(run, job) if job[0] in LOGS else processes.submit(run_corrected, job) for job in jobs]
+        refused = []
+        for job, f in zip(jobs, futures, strict=True):
+            try:
+                r = f.result()
+            except BadInput as e:  # as fleetmap map refuses it
+                refused.append(f"- {job[0]} cut in {job[1]}: refused ({e})")
+                print(refused[-1], flush=True)
+                continue
             runs.append(r)
             print(table([r]).splitlines()[-1], flush=True)
     body = (
-        "`fleetmap map` on the full-rate logs cut into K robots (`--split K`), scored with all of each "
-        "log's relations; cross-robot: relations whose scans are in different robots' pieces. Errors in "
-        "the relations' frame, measured on each log's raw scans by `benchmarks/relation_frame.py`.\n\n" + table(runs)
+        "`fleetmap map` on the logs cut into K robots (`--split K`), scored with all of each log's "
+        "relations; cross-robot: relations whose scans are in different robots' pieces. Errors in the "
+        "relations' frame, measured on each log's raw scans by `benchmarks/relation_frame.py`; the "
+        "corrected logs' relations are every two scans within 2 m by their corrected poses.\n\n"
+        + table(runs)
+        + "".join(f"\n{r}" for r in refused)
     )
     print(body)
     if args.write_results:

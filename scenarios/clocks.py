@@ -57,8 +57,8 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
     - ``repeat``: one scan in :data:`REPEAT_EVERY` stamped as the scan before it.
 
     The odometry of every scan is the true odometry track read (interpolated) at its broken stamp.
-    The same ``seed`` breaks the same scans the same way. A source whose stamps do not increase has
-    no clock to break (a ``ValueError`` says so)."""
+    The same ``seed`` breaks the same scans the same way. A source whose stamps do not increase from
+    scan to scan (rounded, or all 0) has no clock to break (a ``ValueError`` says so)."""
     if clock not in CLOCKS:
         raise ValueError(f"unknown clock {clock!r} (known: {', '.join(CLOCKS)})")
     items = list(scans)
@@ -66,8 +66,8 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
         yield from items
         return
     stamps = [float(_field(s, "stamp")) for s in items]
-    if any(b < a for a, b in itertools.pairwise(stamps)) or stamps[-1] <= stamps[0]:
-        raise ValueError("the scans' stamps do not increase: there is no clock to break")
+    if any(b <= a for a, b in itertools.pairwise(stamps)):
+        raise ValueError("the log's stamps do not increase from scan to scan: it has no clock to break")
     track = _Track(stamps, [_field(s, "odometry") for s in items])
     rng = random.Random(seed)
     if clock == "drop":

@@ -192,6 +192,8 @@ class MapResult:
     report: dict[str, Any]
     poses: list[tuple[str, float, int, Transform2D]]
     """(robot, stamp, component, laser pose in the component's frame) of every placed scan."""
+    by_index: dict[tuple[str, int], tuple[int, Transform2D]] = field(default_factory=dict)
+    """The same by (robot, the scan's index in its input): a log's stamps may repeat."""
 
 
 def map_logs(
@@ -266,7 +268,8 @@ def map_logs(
     behind.finish()
     poses: list[tuple[str, float, int, Transform2D]] = []
     stamps = {p.robot: p.stamps for p in pieces}
-    for (robot, index), (n, pose) in merger.scan_poses().items():
+    by_index = merger.scan_poses()
+    for (robot, index), (n, pose) in by_index.items():
         stamp = stamps[robot].get(index)
         if stamp is not None:
             poses.append((robot, stamp, n, pose))
@@ -280,7 +283,7 @@ def map_logs(
     write_poses_csv(folder / "poses.csv", poses)
     for p in pieces:
         write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
-    return MapResult(report, poses)
+    return MapResult(report, poses, by_index)
 
 
 def _summary(

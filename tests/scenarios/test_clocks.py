@@ -73,8 +73,8 @@ def test_a_turn_through_pi_is_interpolated_the_short_way() -> None:
 
 
 def test_stamps_that_do_not_increase_and_unknown_clocks_are_refused() -> None:
-    flat = [Reading(k, 0.0, None) for k in range(5)]
-    with pytest.raises(ValueError, match="no clock to break"):
-        list(break_clock(flat, "burst"))
+    for stamps in ([0.0] * 5, [0.0, 1.0, 1.0, 2.0]):  # all 0; rounded
+        with pytest.raises(ValueError, match="no clock to break"):
+            list(break_clock([Reading(k, t, None) for k, t in enumerate(stamps)], "burst"))
     with pytest.raises(ValueError, match="unknown clock 'late'"):
         list(break_clock(straight(), "late"))
