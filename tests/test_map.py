@@ -91,6 +91,13 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     assert summary["duration_s"] == pytest.approx(float(stamps[-1]) - float(stamps[0]))
     assert summary["session_s"] < 0.6 * summary["duration_s"]
     assert summary["time_share"] == pytest.approx(summary["seconds"] / summary["duration_s"])
+    # the global map it writes, integrated with itself, is the identity, valid (its fused walls
+    # cross each other at junctions: that refused every transformation)
+    done = fleetmap("integrate", str(first / "global_map.json"), str(first / "global_map.json"), "--json")
+    assert done.returncode == 0, done.stderr
+    itself = json.loads(done.stdout)
+    assert itself["valid"] and itself["value"] > 100.0
+    assert math.hypot(itself["x"], itself["y"]) < 0.01 and abs(itself["theta"]) < 1e-3
 
 
 def _one_error_line(capsys: pytest.CaptureFixture[str], args: list[str], names: str) -> None:

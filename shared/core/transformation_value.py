@@ -82,6 +82,12 @@ def prepare(
     len1, len2 = lengths(s1), lengths(s2)
     refuse = params.segment_length_refuse
     long1, long2 = np.flatnonzero(len1 > refuse), np.flatnonzero(len2 > refuse)
+    # a map whose own long walls cross (walls fused from many views meeting at a junction) breaks
+    # the premise of steps 6-8 for those walls: crossing them says nothing of a transformation
+    if not scan1:
+        long1 = long1[~_self_crossing(s1[long1], _crossing_margins(s1[long1], False, params))]
+    if not scan2:
+        long2 = long2[~_self_crossing(s2[long2], _crossing_margins(s2[long2], False, params))]
     return PreparedPairs(
         s1=s1,
         s2=s2,
@@ -162,12 +168,32 @@ def _crossing_margins(long: Array, scan: bool, params: IntegrationParams) -> Arr
     return margin
 
 
+def _self_crossing(long: Array, reach: Array) -> Array:
+    """Which of a map's long segments cross another of its own (as :func:`refused` reads "cross")."""
+    n = len(long)
+    out = np.zeros(n, dtype=bool)
+    if n < 2:
+        return out
+    u = long[:, 2:4] - long[:, 0:2]
+    normal = np.column_stack([-u[:, 1], u[:, 0]]) / np.hypot(u[:, 0], u[:, 1])[:, None]
+    offset = np.einsum("ij,ij->i", normal, long[:, 0:2])
+    margin = 0.5 * (reach[:, None] + reach[None, :])
+    d1 = normal @ long[:, 0:2].T - offset[:, None]  # (i, j): j's first end from i's line
+    d2 = normal @ long[:, 2:4].T - offset[:, None]
+    j_crosses_i = (np.minimum(d1, d2) < -margin) & (np.maximum(d1, d2) > margin)
+    both = j_crosses_i & j_crosses_i.T
+    np.fill_diagonal(both, False)
+    return np.asarray(both.any(axis=1))
+
+
 def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
     """Algorithm 4, steps 6-8: candidates that make two long segments cross.
 
     Two segments longer than SEGMENTLENGTHREFUSE that cross each other cannot both be walls seen
-    by the two maps. "Cross" is read strictly: each segment reaches more than a margin beyond the
-    other's line on both sides, the mean of the two segments' margins (:func:`_crossing_margins`):
+    by the two maps, unless a map's own walls already cross there: a map's long segments that
+    cross another of its own (walls fused from many views) are left out (:func:`prepare`).
+    "Cross" is read strictly: each segment reaches more than a margin beyond the other's line on
+    both sides, the mean of the two segments' margins (:func:`_crossing_margins`):
     SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE, and more for a scan's far segments. Two
     walls meeting at a corner touch (and, with extraction noise, overshoot a little) without
     crossing, and two nearly parallel segments that overlap are a match, not a contradiction. A

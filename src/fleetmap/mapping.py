@@ -202,9 +202,12 @@ def map_logs(
     config: FleetmapConfig,
     progress: Callable[[int, int], None] | None = None,
     executor: Executor | None = None,
+    on_step: Callable[[int, int, float], None] | None = None,
 ) -> MapResult:
     """Map the pieces (see the module docstring) and write the outputs into ``out_dir``, the
-    integrations run by ``executor`` (default: in this process; the map is the same)."""
+    integrations run by ``executor`` (default: in this process; the map is the same).
+    ``on_step(submaps, integrations, seconds)`` hears of every merger step: the submaps in its
+    graph, the integrations it has done in all, and the seconds the step took."""
     started = time.perf_counter()
     if config.tracking.odometry == "on":
         for p in pieces:
@@ -224,7 +227,10 @@ def map_logs(
         t0 = time.perf_counter()
         for o in merger.step(fuse=final):
             log.add_payload(o.payload)
-        merger_seconds += time.perf_counter() - t0
+        took = time.perf_counter() - t0
+        merger_seconds += took
+        if on_step is not None:
+            on_step(len(merger.submaps), merger.stats.integrations, took)
 
     def send(messages: list[Message]) -> None:
         for m in messages:

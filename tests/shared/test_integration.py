@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.candidates import find_transformations, pairs_consecutive, pairs_histogram
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D, lengths
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
@@ -295,3 +295,24 @@ def test_a_wall_two_maps_place_a_little_apart_does_not_refuse_their_merge_and_ch
     assert cleared.runner_up == every_wall.runner_up and cleared.rivals == every_wall.rivals
     assert cleared.violation == every_wall.violation == every_wall.solid_violation > 0.1 * every_wall.value
     assert cleared.solid_violation <= 0.1 * cleared.value
+
+
+def test_a_map_whose_own_walls_cross_integrates_with_itself_at_the_identity() -> None:
+    # Walls fused from many views cross each other at a junction (a wall overshooting through
+    # another): the paper's refusal of crossing walls (Algorithm 4, steps 6-8) read them as a
+    # contradiction at every transformation, the identity too
+    room = np.array(
+        [
+            [0.0, 0.0, 8.0, 0.0],
+            [8.0, 0.0, 8.0, 6.0],
+            [8.0, 6.0, 0.0, 6.0],
+            [0.0, 6.0, 0.0, 0.0],
+            [3.0, -1.0, 3.0, 3.5],  # a partition fused through the wall it meets
+            [5.0, 2.0, 9.0, 2.0],  # and another through the east wall
+            [1.0, 4.5, 2.5, 4.5],
+        ]
+    )
+    m = SegmentMap(room, ordered=False, oriented=False)
+    found = integrate(m, m)
+    assert found.valid and found.value > 0.9 * float(lengths(room).sum())
+    assert math.hypot(found.transform.x, found.transform.y) < 0.01 and abs(found.transform.theta) < 1e-3
