@@ -136,6 +136,6 @@ def _replaced(item: S, stamp: float, odometry: Transform2D | None) -> S:
     if _field(item, "odometry") is not None:
         changes["odometry"] = odometry
     scan = getattr(item, "scan", None)
-    if scan is not None and dataclasses.is_dataclass(scan) and hasattr(scan, "stamp"):
+    if dataclasses.is_dataclass(scan) and not isinstance(scan, type) and hasattr(scan, "stamp"):
         changes["scan"] = dataclasses.replace(scan, stamp=stamp)
     return dataclasses.replace(item, **changes)  # type: ignore[type-var]
