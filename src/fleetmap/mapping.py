@@ -6,9 +6,10 @@ order of their clocks (each piece's clock starting at 0, as a fleet started toge
 they publish go, as bytes, through one :class:`~fleetmap.merger.engine.Merger`, which takes a step
 every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
 is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
-The merger's side runs on a thread of its own, a little behind the agents (:class:`_Behind`): its
-calls are the same, in the same order, while the agents track the next scans and the executor's
-workers integrate.
+The agents track in worker processes of their own (:class:`~fleetmap.agent_processes.AgentProcesses`:
+the merger's work cannot starve them, as live), and the merger's side runs on a thread of its own,
+a little behind them (:class:`_Behind`): its calls are the same, in the same order, while the
+agents track the next scans and the executor's workers integrate.
 
 Every scan an agent placed gets a global pose in its component (the merged map it belongs to):
 its submap's pose composed with its pose in the submap, refined by the key scans registered on
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from fleetmap.agents.agent import Agent
+from fleetmap.agent_processes import AgentProcesses, Finished
 from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.executor import Executor
@@ -203,24 +204,28 @@ def map_logs(
     progress: Callable[[int, int], None] | None = None,
     executor: Executor | None = None,
     on_step: Callable[[int, int, float], None] | None = None,
+    tracking_processes: int | None = None,
 ) -> MapResult:
     """Map the pieces (see the module docstring) and write the outputs into ``out_dir``, the
     integrations run by ``executor`` (default: in this process; the map is the same).
     ``on_step(submaps, integrations, seconds)`` hears of every merger step: the submaps in its
-    graph, the integrations it has done in all, and the seconds the step took."""
+    graph, the integrations it has done in all, and the seconds the step took. The agents track in
+    ``tracking_processes`` worker processes (:class:`~fleetmap.agent_processes.AgentProcesses`;
+    default: one per robot, up to one fewer than the CPUs; 0: in this process); the map is the same."""
     started = time.perf_counter()
     if config.tracking.odometry == "on":
         for p in pieces:
             if not p.has_odometry:
                 raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
     keys = FleetKeys()
-    agents = {p.robot: Agent(p.robot, config, odometry=p.has_odometry) for p in pieces}
     merger = Merger(keys, config, executor, keep_key_scans=True)
     log = SessionLog()
     # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))
     total = len(timeline)
-    agent_seconds = merger_seconds = 0.0
+    merger_seconds = 0.0
+    processes = AgentProcesses.default_processes(len(pieces)) if tracking_processes is None else tracking_processes
+    agents = AgentProcesses(pieces, [(n, i) for _, n, i in timeline], config, processes)
 
     def step(final: bool = False) -> None:
         nonlocal merger_seconds
@@ -252,21 +257,17 @@ def map_logs(
     behind = _Behind()
     try:
         due = STEP_SECONDS
-        for done, (t, n, i) in enumerate(timeline, 1):
-            while t >= due:
-                behind.call(steps_due)
-                due += STEP_SECONDS
-            piece = pieces[n]
-            s = piece.scans[i]
-            t0 = time.perf_counter()
-            out = agents[piece.robot].add_scan(s.index, s.stamp, s.scan, s.odometry)
-            agent_seconds += time.perf_counter() - t0
-            if out:
-                behind.call(functools.partial(send, out))
-            if progress is not None and (done % 50 == 0 or done == total):
-                progress(done, total)
-        for p in pieces:
-            behind.call(functools.partial(send, agents[p.robot].finish()))
+        with agents:
+            for done, ((t, _, _), (_, _, out)) in enumerate(zip(timeline, agents, strict=True), 1):
+                while t >= due:
+                    behind.call(steps_due)
+                    due += STEP_SECONDS
+                if out:
+                    behind.call(functools.partial(send, out))
+                if progress is not None and (done % 50 == 0 or done == total):
+                    progress(done, total)
+        for n in range(len(pieces)):
+            behind.call(functools.partial(send, agents.finished[n].messages))
         behind.call(finish)
     except BaseException:
         behind.finish(cancel=True)
@@ -283,7 +284,7 @@ def map_logs(
     poses.sort(key=lambda x: (order[x[0]], x[1]))
     report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
     seconds = time.perf_counter() - started
-    report["map"] = _summary(pieces, poses, merger, agents, seconds, agent_seconds, merger_seconds)
+    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
     folder = Path(out_dir)
     (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     write_poses_csv(folder / "poses.csv", poses)
@@ -296,7 +297,7 @@ def _summary(
     pieces: list[Piece],
     poses: list[tuple[str, float, int, Transform2D]],
     merger: Merger,
-    agents: dict[str, Agent],
+    finished: dict[int, Finished],
     seconds: float,
     agent_seconds: float,
     merger_seconds: float,
@@ -322,12 +323,12 @@ def _summary(
                 "first_stamp": p.scans[0].stamp,
                 "last_stamp": p.scans[-1].stamp,
                 "odometry": p.has_odometry,
-                "epochs": agents[p.robot].counts.epochs,
+                "epochs": finished[n].epochs,
                 "scans_placed": placed.get(p.robot, 0),
                 "components": sorted(components.get(p.robot, set())),
-                "clock": _clock(agents[p.robot]),
+                "clock": finished[n].clock,
             }
-            for p in pieces
+            for n, p in enumerate(pieces)
         ],
         "submaps": len(merger.submaps),
         "components": 0 if result is None else len(result.components),
@@ -346,22 +347,6 @@ def _summary(
         "agent_seconds": agent_seconds,
         "merger_seconds": merger_seconds,
         "time_share": seconds / duration if duration > 0 else None,
-    }
-
-
-def _clock(agent: Agent) -> dict[str, Any] | None:
-    """What the tracker made of a robot's stamps (``stamps_trusted`` false: it timed the scans by
-    their sequence at ``mean_period`` from scan ``distrusted_at`` on)."""
-    clock = agent.clock
-    if clock is None:
-        return None
-    return {
-        "stamps_trusted": clock.trusted,
-        "distrusted_at": clock.distrusted_at,
-        "mean_period": clock.period,
-        "repeated": clock.repeated,
-        "backwards": clock.backwards,
-        "too_fast": clock.too_fast,
     }
 
 

@@ -1,0 +1,56 @@
+"""fleetmap map's agents in worker processes: the same map as in line, and a worker that fails or
+dies is an error in the caller, not a run that waits for ever."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from fleetmap.shared.config import FleetmapConfig
+
+from fleetmap.agent_processes import AgentProcesses
+from fleetmap.mapping import Piece, map_logs, read_inputs
+
+
+@pytest.fixture(scope="module")
+def pieces(csail_start: Path) -> list[Piece]:
+    """360 real scans (mit-csail) as two robots."""
+    return read_inputs([str(csail_start)], 2, None, 81.91, None)
+
+
+def _order(pieces: list[Piece]) -> list[tuple[int, int]]:
+    timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))
+    return [(n, i) for _, n, i in timeline]
+
+
+@pytest.mark.slow
+def test_agents_in_worker_processes_map_as_agents_in_line(pieces: list[Piece], tmp_path: Path) -> None:
+    in_line = map_logs(pieces, tmp_path / "in-line", FleetmapConfig(), tracking_processes=0)
+    apart = map_logs(pieces, tmp_path / "apart", FleetmapConfig(), tracking_processes=2)
+    assert len(in_line.poses) > 300
+    assert apart.poses == in_line.poses
+    for a, b in zip(apart.report["map"]["robots"], in_line.report["map"]["robots"], strict=True):
+        assert (a["robot"], a["epochs"], a["scans_placed"], a["clock"]) == (
+            b["robot"],
+            b["epochs"],
+            b["scans_placed"],
+            b["clock"],
+        )
+
+
+def test_a_worker_that_fails_raises_its_error_in_the_caller(pieces: list[Piece]) -> None:
+    broken = [replace(pieces[0], scans=[replace(s, scan=None) for s in pieces[0].scans]), pieces[1]]
+    with AgentProcesses(broken, _order(broken), FleetmapConfig(), 2) as agents, pytest.raises(AttributeError):
+        for _ in agents:
+            pass
+
+
+def test_a_worker_that_dies_is_a_clear_error_not_a_wait(pieces: list[Piece]) -> None:
+    with AgentProcesses(pieces, _order(pieces), FleetmapConfig(), 1) as agents:
+        process = agents._workers[0][0]
+        process.kill()
+        process.join(timeout=30)
+        with pytest.raises(RuntimeError, match=r"tracking worker .* ended"):
+            for _ in agents:
+                pass
