@@ -100,6 +100,47 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     assert math.hypot(itself["x"], itself["y"]) < 0.01 and abs(itself["theta"]) < 1e-3
 
 
+@pytest.mark.slow  # maps mit-csail's two halves apart (about 40 s)
+def test_a_logs_two_halves_mapped_apart_merge_where_its_relations_put_them(datasets: Path, tmp_path: Path) -> None:
+    with gzip.open(datasets / "mit-csail" / "mit-csail.clf.gz", "rt") as fh:
+        lines = [line for line in fh if line.startswith(("FLASER", "ODOM"))]
+    lasers = [n for n, line in enumerate(lines) if line.startswith("FLASER")]
+    cut = lasers[len(lasers) // 2]
+    maps, placed = [], []
+    for name, part in (("first", lines[:cut]), ("second", lines[cut:])):
+        log = tmp_path / f"{name}.clf"
+        log.write_text("".join(part))
+        out = tmp_path / name
+        done = fleetmap("map", str(log), "--out", str(out), "--range-max", "81.91", "--no-progress")
+        assert done.returncode == 0, done.stderr
+        maps.append(out / "global_map.json")
+        # the maps fleetmap writes say where their walls were seen from
+        assert len(json.loads(maps[-1].read_text()).get("viewpoints", ())) > 10
+        placed.append({round(float(r["stamp"]), 4): _pose(r) for r in _rows(out / "poses.csv")})
+    done = fleetmap("merge", *map(str, maps), "--order", "unknown", "--json")
+    assert done.returncode == 0, done.stderr
+    merged = json.loads(done.stdout)
+    assert len(merged["components"]) == 1, "the two halves stayed apart"
+    first, second = (Transform2D(**merged["poses"][str(m)]) for m in maps)
+    found = second.inverse().compose(first)  # the first half's frame in the second's
+    # where the log's relations between scans of the two halves put it (each relation: the second
+    # scan's pose in the first's)
+    implied = []
+    for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(datasets / "relations" / "mit-csail.relations"):
+        for (a, b), rel in (((t1, t2), Transform2D(x, y, yaw)), ((t2, t1), Transform2D(x, y, yaw).inverse())):
+            pa, pb = placed[0].get(round(a, 4)), placed[1].get(round(b, 4))
+            if pa is not None and pb is not None:
+                implied.append(pb.compose(rel.inverse()).compose(pa.inverse()).as_array())
+    assert len(implied) >= 3
+    truth = np.median(np.array(implied), axis=0)
+    assert math.hypot(found.x - truth[0], found.y - truth[1]) < 0.5, (found, truth)
+    assert abs(math.remainder(found.theta - truth[2], math.tau)) < math.radians(2), (found, truth)
+
+
+def _pose(row: dict[str, str]) -> Transform2D:
+    return Transform2D(float(row["x"]), float(row["y"]), float(row["theta"]))
+
+
 def _one_error_line(capsys: pytest.CaptureFixture[str], args: list[str], names: str) -> None:
     """``fleetmap map ARGS`` in this process (the CLI's own entry point): exit 2, one line on
     stderr naming the input."""

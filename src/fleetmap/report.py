@@ -27,6 +27,7 @@ from fleetmap.scenarios import GroundTruth, Scenario, ground_truth
 from fleetmap.scenarios.fleet import Kidnap
 from fleetmap.scenarios.metrics import aligned_map_error, coverage, map_error, pose_error, world_from_global
 from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.mapgrid import VIEWPOINTS, distinct_viewpoints, moved_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.keys import FleetKeys, parse_submap_key
 from fleetmap.shared.io.messages import (
@@ -424,7 +425,23 @@ def global_map_json(log: SessionLog) -> dict[str, Any]:
     out["poses"] = {k: (frames[k].to_dict() if k in frames else None) for k in epochs}
     out["submaps"] = {k: (main.poses[k].to_dict() if main is not None and k in main.poses else None) for k in submaps}
     out["anchor"] = None if main is None else main.anchor
+    views = _viewpoints(log, main) if main is not None else np.zeros((0, 5))
+    if len(views):
+        out[VIEWPOINTS] = views.round(6).tolist()
     return out
+
+
+def _viewpoints(log: SessionLog, main: Component) -> Array:
+    """Where the global map's walls were seen from (the submaps' viewpoints at their poses, a few
+    per place): a reader that integrates the map with another judges crossings by the free space
+    they saw (the large-map path), not by the paper's refusal of any two long walls that cross,
+    which one corner fused a little long trips between maps of thousands of walls."""
+    views = [
+        moved_viewpoints(m.viewpoints, main.poses[k])
+        for k in main.members
+        if (m := log.local_maps.get(k)) is not None and m.viewpoints is not None and k in main.poses
+    ]
+    return distinct_viewpoints(np.vstack(views)) if views else np.zeros((0, 5))
 
 
 def _epoch_key(key: str) -> str:
