@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from fleetmap.merger.executor import Indexes, PairJob, PairResult, reference_of, run_pair
@@ -79,6 +80,11 @@ class Edge:
         return self.runner_up / score if score > 0 else math.inf
 
     def reversed(self) -> Edge:
+        """The same edge from b to a (made once per edge: every solve's forest asks again)."""
+        return self._reversed
+
+    @cached_property
+    def _reversed(self) -> Edge:
         inverse = self.transform.inverse()
         rivals = tuple(t.inverse() for t in self.rivals)
         information = None
@@ -443,9 +449,13 @@ def _inverse_jacobian(t: Transform2D) -> Array:
 
 
 def _culprit(
-    tree: list[Edge], loops: list[Edge], conflicts: list[Edge], adjacency: dict[str, list[Edge]]
+    tree: list[Edge],
+    loops: list[Edge],
+    conflicts: list[Edge],
+    path_keys: Callable[[str, str], Iterable[tuple[str, str]]],
 ) -> Edge | None:
-    """The tree edge that more cycles accuse than support, if any.
+    """The tree edge that more cycles accuse than support, if any (``path_keys(a, b)``: the keys of
+    the tree edges on the path from a to b).
 
     Each rejected edge votes against the tree edges on its cycle; each loop closure votes for
     them; a tree edge also counts as one vote for itself. The culprit has the most votes against
@@ -459,8 +469,8 @@ def _culprit(
     good: dict[tuple[str, str], float] = {}
     for votes, edges in ((bad, conflicts), (good, loops)):
         for e in edges:
-            for t in _tree_path(adjacency, e.a, e.b):
-                votes[t.key()] = votes.get(t.key(), 0.0) + 1.0
+            for key in path_keys(e.a, e.b):
+                votes[key] = votes.get(key, 0.0) + 1.0
     best, margin = None, 0.0
     for t in tree:
         m = bad.get(t.key(), 0.0) - good.get(t.key(), 0.0) - 1.0

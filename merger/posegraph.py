@@ -34,6 +34,7 @@ from dataclasses import replace
 
 import gtsam
 import numpy as np
+from fleetmap.merger.forest import RootedForest
 from fleetmap.merger.graph import (
     Component,
     Edge,
@@ -254,8 +255,10 @@ class PoseGraph(MapGraph):
         may fail against what later joined them)."""
         excluded: set[tuple[str, str]] = set()
         while True:
-            tree, loops, conflicts, adjacency = self._kruskal(links + [e for e in valid if e.key() not in excluded])
-            culprit = self._culprit(tree, loops, conflicts, adjacency)
+            tree, loops, conflicts, adjacency, forest = self._kruskal(
+                links + [e for e in valid if e.key() not in excluded]
+            )
+            culprit = self._culprit(tree, loops, conflicts, adjacency, forest)
             if culprit is None:
                 culprit = self._failed_join(tree, adjacency)
                 if culprit is not None:
@@ -269,7 +272,12 @@ class PoseGraph(MapGraph):
         return tree, loops, rejected
 
     def _culprit(
-        self, tree: list[Edge], loops: list[Edge], conflicts: list[Edge], adjacency: dict[str, list[Edge]]
+        self,
+        tree: list[Edge],
+        loops: list[Edge],
+        conflicts: list[Edge],
+        adjacency: dict[str, list[Edge]],
+        forest: RootedForest,
     ) -> Edge | None:
         """The tree integration that more cycles accuse than support (:func:`~fleetmap.merger.graph._culprit`), counting
         only the accusers that the maps they would join bear out: cut the accused edge, and an
@@ -282,7 +290,7 @@ class PoseGraph(MapGraph):
         poses: dict[str, Transform2D] | None = None
         while True:
             heard = [e for e in conflicts if e.key() not in void]
-            culprit = _culprit(joins, loops, heard, adjacency)
+            culprit = _culprit(joins, loops, heard, forest.path_keys)
             if culprit is None:
                 return None
             if poses is None:
@@ -292,7 +300,7 @@ class PoseGraph(MapGraph):
             side_a = [k for k in _bfs_order(adjacency, culprit.a) if k not in side_b]
             voided = False
             for e in heard:
-                if not any(t.key() == culprit.key() for t in _tree_path(adjacency, e.a, e.b)):
+                if culprit.key() not in forest.path_keys(e.a, e.b):
                     continue
                 accuser = e if e.a not in side_b else e.reversed()
                 if not self._join_holds(accuser, side_a, sorted(side_b), poses, adjacency):
@@ -365,8 +373,15 @@ class PoseGraph(MapGraph):
                 var_r += cov[2, 2]
         return 3.0 * math.sqrt(var_t), 3.0 * math.sqrt(var_r)
 
-    def _kruskal(self, edges: Iterable[Edge]) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]]]:
-        """Maximum spanning forest with the cycle check (links never rejected; see the module)."""
+    def _kruskal(
+        self, edges: Iterable[Edge]
+    ) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]], RootedForest]:
+        """Maximum spanning forest with the cycle check (links never rejected; see the module).
+
+        An edge whose two submaps the forest already joins changes nothing in the forest, and its
+        path through the forest is the same once the forest is whole: the cycle checks are made
+        then, on the forest rooted once (:class:`~fleetmap.merger.forest.RootedForest`), in the
+        order the edges came."""
         root = {k: k for k in self._nodes}
         rel = {k: Transform2D.identity() for k in self._nodes}
         members = {k: [k] for k in self._nodes}
@@ -375,6 +390,7 @@ class PoseGraph(MapGraph):
         conflicts: list[Edge] = []
         adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
         edges = list(edges)
+        checks: list[tuple[Edge, str]] = []  # joins refused, and edges within one group, in order
         by_node: dict[str, list[Edge]] = {}
         for e in edges:
             if not e.link:
@@ -388,18 +404,11 @@ class PoseGraph(MapGraph):
                 # two groups: in a grid of corridors the neighbours of a hypothesis turned round or
                 # crosswise bear it out as readily as the right one's (aces cut in 8: all four wrong
                 # joins were such hypotheses; docs/decisions/002-pose-graph.md)
-                if ra != rb:
-                    continue
-                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
-                path = _tree_path(adjacency, e.a, e.b)
-                tol_t, tol_r = self._cycle_tolerance(path)
-                predicted = rel[e.a].inverse().compose(rel[e.b])
-                agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
-                if len(agreeing) == 1:
-                    loops.append(replace(agreeing[0], valid=True))
+                if ra == rb:
+                    checks.append((e, "ambiguous"))
                 continue
             elif ra != rb and not e.link and not self._join_holds(e, members[ra], members[rb], rel, adjacency):
-                conflicts.append(e)
+                checks.append((e, "refused"))
                 continue
             elif ra != rb and not e.link:
                 rival = self._rival_join(e, members[ra], members[rb], rel, adjacency, by_node)
@@ -414,17 +423,36 @@ class PoseGraph(MapGraph):
                         rival[1],
                         math.degrees(rival[2]),
                     )
-                    conflicts.append(e)
+                    checks.append((e, "refused"))
                     continue
             if ra != rb:
                 _unite(e, root, rel, members, tree, adjacency)
+            else:
+                checks.append((e, "cycle"))
+        forest = RootedForest(self._nodes, adjacency, self._link_covariances)
+        for e, kind in checks:
+            if kind == "refused":
+                conflicts.append(e)
             elif e.link:
                 loops.append(e)
             else:
+                tol_t, tol_r = self._tolerance_between(forest, e.a, e.b)
                 predicted = rel[e.a].inverse().compose(rel[e.b])
-                tol_t, tol_r = self._cycle_tolerance(_tree_path(adjacency, e.a, e.b))
-                (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
-        return tree, loops, conflicts, adjacency
+                if kind == "cycle":
+                    (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
+                    continue
+                # an ambiguous integration: the one of its hypotheses that agrees with the tree, if only one
+                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+                agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
+                if len(agreeing) == 1:
+                    loops.append(replace(agreeing[0], valid=True))
+        return tree, loops, conflicts, adjacency, forest
+
+    def _tolerance_between(self, forest: RootedForest, a: str, b: str) -> tuple[float, float]:
+        """:meth:`_cycle_tolerance` of the forest's path from a to b."""
+        joins, drift_t, drift_r = forest.drift(a, b)
+        base_t, base_r = self._tolerance(1 + joins)
+        return math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)
 
     def _rival_join(
         self,

@@ -1,0 +1,154 @@
+"""The spanning forest's paths, without a search per question.
+
+The pose graph checks every integration that closes a cycle against the forest's path between its
+two submaps, with a tolerance that grows with what the path's links can have drifted
+(:meth:`~fleetmap.merger.posegraph.PoseGraph._cycle_tolerance`), and counts, for the culprit rule,
+the tree edges on every such path. Found by a breadth-first search and a walk along the path for
+each loop, that cost grew with the whole map at every step (issue 49). Here the forest is rooted
+once: each submap knows its parent edge, its depth and sums over the links from its root, so a
+path is a climb from both ends to their lowest common ancestor, and the drift of a path is a
+difference of sums.
+
+The drift (three standard deviations, first order: a link's heading error turns everything after
+it about the link's start) of a path ``a -> b`` is ``var_t = sum(0.5 tr(C_t) + c |p_b - s|^2)`` and
+``var_r = sum(c)`` over the links on it, with ``C_t`` a link's translation covariance, ``c`` its
+heading variance and ``s`` where the path enters it. Expanded, ``|p_b - s|^2 = |p_b|^2 - 2 p_b.s +
+|s|^2``, so sums of ``c``, ``c s`` and ``c |s|^2`` from the root suffice: one set for the links the
+path climbs (it enters each at its child end) and one for those it descends (at its parent end).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+from fleetmap.merger.graph import Edge
+from fleetmap.shared.core.geometry import Array, Transform2D
+
+_Sums = tuple[float, float, float, float, float, float, float, float, int]
+"""From a node's root down to it: c, then c x, c y, c |s|^2 entered at the child end (a path that
+climbs), the same at the parent end (one that descends), 0.5 tr(C_t), and the integrations."""
+
+_ZERO: _Sums = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+
+
+class RootedForest:
+    """A spanning forest rooted at the first key of each tree (``keys`` in order), with its links'
+    covariances (both ways round, by the edge's two keys)."""
+
+    def __init__(
+        self, keys: Iterable[str], adjacency: dict[str, list[Edge]], covariances: dict[tuple[str, str], Array]
+    ) -> None:
+        self.parent: dict[str, Edge | None] = {}
+        """The tree edge from each node's parent to it (None: a root)."""
+        self.depth: dict[str, int] = {}
+        self.root: dict[str, str] = {}
+        self.at: dict[str, Transform2D] = {}
+        """Each node's pose in its root's frame (along the tree's edges)."""
+        self._sums: dict[str, _Sums] = {}
+        for start in keys:
+            if start in self.depth:
+                continue
+            self.parent[start], self.depth[start], self.root[start] = None, 0, start
+            self.at[start], self._sums[start] = Transform2D.identity(), _ZERO
+            queue, i = [start], 0
+            while i < len(queue):
+                k = queue[i]
+                i += 1
+                for e in adjacency[k]:
+                    u = e.b
+                    if u in self.depth:
+                        continue
+                    self.parent[u], self.depth[u], self.root[u] = e, self.depth[k] + 1, start
+                    self.at[u] = self.at[k].compose(e.transform)
+                    self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
+                    queue.append(u)
+
+    def lowest_common(self, a: str, b: str) -> str | None:
+        """The lowest common ancestor of two nodes (None: in different trees)."""
+        if self.root.get(a) is None or self.root.get(a) != self.root.get(b):
+            return None
+        while self.depth[a] > self.depth[b]:
+            a = self._up(a)
+        while self.depth[b] > self.depth[a]:
+            b = self._up(b)
+        while a != b:
+            a, b = self._up(a), self._up(b)
+        return a
+
+    def _up(self, k: str) -> str:
+        e = self.parent[k]
+        assert e is not None
+        return e.a
+
+    def path_keys(self, a: str, b: str) -> list[tuple[str, str]]:
+        """The keys of the tree edges on the path from a to b (empty if not connected)."""
+        top = self.lowest_common(a, b)
+        if top is None:
+            return []
+        keys = []
+        for k in (a, b):
+            while k != top:
+                e = self.parent[k]
+                assert e is not None
+                keys.append(e.key())
+                k = e.a
+        return keys
+
+    def path(self, a: str, b: str) -> list[Edge]:
+        """The tree edges on the path from a to b, in order, each from its a toward b (as
+        :func:`~fleetmap.merger.graph._tree_path` gives them; empty if not connected)."""
+        top = self.lowest_common(a, b)
+        if top is None:
+            return []
+        up, down = [], []
+        k = a
+        while k != top:
+            e = self.parent[k]
+            assert e is not None
+            up.append(e.reversed())
+            k = e.a
+        k = b
+        while k != top:
+            e = self.parent[k]
+            assert e is not None
+            down.append(e)
+            k = e.a
+        return up + down[::-1]
+
+    def drift(self, a: str, b: str) -> tuple[int, float, float]:
+        """The path from a to b: its integrations, and three standard deviations (m, rad) of what
+        its links can have drifted (the module docstring)."""
+        top = self.lowest_common(a, b)
+        if top is None:
+            raise ValueError(f"{a} and {b} are not in one tree")
+        sa, sb, st = self._sums[a], self._sums[b], self._sums[top]
+        c = (sa[0] - st[0]) + (sb[0] - st[0])
+        cx = (sa[1] - st[1]) + (sb[4] - st[4])
+        cy = (sa[2] - st[2]) + (sb[5] - st[5])
+        c2 = (sa[3] - st[3]) + (sb[6] - st[6])
+        tr = (sa[7] - st[7]) + (sb[7] - st[7])
+        end = self.at[b]
+        var_t = tr + c * (end.x * end.x + end.y * end.y) - 2.0 * (end.x * cx + end.y * cy) + c2
+        joins = sa[8] + sb[8] - 2 * st[8]
+        return joins, 3.0 * math.sqrt(max(var_t, 0.0)), 3.0 * math.sqrt(max(c, 0.0))
+
+
+def _add(
+    sums: _Sums, e: Edge, covariances: dict[tuple[str, str], Array], child: Transform2D, parent: Transform2D
+) -> _Sums:
+    cov = covariances.get((e.a, e.b)) if e.link else None
+    if cov is None:
+        return (*sums[:8], sums[8] + (not e.link))
+    c = float(cov[2, 2])
+    return (
+        sums[0] + c,
+        sums[1] + c * child.x,
+        sums[2] + c * child.y,
+        sums[3] + c * (child.x * child.x + child.y * child.y),
+        sums[4] + c * parent.x,
+        sums[5] + c * parent.y,
+        sums[6] + c * (parent.x * parent.x + parent.y * parent.y),
+        sums[7] + 0.5 * float(cov[0, 0] + cov[1, 1]),
+        sums[8],
+    )
