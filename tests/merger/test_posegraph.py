@@ -147,6 +147,28 @@ def test_the_same_submaps_in_another_order_give_the_same_map(fleet: Fleet) -> No
         assert dt < 0.05 and np.degrees(dr) < 0.5, f"{key}: {dt:.3f} m, {np.degrees(dr):.2f} deg"
 
 
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_the_graph_solved_step_by_step_and_from_scratch_gives_the_same_poses(fleet: Fleet) -> None:
+    # step by step the merger keeps its joins' verdicts and its solutions from step to step
+    graph = _merged(fleet.finals).graph
+    scratch = PoseGraph(graph.integration, graph.merge, graph.tracking)
+    for key in graph.keys:
+        scratch.put_map(key, graph.map_of(key), graph.version_of(key))
+    for link in graph.links:
+        scratch.put_link(link.a, link.b, link.transform, graph._link_covariances[(link.a, link.b)])
+    for e in graph.edges:
+        scratch.add_edge(e)
+    kept, fresh = graph.solve(), scratch.solve()
+    assert [set(c.members) for c in kept.components] == [set(c.members) for c in fresh.components]
+    assert len(kept.components[0].members) == len(fleet.truth)
+    for key, pose in kept.poses.items():
+        other = fresh.poses[key]
+        assert (pose is None) == (other is None), key
+        if pose is not None and other is not None:
+            dt, dr = pose.distance(other)
+            assert dt < 0.001 and dr < 1e-4, f"{key}: {dt:.4f} m, {np.degrees(dr):.3f} deg"
+
+
 def test_a_robot_never_integrated_stays_apart_with_no_pose() -> None:
     # r2 and r3 map the same stretch of the department; r9 drives past a box in an open field:
     # three linked submaps that match nobody's walls.
