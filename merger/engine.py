@@ -724,7 +724,7 @@ class Merger:
     def _within_reach(self, a: str, b: str) -> bool:
         """Whether registration from the predicted pose can find b on a: the drift the links
         between two submaps of one robot's chain allow (three standard deviations of their
-        covariances, :meth:`~fleetmap.merger.posegraph.PoseGraph.chain_drift`) is within the
+        covariances, :meth:`~fleetmap.merger.joins.JoinJudge.chain_drift`) is within the
         tracking's correspondence distance and 5 degrees; always for two robots' submaps (their
         prediction comes through integrations)."""
         drift = self.graph.chain_drift(a, b)
