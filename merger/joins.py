@@ -36,13 +36,13 @@ VERDICT_VERSIONS = 5
 """A pair's verdict on a join is found again once either submap has this many versions more."""
 
 RIVALS_KEPT = 10_000
-"""Rival verdicts kept (:meth:`PoseGraph._rival_join`) before they are forgotten all at once."""
+"""Rival verdicts kept (:meth:`JoinJudge._rival_join`) before they are forgotten all at once."""
 RIVAL_JOINS = 3
 """At most this many clearly different alignments of two groups are judged before a join of them
-(:meth:`PoseGraph._rival_join`): each costs a join check."""
+(:meth:`JoinJudge._rival_join`): each costs a join check."""
 
 Verdict = tuple[float, float, Array | None]
-"""What a pair says of a join (:meth:`PoseGraph._pair_verdict`): the value it bears it out with,
+"""What a pair says of a join (:meth:`JoinJudge._pair_verdict`): the value it bears it out with,
 the wall against it, and, where it bears it out, how firmly its walls fix the translation (2x2, in
 the pair's first submap's frame; None: they do not)."""
 
@@ -53,7 +53,7 @@ LOOKS_KEPT = 200_000
 
 @dataclass
 class _Judged:
-    """A join's verdict (:meth:`PoseGraph._join_holds`) and its two sides when it was given: each
+    """A join's verdict (:meth:`JoinJudge._join_holds`) and its two sides when it was given: each
     submap's version and pose from the join's own submap on its side."""
 
     holds: bool
