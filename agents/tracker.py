@@ -401,7 +401,16 @@ class Tracker:
             fits.append(_Fit(reg, why == "", why))
         best = None
         for n, fit in enumerate(fits):
-            margin = 1.0 if apart and n == 1 else share
+            # the two motion models' fits weigh alike by score, unless they turn alike and lie
+            # beyond registration's reach of each other: two minima of one heading, apart along
+            # what the walls leave free, where the scores cannot tell them apart and the first
+            # prediction's stands as any other's does (down a corridor logged a scan a metre, the
+            # better-scoring of two such fits lay 1.3-1.5 m along it: aces-corrected scans 26, 49,
+            # 318; two fits within reach are one minimum found better, mit-csail's fast turns)
+            settled = (
+                apart and n == 1 and not _minima_along(fit.registration.pose, fits[0].registration.pose, self.params)
+            )
+            margin = 1.0 if settled else share
             if fit.good and (best is None or fit.registration.score * margin >= best.registration.score):
                 best = fit
         if best is None or best.registration.score < floor:
@@ -669,6 +678,13 @@ class Tracker:
     def submaps(self) -> Iterator[Submap]:
         """The active submaps, oldest first."""
         return iter(self.active)
+
+
+def _minima_along(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
+    """Whether two fits of one scan are two minima of one heading: they turn alike (within
+    :data:`REACH_ROTATION`) and lie farther apart than registration reaches (``max_correspondence``)."""
+    d, r = a.distance(b)
+    return r <= REACH_ROTATION and d > p.max_correspondence
 
 
 def _same_start(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
