@@ -682,9 +682,8 @@ class Tracker:
 
 def _minima_along(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
     """Whether two fits of one scan are two minima of one heading: they turn alike (within
-    :data:`REACH_ROTATION`) and lie farther apart than registration reaches (``max_correspondence``)."""
-    d, r = a.distance(b)
-    return r <= REACH_ROTATION and d > p.max_correspondence
+    :data:`REACH_ROTATION`) and lie beyond registration's reach of each other (:func:`_same_start`)."""
+    return a.distance(b)[1] <= REACH_ROTATION and not _same_start(a, b, p)
 
 
 def _same_start(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:

@@ -36,6 +36,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,23 +92,32 @@ def _key(stamp: float) -> int:
     return round(stamp * 1e4)  # mit-csail's relations give stamps to 5 decimals
 
 
+Placed = tuple[str, int, Transform2D]
+"""A scan's robot, component and pose."""
+
+
 def score(poses_csv: Path, relations: Path, frame: Transform2D | None = None) -> tuple[Score, Score]:
     """All and cross-robot relations scored against ``poses_csv``'s laser poses, each moved onto
     the relations' ``frame`` on the laser (:mod:`relation_frame`; none: the laser's)."""
     frame = frame or Transform2D.identity()
-    poses: dict[int, tuple[str, int, Transform2D]] = {}
+    poses: dict[int, Placed] = {}
     with poses_csv.open(encoding="utf-8") as fh:
         for row in csv.DictReader(fh):
             t = Transform2D(float(row["x"]), float(row["y"]), float(row["theta"])).compose(frame)
             poses[_key(float(row["stamp"]))] = (row["robot"], int(row["component"]), t)
-    tallies: dict[str, list[float]] = {"all": [], "cross": []}
-    counts = {k: [0, 0, 0, 0, 0] for k in tallies}  # relations, placed, joined, within, wrong
-    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in tallies}
-    for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(relations):
-        a, b = poses.get(_key(t1)), poses.get(_key(t2))
-        kinds = ["all"]
-        if a is not None and b is not None and a[0] != b[0]:
-            kinds.append("cross")
+    return _tally(
+        (poses.get(_key(t1)), poses.get(_key(t2)), Transform2D(x, y, yaw))
+        for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(relations)
+    )
+
+
+def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]) -> tuple[Score, Score]:
+    """All and cross-robot relations scored: each its two scans as placed (None: not placed) and
+    the second's true pose in the first's frame."""
+    counts = {k: [0, 0, 0, 0, 0] for k in ("all", "cross")}  # relations, placed, joined, within, wrong
+    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in counts}
+    for a, b, truth in relations:
+        kinds = ["all"] + (["cross"] if a is not None and b is not None and a[0] != b[0] else [])
         for k in kinds:
             counts[k][0] += 1
         if a is None or b is None:
@@ -116,24 +126,18 @@ def score(poses_csv: Path, relations: Path, frame: Transform2D | None = None) ->
             counts[k][1] += 1
         if a[1] != b[1]:
             continue
-        error = Transform2D(x, y, yaw).inverse().compose(a[2].inverse().compose(b[2]))
+        error = truth.inverse().compose(a[2].inverse().compose(b[2]))
         et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
         for k in kinds:
             counts[k][2] += 1
             counts[k][3] += et < WITHIN_M and er < WITHIN_DEG
             counts[k][4] += et > WRONG_M or er > WRONG_DEG
             errors[k].append((et, er))
-    del tallies
     out = []
     for k in ("all", "cross"):
         e = errors[k]
-        out.append(
-            Score(
-                *counts[k],
-                statistics.fmean(x for x, _ in e) if e else math.nan,
-                statistics.fmean(r for _, r in e) if e else math.nan,
-            )
-        )
+        mean_t = statistics.fmean(x for x, _ in e) if e else math.nan
+        out.append(Score(*counts[k], mean_t, statistics.fmean(r for _, r in e) if e else math.nan))
     return out[0], out[1]
 
 
@@ -183,32 +187,7 @@ def score_by_index(
 ) -> tuple[Score, Score]:
     """:func:`score` for relations named by scan index (a corrected log's stamps repeat)."""
     poses = {index: (robot, n, pose) for (robot, index), (n, pose) in by_index.items()}
-    counts = {k: [0, 0, 0, 0, 0] for k in ("all", "cross")}
-    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in counts}
-    for i, j, truth in relations:
-        a, b = poses.get(i), poses.get(j)
-        kinds = ["all"] + (["cross"] if a is not None and b is not None and a[0] != b[0] else [])
-        for k in kinds:
-            counts[k][0] += 1
-        if a is None or b is None:
-            continue
-        for k in kinds:
-            counts[k][1] += 1
-        if a[1] != b[1]:
-            continue
-        error = truth.inverse().compose(a[2].inverse().compose(b[2]))
-        et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
-        for k in kinds:
-            counts[k][2] += 1
-            counts[k][3] += et < WITHIN_M and er < WITHIN_DEG
-            counts[k][4] += et > WRONG_M or er > WRONG_DEG
-            errors[k].append((et, er))
-    out = []
-    for k in ("all", "cross"):
-        e = errors[k]
-        mean_t = statistics.fmean(x for x, _ in e) if e else math.nan
-        out.append(Score(*counts[k], mean_t, statistics.fmean(r for _, r in e) if e else math.nan))
-    return out[0], out[1]
+    return _tally((poses.get(i), poses.get(j), truth) for i, j, truth in relations)
 
 
 def run_corrected(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:

@@ -95,27 +95,6 @@ class RootedForest:
                 k = e.a
         return keys
 
-    def path(self, a: str, b: str) -> list[Edge]:
-        """The tree edges on the path from a to b, in order, each from its a toward b (as
-        :func:`~fleetmap.merger.graph._tree_path` gives them; empty if not connected)."""
-        top = self.lowest_common(a, b)
-        if top is None:
-            return []
-        up, down = [], []
-        k = a
-        while k != top:
-            e = self.parent[k]
-            assert e is not None
-            up.append(e.reversed())
-            k = e.a
-        k = b
-        while k != top:
-            e = self.parent[k]
-            assert e is not None
-            down.append(e)
-            k = e.a
-        return up + down[::-1]
-
     def drift(self, a: str, b: str) -> tuple[int, float, float]:
         """The path from a to b: its integrations, and three standard deviations (m, rad) of what
         its links can have drifted (the module docstring)."""

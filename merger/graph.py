@@ -479,13 +479,14 @@ def _culprit(
     return best
 
 
-def _bfs_order(adjacency: dict[str, list[Edge]], start: str) -> list[str]:
+def _bfs_order(adjacency: dict[str, list[Edge]], start: str, cut: tuple[str, str] | None = None) -> list[str]:
+    """The nodes reached from ``start``, breadth first (not across the edge whose key is ``cut``)."""
     order = [start]
     seen = {start}
     i = 0
     while i < len(order):
         for e in adjacency[order[i]]:
-            if e.b not in seen:
+            if e.b not in seen and (cut is None or e.key() != cut):
                 seen.add(e.b)
                 order.append(e.b)
         i += 1

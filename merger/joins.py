@@ -514,7 +514,8 @@ class JoinJudge(MapGraph):
 
         A verdict rests on the pairs of the two sides' submaps that met across the join. Since it
         was given, either side may have grown (a robot's next submaps, another group joined to
-        it), a submap may have a new version, or the tree may have moved one within its side.
+        it), a submap may have a new version, or the tree may have moved one within its side (by
+        more than a third of the base tolerance, as a pair's verdict is kept: :meth:`_pair_verdict`).
         Only the pairs such a submap makes are new evidence, so only they are looked at (the cheap
         look, :meth:`_look`): a join that held is judged again only if one of them puts
         ``valid_refute_violation`` of wall where the other side saw free space, and one that

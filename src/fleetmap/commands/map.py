@@ -1,4 +1,4 @@
-"""``fleetmap map``: real logs and ROS 2 bags mapped offline in one process (fleetmap.mapping)."""
+"""``fleetmap map``: real logs and ROS 2 bags mapped offline in one command (fleetmap.mapping)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "map",
         help="map CARMEN logs, ROS 2 bags or ranges JSONL files offline, each one robot",
-        description="Map real logs offline, in one process, with the same agent and merger code as the live "
+        description="Map real logs offline, in one command, with the same agent and merger code as the live "
         "services: each INPUT is one robot (a CARMEN log, plain or .gz; a ROS bag: a rosbag2 directory, .mcap "
         "or .db3 file, or a ROS 1 .bag; a "
         "ranges JSONL file); --split K cuts each input into K robots' consecutive pieces that run side by side, "
