@@ -202,13 +202,17 @@ class OdometryTrack:
     def __bool__(self) -> bool:
         return bool(self.readings)
 
-    def at(self, line: int, stamp: float) -> Transform2D:
+    def at(self, line: int, stamp: float) -> Transform2D | None:
+        """The odometry at a scan; None where the wheels' motion from the reading before it is not
+        known (:attr:`~fleetmap.shared.io.logs.OdometryReading.moved`)."""
         r = self.readings
         if self.by_time and self.stamps[0] <= stamp <= self.stamps[-1]:
             j = int(np.searchsorted(self.stamps, stamp, side="right"))
             if j >= len(r):
-                return Transform2D(*r[-1].pose)
+                return Transform2D(*r[-1].pose) if r[-1].moved else None
             a, b = r[j - 1], r[j]
+            if not a.moved:
+                return None
             span = b.stamp - a.stamp
             f = (stamp - a.stamp) / span if span > 0 else 0.0
             turn = math.remainder(b.pose[2] - a.pose[2], 2 * math.pi)
@@ -218,7 +222,7 @@ class OdometryTrack:
                 math.remainder(a.pose[2] + f * turn, 2 * math.pi),
             )
         j = max(int(np.searchsorted(self.lines, line, side="left")) - 1, 0)
-        return Transform2D(*r[j].pose)
+        return Transform2D(*r[j].pose) if r[j].moved else None
 
 
 class Ros2BagSource:
@@ -382,7 +386,7 @@ class Ros2BagSource:
         odometry = None
         if track is not None and track.stamps[0] <= stamp <= track.stamps[-1]:
             odometry = track.at(0, stamp)
-            if track.mounting is not None:
+            if track.mounting is not None and odometry is not None:
                 odometry = odometry.compose(track.mounting)  # the laser's pose, not the base's
         return _checked(self.name, index, stamp, scan, odometry)
 

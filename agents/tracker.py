@@ -288,7 +288,7 @@ class Tracker:
         self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
-        self._odometry = odometry if odometry is not None else self._odometry
+        self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
         if len(self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
@@ -309,8 +309,7 @@ class Tracker:
         if self._pose is not None and self._stamp is not None:
             self._pose = self._pose_in_epoch(self._predictions(seq, stamp, odometry)[0])
             self._stamp, self._seq = stamp, seq
-            if odometry is not None:
-                self._odometry = odometry
+            self._odometry = odometry
 
     def _predictions(self, seq: int, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
         """Where the scan should be: by odometry when the robot has it, then by constant velocity
@@ -527,8 +526,10 @@ class Tracker:
             seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
             self._velocity, self._velocity_known = velocity_between(self._good[1], pose, seconds), True
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
-        if odometry is not None:
-            self._odometry = odometry
+        # a scan without odometry breaks its chain: the next increment is measured from the next
+        # reading, never across a stretch that no reading saw (a corrected log's scans with no
+        # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
+        self._odometry = odometry
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self._due(stamp, pose):
             self._insert(index, stamp, scan, segments, samples, pose, reg)

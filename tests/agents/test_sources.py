@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from pathlib import Path
@@ -257,6 +258,42 @@ def test_a_carmen_log_without_usable_times_takes_the_odom_line_before_each_scan(
     log = tmp_path / "robot.log"
     log.write_text("".join(lines))
     assert [s.odometry.x for s in CarmenSource(log)] == [0.0, 1.0, 2.0, 3.0]
+
+
+def _corrected_log(wheel_readings: bool) -> str:
+    # a SLAM's corrected log as GMapping writes it: each scan at its corrected pose, the odometry
+    # reading after it at that same pose, then the wheels' readings (1 m along x a scan, no turn)
+    # from there; the corrected poses turn 0.3 rad a scan, which the wheels never did
+    lines = []
+    for i in range(5):
+        corrected = (float(i), 0.5 * i, 0.3 * i)
+        lines.append(flaser_line([2.0] * 181, 0.0, pose=corrected))
+        lines.append(f"ODOM {corrected[0]:.6f} {corrected[1]:.6f} {corrected[2]:.6f} 0 0 0 0 host 0\n")
+        if wheel_readings:
+            for f in (0.5, 1.0):
+                x = corrected[0] + f * math.cos(corrected[2])
+                y = corrected[1] + f * math.sin(corrected[2])
+                lines.append(f"ODOM {x:.6f} {y:.6f} {corrected[2]:.6f} 0 0 0 0 host 0\n")
+    return "".join(lines)
+
+
+def test_a_corrected_logs_odometry_is_the_wheels_increments_not_its_corrected_poses(tmp_path):
+    log = tmp_path / "corrected.log"
+    log.write_text(_corrected_log(wheel_readings=True))
+    scans = list(CarmenSource(log))
+    steps = [a.odometry.inverse().compose(b.odometry) for a, b in itertools.pairwise(scans[1:])]
+    # scan to scan the wheels went 1 m straight on; read as one track, the corrections' 0.3 rad and
+    # half a metre sideways a scan would be in it
+    for step in steps:
+        assert step.x == pytest.approx(1.0, abs=1e-5) and step.y == pytest.approx(0.0, abs=1e-5)
+        assert step.theta == pytest.approx(0.0, abs=1e-5)
+
+
+def test_a_corrected_log_with_no_wheel_reading_between_two_scans_gives_no_odometry_there(tmp_path):
+    log = tmp_path / "corrected.log"
+    log.write_text(_corrected_log(wheel_readings=False))
+    # the reading before each scan but the first is the last scan's corrected pose: no motion known
+    assert [s.odometry is None for s in CarmenSource(log)] == [True, True, True, True, True]
 
 
 def test_a_carmen_log_without_odom_lines_takes_the_odometry_on_its_laser_lines(carmen_log, tmp_path):
