@@ -271,6 +271,16 @@ class Ros2BagSource:
         """Whether the bag has nav_msgs/Odometry (the named topic, or any) or a tf topic."""
         return any(name in ODOMETRY_SCHEMAS + TF_SCHEMAS for name in self._types.values())
 
+    @property
+    def topic_types(self) -> dict[str, str]:
+        """The bag's topics and their message types."""
+        return dict(self._types)
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time in ns, decoded message) of ``topics``, in log time order (undecodable
+        ones skipped with a warning); a bag that cannot be read is :class:`BadInput`."""
+        return self._decoded(topics)
+
     def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log time in ns, message) of ``topics``, in log time order; a bag that cannot be
         read is :class:`BadInput` naming it, wherever it fails."""

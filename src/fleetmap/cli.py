@@ -29,6 +29,7 @@ COMMANDS = (
     "record",
     "router",
     "secure",
+    "play",
 )
 """Modules of fleetmap.commands, in the order ``--help`` lists them."""
 
