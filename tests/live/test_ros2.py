@@ -441,3 +441,78 @@ def assert_same(got: Any, want: Any) -> None:
             assert_same(getattr(got, name), getattr(want, name))
     else:
         assert got == want
+
+
+def test_a_ros2_viewer_started_after_the_map_gets_it_and_the_robots_poses_and_transforms(
+    router: str, csail_start: Path, tmp_path: Path
+) -> None:
+    # `fleetmap merger --ros2` maps a CARMEN robot; an SDK subscriber to /map declared after the
+    # map was published (transient local, as RViz or nav2's map server started later) still gets it
+    from zenoh_ros2_sdk.qos import QosDurability, QosProfile
+
+    domain = 15
+    where = sdk_args(router, domain)
+    keys = FleetKeys("t")
+    poses, transforms, late = Inbox(), Inbox(), Inbox()
+    pose_sub = sdk.ROS2Subscriber("/r1/fleetmap/pose", wire.POSE_WITH_COVARIANCE_STAMPED, poses, **where)
+    tf_sub = sdk.ROS2Subscriber("/tf", wire.TF_MESSAGE, transforms, msg_definition=TF_MESSAGE_MSG, **where)
+    sdk.get_message_class("geometry_msgs/msg/TransformStamped")
+    subscribers = [pose_sub, tf_sub]
+    procs = Processes(tmp_path)
+    raw_maps: list[Any] = []
+    try:
+        with client(router) as bus:
+            scans, services = Inbox(), Inbox()
+            bus.subscribe(keys.scan("r1"), scans)
+            raw = bus.session.declare_subscriber(
+                f"{domain}/map/*/*", lambda s: raw_maps.append(wire.decode(s.payload.to_bytes(), wire.OCCUPANCY_GRID))
+            )
+            bus.subscribe_liveliness(keys.all_services, services, lambda k: None)
+            procs.start("merger", "merger", "--ros2", "--domain", str(domain), *fleet_flags(router))
+            assert services.wait_until(lambda got: any("merger" in str(g) for g in got), WAIT)
+            agent = procs.start(
+                "agent", "agent", "--robot", "r1", "--carmen", str(csail_start), "--stop", "150", "--speed", "0",
+                *fleet_flags(router),
+            )  # fmt: skip
+            assert agent.wait(120) == 0, procs.log("agent")[-3000:]
+            assert wait_for(lambda: len(raw_maps) > 0, 60), "no map on /map"
+            assert poses.wait_for(1, WAIT) and transforms.wait_for(1, WAIT)
+            map_qos = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=1)
+            subscribers.append(sdk.ROS2Subscriber("/map", wire.OCCUPANCY_GRID, late, qos=map_qos, **where))
+            # the SDK queries the publishers' caches as it is made: the map is there when it returns
+            assert late.items, "a subscriber that came after the map did not get it"
+            raw.undeclare()
+    finally:
+        for s in subscribers:
+            s.close()
+        procs.stop()
+    grid = late.items[0][0]
+    assert grid.header.frame_id == "map"
+    stamp = (grid.header.stamp.sec, grid.header.stamp.nanosec)
+    same = [m for m in raw_maps if (m.header.stamp.sec, m.header.stamp.nanosec) == stamp]
+    assert same, "the late subscriber's map is none of those published"
+    assert (grid.info.width, grid.info.height) == (same[0].info.width, same[0].info.height)
+    np.testing.assert_array_equal(np.asarray(grid.data), same[0].data)
+    cells = np.asarray(grid.data)
+    assert len(cells) == grid.info.width * grid.info.height and grid.info.resolution == pytest.approx(0.05)
+    assert np.sum(cells == 100) > 100 and np.sum(cells == 0) > np.sum(cells == 100)
+    # map -> r1/odom composed with the odometry at a scan is the robot's pose on /r1/fleetmap/pose
+    odometry = {round(m.stamp, 6): m.odometry for m in scans_of(scans)}
+    at = {(p.header.stamp.sec, p.header.stamp.nanosec): p.pose.pose for (p,) in poses.items}  # type: ignore[misc]
+    checked = 0
+    for (message,) in transforms.items:  # type: ignore[misc]
+        for t in message.transforms:
+            assert (t.header.frame_id, t.child_frame_id) == ("map", "r1/odom")
+            stamp = (t.header.stamp.sec, t.header.stamp.nanosec)
+            pose = at.get(stamp)
+            odom = odometry.get(round(stamp[0] + stamp[1] * 1e-9, 6))
+            if pose is None or odom is None:
+                continue
+            yaw = 2 * math.atan2(t.transform.rotation.z, t.transform.rotation.w)
+            laser = Transform2D(t.transform.translation.x, t.transform.translation.y, yaw).compose(odom)
+            published = Transform2D(
+                pose.position.x, pose.position.y, 2 * math.atan2(pose.orientation.z, pose.orientation.w)
+            )
+            assert laser.distance(published)[0] < 1e-6 and laser.distance(published)[1] < 1e-6
+            checked += 1
+    assert checked > 10
