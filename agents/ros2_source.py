@@ -83,7 +83,8 @@ class Ros2Topics:
         """The topics of a robot in ``namespace`` (relative names are under it; tf and tf_static too)."""
         names = [wire.fully_qualified(namespace, t) for t in (scan, odom, "tf", "tf_static")]
         qualified = wire.fully_qualified("", namespace) if namespace.strip("/") else ""
-        topics = cls(*names, domain=domain, namespace=qualified)
+        scan_topic, odom_topic, tf, tf_static = names
+        topics = cls(scan_topic, odom_topic, tf, tf_static, domain=domain, namespace=qualified)
         wire.data_key(domain, topics.scan, wire.LASER_SCAN)  # checks the domain
         return topics
 

@@ -41,7 +41,7 @@ class Ros2Publisher:
         reliability = zenoh.Reliability.RELIABLE if qos.reliability == wire.RELIABLE else zenoh.Reliability.BEST_EFFORT
         self._publisher: Any
         reliable = qos.reliability == wire.RELIABLE
-        heartbeat = zenoh.ext.MissDetectionConfig(sporadic_heartbeat=HEARTBEAT) if reliable else None
+        heartbeat = zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT) if reliable else None
         if qos.durability == wire.TRANSIENT_LOCAL:
             self._publisher = zenoh.ext.declare_advanced_publisher(
                 session,

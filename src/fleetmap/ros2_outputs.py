@@ -146,7 +146,8 @@ class Ros2Outputs:
         if message.pose is None or message.component != 0:
             return  # /map is the largest component's: a robot elsewhere is not in its frame
         with self._lock:
-            odometry = self._odometry.get(message.robot, {}).get(message.stamp)
+            kept = self._odometry.get(message.robot)
+            odometry = kept.get(message.stamp) if kept is not None else None
             publisher = self._poses.get(message.robot)
             if publisher is None:
                 topic = f"/{message.robot}/fleetmap/pose"
