@@ -174,3 +174,26 @@ def test_topic_names_and_domains_are_checked():
     assert (t.scan, t.odom, t.tf, t.tf_static) == ("/robot_a/front/scan", "/odom", "/robot_a/tf", "/robot_a/tf_static")
     with pytest.raises(Exception, match="domain"):
         Ros2Topics.of("", domain=500)
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["agent", "--robot", "r1", "--ros2", "--domain", "300"], "--domain: must be a ROS domain id"),
+        (["agent", "--robot", "r1", "--ros2", "--speed", "2"], "--speed: does not apply to --ros2"),
+        (["agent", "--robot", "r1", "--ros2", "--carmen", "x.clf"], "not allowed with argument"),
+        (["agent", "--robot", "r1", "--scenario", "department", "--namespace", "r1"], "apply to --ros2 only"),
+        (["agent", "--robot", "r1", "--ros2", "--topic", "/scan"], "apply to --ros2-bag only"),
+        (["merger", "--domain", "3"], "--domain: applies to --ros2 only"),
+        (["merger", "--ros2", "--domain", "-1"], "must be a ROS domain id"),
+    ],
+)
+def test_bad_ros2_flags_exit_2_with_one_line_before_any_session(argv, says, capsys):
+    from fleetmap.cli import main
+
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own refusals
+        code = int(exc.code or 0)
+    assert code == 2
+    assert says in capsys.readouterr().err

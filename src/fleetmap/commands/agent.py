@@ -154,6 +154,8 @@ def run(args: argparse.Namespace) -> int:
 def run_ros2(args: argparse.Namespace, robot: str, config: FleetmapConfig) -> int:
     """The agent of a live ROS 2 robot: its scans as they come, until SIGINT or SIGTERM."""
     check_source_flags(args)
+    if args.speed != 1.0:
+        raise BadInput("--speed", "does not apply to --ros2: a live robot's scans come at its own pace")
     topics = Ros2Topics.of(args.namespace, args.scan_topic, args.odom_topic, args.domain)
     agent = Agent(robot, config, odometry=Ros2LiveSource.has_odometry, lost_scans=args.lost_scans)
     options = zenoh_options_from_args(args)
