@@ -178,9 +178,15 @@ class Ros2Outputs:
         with self._lock:
             if self._log.main is None:
                 return False
-            grid = occupancy_of(self._log)
-            stamp = self._log.global_maps[-1].stamp
             del self._log.global_maps[:-1]  # only the last one is ever read
+            # what the grid is made of, so that scans and poses go on while it is made
+            snapshot = SessionLog(
+                global_maps=list(self._log.global_maps),
+                local_maps=dict(self._log.local_maps),
+                ranges=dict(self._log.ranges),
+            )
+        grid = occupancy_of(snapshot)
+        stamp = snapshot.global_maps[-1].stamp
         if grid.cells.size == 0:
             return False
         self.map.publish(occupancy_message(grid, stamp))
