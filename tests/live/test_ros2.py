@@ -46,7 +46,7 @@ TF_MESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms\n"
 """tf2_msgs/msg/TFMessage's definition (ros2/geometry2, which the packed definitions do not hold)."""
 SPEED = 5.0
 """The SDK robot publishes a log at this many times its pace."""
-MOUNT = Transform2D(0.2, 0.0, 0.0)
+MOUNT = Transform2D(0.2, 0.05, 0.1)
 """The laser's mounting on the base that the SDK robot publishes on tf_static."""
 
 
@@ -178,7 +178,8 @@ class SdkRobot:
     def publish_mounting(self) -> None:
         T = self.types
         transform = T["geometry_msgs/msg/Transform"](
-            translation=T["geometry_msgs/msg/Vector3"](x=MOUNT.x, y=MOUNT.y, z=0.3), rotation=self.quaternion(0.0)
+            translation=T["geometry_msgs/msg/Vector3"](x=MOUNT.x, y=MOUNT.y, z=0.3),
+            rotation=self.quaternion(MOUNT.theta),
         )
         stamped = T["geometry_msgs/msg/TransformStamped"](
             header=self.header(0.0, f"{self.namespace}/base_link"),
@@ -188,12 +189,14 @@ class SdkRobot:
         self.tf_static.publish(transforms=[stamped])
 
     def publish(self, s: SourceScan, ranges: np.ndarray | None = None) -> None:
-        """The odometry at the scan (the base's: the log's pose taken as the base's), then the scan."""
+        """The base's odometry at the scan (where the log's laser pose puts the base, the laser
+        MOUNT on it), then the scan."""
         T = self.types
         assert s.odometry is not None
+        base = s.odometry.compose(MOUNT.inverse())
         pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=s.odometry.x, y=s.odometry.y, z=0.0),
-            orientation=self.quaternion(s.odometry.theta),
+            position=T["geometry_msgs/msg/Point"](x=base.x, y=base.y, z=0.0),
+            orientation=self.quaternion(base.theta),
         )
         zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
         self.odom.publish(
@@ -288,11 +291,11 @@ def test_an_agent_maps_a_real_log_published_by_a_ros2_robot_on_rmw_zenoh(
     # the robot's own stamps and the log's order, every scan once
     assert [m.index for m in got] == list(range(SCANS))
     assert [m.stamp for m in got] == pytest.approx([s.stamp for s in logged], abs=1e-6)
-    # the odometry the agent used is the base's from nav_msgs/Odometry on the laser mounted by tf_static
+    # the odometry the agent used is the base's from nav_msgs/Odometry on the laser mounted by
+    # tf_static: the log's laser odometry again (the base's alone is 0.2 m and 0.1 rad off)
     for m, s in zip(got, logged, strict=True):
         assert s.odometry is not None and m.odometry is not None
-        laser = s.odometry.compose(MOUNT)
-        assert m.odometry.distance(laser)[0] < 1e-6 and m.odometry.distance(laser)[1] < 1e-6
+        assert m.odometry.distance(s.odometry)[0] < 1e-6 and m.odometry.distance(s.odometry)[1] < 1e-6
     assert sum(m.submap is not None for m in got) >= 0.95 * SCANS, "the agent's tracking placed too few scans"
     submaps = [LocalMap.from_msgpack(p) for _, p in maps.items]  # type: ignore[arg-type]
     assert submaps and max(len(m.segments) for m in submaps) > 20
@@ -516,3 +519,109 @@ def test_a_ros2_viewer_started_after_the_map_gets_it_and_the_robots_poses_and_tr
             assert laser.distance(published)[0] < 1e-6 and laser.distance(published)[1] < 1e-6
             checked += 1
     assert checked > 10
+
+
+def read_map_server(folder: Path) -> tuple[np.ndarray, tuple[float, float], float]:
+    """(cells -1/0/100 with row 0 the southernmost, origin, resolution) of map.pgm + map.yaml."""
+    meta = dict(line.split(": ", 1) for line in (folder / "map.yaml").read_text().splitlines() if ": " in line)
+    origin = [float(v) for v in meta["origin"].strip("[]").split(",")]
+    raw = (folder / "map.pgm").read_bytes()
+    fields: list[bytes] = []
+    at = 0
+    while len(fields) < 4:  # P5, width, height, maxval; '#' comments between
+        line_end = raw.index(b"\n", at)
+        line = raw[at:line_end]
+        at = line_end + 1
+        if not line.startswith(b"#"):
+            fields.extend(line.split())
+    width, height = int(fields[1]), int(fields[2])
+    pixels = np.frombuffer(raw[at : at + width * height], dtype=np.uint8).reshape(height, width)[::-1]
+    cells = np.full(pixels.shape, -1, dtype=np.int8)
+    cells[pixels == 254] = 0
+    cells[pixels == 0] = 100
+    return cells, (origin[0], origin[1]), float(meta["resolution"])
+
+
+def agreement(live: Any, reference: tuple[np.ndarray, tuple[float, float], float]) -> tuple[float, int]:
+    """The share of cells known in both grids that agree (free or occupied), and how many there are:
+    ``live`` a nav_msgs/OccupancyGrid, laid on ``reference`` by the cells' centres (one frame)."""
+    cells, origin, resolution = reference
+    width, height = live.info.width, live.info.height
+    data = np.asarray(live.data, dtype=np.int8).reshape(height, width)
+    rows, cols = np.nonzero(data >= 0)
+    x = live.info.origin.position.x + (cols + 0.5) * live.info.resolution
+    y = live.info.origin.position.y + (rows + 0.5) * live.info.resolution
+    r = np.floor((y - origin[1]) / resolution).astype(int)
+    c = np.floor((x - origin[0]) / resolution).astype(int)
+    inside = (r >= 0) & (r < cells.shape[0]) & (c >= 0) & (c < cells.shape[1])
+    theirs = cells[r[inside], c[inside]]
+    ours = data[rows[inside], cols[inside]]
+    both = theirs >= 0
+    return float(np.mean(ours[both] == theirs[both])), int(np.sum(both))
+
+
+def test_a_real_log_through_ros2_end_to_end_gives_the_map_fleetmap_map_makes(
+    router: str, csail_start: Path, tmp_path: Path
+) -> None:
+    # the SDK robot publishes mit-csail's scans and odometry at 5x; `fleetmap agent --ros2` and
+    # `fleetmap merger --ros2` map it; the map a ROS 2 subscriber gets on /map is the occupancy grid
+    # `fleetmap map` makes of the same log, cell for cell where both know the cell
+    offline = tmp_path / "offline"
+    done = subprocess.run(
+        fleetmap_cmd("map", str(csail_start), "--out", str(offline)), capture_output=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    reference = read_map_server(offline)
+    logged = list(CarmenSource(csail_start))
+    domain = 16
+    keys = FleetKeys("t")
+    procs = Processes(tmp_path)
+    robot = SdkRobot(router, "/r1", domain)
+    maps = Inbox()
+    viewer = sdk.ROS2Subscriber("/map", wire.OCCUPANCY_GRID, maps, **sdk_args(router, domain))
+    try:
+        with client(router) as bus:
+            scans, submaps, global_maps, services = Inbox(), Inbox(), Inbox(), Inbox()
+            bus.subscribe(keys.scan("r1"), scans)
+            bus.subscribe(keys.localmap("r1"), submaps)
+            bus.subscribe(keys.globalmap, global_maps)
+            bus.subscribe_liveliness(keys.all_services, services, lambda k: None)
+            procs.start("merger", "merger", "--ros2", "--domain", str(domain), *fleet_flags(router))
+            assert services.wait_until(lambda got: any("merger" in str(g) for g in got), WAIT)
+            agent = procs.start(
+                "agent", "agent", "--robot", "r1", "--ros2", "--namespace", "r1", "--domain", str(domain),
+                *fleet_flags(router),
+            )  # fmt: skip
+            wait_for_subscription(bus, domain, "/r1/tf_static")
+            robot.publish_mounting()
+            robot.play(logged)
+            assert scans.wait_for(len(logged), 120), f"{len(scans.items)} of {len(logged)} scans reached the bus"
+            agent.send_signal(signal.SIGTERM)
+            assert agent.wait(WAIT) == 0, procs.log("agent")[-3000:]
+            final = {m.submap_key for m in (LocalMap.from_msgpack(p) for _, p in submaps.items) if m.final}  # type: ignore[arg-type]
+
+            def merged() -> float | None:
+                """The stamp of the first global map that holds every final submap, if one came."""
+                for _, payload in global_maps.items:
+                    g = decode(payload)  # type: ignore[arg-type]
+                    if final <= {k for c in g.components for k in c.members}:  # type: ignore[attr-defined]
+                        return float(g.stamp)  # type: ignore[attr-defined]
+                return None
+
+            assert final and wait_for(lambda: merged() is not None, 120), "the merger never took every submap in"
+            stamp = merged()
+            assert stamp is not None
+            assert maps.wait_until(
+                lambda got: any(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 >= stamp - 1e-6 for (m,) in got),  # type: ignore[attr-defined]
+                WAIT,
+            ), "no /map of the merged global map"
+    finally:
+        viewer.close()
+        robot.close()
+        procs.stop()
+    scan_stamps = [m.stamp for m in scans_of(scans)]
+    assert scan_stamps == pytest.approx([s.stamp for s in logged], abs=1e-6)
+    last = maps.items[-1][0]
+    share, cells = agreement(last, reference)
+    assert cells > 10_000
+    assert share >= 0.95, f"{share:.3f} of {cells} cells known in both agree"
