@@ -18,11 +18,21 @@ from typing import Any
 import zenoh
 import zenoh.ext
 from fleetmap.shared.io import ros2_wire as wire
+from fleetmap.shared.io.zenoh_config import ZenohOptions
 
 log = logging.getLogger(__name__)
 
 HEARTBEAT = 0.5
 """Seconds between the sporadic heartbeats of a reliable transient local publisher (rmw_zenoh's)."""
+
+
+def ros2_options(options: ZenohOptions) -> ZenohOptions:
+    """A session that meets ROS 2 nodes: a client unless ``--mode`` or ``--zenoh-config`` says
+    otherwise. rmw_zenoh's router does not forward between peers (``peers_failover_brokering:
+    false``; ROS nodes are peers that talk directly), but always to and from its clients."""
+    if options.mode is None and options.config_file is None:
+        return options.with_mode("client")
+    return options
 
 
 class Ros2Publisher:

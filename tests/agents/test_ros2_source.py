@@ -197,3 +197,12 @@ def test_bad_ros2_flags_exit_2_with_one_line_before_any_session(argv, says, caps
         code = int(exc.code or 0)
     assert code == 2
     assert says in capsys.readouterr().err
+
+
+def test_a_ros2_session_is_a_client_of_the_router_unless_told_otherwise():
+    from fleetmap.shared.io.ros2_node import ros2_options
+    from fleetmap.shared.io.zenoh_config import ZenohOptions
+
+    assert ros2_options(ZenohOptions(connect=("tcp/10.0.0.5:7447",))).mode == "client"
+    assert ros2_options(ZenohOptions(mode="peer")).mode == "peer"
+    assert ros2_options(ZenohOptions(config_file="z.json5")).mode is None  # the file says

@@ -406,7 +406,7 @@ def test_a_bag_played_on_ros2_topics_reaches_a_ros2_subscriber_as_it_is_in_the_b
             )
             play = procs.start(
                 "play", "play", str(bag), "--ros2", "--namespace", "p", "--domain", str(domain), "--speed", "0",
-                "--mode", "client", "--connect", router,
+                "--connect", router,  # a client by default
             )  # fmt: skip
             assert play.wait(WAIT) == 0, procs.log("play")
             for topic, messages in expected.items():

@@ -17,6 +17,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import check_name
+from fleetmap.shared.io.ros2_node import ros2_options
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -54,8 +55,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--ros2",
         action="store_true",
         help="a live ROS 2 robot over rmw_zenoh: its LaserScan, Odometry (or tf odom -> base_link) and /tf_static, "
-        "heard on this agent's zenoh session (--mode client --connect tcp/ROBOT:7447 to the robot's router); runs "
-        "until stopped",
+        "heard on this agent's zenoh session, a client of the robot's router unless --mode says otherwise "
+        "(--connect tcp/ROBOT:7447); runs until stopped",
     )
     source.add_argument("--start", type=int, default=0, metavar="N", help="CARMEN: first scan (default 0)")
     source.add_argument("--stop", type=int, default=None, metavar="M", help="CARMEN: stop before scan M (default: end)")
@@ -158,7 +159,7 @@ def run_ros2(args: argparse.Namespace, robot: str, config: FleetmapConfig) -> in
         raise BadInput("--speed", "does not apply to --ros2: a live robot's scans come at its own pace")
     topics = Ros2Topics.of(args.namespace, args.scan_topic, args.odom_topic, args.domain)
     agent = Agent(robot, config, odometry=Ros2LiveSource.has_odometry, lost_scans=args.lost_scans)
-    options = zenoh_options_from_args(args)
+    options = ros2_options(zenoh_options_from_args(args))  # a client of the robot's router by default
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
         source = Ros2LiveSource(bus.session, topics, stop, robot)
         print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)

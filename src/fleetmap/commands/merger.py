@@ -15,7 +15,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
-from fleetmap.shared.io.ros2_node import Ros2Node
+from fleetmap.shared.io.ros2_node import Ros2Node, ros2_options
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -44,8 +44,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--ros2",
         action="store_true",
         help="also publish the largest map as nav_msgs/OccupancyGrid on /map (transient local), map -> <robot>/odom "
-        "on /tf and each robot's pose on /<robot>/fleetmap/pose, over Zenoh as rmw_zenoh does (connect to the "
-        "robots' router: --mode client --connect tcp/HOST:7447)",
+        "on /tf and each robot's pose on /<robot>/fleetmap/pose, over Zenoh as rmw_zenoh does; the session is then a "
+        "client of the robots' router unless --mode says otherwise (--connect tcp/HOST:7447)",
     )
     ros2.add_argument("--domain", type=int, default=0, metavar="N", help="ROS_DOMAIN_ID (default 0)")
     add_zenoh_arguments(p)
@@ -57,6 +57,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     options = zenoh_options_from_args(args)
+    if args.ros2:
+        options = ros2_options(options)  # a client of the robots' router by default
     if args.state:
         output_file(args.state, "--state")
     if args.ros2:

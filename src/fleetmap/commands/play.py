@@ -25,7 +25,7 @@ from fleetmap.agents.sources import LASER_SCAN_SCHEMAS, ODOMETRY_SCHEMAS, TF_SCH
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
-from fleetmap.shared.io.ros2_node import Ros2Node, Ros2Publisher
+from fleetmap.shared.io.ros2_node import Ros2Node, Ros2Publisher, ros2_options
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -40,8 +40,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Publish a bag's sensor_msgs/LaserScan, nav_msgs/Odometry and tf2_msgs/TFMessage (/tf, "
         "/tf_static) topics over Zenoh exactly as rmw_zenoh does (keys with the Jazzy type hashes, CDR, the "
         "attachment, liveliness tokens), at the pace of the bag's log times: a robot for `fleetmap agent --ros2` "
-        "or any ROS 2 node, without a robot or a ROS install. /tf_static is transient local. Use --mode client "
-        "--connect tcp/HOST:7447 to play through a ROS 2 router (rmw_zenohd).",
+        "or any ROS 2 node, without a robot or a ROS install. /tf_static is transient local. The session is a "
+        "client of the router (rmw_zenohd; --connect tcp/HOST:7447) unless --mode says otherwise.",
     )
     p.add_argument("bag", metavar="BAG", help="a rosbag2 directory, its .mcap or .db3 file, or a ROS 1 .bag")
     p.add_argument("--ros2", action="store_true", required=True, help="publish on ROS 2 topics over rmw_zenoh")
@@ -121,7 +121,7 @@ def play_bag(
 def run(args: argparse.Namespace) -> int:
     bag = Ros2BagSource(args.bag)  # a bag without a LaserScan topic is refused here
     wire.data_key(args.domain, "/scan", wire.LASER_SCAN)  # checks the domain
-    options = zenoh_options_from_args(args)
+    options = ros2_options(zenoh_options_from_args(args))  # a client of the router by default
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
         namespace = wire.fully_qualified("", args.namespace) if args.namespace.strip("/") else ""
         with Ros2Node(bus.session, NODE_NAME, namespace, args.domain) as node:
