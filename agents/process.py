@@ -198,6 +198,7 @@ def run_agent(
                     "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
                     agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
                 )  # fmt: skip
+        stopped = stopped or stop.is_set()  # a live source ends when stop is set
         publish(agent.finish())
         answer_requests()
         bus.flush()

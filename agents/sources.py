@@ -275,6 +275,16 @@ class Ros2BagSource:
         """Whether the bag has nav_msgs/Odometry (the named topic, or any) or a tf topic."""
         return any(name in ODOMETRY_SCHEMAS + TF_SCHEMAS for name in self._types.values())
 
+    @property
+    def topic_types(self) -> dict[str, str]:
+        """The bag's topics and their message types."""
+        return dict(self._types)
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log time in ns, decoded message) of ``topics``, in log time order (undecodable
+        ones skipped with a warning); a bag that cannot be read is :class:`BadInput`."""
+        return self._decoded(topics)
+
     def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
         """(topic, log time in ns, message) of ``topics``, in log time order; a bag that cannot be
         read is :class:`BadInput` naming it, wherever it fails."""
@@ -378,17 +388,26 @@ class Ros2BagSource:
 
     def _scan(self, index: int, log_time_ns: int, msg: Any, track: OdometryTrack | None = None) -> SourceScan:
         stamp = _stamp_of(msg.header.stamp, log_time_ns)
-        ranges = np.asarray(msg.ranges, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            ranges[ranges < msg.range_min] = np.nan
-        range_max = float(msg.range_max) if msg.range_max > 0 else math.inf
-        scan = RangeScan(stamp, float(msg.angle_min), float(msg.angle_increment), range_max, ranges)
-        odometry = None
-        if track is not None and track.stamps[0] <= stamp <= track.stamps[-1]:
-            odometry = track.at(0, stamp)
-            if track.mounting is not None and odometry is not None:
-                odometry = odometry.compose(track.mounting)  # the laser's pose, not the base's
-        return _checked(self.name, index, stamp, scan, odometry)
+        return _checked(self.name, index, stamp, laser_scan(msg, stamp), laser_odometry(track, stamp))
+
+
+def laser_scan(msg: Any, stamp: float) -> RangeScan:
+    """A sensor_msgs/LaserScan as a RangeScan: readings below ``range_min`` are no return, as in ROS."""
+    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        ranges[ranges < msg.range_min] = np.nan
+    range_max = float(msg.range_max) if msg.range_max > 0 else math.inf
+    return RangeScan(stamp, float(msg.angle_min), float(msg.angle_increment), range_max, ranges)
+
+
+def laser_odometry(track: OdometryTrack | None, stamp: float) -> Transform2D | None:
+    """The laser's odometry pose at ``stamp``: the track's, within its span, on the laser's mounting."""
+    if track is None or not track or not track.stamps[0] <= stamp <= track.stamps[-1]:
+        return None
+    odometry = track.at(0, stamp)
+    if track.mounting is not None and odometry is not None:
+        odometry = odometry.compose(track.mounting)  # the laser's pose, not the base's
+    return odometry
 
 
 UNDECODABLE = (AnyReaderError, SerdeError, TypesysError, struct.error, ValueError, KeyError, IndexError)

@@ -29,6 +29,7 @@ COMMANDS = (
     "record",
     "router",
     "secure",
+    "play",
 )
 """Modules of fleetmap.commands, in the order ``--help`` lists them."""
 
@@ -70,7 +71,10 @@ def short_usage(p: argparse.ArgumentParser) -> None:
             grouped.update(group._group_actions)
             parts.append(
                 "("
-                + " | ".join(f"{a.option_strings[-1]} {a.metavar or a.dest.upper()}" for a in group._group_actions)
+                + " | ".join(
+                    a.option_strings[-1] + ("" if a.nargs == 0 else f" {a.metavar or a.dest.upper()}")
+                    for a in group._group_actions
+                )
                 + ")"
             )
     for a in p._actions:

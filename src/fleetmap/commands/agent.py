@@ -1,4 +1,5 @@
-"""``fleetmap agent``: one robot on the bus, from a simulated robot, a CARMEN log or a ROS 2 bag."""
+"""``fleetmap agent``: one robot on the bus, from a simulated robot, a CARMEN log, a ROS 2 bag or a
+live ROS 2 robot on rmw_zenoh."""
 
 from __future__ import annotations
 
@@ -9,11 +10,14 @@ import sys
 
 from fleetmap.agents.agent import LOST_SCANS, Agent
 from fleetmap.agents.process import run_agent
+from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
 from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
 from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import check_name
+from fleetmap.shared.io.ros2_node import ros2_options
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -47,6 +51,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="BAG",
         help="a ROS bag with sensor_msgs/LaserScan: a rosbag2 directory, its .mcap or .db3 file, or a ROS 1 .bag",
     )
+    given.add_argument(
+        "--ros2",
+        action="store_true",
+        help="a live ROS 2 robot over rmw_zenoh: its LaserScan, Odometry (or tf odom -> base_link) and /tf_static, "
+        "heard on this agent's zenoh session, a client of the robot's router unless --mode says otherwise "
+        "(--connect tcp/ROBOT:7447); runs until stopped",
+    )
     source.add_argument("--start", type=int, default=0, metavar="N", help="CARMEN: first scan (default 0)")
     source.add_argument("--stop", type=int, default=None, metavar="M", help="CARMEN: stop before scan M (default: end)")
     source.add_argument("--step", type=int, default=1, metavar="K", help="CARMEN: every K-th scan (default 1)")
@@ -68,6 +79,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="TOPIC",
         help="ROS 2 bag: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
     )
+    ros2 = p.add_argument_group("live ROS 2 robot (--ros2)")
+    ros2.add_argument("--namespace", default="", metavar="NS", help="the robot's ROS namespace (default: none)")
+    ros2.add_argument("--scan-topic", default="scan", metavar="TOPIC", help="sensor_msgs/LaserScan (default scan)")
+    ros2.add_argument("--odom-topic", default="odom", metavar="TOPIC", help="nav_msgs/Odometry (default odom)")
+    ros2.add_argument("--domain", type=int, default=0, metavar="N", help="ROS_DOMAIN_ID (default 0)")
     p.add_argument(
         "--speed",
         type=float,
@@ -97,10 +113,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def make_source(args: argparse.Namespace) -> ScanSource:
     """The source the flags name (files are checked here, before the agent goes on the bus)."""
-    if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
-        raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
-    if args.ros2_bag is None and (args.topic is not None or args.odometry_topic is not None):
-        raise BadInput("--topic/--odometry-topic", "apply to --ros2-bag only")
+    check_source_flags(args)
     if args.scenario is not None:
         return ScenarioSource(args.scenario, args.robot)
     if args.carmen is not None:
@@ -108,11 +121,23 @@ def make_source(args: argparse.Namespace) -> ScanSource:
     return Ros2BagSource(args.ros2_bag, args.topic, args.odometry_topic)
 
 
+def check_source_flags(args: argparse.Namespace) -> None:
+    """Refuse the flags of a source that is not the one given."""
+    if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
+        raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
+    if args.ros2_bag is None and (args.topic is not None or args.odometry_topic is not None):
+        raise BadInput("--topic/--odometry-topic", "apply to --ros2-bag only")
+    if not args.ros2 and (args.namespace, args.scan_topic, args.odom_topic, args.domain) != ("", "scan", "odom", 0):
+        raise BadInput("--namespace/--scan-topic/--odom-topic/--domain", "apply to --ros2 only")
+
+
 def run(args: argparse.Namespace) -> int:
     robot = check_name(args.robot, "--robot")
     if not args.speed >= 0 or math.isinf(args.speed):
         raise BadInput("--speed", f"must be 0 (as fast as possible) or a positive number, got {args.speed}")
     config = config_from_args(args)
+    if args.ros2:
+        return run_ros2(args, robot, config)
     source = make_source(args)
     if config.tracking.odometry == "on" and not source.has_odometry:
         raise BadInput(source.name, "has no odometry (--odometry on needs it; auto uses it where there is some)")
@@ -124,4 +149,23 @@ def run(args: argparse.Namespace) -> int:
             source, agent, bus, options.keys, args.speed, stop, wait_for_listener=args.wait_for_listener
         )
     print(summary.line())
+    return 0
+
+
+def run_ros2(args: argparse.Namespace, robot: str, config: FleetmapConfig) -> int:
+    """The agent of a live ROS 2 robot: its scans as they come, until SIGINT or SIGTERM."""
+    check_source_flags(args)
+    if args.speed != 1.0:
+        raise BadInput("--speed", "does not apply to --ros2: a live robot's scans come at its own pace")
+    topics = Ros2Topics.of(args.namespace, args.scan_topic, args.odom_topic, args.domain)
+    agent = Agent(robot, config, odometry=Ros2LiveSource.has_odometry, lost_scans=args.lost_scans)
+    options = ros2_options(zenoh_options_from_args(args))  # a client of the robot's router by default
+    with stop_on_signals() as stop, ZenohBus.open(options) as bus:
+        source = Ros2LiveSource(bus.session, topics, stop, robot)
+        print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
+        # live scans come at the robot's pace: no pacing by their stamps
+        summary = run_agent(source, agent, bus, options.keys, 0.0, stop, wait_for_listener=args.wait_for_listener)
+    print(summary.line())
+    dropped = sum(source.dropped.values())
+    print(f"agent {robot}: {sum(source.received.values())} ROS 2 samples taken, {dropped} dropped")
     return 0

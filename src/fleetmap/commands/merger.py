@@ -10,8 +10,12 @@ from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.service import STEP_SECONDS, MergerService
+from fleetmap.ros2_outputs import NODE_NAME, Ros2Outputs
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io import ros2_wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
+from fleetmap.shared.io.ros2_node import Ros2Node, ros2_options
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -35,6 +39,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "pairs of submaps wait for the next step; a step with none integrates as long as a solve takes, until a "
         f"local map arrives (0: every pending integration in one step; default {STEP_SECONDS:g})",
     )
+    ros2 = p.add_argument_group("ROS 2 outputs (rmw_zenoh)")
+    ros2.add_argument(
+        "--ros2",
+        action="store_true",
+        help="also publish the largest map as nav_msgs/OccupancyGrid on /map (transient local), map -> <robot>/odom "
+        "on /tf and each robot's pose on /<robot>/fleetmap/pose, over Zenoh as rmw_zenoh does; the session is then a "
+        "client of the robots' router unless --mode says otherwise (--connect tcp/HOST:7447)",
+    )
+    ros2.add_argument("--domain", type=int, default=0, metavar="N", help="ROS_DOMAIN_ID (default 0)")
     add_zenoh_arguments(p)
     add_executor_arguments(p)
     add_config_arguments(p, ["integration", "merge", "tracking"])
@@ -44,8 +57,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     options = zenoh_options_from_args(args)
+    if args.ros2:
+        options = ros2_options(options)  # a client of the robots' router by default
     if args.state:
         output_file(args.state, "--state")
+    if args.ros2:
+        ros2_wire.data_key(args.domain, "/map", ros2_wire.OCCUPANCY_GRID)  # checks the domain
+    elif args.domain != 0:
+        raise BadInput("--domain", "applies to --ros2 only")
     executor = executor_from_args(args)
     try:
         merger = Merger(options.keys, config, executor)
@@ -54,11 +73,18 @@ def run(args: argparse.Namespace) -> int:
             log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
         with stop_on_signals() as stop, ZenohBus.open(options) as bus:
             service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
+            node = Ros2Node(bus.session, NODE_NAME, domain=args.domain) if args.ros2 else None
+            ros2 = Ros2Outputs(bus, options.keys, node) if node is not None else None
+            if ros2 is not None:
+                ros2.start()  # before the service, which asks every robot for its maps at start
             service.start()
             try:
                 service.run(stop)
             finally:
                 service.close()
+                if ros2 is not None and node is not None:
+                    ros2.close()
+                    node.close()
     finally:
         executor.close()
     s = merger.stats

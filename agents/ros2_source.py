@@ -1,0 +1,300 @@
+"""A live ROS 2 robot as an agent's scan source, over rmw_zenoh: no ROS install, no bridge.
+
+ROS 2 (Jazzy and later) with rmw_zenoh puts every topic on Zenoh (:mod:`fleetmap.shared.io.ros2_wire`),
+so the agent's own Zenoh session subscribes to the robot's topics as a ROS 2 node would:
+
+- ``<namespace>/scan``: sensor_msgs/LaserScan, the scans, with the robot's own header stamps;
+- ``<namespace>/odom``: nav_msgs/Odometry, the base's odometry, interpolated at each scan's stamp
+  (:class:`~fleetmap.agents.sources.OdometryTrack`, as for a bag); without it, tf ``odom ->
+  base_link`` (or ``base_footprint``) on ``<namespace>/tf``;
+- ``<namespace>/tf_static``: the laser's mounting on the base (transient local: an advanced
+  subscriber with history gets what the robot published before the agent started).
+
+Subscriptions put ``*`` in the type hash chunk, so any distro's publisher is heard (Humble's has no
+hash); the type chunk must be the expected one. The agent declares a node and one subscription
+token per topic (``ros2 node list`` / ``ros2 topic info`` see it).
+
+Bad input does not stop the agent: a sample of another type on a topic, a payload that does not
+decode, a sample without the rmw_zenoh attachment, a scan with a negative reading or nothing but
+NaN, a stamp at or before the previous one on its topic: each is dropped and counted
+(:attr:`Ros2LiveSource.dropped`), and logged the first time it happens with the topic named. NaN
+readings among good ones are no return (REP 117: an invalid measurement), as in a bag.
+
+A scan waits for the odometry at its stamp up to :data:`ODOMETRY_WAIT` seconds (odometry usually
+comes at a higher rate and a little later); after that it goes without, which the tracker
+handles as for a scan outside a bag's odometry.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import queue
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+import zenoh.ext
+from fleetmap.agents.sources import (
+    BASE_FRAMES,
+    ODOMETRY_FRAMES,
+    OdometryTrack,
+    SourceScan,
+    _checked,
+    _planar,
+    laser_odometry,
+    laser_scan,
+)
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io import ros2_wire as wire
+from fleetmap.shared.io.logs import OdometryReading
+
+log = logging.getLogger(__name__)
+
+POLL = 0.05
+"""Longest wait (s) before the source looks again at ``stop`` and at scans waiting for odometry."""
+ODOMETRY_WAIT = 0.5
+"""How long (s) a scan waits for an odometry reading at or after its stamp."""
+ODOMETRY_KEPT = 400
+"""Odometry readings kept to interpolate in (seconds of it at any usual rate)."""
+NODE_NAME = "fleetmap_agent"
+
+
+@dataclass(frozen=True)
+class Ros2Topics:
+    """Where a robot's topics are: fully qualified names, and the ROS domain."""
+
+    scan: str
+    odom: str
+    tf: str
+    tf_static: str
+    domain: int = 0
+    namespace: str = ""
+
+    @classmethod
+    def of(cls, namespace: str = "", scan: str = "scan", odom: str = "odom", domain: int = 0) -> Ros2Topics:
+        """The topics of a robot in ``namespace`` (relative names are under it; tf and tf_static too)."""
+        names = [wire.fully_qualified(namespace, t) for t in (scan, odom, "tf", "tf_static")]
+        qualified = wire.fully_qualified("", namespace) if namespace.strip("/") else ""
+        scan_topic, odom_topic, tf, tf_static = names
+        topics = cls(scan_topic, odom_topic, tf, tf_static, domain=domain, namespace=qualified)
+        wire.data_key(domain, topics.scan, wire.LASER_SCAN)  # checks the domain
+        return topics
+
+    def subscriptions(self) -> list[tuple[str, str, wire.Qos]]:
+        """(topic, type, QoS) of every subscription."""
+        return [
+            (self.scan, wire.LASER_SCAN, wire.SENSOR_DATA),
+            (self.odom, wire.ODOMETRY, wire.Qos(depth=10)),
+            (self.tf, wire.TF_MESSAGE, wire.TF),
+            (self.tf_static, wire.TF_MESSAGE, wire.TF_STATIC),
+        ]
+
+
+def node_name(robot: str) -> str:
+    """A ROS node name for the robot's agent (node names take no ``-``)."""
+    return f"{NODE_NAME}_{robot.replace('-', '_')}"
+
+
+class Ros2LiveSource:
+    """The scans of a live ROS 2 robot heard on ``session`` until ``stop`` is set (see the module)."""
+
+    has_odometry = True
+    """The robot may publish odometry; a scan without any at its stamp goes without."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        topics: Ros2Topics,
+        stop: threading.Event,
+        robot: str = "robot",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.session = session
+        self.topics = topics
+        self.stop = stop
+        self.robot = robot
+        self.clock = clock
+        self.name = f"ROS 2 {topics.scan} (domain {topics.domain})"
+        self.dropped: Counter[tuple[str, str]] = Counter()
+        """Samples dropped, by (topic, why)."""
+        self.received: Counter[str] = Counter()
+        """Samples taken, by topic."""
+        self.ready = threading.Event()
+        """Set once every subscription and token is declared."""
+        self._inbox: queue.SimpleQueue[tuple[str, str, bytes, bytes | None]] = queue.SimpleQueue()
+        self._odometry: deque[OdometryReading] = deque(maxlen=ODOMETRY_KEPT)
+        self._tf_odometry: deque[OdometryReading] = deque(maxlen=ODOMETRY_KEPT)
+        self._mounting: dict[str, Transform2D] = {}
+        self._base: str | None = None
+        self._last_stamp: dict[str, float] = {}
+        self._pending: deque[tuple[float, SourceScan, Any]] = deque()
+        self._index = 0
+
+    # --- the zenoh side: callbacks only queue (zenoh's threads must not wait on the agent) ---
+
+    def _declare(self) -> list[Any]:
+        handles: list[Any] = []
+        node = wire.Node(self.topics.domain, str(self.session.zid()), 0, node_name(self.robot), self.topics.namespace)
+        for entity, (topic, typename, qos) in enumerate(self.topics.subscriptions(), start=1):
+            # any type and any hash: a sample of the wrong type is counted, not unheard
+            keyexpr = f"{self.topics.domain}/{topic.strip('/')}/*/*"
+
+            def on_sample(sample: zenoh.Sample, topic: str = topic, typename: str = typename) -> None:
+                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+                self._inbox.put((topic, str(sample.key_expr), sample.payload.to_bytes(), attachment))
+
+            if qos.durability == wire.TRANSIENT_LOCAL:
+                handles.append(
+                    zenoh.ext.declare_advanced_subscriber(
+                        self.session,
+                        keyexpr,
+                        on_sample,
+                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=qos.depth),
+                        subscriber_detection=True,
+                    )
+                )
+            else:
+                handles.append(self.session.declare_subscriber(keyexpr, on_sample))
+            token = node.endpoint_token(entity, "MS", topic, typename, qos)
+            handles.append(self.session.liveliness().declare_token(token))
+        handles.append(self.session.liveliness().declare_token(node.token()))
+        return handles
+
+    def __iter__(self) -> Iterator[SourceScan]:
+        handles = self._declare()
+        self.ready.set()
+        log.info("%s: listening on %s", self.robot, ", ".join(t for t, _, _ in self.topics.subscriptions()))
+        try:
+            while not self.stop.is_set():
+                with contextlib.suppress(queue.Empty):
+                    self._take(*self._inbox.get(timeout=POLL))
+                yield from self._released()
+        finally:
+            for handle in reversed(handles):
+                handle.undeclare()
+            self._say_dropped()
+
+    # --- what the samples say ---
+
+    def _drop(self, topic: str, why: str, detail: str = "") -> None:
+        self.dropped[(topic, why)] += 1
+        if self.dropped[(topic, why)] == 1:
+            log.warning("%s: dropped: %s%s (said once; counted)", topic, why, f" ({detail})" if detail else "")
+
+    def _say_dropped(self) -> None:
+        if self.dropped:
+            said = ", ".join(f"{n} on {topic}: {why}" for (topic, why), n in sorted(self.dropped.items()))
+            log.warning("%s: samples dropped: %s", self.robot, said)
+
+    def _take(self, topic: str, key: str, payload: bytes, attachment: bytes | None) -> None:
+        typename = next(t for name, t, _ in self.topics.subscriptions() if name == topic)
+        type_chunk = key.rsplit("/", 2)[-2]
+        if type_chunk != wire.dds_type_name(typename):
+            self._drop(topic, f"not a {typename}", f"a {type_chunk}")
+            return
+        try:
+            wire.Attachment.unpack(attachment, topic)
+            message = wire.decode(payload, typename, topic)
+        except wire.Ros2WireError as exc:
+            self._drop(topic, "no rmw_zenoh attachment" if attachment is None else "undecodable", exc.reason)
+            return
+        try:
+            if topic == self.topics.scan:
+                self._on_scan(message)
+            elif topic == self.topics.odom:
+                self._on_odometry(message)
+            else:
+                self._on_tf(topic, message)
+        except (AttributeError, TypeError, ValueError, OverflowError) as exc:
+            self._drop(topic, "unusable", f"{type(exc).__name__}: {exc}"[:200])
+            return
+        self.received[topic] += 1
+
+    def _newer(self, topic: str, stamp: float) -> bool:
+        """Whether ``stamp`` is after the topic's previous one (else the sample is dropped)."""
+        last = self._last_stamp.get(topic)
+        if last is not None and stamp <= last:
+            self._drop(topic, "stamp not after the previous one", f"{stamp:.6f} s after {last:.6f} s")
+            return False
+        self._last_stamp[topic] = stamp
+        return True
+
+    def _on_scan(self, msg: Any) -> None:
+        topic = self.topics.scan
+        stamp = _stamp(msg.header.stamp)
+        ranges = np.asarray(msg.ranges, dtype=np.float64)
+        if np.any(ranges < 0):  # -inf is "too close" (REP 117); a negative distance is no reading at all
+            self._drop(topic, "negative ranges", f"{int(np.sum(ranges < 0))} of {len(ranges)}")
+            return
+        if len(ranges) == 0 or np.all(np.isnan(ranges)):
+            self._drop(topic, "no reading (every range NaN)")
+            return
+        if not self._newer(topic, stamp):
+            return
+        index = self._index
+        self._index += 1
+        try:
+            scan = _checked(topic, index, stamp, laser_scan(msg, stamp))
+        except BadInput as exc:
+            self._drop(topic, "bad scan", exc.reason)
+            return
+        self._pending.append((self.clock(), scan, str(msg.header.frame_id).lstrip("/")))
+
+    def _on_odometry(self, msg: Any) -> None:
+        stamp = _stamp(msg.header.stamp)
+        if not self._newer(self.topics.odom, stamp):
+            return
+        pose = _planar(msg.pose.pose.position, msg.pose.pose.orientation)
+        if not all(math.isfinite(v) for v in pose):
+            self._drop(self.topics.odom, "pose not finite")
+            return
+        self._base = self._base or str(msg.child_frame_id).lstrip("/")
+        self._odometry.append(OdometryReading(len(self._odometry), stamp, pose))
+
+    def _on_tf(self, topic: str, msg: Any) -> None:
+        for t in msg.transforms:
+            parent, child = str(t.header.frame_id).lstrip("/"), str(t.child_frame_id).lstrip("/")
+            planar = _planar(t.transform.translation, t.transform.rotation)
+            if topic == self.topics.tf_static:
+                self._mounting[f"{parent}>{child}"] = Transform2D(*planar)
+            elif parent.rsplit("/", 1)[-1] in ODOMETRY_FRAMES and child.rsplit("/", 1)[-1] in BASE_FRAMES:
+                stamp = _stamp(t.header.stamp)
+                if self._tf_odometry and stamp <= self._tf_odometry[-1].stamp:
+                    continue  # the same transform again (tf is often republished), or older
+                self._tf_odometry.append(OdometryReading(len(self._tf_odometry), stamp, planar))
+                if not self._odometry:
+                    self._base = child
+
+    # --- scans out, each with the odometry at its stamp ---
+
+    def _track(self, laser_frame: str) -> OdometryTrack | None:
+        readings = self._odometry or self._tf_odometry
+        if not readings:
+            return None
+        track = OdometryTrack(list(readings))
+        track.mounting = self._mounting.get(f"{self._base}>{laser_frame}") if self._base else None
+        return track
+
+    def _released(self) -> Iterator[SourceScan]:
+        now = self.clock()
+        while self._pending:
+            arrived, scan, frame = self._pending[0]
+            readings = self._odometry or self._tf_odometry
+            caught_up = bool(readings) and readings[-1].stamp >= scan.stamp
+            if not caught_up and now - arrived < ODOMETRY_WAIT and not self.stop.is_set():
+                return
+            self._pending.popleft()
+            odometry = laser_odometry(self._track(frame), scan.stamp)
+            yield SourceScan(scan.index, scan.stamp, scan.scan, odometry)
+
+
+def _stamp(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
