@@ -169,3 +169,15 @@ def test_a_foxglove_client_receives_every_channel_typed_while_a_session_runs(tmp
                 run.kill()
                 run.wait()
         log.close()
+
+
+def test_a_view_whose_port_is_taken_exits_2_naming_it() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = ["view", "--port", str(port), "--listen", "tcp/127.0.0.1:0", "--duration", "5"]
+        r = subprocess.run([sys.executable, "-m", "fleetmap", *argv], capture_output=True, text=True, timeout=60)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and f"127.0.0.1:{port}: cannot serve there" in lines[0], r.stderr
+    assert "in use" in lines[0] and "Error" not in lines[0], lines[0]

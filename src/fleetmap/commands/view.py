@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             server = FoxgloveServer(args.host, args.port)
         except RuntimeError as exc:  # the port taken, the address not this host's
-            raise BadInput(f"{args.host}:{args.port}", f"cannot serve there: {exc}") from None
+            said = str(exc).removeprefix("FoxgloveError: ")
+            raise BadInput(f"{args.host}:{args.port}", f"cannot serve there: {said}") from None
         view = LiveView(server, options.keys)
         started = time.monotonic()
         try:
