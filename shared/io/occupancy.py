@@ -18,7 +18,7 @@ gmapping and slam_toolbox, and neither does one whose end is on no wall of the m
 reflection, or a log's no-return reading not named as one. The global map's walls (its fused
 segments: what the merge found, not the raw returns of clutter that moved) add occupied cells only
 where no beam's evidence says free: a wall the robots saw through, or drove through, is not in the
-grid.
+grid (docs/decisions/011-occupancy-from-the-beams.md).
 """
 
 from __future__ import annotations
