@@ -78,6 +78,34 @@ EXPECTED: dict[str, tuple[type[Message], ...]] = {
 """The message types each kind of key carries; a payload of another type is malformed there."""
 
 
+def checked_message(keys: FleetKeys, key: str, payload: bytes) -> tuple[Message | None, str]:
+    """The message of a payload received on ``key`` if it is valid there (a message of the kind
+    the key carries, of the robot the key names), else None and why not; never raises."""
+    try:
+        parsed = keys.parse(key)
+        message = decode(payload)
+    except BadInput as exc:  # BadMessage, or a key that is not the fleet's
+        return None, str(exc)
+    expected = EXPECTED.get(parsed.kind, ())
+    if not isinstance(message, expected):
+        return None, f"{message.SCHEMA} is not a message of a {parsed.kind} key"
+    robot = getattr(message, "robot", None)
+    if parsed.kind in ROBOT_KINDS and robot != parsed.robot:
+        return None, f"a message of robot {robot!r} on robot {parsed.robot!r}'s key"
+    return message, ""
+
+
+def presence_event(keys: FleetKeys, key: str, joined: bool, receive_time_ns: int) -> FleetEvent:
+    """A liveliness token appearing (``joined``) or disappearing on ``key``, as a FleetEvent (of
+    the robot the key names, if it is a robot's)."""
+    try:
+        parsed = keys.parse(key)
+    except BadInput:
+        parsed = None
+    robot = parsed.robot if parsed is not None and parsed.kind == "alive" else None
+    return FleetEvent("join" if joined else "leave", robot, receive_time_ns / 1e9, detail=key)
+
+
 @dataclass(frozen=True)
 class RecorderSummary:
     """What a recorder recorded, per raw topic."""
@@ -240,12 +268,7 @@ class Recorder:
 
     def feed_presence(self, key: str, joined: bool, receive_time_ns: int) -> None:
         """Record a liveliness token appearing (``joined``) or disappearing, as a FleetEvent."""
-        try:
-            parsed = self._keys.parse(key)
-        except BadInput:
-            parsed = None
-        robot = parsed.robot if parsed is not None and parsed.kind == "alive" else None
-        event = FleetEvent("join" if joined else "leave", robot, receive_time_ns / 1e9, detail=key)
+        event = presence_event(self._keys, key, joined, receive_time_ns)
         payload = event.to_msgpack()
         with self._lock:
             if self._finished:
@@ -340,19 +363,7 @@ class Recorder:
     # --- inside the lock, or pure ---
 
     def _check(self, key: str, payload: bytes) -> tuple[Message | None, str]:
-        """The message of a payload if it is valid on ``key``, else None and why not."""
-        try:
-            parsed = self._keys.parse(key)
-            message = decode(payload)
-        except BadInput as exc:  # BadMessage, or a key that is not the fleet's
-            return None, str(exc)
-        expected = EXPECTED.get(parsed.kind, ())
-        if not isinstance(message, expected):
-            return None, f"{message.SCHEMA} is not a message of a {parsed.kind} key"
-        robot = getattr(message, "robot", None)
-        if parsed.kind in ROBOT_KINDS and robot != parsed.robot:
-            return None, f"a message of robot {robot!r} on robot {parsed.robot!r}'s key"
-        return message, ""
+        return checked_message(self._keys, key, payload)
 
     def _log_time(self, receive_time_ns: int) -> int:
         self._last_log_time = max(int(receive_time_ns), self._last_log_time + 1)

@@ -8,18 +8,23 @@ pixel ``p`` is read as occupancy ``(255 - p) / 255``: above ``occupied_thresh`` 
 occupied, 254 free, 205 unknown, with thresholds 0.65 and 0.196, so a map saved here loads as one
 ``map_saver`` wrote.
 
-The cells (:func:`occupancy_grid`): free where a laser beam passed on its way to the wall it hit
-(each placed scan's raw ranges, cast from the scan's pose in the global map, from the centre of
-the cell it starts in to the centre of the cell it ends in; a beam with no return
-says nothing, as in gmapping and slam_toolbox, and neither does one whose end is on no wall of the
-map: a passer-by, a reflection, or a log's no-return reading not named as one), occupied on the
-global map's walls (its fused segments: what the merge found, not the raw returns of clutter that
-moved), unknown elsewhere.
+The cells (:func:`occupancy_grid`) come from the beams, as occupancy mapping has them (Moravec &
+Elfes 1985; the hit and pass counts of gmapping and slam_toolbox): each placed scan's raw ranges,
+cast from the scan's pose in the global map, pass through cells on their way (free evidence) and
+end in one (occupied evidence); a cell's log-odds is the sum of its evidence under OctoMap's sensor
+model (Hornung et al. 2013: a hit 0.7, a pass 0.4), so it is occupied where more beams ended than
+passed, free where more passed, unknown where none did. A beam with no return says nothing, as in
+gmapping and slam_toolbox, and neither does one whose end is on no wall of the map: a passer-by, a
+reflection, or a log's no-return reading not named as one. The global map's walls (its fused
+segments: what the merge found, not the raw returns of clutter that moved) add occupied cells only
+where no beam's evidence says free: a wall the robots saw through, or drove through, is not in the
+grid (docs/decisions/011-occupancy-from-the-beams.md).
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +41,10 @@ OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 """map_saver's thresholds: 205 reads as 0.196, which is not below ``FREE_THRESH``: unknown."""
 MARGIN_CELLS = 2
 """Unknown cells kept round what was seen."""
+LOG_ODDS_HIT = math.log(0.7 / 0.3)
+LOG_ODDS_PASS = math.log(0.4 / 0.6)
+"""A cell's evidence from one beam that ended in it, and from one that passed through it: OctoMap's
+sensor model (``prob_hit`` 0.7, ``prob_miss`` 0.4, Hornung et al. 2013), its defaults."""
 HIT_TOLERANCE = 0.15
 """How far (m) a beam's end may lie from the map's walls and still be a hit on them: the walls are
 fused from many scans at their optimized poses, each a few centimetres off the raw return."""
@@ -73,8 +82,9 @@ class OccupancyGrid:
 
 
 def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.05) -> OccupancyGrid:
-    """The grid of the module docstring: free along every beam that ended on a wall, up to a cell
-    short of its end; occupied on ``walls`` ``(n, 4)``; unknown elsewhere. It spans the walls."""
+    """The grid of the module docstring: the log-odds of every cell from the beams that ended on a
+    wall of ``walls`` ``(n, 4)``, occupied above 0 and free below; the walls' cells occupied where
+    the beams say nothing or occupied; unknown elsewhere. It spans the walls."""
     if not resolution > 0:
         raise ValueError(f"resolution must be positive, got {resolution}")
     walls = np.asarray(walls, dtype=np.float64).reshape(-1, 4)
@@ -99,31 +109,39 @@ def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.0
     grid = OccupancyGrid(
         np.full(shape, UNKNOWN, dtype=np.int8), (float(low[0] * resolution), float(low[1] * resolution)), resolution
     )
-    occupied = np.zeros(shape, dtype=bool)
+    on_walls = np.zeros(shape, dtype=bool)
     for points in _along_walls(walls, resolution):
         row, col, inside = grid.cell_of(points)
-        occupied[row[inside], col[inside]] = True
-    # a beam frees its path only if it ended on a wall of the map: one that hit a passer-by, a
-    # reading of the sensor's no-return value, or a reflection says nothing of the cells it crossed
-    near = binary_dilation(occupied, iterations=max(1, round(HIT_TOLERANCE / resolution)))
+        on_walls[row[inside], col[inside]] = True
+    # a beam counts only if it ended on a wall of the map: one that hit a passer-by, a reading of
+    # the sensor's no-return value, or a reflection says nothing of the cells it crossed
+    near = binary_dilation(on_walls, iterations=max(1, round(HIT_TOLERANCE / resolution)))
     row, col, inside = grid.cell_of(end)
     on_wall = np.zeros(len(end), dtype=bool)
     on_wall[inside] = near[row[inside], col[inside]]
-    start, end = _distinct_beams(grid, start[on_wall], end[on_wall])
-    free = np.zeros(grid.cells.size, dtype=bool)
-    for cells in _along_beams(grid, start, end):
-        free[cells] = True
-    grid.cells.ravel()[free] = FREE
-    grid.cells[occupied] = OCCUPIED
+    start, end = start[on_wall], end[on_wall]
+    row, col, _ = grid.cell_of(end)
+    hits = np.bincount(row * shape[1] + col, minlength=grid.cells.size)
+    passes = np.zeros(grid.cells.size, dtype=np.float64)
+    start, end, repeats = _distinct_beams(grid, start, end)
+    # each distinct beam stands for beams that end anywhere in its last cell, up to half its
+    # diagonal from the centre it is drawn to: none of them says anything of its last HIT_TOLERANCE
+    short = HIT_TOLERANCE / resolution + math.sqrt(0.5)
+    for cells, owner in _along_beams(grid, start, end, short):
+        passes += np.bincount(cells, weights=repeats[owner], minlength=grid.cells.size)
+    log_odds = (hits * LOG_ODDS_HIT + passes * LOG_ODDS_PASS).reshape(shape)
+    grid.cells[log_odds < 0] = FREE
+    grid.cells[(log_odds > 0) | (on_walls & (log_odds >= 0))] = OCCUPIED
     return grid
 
 
-def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Array, Array]:
+def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Array, Array, Array]:
     """The beams as the grid tells them apart: one from the centre of each first cell to the centre
-    of each last cell that some beam joins. A robot standing or creeping casts the same beams
-    scan after scan (a log at 40 scans a second repeats most of them): each is marched once."""
+    of each last cell that some beam joins, and how many beams joined them. A robot standing or
+    creeping casts the same beams scan after scan (a log at 40 scans a second repeats most of
+    them): each is marched once, and counted as often as it was cast."""
     if len(start) == 0:
-        return start, end
+        return start, end, np.zeros(0)
     r0, c0, _ = grid.cell_of(start)
     r1, c1, _ = grid.cell_of(end)
     cells = np.column_stack([r0, c0, r1, c1])
@@ -131,26 +149,31 @@ def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Arra
     span = cells.max(axis=0) - low + 1
     if float(np.prod(span.astype(np.float64))) < 2.0**62:
         # one integer per (first cell, last cell): a sort of numbers, not of rows
-        key = np.unique(np.ravel_multi_index(tuple((cells - low).T), tuple(span)))
+        key, repeats = np.unique(np.ravel_multi_index(tuple((cells - low).T), tuple(span)), return_counts=True)
         cells = np.column_stack(np.unravel_index(key, tuple(span))) + low
     else:
-        cells = np.unique(cells, axis=0)
+        cells, repeats = np.unique(cells, axis=0, return_counts=True)
     centres = (cells + 0.5) * grid.resolution
     origin = np.array(grid.origin)
-    return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin
+    return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin, repeats.astype(np.float64)
 
 
-def _along_beams(grid: OccupancyGrid, start: Array, end: Array, points: int = 1 << 22) -> Iterable[Array]:
-    """The cells (flat indices into ``grid.cells``) of points every half cell along each beam, up to
-    a cell short of its end, about ``points`` points at a time. Worked in cell units, one coordinate
-    array at a time, in chunks that stay small: a long log's beams make a few hundred million
-    points, and arrays of a gigabyte each cost more to allocate than to fill."""
+def _along_beams(
+    grid: OccupancyGrid, start: Array, end: Array, short: float, points: int = 1 << 22
+) -> Iterable[tuple[Array, Array]]:
+    """The cells each beam passes through (flat indices into ``grid.cells``, each once per beam)
+    and the beam's index, from points every half cell along it up to ``short`` cells short of its
+    end (the inverse sensor model's half obstacle depth: an end within ``HIT_TOLERANCE`` of a wall
+    is a hit on it, so the beam's last ``HIT_TOLERANCE`` may be that wall's, at whatever angle it
+    meets it), about ``points`` points at a time. Worked in cell units, one coordinate array at a
+    time, in chunks that stay small: a long log's beams make a few hundred million points, and
+    arrays of a gigabyte each cost more to allocate than to fill."""
     rows, cols = grid.cells.shape
     origin = np.asarray(grid.origin)
     cell_start = (start - origin) / grid.resolution
     delta = (end - origin) / grid.resolution - cell_start
     length = np.hypot(delta[:, 0], delta[:, 1])
-    count = np.maximum(np.floor((length - 1.0) / 0.5).astype(np.int64), 0)
+    count = np.maximum(np.floor((length - short) / 0.5).astype(np.int64) + 1, 0)
     step = delta * (0.5 / np.maximum(length, 1e-12))[:, None]
     cuts = np.searchsorted(np.cumsum(count), np.arange(points, int(count.sum()), points), side="right")
     for lo, hi in itertools.pairwise([0, *cuts.tolist(), len(count)]):
@@ -167,8 +190,11 @@ def _along_beams(grid: OccupancyGrid, start: Array, end: Array, points: int = 1 
         y += k * step[:, 1][owner]
         col = np.floor(x, out=x).astype(np.int64)
         row = np.floor(y, out=y).astype(np.int64)
-        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        yield row[inside] * cols + col[inside]
+        flat = row * cols + col
+        # a straight beam's points in one cell follow each other: the first of each run counts
+        keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        keep[1:] &= (flat[1:] != flat[:-1]) | (owner[1:] != owner[:-1])
+        yield flat[keep], owner[keep]
 
 
 def _along_walls(walls: Array, resolution: float) -> Iterable[Array]:

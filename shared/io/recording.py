@@ -345,7 +345,7 @@ class FoxgloveScene:
     ``/foxglove/<fleet>/paths/<robot>``), drawn at every global map from the scans its submaps
     hold, at their submaps' poses there; and, when the recording is finished, the largest
     component's occupancy grid (``foxglove.Grid`` on ``/foxglove/<fleet>/grid``,
-    :mod:`fleetmap.shared.io.occupancy`)."""
+    :mod:`fleetmap.shared.io.occupancy`; :meth:`grid_views` for the grid so far)."""
 
     def __init__(self) -> None:
         self._tables: dict[str, tuple[Array, Array]] = {}
@@ -368,6 +368,12 @@ class FoxgloveScene:
     def final_views(self, at: float | None = None) -> list[FoxgloveView]:
         """The views of the whole session (its occupancy grid), once it is over (stamped ``at``,
         by default the last global map's stamp)."""
+        return self.grid_views(at)
+
+    def grid_views(self, at: float | None = None) -> list[FoxgloveView]:
+        """The largest component's occupancy grid as the session has it so far (stamped ``at``, by
+        default the last global map's stamp); none before the first global map. A recording
+        writes it once, at its end; a live view now and then."""
         if self._last is None or not self._last[0].components:
             return []
         message, prefix = self._last

@@ -27,6 +27,7 @@ COMMANDS = (
     "agent",
     "merger",
     "record",
+    "view",
     "router",
     "secure",
     "play",

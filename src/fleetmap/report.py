@@ -501,8 +501,8 @@ def robot_paths(log: SessionLog) -> dict[str, Array]:
 
 
 def occupancy_of(log: SessionLog) -> OccupancyGrid:
-    """The largest component's occupancy grid (:mod:`fleetmap.shared.io.occupancy`): free along its
-    placed scans' beams, occupied on its fused walls."""
+    """The largest component's occupancy grid (:mod:`fleetmap.shared.io.occupancy`): occupied where
+    its placed scans' beams ended, free where they passed, and its fused walls where no beam says free."""
     main = log.main
     walls = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
     return occupancy_grid(placed_beams(log), walls)

@@ -153,6 +153,8 @@ class Session:
     role may."""
     tls: bool = False
     """With ``secure``: over mutual TLS."""
+    view_port: int | None = None
+    """Serve the session live to Foxglove on this WebSocket port (``fleetmap view``), if given."""
     merger_options: tuple[str, ...] = ("--executor", "inline")
     """Flags of ``fleetmap merger``. A session runs every robot on this machine: integration
     workers would only take CPU from the robots and the merger's solve (decision record 004), so
@@ -213,6 +215,13 @@ class Session:
                     *self._zenoh("recorder"),
                 )
                 _wait(lambda: "recorder" in watch.services or not record.running, READY_TIMEOUT, "the recorder")
+                if self.view_port is not None:
+                    view = self._child("view", "view", "--port", str(self.view_port), *self._zenoh("viewer"))
+                    # the view subscribes to the fleet before it opens its port
+                    where = f"tcp/127.0.0.1:{self.view_port}"
+                    _wait(lambda: _port_open(where) or not view.running, READY_TIMEOUT, "the live view")
+                    if not view.running:
+                        raise SessionError(f"the live view did not start (see {view.log_path})")
                 merger_args: tuple[str, ...] = ("merger", "--state", str(state_file), "--config", str(config_file))
                 merger_args += tuple(self._zenoh("merger")) + self.merger_options
                 merger = self._child("merger", *merger_args)

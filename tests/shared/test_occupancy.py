@@ -1,8 +1,12 @@
-"""The occupancy grid: free along the beams that hit a wall, occupied on the walls, and map_server's files."""
+"""The occupancy grid: occupied where beams end, free where they pass, and map_server's files."""
 
 from __future__ import annotations
 
+import csv
+import gzip
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +14,7 @@ import pytest
 import yaml
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.occupancy import FREE, OCCUPIED, UNKNOWN, Beams, occupancy_grid, write_map_server
+from scipy.spatial import cKDTree
 
 ROOM = np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [4.0, 3.0, 0.0, 3.0], [0.0, 3.0, 0.0, 0.0]])
 """A 4 m x 3 m room."""
@@ -87,6 +92,74 @@ def test_a_beam_that_ends_on_no_wall_or_never_returns_frees_nothing() -> None:
     assert list(grid.cells[row, col]) == [UNKNOWN, FREE, UNKNOWN, UNKNOWN]
 
 
+def test_a_wall_the_beams_pass_through_is_not_in_the_grid() -> None:
+    # the map's walls hold one more, across the middle of the room, that the robot drove through
+    # (a merged segment bridging two pieces): its beams pass it at every angle and end on the room
+    across = np.array([[2.0, 0.0, 2.0, 3.0]])
+    scans = [_cast(Transform2D(x, 1.5, 0.0), ROOM) for x in (0.5, 1.2, 2.0, 2.8, 3.5)]
+    grid = occupancy_grid(scans, np.vstack([ROOM, across]), 0.05)
+    t = np.linspace(0.05, 0.95, 100)[:, None]
+    row, col, _ = grid.cell_of(across[0, 0:2] + t * (across[0, 2:4] - across[0, 0:2]))
+    assert (grid.cells[row, col] == FREE).all()
+    # the room's own walls, where the beams ended, stay occupied
+    on_walls = np.vstack([w[0:2] + t * (w[2:4] - w[0:2]) for w in ROOM])
+    row, col, _ = grid.cell_of(on_walls)
+    assert (grid.cells[row, col] == OCCUPIED).all()
+
+
 def test_no_scans_and_no_walls_give_an_unknown_grid() -> None:
     grid = occupancy_grid([], np.zeros((0, 4)))
     assert (grid.cells == UNKNOWN).all()
+
+
+REAL_LOGS = [
+    # (log, its no-return reading, the first scans mapped): enough of each tour that the grid of
+    # fused walls alone drew walls across the robot's own path
+    ("aces/aces.clf.gz", "50", 600),
+    ("fr079/fr079.clf.gz", "81.91", 1200),
+    ("mit-csail/mit-csail.clf.gz", "81.91", 600),
+]
+
+
+@pytest.mark.slow  # maps 600-1200 real scans of each log (about 50 s in all)
+@pytest.mark.parametrize(("log", "range_max", "scans"), REAL_LOGS, ids=[p[0].split("/")[0] for p in REAL_LOGS])
+def test_no_wall_stands_where_the_robot_stood(
+    datasets: Path, tmp_path: Path, log: str, range_max: str, scans: int
+) -> None:
+    # the map nav2 loads from `fleetmap map` has no occupied cell within 0.1 m of any placed scan's
+    # laser position: the robot drove there, so a wall there is one the beams contradict
+    lines, taken = [], 0
+    with gzip.open(datasets / log, "rt") as fh:
+        for line in fh:
+            if line.startswith("FLASER"):
+                taken += 1
+                if taken > scans:
+                    break
+            if line.startswith(("FLASER", "ODOM")):
+                lines.append(line)
+    piece = tmp_path / "piece.clf"
+    piece.write_text("".join(lines))
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [sys.executable, "-m", "fleetmap", "map", str(piece), "--out", str(out), "--range-max", range_max,
+         "--no-progress"],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    with (out / "poses.csv").open(encoding="utf-8") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["component"] == "0"]  # the grid is component 0's
+    assert len(rows) > 0.9 * scans
+    stood = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    cells, origin, resolution = read_map_server(out / "map.yaml")
+    assert (cells == OCCUPIED).sum() > 2000 and (cells == FREE).sum() > 5 * (cells == OCCUPIED).sum()
+    row, col = np.nonzero(cells == OCCUPIED)
+    low = np.column_stack([origin[0] + col * resolution, origin[1] + row * resolution])
+    # each occupied cell's square against the nearest laser positions: its nearest point to each
+    near = cKDTree(stood).query_ball_point(low + resolution / 2, 0.1 + resolution / math.sqrt(2))
+    close = []
+    for corner, found in zip(low, near, strict=True):
+        if found:
+            gap = np.maximum(np.maximum(corner - stood[found], stood[found] - (corner + resolution)), 0.0)
+            if np.hypot(gap[:, 0], gap[:, 1]).min() < 0.1:
+                close.append(corner.round(2).tolist())
+    assert not close, f"{len(close)} occupied cells within 0.1 m of where the robot stood, e.g. {close[:5]}"

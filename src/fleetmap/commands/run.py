@@ -40,6 +40,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "(fleetmap secure, written into DIR/secure) and may do only what its role may",
     )
     p.add_argument("--tls", action="store_true", help="with --secure: over mutual TLS")
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="serve the session live to Foxglove while it runs (fleetmap view): open ws://127.0.0.1:8765",
+    )
+    p.add_argument("--view-port", type=int, default=8765, metavar="PORT", help="with --view: its port (default 8765)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json instead of the summary")
     add_config_arguments(p, ["extraction", "integration", "merge"])
@@ -63,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         secure=args.secure,
         tls=args.tls,
+        view_port=args.view_port if args.view else None,
     )
     report = session.run()
     if args.json:
