@@ -258,13 +258,13 @@ def _unanchored(
         raw = Transform2D(*readings[i].pose)
         if i in anchors and out:
             offset = Transform2D(*out[-1].pose).compose(raw.inverse())
-        pose = offset.compose(raw)
+        chained = offset.compose(raw)
         # an anchor the next scan's line follows with no reading between: nothing moved it
         after = int(np.searchsorted(laser_lines, readings[i].line))
         empty = i in anchors and (
             i + 1 == len(readings) or (after < len(laser_lines) and readings[i + 1].line > laser_lines[after])
         )
-        out.append(replace(readings[i], pose=(pose.x, pose.y, pose.theta), moved=not empty))
+        out.append(replace(readings[i], pose=(chained.x, chained.y, chained.theta), moved=not empty))
     return out
 
 
