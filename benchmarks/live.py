@@ -45,13 +45,18 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
+from fleetmap.agents.sources import Ros2BagSource
 from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.recording import RecordingReader
 from results import write_section
 
 from fleetmap.report import merge_latencies
+from fleetmap.ros2_robots import write_robot_bag
 from fleetmap.runner import Session
 
 MODES = {"open": {}, "auth": {"secure": True}, "tls": {"secure": True, "tls": True}}
@@ -134,6 +139,42 @@ def simulation_cpu_s(n: int) -> float:
         for _ in robot_stream(scenario, robot.id):
             pass
     return time.process_time() - start
+
+
+def decoding_cost(n: int) -> dict[str, float]:
+    """CPU seconds, in this process alone, of the first ``n`` robots' scans through the ROS 2 source
+    (the samples ``fleetmap play`` puts, decoded and paired with their odometry by
+    :class:`Ros2LiveSource`) and through the agent's mapping, and of their simulation (what today's
+    agents run instead of the decoding)."""
+    scenario = fleet_scenario(n)
+    attachment = wire.Attachment(1, 0, bytes(wire.GID_SIZE)).pack()
+    decode = mapping = 0.0
+    scans = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for robot in scenario.robots:
+            write_robot_bag(scenario, robot.id, Path(tmp) / robot.id)
+            bag = Ros2BagSource(Path(tmp) / robot.id)
+            topics = Ros2Topics.of(robot.id)
+            names = {"/scan": topics.scan, "/odom": topics.odom, "/tf_static": topics.tf_static}
+            samples = []
+            for topic, _, message in bag.messages(sorted(names)):
+                typename = (
+                    wire.TF_MESSAGE if topic == "/tf_static" else wire.LASER_SCAN if topic == "/scan" else wire.ODOMETRY
+                )
+                key = wire.data_key(0, names[topic], typename)
+                samples.append((names[topic], key, wire.encode(message, typename), attachment))
+            source = Ros2LiveSource(None, topics, threading.Event(), robot.id)
+            wire.typestore()  # built once per agent: a fixed cost, not a scan's
+            start = time.process_time()
+            released = [s for sample in samples for s in source.feed(*sample)]
+            decode += time.process_time() - start
+            agent = Agent(robot.id, FleetmapConfig(), odometry=True)
+            start = time.process_time()
+            for s in released:
+                agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+            mapping += time.process_time() - start
+            scans += len(released)
+    return {"scans": scans, "decode_s": decode, "mapping_s": mapping, "simulation_s": simulation_cpu_s(n)}
 
 
 def measure(
@@ -225,17 +266,35 @@ def ros2_lines(rows: list[dict[str, float | str]], robots: str) -> list[str]:
         "agents' CPU s (ROS 2 / today less simulation) | ratio |",
         "|---|---|---|---|---|---|",
     ]
+    per_scan: list[tuple[int, dict[str, float]]] = []
     for n in (int(x) for x in robots.split(",")):
 
         def med(feed: str, field: str, n: int = n) -> float:
             return float(np.median([float(r[field]) for r in rows if r["robots"] == n and r["feed"] == feed]))
 
-        simulation = simulation_cpu_s(n)
+        cost = decoding_cost(n)
+        simulation = cost["simulation_s"]
         today = med("sim", "cpu_s_agent") - simulation
+        per_scan.append((n, cost))
         lines.append(
             f"| {n} | {med('ros2', 'latency_median_s'):.2f} s / {med('sim', 'latency_median_s'):.2f} s "
             f"| {med('ros2', 'catch_up_s'):.1f} s / {med('sim', 'catch_up_s'):.1f} s | {simulation:.2f} "
             f"| {med('ros2', 'cpu_s_agent'):.1f} / {today:.1f} | {med('ros2', 'cpu_s_agent') / today:.2f} |"
+        )
+    lines += [
+        "",
+        "Per scan, in one process alone (CPU time, so the machine's other load hardly counts): the ROS 2 "
+        "source (CDR decoding, the attachment, pairing with odometry) against the agent's mapping of the "
+        "same scans, and the simulation today's agents run instead:",
+        "",
+        "| robots | scans | ROS 2 source ms/scan | mapping ms/scan | source / mapping | simulation ms/scan |",
+        "|---|---|---|---|---|---|",
+    ]
+    for n, cost in per_scan:
+        k = 1e3 / cost["scans"]
+        lines.append(
+            f"| {n} | {cost['scans']:.0f} | {cost['decode_s'] * k:.3f} | {cost['mapping_s'] * k:.2f} "
+            f"| {cost['decode_s'] / cost['mapping_s']:.3f} | {cost['simulation_s'] * k:.3f} |"
         )
     lines += [
         "",

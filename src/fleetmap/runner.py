@@ -35,7 +35,7 @@ from fleetmap.shared.errors import FleetmapError
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, decode
+from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.io.recording import RecordingReader
 from fleetmap.shared.io.security import write_fleet_security
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 
 READY_TIMEOUT = 30.0
 """Seconds a service may take to start (python, numpy, zenoh) before the run gives up."""
+ROS2_QUIET = 10.0
+"""Seconds without a Scan after which a ROS 2 session's robot whose bag is played is taken as done."""
 CATCH_UP_TIMEOUT = 300.0
 """Seconds the merger may take, after the robots are done, to integrate the last local maps."""
 
@@ -129,20 +131,37 @@ class _Watch:
 
 class _Ros2Feeds:
     """What the runner hears of a ROS 2 session's robots: whose agent subscribes to its scans now
-    (its ``MS`` liveliness token for ``/<robot>/scan``), and whether a robot's agent has put on the
-    fleet's bus a scan for every one of its bag's."""
+    (its ``MS`` liveliness token for ``/<robot>/scan``), and whether a robot's agent has mapped
+    every scan of its bag (a live agent numbers the scans it takes from 0: its last one's Scan
+    message names the bag's last index). The runner's own subscriber may miss a message a busy
+    machine drops; after :data:`ROS2_QUIET` seconds without a Scan of a robot whose bag is played,
+    its agent is taken to have mapped all it heard."""
 
-    def __init__(self, bus: ZenohBus, keys: FleetKeys, watch: _Watch, bags: dict[str, tuple[Path, int]]) -> None:
+    def __init__(self, bus: ZenohBus, keys: FleetKeys, bags: dict[str, tuple[Path, int]]) -> None:
         self.bags = bags
         self.keys = keys
-        self.watch = watch
         self.stopped: set[str] = set()
         """Robots whose agent was told to stop."""
+        self.played: dict[str, float] = {}
+        """When the runner saw each robot's player done (monotonic)."""
         self.changed = threading.Event()
         self._topics = {wire.mangle(f"/{robot}/scan"): robot for robot in bags}
         self._listening: set[str] = set()
         self._lock = threading.Lock()
+        self._last: dict[str, tuple[int, float]] = {}
+        """Each robot's newest Scan message heard: its index, and when it came (monotonic)."""
         bus.subscribe_liveliness(f"{wire.LIVELINESS_PREFIX}/0/**", self._on_token, lambda key: None)
+        bus.subscribe(keys.all_scans, self._on_scan)
+
+    def _on_scan(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload)
+        except BadMessage:
+            return
+        if isinstance(message, Scan):
+            with self._lock:
+                index = max(message.index, self._last.get(message.robot, (-1, 0.0))[0])
+                self._last[message.robot] = (index, time.monotonic())
 
     def _on_token(self, key: str) -> None:
         chunks = key.split("/")  # @ros2_lv/domain/session/node/entity/kind/enclave/namespace/name/topic/...
@@ -155,9 +174,23 @@ class _Ros2Feeds:
         with self._lock:
             return set(self._listening)
 
-    def all_heard(self, robot: str) -> bool:
-        with self.watch.lock:
-            return self.watch.counts[self.keys.scan(robot)] >= self.bags[robot][1]
+    def all_mapped(self, robot: str, played_since: float) -> bool:
+        """Whether ``robot``'s agent has published its bag's last scan, or has been quiet
+        :data:`ROS2_QUIET` s since ``played_since`` (monotonic) and since its last Scan."""
+        with self._lock:
+            index, at = self._last.get(robot, (-1, 0.0))
+        if index >= self.bags[robot][1] - 1:
+            return True
+        if time.monotonic() - max(at, played_since) < ROS2_QUIET:
+            return False
+        log.warning(
+            "%s: quiet for %.0f s after its bag was played, scan %d of %d heard last",
+            robot,
+            ROS2_QUIET,
+            index,
+            self.bags[robot][1],
+        )
+        return True
 
 
 def _wait(predicate: Callable[[], bool], timeout: float, what: str, event: threading.Event | None = None) -> None:
@@ -273,7 +306,7 @@ class Session:
                 for c in (record, merger):
                     if not c.running:
                         raise SessionError(f"the {c.name} did not start (see {c.log_path})")
-                feeds = _Ros2Feeds(bus, keys, watch, bags) if self.ros2 else None
+                feeds = _Ros2Feeds(bus, keys, bags) if self.ros2 else None
                 merger = self._play(scenario_file, config_file, merger_args, merger, feeds)
                 _wait(watch.caught_up, CATCH_UP_TIMEOUT, "the merger to integrate every local map", watch.changed)
                 with watch.lock:
@@ -360,7 +393,8 @@ class Session:
                 raise SessionError(
                     f"play {robot} failed with exit code {player.popen.returncode} (see {player.log_path})"
                 )
-            if feeds.all_heard(robot):
+            played_since = feeds.played.setdefault(robot, time.monotonic())
+            if feeds.all_mapped(robot, played_since):
                 agents[robot].signal(signal.SIGTERM)
                 feeds.stopped.add(robot)
 
