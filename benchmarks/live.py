@@ -315,10 +315,12 @@ def main() -> int:
     ap.add_argument("--executor", default="local", help="the merger's executors to compare (comma-separated)")
     ap.add_argument("--runs", type=int, default=1, help="sessions of each kind (a live merger's steps vary)")
     ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--out", metavar="DIR", help="keep each session's folder (logs, recording) under DIR")
     args = ap.parse_args()
     modes = list(MODES) if args.secure else ["open"]
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = args.out or scratch
         for n in (int(x) for x in args.robots.split(",")):
             for mode in modes:
                 for executor in args.executor.split(","):
