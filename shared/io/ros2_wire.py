@@ -145,7 +145,8 @@ class Attachment:
 def gid_of(token: str) -> bytes:
     """The 16-byte GID of the endpoint whose liveliness token is ``token``, as rmw_zenoh makes it:
     XXH3-128 of the token's exact bytes, its low and then its high 64 bits copied in the machine's
-    byte order (``liveliness_utils.cpp``: a ``memcpy`` of ``XXH128_hash_t``'s ``low64``, ``high64``).
+    byte order (rmw_zenoh ``liveliness_utils.cpp`` with ``simplified_xxhash3.cpp``, a portable copy
+    of xxHash's XXH3-128: a ``memcpy`` of ``low64``, then ``high64``).
     A ROS 2 node that matches a sample's GID to the publisher it discovered (message info,
     ``ros2 topic info -v``) then finds fleetmap's."""
     digest = xxhash.xxh3_128(token.encode()).intdigest()
