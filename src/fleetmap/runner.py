@@ -233,8 +233,9 @@ class Session:
     the robot's scans and odometry are written as a bag (:func:`~fleetmap.ros2_robots.write_robot_bag`),
     ``fleetmap agent --ros2 --namespace <robot>`` is its agent and, once the agent's scan
     subscription shows on the bus, ``fleetmap play BAG --ros2 --namespace <robot>`` publishes the
-    bag at ``speed``. A live agent runs until stopped: it is stopped when play is done and it has
-    published a scan for every one played."""
+    bag at ``speed``. A live agent runs until stopped: it is stopped when play is done and its
+    Scan of the bag's last scan is heard (or it has been quiet :data:`ROS2_QUIET` s). Events are
+    not played, and a secure session is refused (rmw_zenoh's keys are outside the fleet's rules)."""
     python: str = sys.executable
     children: list[_Child] = field(default_factory=list)
     _zenoh: Callable[[str], list[str]] = field(init=False, repr=False)
