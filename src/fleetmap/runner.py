@@ -12,6 +12,7 @@ the runner saw on the bus) and writes the outputs from the recording (:mod:`flee
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -83,6 +84,13 @@ class _Child:
             try:
                 self.popen.wait(timeout)
             except subprocess.TimeoutExpired:
+                # a service writes its threads' stacks on SIGUSR1 (fleetmap.cli): where it was stuck
+                self.popen.send_signal(signal.SIGUSR1)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self.popen.wait(1.0)
+                log.warning(
+                    "%s did not stop within %.0f s of SIGTERM (its stacks: %s)", self.name, timeout, self.log_path
+                )
                 self.popen.kill()
                 self.popen.wait(5)
         if self.log_file is not None:
