@@ -182,6 +182,12 @@ class Ros2LiveSource:
                 handle.undeclare()
             self._say_dropped()
 
+    def feed(self, topic: str, key: str, payload: bytes, attachment: bytes | None) -> list[SourceScan]:
+        """Take one sample of ``topic`` heard on ``key`` as the subscription would, without a session;
+        the scans it releases (a benchmark or a test steps the source this way)."""
+        self._take(topic, key, payload, attachment)
+        return list(self._released())
+
     # --- what the samples say ---
 
     def _drop(self, topic: str, why: str, detail: str = "") -> None:

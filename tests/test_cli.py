@@ -7,6 +7,7 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -241,3 +242,43 @@ def test_verbosity_flags_are_taken_anywhere_on_the_line(tmp_path: Path) -> None:
     finally:
         root.handlers[:] = handlers
         root.setLevel(level)
+
+
+@pytest.mark.slow
+def test_a_service_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path: Path) -> None:
+    import signal
+    import socket
+    import threading
+    import time
+
+    from fleetmap.shared.io.zenoh_config import free_loopback_endpoint
+
+    def listening(host: str, port: int) -> bool:
+        try:
+            with socket.create_connection((host, port), timeout=0.2):
+                return True
+        except OSError:
+            return False
+
+    def wait_for(predicate: Callable[[], bool], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                return False
+            threading.Event().wait(0.1)
+        return True
+
+    endpoint = free_loopback_endpoint()
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    err = tmp_path / "router.err"
+    with err.open("wb") as stderr:
+        router = subprocess.Popen([sys.executable, "-m", "fleetmap", "router", "--listen", endpoint], stderr=stderr)
+    try:
+        assert wait_for(lambda: listening(host, int(port)) or router.poll() is not None, 30.0)
+        assert router.poll() is None, err.read_text()
+        router.send_signal(signal.SIGUSR1)
+        assert wait_for(lambda: "most recent call first" in err.read_text(), 5.0), err.read_text()
+        assert router.poll() is None, "SIGUSR1 stopped the service"
+    finally:
+        router.terminate()
+        router.wait(20)

@@ -8,16 +8,17 @@ import threading
 
 import numpy as np
 import pytest
+from fleetmap.shared.config import MergeParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import InMemoryBus
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import RobotPose, Scan
+from fleetmap.shared.io.messages import LaserRanges, RobotPose, Scan
 from fleetmap.shared.io.occupancy import OccupancyGrid
 from fleetmap.shared.io.ros2_node import Ros2Node
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 
-from fleetmap.ros2_outputs import Ros2Outputs, occupancy_message
+from fleetmap.ros2_outputs import GridScans, Ros2Outputs, occupancy_message
 from tests.bus_helpers import open_zenoh
 
 
@@ -78,3 +79,45 @@ def test_a_placed_scan_gives_the_robots_pose_and_map_to_odom_from_its_odometry()
         p.orientation.z, p.orientation.w
     ) == pytest.approx(2.0)
     assert pose.header.frame_id == "map"  # type: ignore[attr-defined]
+
+
+def _scan(index: int, pose: Transform2D | None, submap: int | None = 0) -> Scan:
+    ranges = LaserRanges(-math.pi / 2, math.pi / 180, 8.0, np.full(181, 2.0))
+    return Scan("r1", 0, index, 0.2 * index, np.zeros((0, 4)), ranges, submap, pose)
+
+
+def test_the_grid_holds_the_ranges_of_key_scans_only_so_a_long_session_stays_bounded():
+    keys = FleetKeys("t")
+    merge = MergeParams()
+    with (
+        open_zenoh(ZenohOptions(listen=("tcp/127.0.0.1:0",))) as zbus,
+        Ros2Node(zbus.session, "fleetmap_merger") as node,
+    ):
+        outputs = Ros2Outputs(InMemoryBus(), keys, node, merge=merge)
+        # an hour at 5 Hz of a robot that stands, in one submap: one key scan
+        for index in range(18_000):
+            outputs.on_message(keys.scan("r1"), _scan(index, Transform2D(1.0, 2.0, 0.3)).to_msgpack())
+        assert len(outputs.grid_scans) == 1
+        # then 20 m along x in 0.05 m steps (400 scans), its submaps 20 scans each: a key scan every
+        # scan_key_spacing along the path, and each submap's first
+        start = 18_000
+        for k in range(400):
+            pose = Transform2D(0.05 * (k % 20), 0.0, 0.0)  # in its submap's frame
+            outputs.on_message(keys.scan("r1"), _scan(start + k, pose, submap=1 + k // 20).to_msgpack())
+        driven = 1 + 20 * math.ceil(20 * 0.05 / merge.scan_key_spacing)
+        assert len(outputs.grid_scans) <= driven
+        # scans no submap placed are in no grid
+        outputs.on_message(keys.scan("r1"), _scan(start + 400, None, submap=None).to_msgpack())
+        assert len(outputs.grid_scans) <= driven
+        assert ("r1", 0) in outputs.grid_scans.ranges and ("r1", 17_999) not in outputs.grid_scans.ranges
+
+
+def test_a_submaps_key_scans_are_spaced_along_the_path_or_turned():
+    merge = MergeParams()
+    grid = GridScans(merge)
+    step = merge.scan_key_spacing / 4
+    kept = [grid.add(_scan(k, Transform2D(step * k, 0.0, 0.0))) for k in range(9)]
+    assert kept == [True, False, False, False, True, False, False, False, True]
+    assert grid.add(_scan(9, Transform2D(step * 8, 0.0, merge.scan_key_rotation + 0.01)))  # turned in place
+    assert not grid.add(_scan(9, Transform2D(50.0, 0.0, 0.0)))  # the same scan again
+    assert len(grid) == 4

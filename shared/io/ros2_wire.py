@@ -21,12 +21,13 @@ and their sources are collected in the project's ROS 2 notes):
 
 from __future__ import annotations
 
-import hashlib
 import struct
+import sys
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+import xxhash
 from fleetmap.shared.errors import BadInput
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_typestore
@@ -142,11 +143,15 @@ class Attachment:
 
 
 def gid_of(token: str) -> bytes:
-    """A stable 16-byte GID for the endpoint whose liveliness token is ``token``.
-
-    rmw_zenoh takes XXH3-128 of the token; subscribers only copy the GID into the message info, so
-    any stable 16 bytes do (BLAKE2b here, from the standard library)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """The 16-byte GID of the endpoint whose liveliness token is ``token``, as rmw_zenoh makes it:
+    XXH3-128 of the token's exact bytes, its low and then its high 64 bits copied in the machine's
+    byte order (rmw_zenoh ``liveliness_utils.cpp`` with ``simplified_xxhash3.cpp``, a portable copy
+    of xxHash's XXH3-128: a ``memcpy`` of ``low64``, then ``high64``).
+    A ROS 2 node that matches a sample's GID to the publisher it discovered (message info,
+    ``ros2 topic info -v``) then finds fleetmap's."""
+    digest = xxhash.xxh3_128(token.encode()).intdigest()
+    low, high = digest & 0xFFFF_FFFF_FFFF_FFFF, digest >> 64
+    return low.to_bytes(8, sys.byteorder) + high.to_bytes(8, sys.byteorder)
 
 
 RELIABLE, BEST_EFFORT = 1, 2

@@ -7,8 +7,10 @@ wrong with it) and 1 on any other failure.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -120,6 +122,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     base = logging.INFO if command in SERVICES else logging.WARNING
     level = min(max(base - 10 * louder, logging.DEBUG), logging.CRITICAL)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    if command in SERVICES and hasattr(signal, "SIGUSR1"):
+        # `kill -USR1 PID` writes every thread's stack to stderr: what a service that does not stop is doing
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         return int(args.func(args) or 0)
     except BadInput as exc:

@@ -5,7 +5,9 @@ What a ROS 2 navigation stack and RViz expect of a map provider:
 - ``/map``: nav_msgs/OccupancyGrid in frame ``map``, reliable and transient local (REP-2003), so
   nav2's map server or RViz started later still get the last map: the largest component's
   occupancy grid (:func:`fleetmap.report.occupancy_of`: free along the placed scans' beams, occupied
-  on the fused walls), remade at most every ``map_seconds`` when a new global map came;
+  on the fused walls), remade at most every ``map_seconds`` when a new global map came. The beams
+  are those of the submaps' key scans (:class:`GridScans`), so what is held grows with the
+  distance the robots travel, as the merger's key scans do, not with the session's length;
 - ``/tf``: tf2_msgs/TFMessage with ``map -> <robot>/odom`` for each robot placed in that component,
   at each of its placed scans: the laser's pose in the map composed with the inverse of its
   odometry pose at the same scan (what a localizer publishes, REP 105);
@@ -28,12 +30,14 @@ from typing import Any
 
 import numpy as np
 
+from fleetmap.merger.scangraph import is_key
 from fleetmap.report import SessionLog, occupancy_of
+from fleetmap.shared.config import MergeParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import Bus, Handle
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import BadMessage, GlobalMap, LocalMap, RobotPose, Scan, decode
+from fleetmap.shared.io.messages import BadMessage, GlobalMap, LaserRanges, LocalMap, RobotPose, Scan, decode
 from fleetmap.shared.io.occupancy import OccupancyGrid
 from fleetmap.shared.io.ros2_node import Ros2Node, Ros2Publisher
 
@@ -88,6 +92,41 @@ def pose_message(pose: Transform2D, stamp: float) -> Any:
     return T[wire.POSE_WITH_COVARIANCE_STAMPED](_header(stamp, MAP_FRAME), with_covariance)
 
 
+class GridScans:
+    """The raw ranges the occupancy grid on /map is made of: those of each submap's key scans.
+
+    A placed scan's ranges are kept when it is a key scan of the submap that placed it
+    (:func:`fleetmap.merger.scangraph.is_key`: ``scan_key_spacing`` along the path or
+    ``scan_key_rotation`` turned from the submap's last one), as the merger keeps key scans to
+    refine with; a scan that no submap placed is in no grid and is not kept. A robot that stands
+    or turns slowly for hours adds nothing; the scans held grow with the distance travelled.
+    """
+
+    def __init__(self, params: MergeParams) -> None:
+        self.params = params
+        self.ranges: dict[tuple[str, int], LaserRanges] = {}
+        """The kept ranges by (robot, scan index), as :class:`~fleetmap.report.SessionLog` has them."""
+        self._last: dict[str, tuple[int, Transform2D]] = {}
+        """Each submap's last key scan: its index and its pose in the submap."""
+
+    def add(self, scan: Scan) -> bool:
+        """Keep ``scan``'s ranges if it is a key scan of its submap; whether it was kept."""
+        if scan.ranges is None or scan.submap is None or scan.pose is None:
+            return False
+        submap = f"{scan.robot}/{scan.epoch}/{scan.submap}"
+        last = self._last.get(submap)
+        if last is not None and scan.index <= last[0]:
+            return False  # a scan again, or out of order
+        if not is_key(last[1] if last is not None else None, scan.pose, self.params):
+            return False
+        self._last[submap] = (scan.index, scan.pose)
+        self.ranges[(scan.robot, scan.index)] = scan.ranges
+        return True
+
+    def __len__(self) -> int:
+        return len(self.ranges)
+
+
 class Ros2Outputs:
     """The fleet's map and poses on ``node`` (see the module); :meth:`start` listens on ``bus``."""
 
@@ -98,7 +137,9 @@ class Ros2Outputs:
         node: Ros2Node,
         map_seconds: float = MAP_SECONDS,
         clock: Callable[[], float] = time.time,
+        merge: MergeParams | None = None,
     ) -> None:
+        """``merge``: the merger's parameters (its key scans' spacing is the grid's)."""
         self.bus = bus
         self.keys = keys
         self.node = node
@@ -108,6 +149,8 @@ class Ros2Outputs:
         self.tf = node.publisher("/tf", wire.TF_MESSAGE, wire.TF)
         self._poses: dict[str, Ros2Publisher] = {}
         self._log = SessionLog()
+        """The last global map and the latest version of every submap (scans go to ``grid_scans``)."""
+        self.grid_scans = GridScans(merge or MergeParams())
         self._odometry: dict[str, OrderedDict[float, Transform2D]] = {}
         self._lock = threading.Lock()
         self._new_map = threading.Event()
@@ -131,12 +174,16 @@ class Ros2Outputs:
             self._on_pose(message)
             return
         with self._lock:
-            if isinstance(message, Scan) and message.odometry is not None:
-                kept = self._odometry.setdefault(message.robot, OrderedDict())
-                kept[message.stamp] = message.odometry
-                while len(kept) > ODOMETRY_KEPT:
-                    kept.popitem(last=False)
-            if isinstance(message, GlobalMap | LocalMap | Scan):
+            if isinstance(message, Scan):
+                if message.odometry is not None:
+                    kept = self._odometry.setdefault(message.robot, OrderedDict())
+                    kept[message.stamp] = message.odometry
+                    while len(kept) > ODOMETRY_KEPT:
+                        kept.popitem(last=False)
+                self.grid_scans.add(message)
+            elif isinstance(message, GlobalMap):
+                self._log.global_maps[:] = [message]  # only the last one is ever read
+            elif isinstance(message, LocalMap):
                 self._log.add(message)
         if isinstance(message, GlobalMap):
             self._new_map.set()
@@ -178,12 +225,11 @@ class Ros2Outputs:
         with self._lock:
             if self._log.main is None:
                 return False
-            del self._log.global_maps[:-1]  # only the last one is ever read
             # what the grid is made of, so that scans and poses go on while it is made
             snapshot = SessionLog(
                 global_maps=list(self._log.global_maps),
                 local_maps=dict(self._log.local_maps),
-                ranges=dict(self._log.ranges),
+                ranges=dict(self.grid_scans.ranges),
             )
         grid = occupancy_of(snapshot)
         stamp = snapshot.global_maps[-1].stamp

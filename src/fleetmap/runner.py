@@ -12,8 +12,10 @@ the runner saw on the bus) and writes the outputs from the recording (:mod:`flee
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -31,8 +33,10 @@ from fleetmap.scenarios import Scenario, scenario_to_toml
 from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import FleetmapError
+from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
-from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, decode
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.io.recording import RecordingReader
 from fleetmap.shared.io.security import write_fleet_security
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
@@ -41,6 +45,8 @@ log = logging.getLogger(__name__)
 
 READY_TIMEOUT = 30.0
 """Seconds a service may take to start (python, numpy, zenoh) before the run gives up."""
+ROS2_QUIET = 10.0
+"""Seconds without a Scan after which a ROS 2 session's robot whose bag is played is taken as done."""
 CATCH_UP_TIMEOUT = 300.0
 """Seconds the merger may take, after the robots are done, to integrate the last local maps."""
 
@@ -78,6 +84,13 @@ class _Child:
             try:
                 self.popen.wait(timeout)
             except subprocess.TimeoutExpired:
+                # a service writes its threads' stacks on SIGUSR1 (fleetmap.cli): where it was stuck
+                self.popen.send_signal(signal.SIGUSR1)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self.popen.wait(1.0)
+                log.warning(
+                    "%s did not stop within %.0f s of SIGTERM (its stacks: %s)", self.name, timeout, self.log_path
+                )
                 self.popen.kill()
                 self.popen.wait(5)
         if self.log_file is not None:
@@ -124,6 +137,70 @@ class _Watch:
             return self.queued == 0 and all(self.integrated.get(k, -1) >= v for k, v in self.published.items())
 
 
+class _Ros2Feeds:
+    """What the runner hears of a ROS 2 session's robots: whose agent subscribes to its scans now
+    (its ``MS`` liveliness token for ``/<robot>/scan``), and whether a robot's agent has mapped
+    every scan of its bag (a live agent numbers the scans it takes from 0: its last one's Scan
+    message names the bag's last index). The runner's own subscriber may miss a message a busy
+    machine drops; after :data:`ROS2_QUIET` seconds without a Scan of a robot whose bag is played,
+    its agent is taken to have mapped all it heard."""
+
+    def __init__(self, bus: ZenohBus, keys: FleetKeys, bags: dict[str, tuple[Path, int]]) -> None:
+        self.bags = bags
+        self.keys = keys
+        self.stopped: set[str] = set()
+        """Robots whose agent was told to stop."""
+        self.played: dict[str, float] = {}
+        """When the runner saw each robot's player done (monotonic)."""
+        self.changed = threading.Event()
+        self._topics = {wire.mangle(f"/{robot}/scan"): robot for robot in bags}
+        self._listening: set[str] = set()
+        self._lock = threading.Lock()
+        self._last: dict[str, tuple[int, float]] = {}
+        """Each robot's newest Scan message heard: its index, and when it came (monotonic)."""
+        bus.subscribe_liveliness(f"{wire.LIVELINESS_PREFIX}/0/**", self._on_token, lambda key: None)
+        bus.subscribe(keys.all_scans, self._on_scan)
+
+    def _on_scan(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload)
+        except BadMessage:
+            return
+        if isinstance(message, Scan):
+            with self._lock:
+                index = max(message.index, self._last.get(message.robot, (-1, 0.0))[0])
+                self._last[message.robot] = (index, time.monotonic())
+
+    def _on_token(self, key: str) -> None:
+        chunks = key.split("/")  # @ros2_lv/domain/session/node/entity/kind/enclave/namespace/name/topic/...
+        if len(chunks) > 9 and chunks[5] == "MS" and (robot := self._topics.get(chunks[9])) is not None:
+            with self._lock:
+                self._listening.add(robot)
+            self.changed.set()
+
+    def listening(self) -> set[str]:
+        with self._lock:
+            return set(self._listening)
+
+    def all_mapped(self, robot: str, played_since: float) -> bool:
+        """Whether ``robot``'s agent has published its bag's last scan, or has been quiet
+        :data:`ROS2_QUIET` s since ``played_since`` (monotonic) and since its last Scan."""
+        with self._lock:
+            index, at = self._last.get(robot, (-1, 0.0))
+        if index >= self.bags[robot][1] - 1:
+            return True
+        if time.monotonic() - max(at, played_since) < ROS2_QUIET:
+            return False
+        log.warning(
+            "%s: quiet for %.0f s after its bag was played, scan %d of %d heard last",
+            robot,
+            ROS2_QUIET,
+            index,
+            self.bags[robot][1],
+        )
+        return True
+
+
 def _wait(predicate: Callable[[], bool], timeout: float, what: str, event: threading.Event | None = None) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -159,6 +236,14 @@ class Session:
     """Flags of ``fleetmap merger``. A session runs every robot on this machine: integration
     workers would only take CPU from the robots and the merger's solve (decision record 004), so
     the merger integrates in its own process unless these say otherwise."""
+    ros2: bool = False
+    """Feed each robot through ROS 2 topics over rmw_zenoh instead of its agent's own simulation:
+    the robot's scans and odometry are written as a bag (:func:`~fleetmap.ros2_robots.write_robot_bag`),
+    ``fleetmap agent --ros2 --namespace <robot>`` is its agent and, once the agent's scan
+    subscription shows on the bus, ``fleetmap play BAG --ros2 --namespace <robot>`` publishes the
+    bag at ``speed``. A live agent runs until stopped: it is stopped when play is done and its
+    Scan of the bag's last scan is heard (or it has been quiet :data:`ROS2_QUIET` s). Events are
+    not played, and a secure session is refused (rmw_zenoh's keys are outside the fleet's rules)."""
     python: str = sys.executable
     children: list[_Child] = field(default_factory=list)
     _zenoh: Callable[[str], list[str]] = field(init=False, repr=False)
@@ -183,6 +268,7 @@ class Session:
         config_file.write_text(self.config.to_toml(), encoding="utf-8")
         state_file = out / "merger.state"
         state_file.unlink(missing_ok=True)
+        bags = self._ros2_bags() if self.ros2 else {}
         endpoint = free_loopback_endpoint()
         if self.tls:
             endpoint = endpoint.replace("tcp/", "tls/")
@@ -229,7 +315,8 @@ class Session:
                 for c in (record, merger):
                     if not c.running:
                         raise SessionError(f"the {c.name} did not start (see {c.log_path})")
-                merger = self._play(scenario_file, config_file, merger_args, merger)
+                feeds = _Ros2Feeds(bus, keys, bags) if self.ros2 else None
+                merger = self._play(scenario_file, config_file, merger_args, merger, feeds)
                 _wait(watch.caught_up, CATCH_UP_TIMEOUT, "the merger to integrate every local map", watch.changed)
                 with watch.lock:
                     expected = dict(watch.counts)
@@ -271,9 +358,66 @@ class Session:
             ["--zenoh-config", str(folder / f"{role}.json5")] + ([] if role == "router" else ["--fleet", self.fleet])
         )
 
-    def _play(self, scenario_file: Path, config_file: Path, merger_args: tuple[str, ...], merger: _Child) -> _Child:
+    def _ros2_bags(self) -> dict[str, tuple[Path, int]]:
+        """Each robot's bag for ``fleetmap play --ros2`` (written before the session starts)."""
+        from fleetmap.ros2_robots import write_robot_bag
+
+        if self.secure:
+            raise SessionError("a ROS 2 session is an open one: rmw_zenoh's keys are outside the fleet's access rules")
+        if self.scenario.events:
+            raise SessionError("a ROS 2 session plays no events: its robots' agents run until their bags are played")
+        bags = {}
+        for robot in self.scenario.robots:
+            bag = self.out_dir / "ros2" / robot.id
+            if bag.exists():
+                shutil.rmtree(bag)  # the run's own folder: a new run replaces its outputs
+            bag.parent.mkdir(parents=True, exist_ok=True)
+            bags[robot.id] = (bag, write_robot_bag(self.scenario, robot.id, bag))
+        return bags
+
+    def _start_agent(self, robot: str, scenario_file: Path, config_file: Path, ros2: bool) -> _Child:
+        source = (
+            ("--ros2", "--namespace", robot) if ros2 else ("--scenario", str(scenario_file), "--speed", str(self.speed))
+        )
+        return self._child(
+            f"agent-{robot}", "agent", "--robot", robot, *source, "--config", str(config_file), *self._zenoh(robot)
+        )
+
+    def _start_players(self, feeds: _Ros2Feeds, players: dict[str, _Child], agents: dict[str, _Child]) -> None:
+        """``fleetmap play`` for each robot whose agent listens now (and not yet played)."""
+        for robot in feeds.listening() - players.keys():
+            if robot in agents:
+                where = self._zenoh(robot)[:4]  # --connect and --mode: play is on no fleet
+                bag = str(feeds.bags[robot][0])
+                players[robot] = self._child(
+                    f"play-{robot}", "play", bag, "--ros2", "--namespace", robot, "--speed", str(self.speed), *where
+                )
+
+    def _stop_played(self, feeds: _Ros2Feeds, players: dict[str, _Child], agents: dict[str, _Child]) -> None:
+        """Stop the agent of each robot whose bag is played and whose scans all reached the fleet."""
+        for robot, player in players.items():
+            if player.running or robot in feeds.stopped:
+                continue
+            if player.popen is not None and player.popen.returncode != 0:
+                raise SessionError(
+                    f"play {robot} failed with exit code {player.popen.returncode} (see {player.log_path})"
+                )
+            played_since = feeds.played.setdefault(robot, time.monotonic())
+            if feeds.all_mapped(robot, played_since):
+                agents[robot].signal(signal.SIGTERM)
+                feeds.stopped.add(robot)
+
+    def _play(
+        self,
+        scenario_file: Path,
+        config_file: Path,
+        merger_args: tuple[str, ...],
+        merger: _Child,
+        feeds: _Ros2Feeds | None = None,
+    ) -> _Child:
         """Start the agents and play the events on the scenario clock; returns the current merger."""
         sc = self.scenario
+        players: dict[str, _Child] = {}
         actions: list[tuple[float, int, str, Any]] = []
         for r in sc.robots:
             actions.append((r.start, 0, "start", r.id))
@@ -294,21 +438,11 @@ class Session:
             for at, _, what, robot in actions:
                 while (now := (time.monotonic() - t0) * self.speed) < at:
                     bar(now)
+                    if feeds is not None:
+                        self._start_players(feeds, players, agents)
                     time.sleep(min(0.1, (at - now) / self.speed))
                 if what == "start":
-                    agents[robot] = self._child(
-                        f"agent-{robot}",
-                        "agent",
-                        "--robot",
-                        robot,
-                        "--scenario",
-                        str(scenario_file),
-                        "--speed",
-                        str(self.speed),
-                        "--config",
-                        str(config_file),
-                        *self._zenoh(robot),
-                    )
+                    agents[robot] = self._start_agent(robot, scenario_file, config_file, feeds is not None)
                 elif what == "leave":
                     agents[robot].signal(signal.SIGTERM)
                 elif what == "crash":
@@ -321,9 +455,16 @@ class Session:
             deadline = time.monotonic() + end / self.speed + READY_TIMEOUT + 60.0
             while any(a.running for a in agents.values()):
                 bar((time.monotonic() - t0) * self.speed)
+                if feeds is not None:
+                    self._start_players(feeds, players, agents)
+                    self._stop_played(feeds, players, agents)
                 if time.monotonic() > deadline:
                     raise SessionError("the robots did not finish their scenario in time")
-                time.sleep(0.1)
+                if feeds is not None:
+                    feeds.changed.wait(0.1)
+                    feeds.changed.clear()
+                else:
+                    time.sleep(0.1)
             bar(end)
         finally:
             bar(None)

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop, ZenohBus.open(options) as bus:
             service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
             node = Ros2Node(bus.session, NODE_NAME, domain=args.domain) if args.ros2 else None
-            ros2 = Ros2Outputs(bus, options.keys, node) if node is not None else None
+            ros2 = Ros2Outputs(bus, options.keys, node, merge=config.merge) if node is not None else None
             if ros2 is not None:
                 ros2.start()  # before the service, which asks every robot for its maps at start
             service.start()
