@@ -7,8 +7,10 @@ wrong with it) and 1 on any other failure.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import importlib
+import io
 import logging
 import signal
 import sys
@@ -123,8 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = min(max(base - 10 * louder, logging.DEBUG), logging.CRITICAL)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     if command in SERVICES and hasattr(signal, "SIGUSR1"):
-        # `kill -USR1 PID` writes every thread's stack to stderr: what a service that does not stop is doing
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+        # `kill -USR1 PID` writes every thread's stack to stderr: what a service that does not stop is
+        # doing (where stderr is a file: called in-process, as by a test capturing it, it may not be)
+        with contextlib.suppress(AttributeError, ValueError, io.UnsupportedOperation):
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         return int(args.func(args) or 0)
     except BadInput as exc:
