@@ -28,10 +28,10 @@ import time
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
-from types import TracebackType
-from typing import ClassVar, Self
+from typing import ClassVar
 
 import msgpack
+from fleetmap.merger.listener import FleetListener
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys
@@ -402,7 +402,7 @@ ERROR_EVERY = 10.0
 """Seconds between the ERROR lines of a recorder that cannot write."""
 
 
-class RecorderService:
+class RecorderService(FleetListener):
     """A Recorder on a bus: ``with RecorderService(bus, recorder, keys): ...`` records until closed."""
 
     def __init__(
@@ -414,28 +414,14 @@ class RecorderService:
         clock: Callable[[], int] = time.time_ns,
         tick_period: float = TICK_PERIOD,
     ) -> None:
-        self.bus = bus
+        super().__init__(bus, recorder, keys, clock=clock, tick_period=tick_period, name="recorder-flush")
         self.recorder = recorder
-        self.keys = keys
-        self._clock = clock
-        self._tick_period = tick_period
-        self._handles: list[Handle] = []
         self._token: Handle | None = None
-        self._stop = threading.Event()
-        self._ticker = threading.Thread(target=self._tick_loop, name="recorder-flush", daemon=True)
+        self._said = -math.inf
 
     def start(self) -> None:
         """Subscribe, then announce the recorder (its liveliness token means: recording now)."""
-        self._handles.append(self.bus.subscribe(self.keys.everything, self._on_sample))
-        self._handles.append(
-            self.bus.subscribe_liveliness(
-                self.keys.everything,
-                lambda key: self.recorder.feed_presence(key, True, self._clock()),
-                lambda key: self.recorder.feed_presence(key, False, self._clock()),
-                history=True,
-            )
-        )
-        self._ticker.start()
+        super().start()
         self._handles.append(self.bus.declare_queryable(self.keys.recorder_stats, self._stats))
         self._handles.append(self.bus.declare_queryable(self.keys.recorder_maps, lambda _: self.recorder.latest_maps()))
         self._token = self.bus.declare_liveliness(self.keys.service("recorder"))
@@ -444,45 +430,26 @@ class RecorderService:
     def _stats(self, selector: str) -> bytes:
         return self.recorder.summary().to_msgpack()
 
-    def _on_sample(self, key: str, payload: bytes) -> None:
-        self.recorder.feed(key, payload, self._clock())
-
-    def _tick_loop(self) -> None:
-        said = -math.inf
-        while not self._stop.wait(self._tick_period):
-            self.recorder.tick(self._clock())
-            if self.recorder.error:
-                # loud: the recorder's presence goes (its token means "recording now"), and it says so
-                # every ERROR_EVERY seconds; it still answers queries (the maps it kept, its counts)
-                if self._token is not None:
-                    self._token.close()
-                    self._token = None
-                if time.monotonic() - said >= ERROR_EVERY:
-                    said = time.monotonic()
-                    summary = self.recorder.summary()
-                    log.error("NOT RECORDING: %s; %d messages lost so far", summary.error, summary.lost)
+    def tick(self) -> None:
+        self.recorder.tick(self._clock())
+        if self.recorder.error:
+            # loud: the recorder's presence goes (its token means "recording now"), and it says so
+            # every ERROR_EVERY seconds; it still answers queries (the maps it kept, its counts)
+            if self._token is not None:
+                self._token.close()
+                self._token = None
+            if time.monotonic() - self._said >= ERROR_EVERY:
+                self._said = time.monotonic()
+                summary = self.recorder.summary()
+                log.error("NOT RECORDING: %s; %d messages lost so far", summary.error, summary.lost)
 
     def stop(self) -> RecorderSummary:
         """Stop listening and finish the file."""
-        for handle in reversed(self._handles):
-            handle.close()
-        self._handles.clear()
-        self._stop.set()
-        if self._ticker.is_alive():
-            self._ticker.join()
+        self.stop_listening()
         if self._token is not None:
             self._token.close()
             self._token = None
         return self.recorder.finish()
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
 
 
 def query_recorder_stats(bus: Bus, keys: FleetKeys, timeout: float = 2.0) -> RecorderSummary | None:

@@ -24,12 +24,12 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from types import TracebackType
-from typing import Protocol, Self
+from typing import Protocol
 
 import foxglove
+from fleetmap.merger.listener import FleetListener
 from fleetmap.merger.recorder import LOGGED_MALFORMED, checked_message, presence_event
-from fleetmap.shared.io.bus import Bus, Handle
+from fleetmap.shared.io.bus import Bus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import GlobalMap
 from fleetmap.shared.io.recording import TF_TOPIC, FoxgloveScene, FoxgloveView
@@ -156,7 +156,7 @@ class FoxgloveServer(ServerListener):
         self.server.stop()
 
 
-class ViewService:
+class ViewService(FleetListener):
     """A LiveView on a bus, serving a FoxgloveServer: ``with ViewService(bus, view, server, keys): ...``."""
 
     def __init__(
@@ -169,53 +169,17 @@ class ViewService:
         clock: Callable[[], int] = time.time_ns,
         tick_period: float = TICK_PERIOD,
     ) -> None:
-        self.bus = bus
+        super().__init__(bus, view, keys, clock=clock, tick_period=tick_period, name="view-tick")
         self.view = view
         self.server = server
-        self.keys = keys
-        self._clock = clock
-        self._tick_period = tick_period
-        self._handles: list[Handle] = []
-        self._stop = threading.Event()
-        self._ticker = threading.Thread(target=self._tick_loop, name="view-tick", daemon=True)
 
     def start(self) -> None:
-        self._handles.append(self.bus.subscribe(self.keys.everything, self._on_sample))
-        self._handles.append(
-            self.bus.subscribe_liveliness(
-                self.keys.everything,
-                lambda key: self.view.feed_presence(key, True, self._clock()),
-                lambda key: self.view.feed_presence(key, False, self._clock()),
-                history=True,
-            )
-        )
-        self._ticker.start()
+        super().start()
         log.info("viewing %s on ws port %d", self.keys.everything, self.server.port)
 
-    def _on_sample(self, key: str, payload: bytes) -> None:
-        self.view.feed(key, payload, self._clock())
-
-    def _tick_loop(self) -> None:
-        while not self._stop.wait(self._tick_period):
-            try:
-                self.view.tick(self._clock())
-                self.server.catch_up()
-            except Exception:  # a view that cannot be drawn must not stop the others
-                log.exception("live view tick failed")
-
-    def stop(self) -> None:
-        for handle in reversed(self._handles):
-            handle.close()
-        self._handles.clear()
-        self._stop.set()
-        if self._ticker.is_alive():
-            self._ticker.join()
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
+    def tick(self) -> None:
+        try:
+            self.view.tick(self._clock())
+            self.server.catch_up()
+        except Exception:  # a view that cannot be drawn must not stop the others
+            log.exception("live view tick failed")

@@ -260,10 +260,10 @@ def _unanchored(
             offset = Transform2D(*out[-1].pose).compose(raw.inverse())
         chained = offset.compose(raw)
         # an anchor the next scan's line follows with no reading between: nothing moved it
-        after = int(np.searchsorted(laser_lines, readings[i].line))
-        empty = i in anchors and (
-            i + 1 == len(readings) or (after < len(laser_lines) and readings[i + 1].line > laser_lines[after])
-        )
+        empty = False
+        if i in anchors:
+            after = int(np.searchsorted(laser_lines, readings[i].line))
+            empty = i + 1 == len(readings) or (after < len(laser_lines) and readings[i + 1].line > laser_lines[after])
         out.append(replace(readings[i], pose=(chained.x, chained.y, chained.theta), moved=not empty))
     return out
 
