@@ -27,6 +27,10 @@ LOGIC = [
     "fleetmap.merger.executor",
     "fleetmap.merger.follow",
     "fleetmap.merger.engine",
+    "fleetmap.merger.schedule",
+    "fleetmap.merger.outputs",
+    "fleetmap.merger.state",
+    "fleetmap.merger.stats",
     "fleetmap.merger.sequence",
 ]
 

@@ -11,6 +11,7 @@ import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.graph import Edge
+from fleetmap.merger.outputs import Placement
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig
@@ -64,7 +65,7 @@ def _merged(messages: list[LocalMap], wrong: Edge | None = None) -> Merger:
     if wrong is not None:
         merger.graph.add_edge(wrong)
         merger._pending.clear()
-        merger._result = merger.graph.solve()
+        merger.placement = Placement.of(merger.graph.solve())
     while merger.has_work:
         merger.step()
     return merger

@@ -1,0 +1,359 @@
+"""The merger's pair schedule: which pairs of submaps to integrate, and in what order.
+
+**Bounded work per submap.** A submap is integrated when it is final (it never changes again),
+and, while its robot's current epoch is not placed and has no final submap yet (a robot that
+just joined, or lost its place), as its active submap grows (each time its version doubles,
+``MergeParams.search_growth``). Which pairs:
+
+- *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
+  robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
+  put the new one (not its neighbours on its own chain), at most
+  ``MergeParams.near_candidates``, registered near that prediction
+  (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
+  searches near a trajectory;
+- *far*: the submaps of the other components most like it (the cosine of pairwise geometric
+  histograms of the walls, the cheap descriptor), at most ``MergeParams.far_candidates``, by the
+  paper's pose-free integration; every ``loop_sweep_every``-th final
+  submap also tries the most similar submap of its own component beyond its reach (a loop its
+  drift hides from the near search);
+- *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups
+  whose walls now meet, registered near where the join puts them (at most ``near_candidates``
+  a submap): the near search of a submap that arrived before the join only saw its own group;
+- *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
+  the global map, up to ``far_budget`` tries a submap.
+
+So integrating n submaps costs O(n) integrations, not n^2
+(:attr:`~fleetmap.merger.stats.MergerStats.integrations`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Callable
+
+import numpy as np
+from fleetmap.merger.executor import PairJob
+from fleetmap.merger.outputs import Placement, epoch_of
+from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.stats import MergerStats
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.descriptor import similarity
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.io.keys import parse_submap_key
+from fleetmap.shared.io.messages import LocalMap
+
+Pair = tuple[str, str]
+
+
+def ordered(a: str, b: str) -> Pair:
+    """A pose-free pair, always one way (INTEGRATE(a, b) is not exactly the inverse of INTEGRATE(b,
+    a): whatever order the submaps arrived in, the same edge)."""
+    return (a, b) if a < b else (b, a)
+
+
+class PairSchedule:
+    """The queue of pairs to integrate and what decides it (see the module docstring), over one
+    pose graph and the submaps in it; each call reads where the last solve placed them."""
+
+    def __init__(
+        self,
+        graph: PoseGraph,
+        submaps: dict[str, LocalMap],
+        config: FleetmapConfig,
+        stats: MergerStats,
+        refuse: Callable[[str, str], None],
+    ) -> None:
+        """``refuse(limit, what)`` counts and logs a pair ``max_queued_pairs`` refused."""
+        self.graph = graph
+        self.submaps = submaps
+        self.config = config
+        self.stats = stats
+        self._refuse = refuse
+        self.queue: dict[Pair, Transform2D | None] = {}
+        """Pairs to integrate, oldest first: (a, b) with b's predicted pose in a (near), or None
+        (pose-free)."""
+        self.scheduled: dict[str, int] = {}
+        """The version of each submap its integrations were last scheduled for."""
+        self.finals = 0
+        """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
+        self.far_tries: dict[str, int] = {}
+        """Pose-free integrations queued for each submap with other components' submaps."""
+        self.finished_epochs: set[str] = set()
+        """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
+        self.idle: set[Pair] = set()
+        """Queued pairs that :meth:`idle_pairs` chose."""
+        self.joined: set[Pair] = set()
+        """Pairs :meth:`queue_joined` queued (each once: a pair that did not register stays so)."""
+
+    def enqueue(self, pair: Pair, predicted: Transform2D | None) -> bool:
+        """Queue a pair to integrate (once); False if it was queued already or the queue is full."""
+        if pair in self.queue:
+            return False
+        if len(self.queue) >= self.config.merge.max_queued_pairs:
+            self._refuse("max_queued_pairs", f"pair {pair[0]} {pair[1]}, {len(self.queue)} queued")
+            return False
+        self.queue[pair] = predicted
+        return True
+
+    def searching(self, p: Placement) -> bool:
+        """Whether robots apart from the global map have submaps with candidates left to try."""
+        if p.result is None or len(p.result.components) < 2:
+            return False
+        budget = self.config.merge.far_budget
+        return any(self.far_tries.get(k, 0) < budget for k in self.idle_candidates(p))
+
+    def job(self, pair: Pair, predicted: Transform2D | None) -> PairJob | None:
+        """The integration a queued pair is due: near its prediction, or pose-free (once per
+        pair of versions); None if a map has gone or the pair's edge is current."""
+        a, b = pair
+        if a not in self.graph or b not in self.graph:
+            return None
+        if pair in self.idle:
+            self.idle.discard(pair)
+            self.stats.idle += 1
+        if predicted is not None:
+            self.stats.near += 1
+            return self.graph.pair_job(a, b, predicted)
+        return self.graph.job_once(a, b)
+
+    def submap(self, m: LocalMap, current: bool, p: Placement) -> None:
+        """Queue the integrations a submap version is due (see the module docstring); ``current``:
+        it is of its robot's current epoch."""
+        key = m.submap_key
+        mp = self.config.merge
+        placed = p.placed_epoch(f"{m.robot}/{m.epoch}")
+        last = self.scheduled.get(key)
+        final = m.final and (last is None or last < m.version)
+        searching = (
+            current
+            and not placed
+            and f"{m.robot}/{m.epoch}" not in self.finished_epochs
+            and (last is None or m.version >= self.config.merge.search_growth * max(last, 1))
+        )
+        if not (final or searching):
+            return
+        self.scheduled[key] = m.version
+        mine = self._component_members(key, p)
+        if final and self._predicted(key, p) is not None:
+            # its chain is in the graph: the submaps of its component near where the links put it
+            # (its own earlier submaps too: a loop), whether or not another robot is there yet
+            beyond = []
+            for other, predicted in self._near(key, mine, p)[: mp.near_candidates]:
+                # registered near the prediction where the robot's own drift between the two
+                # cannot have carried it out of registration's reach; else pose-free (a loop
+                # after a long way round: the search window as wide as the uncertainty), the
+                # most similar such submap only: the paper's integration costs ten registrations
+                if self._within_reach(other, key):
+                    self.enqueue((other, key), predicted)
+                else:
+                    beyond.append(other)
+            if beyond:
+                h = self.graph.descriptor(key)
+                best = max(beyond, key=lambda k: (similarity(self.graph.descriptor(k), h), k))
+                self.enqueue(ordered(best, key), None)
+            if m.final:
+                self.finals += 1
+                if mp.loop_sweep_every > 0 and self.finals % mp.loop_sweep_every == 0:
+                    sweep = self._far(key, mine, p, within=True)[:1]
+                    for other in sweep:
+                        self.enqueue(ordered(other, key), None)
+        if not self._in_global_map(key, p):
+            # the global map's own submaps are not searched for the others: each of theirs
+            # searches it, and one direction is enough
+            for other in self._far(key, mine, p, within=False)[: mp.far_candidates]:
+                self._queue_far(key, other)
+
+    def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
+        """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs
+        before it): queue near registrations between the final submaps of the groups now joined
+        whose walls meet at their refined poses and that no valid integration relates yet (a pair
+        tried pose-free while apart, ambiguous then, may register near the join), each pair once,
+        at most ``near_candidates`` a submap, nearest first.
+
+        A final submap searches near its prediction once, when it arrives, among the submaps of its
+        component then: two robots' submaps that meet only once a later join puts them in one frame
+        would never be registered on each other, and the join would rest on its few integrations
+        while the chains around it bend. These are the join's own loop closures, as Cartographer's
+        constraint builder finds them for a trajectory it has just placed; bounded by the pairs
+        that meet, so the work stays O(n)."""
+        if p.result is None:
+            return
+        limit = self.config.merge.near_candidates
+        at = {k: pose for k, pose in p.result.poses.items() if pose is not None}
+        queued = 0
+        for component in p.result.components:
+            groups: dict[frozenset[str], list[str]] = {}
+            for key in sorted(component.members):
+                if self.submaps[key].final and key in at:
+                    epoch = epoch_of(key)
+                    groups.setdefault(apart.get(epoch, frozenset({epoch})), []).append(key)
+            if len(groups) < 2:
+                continue
+            found: list[tuple[float, str, str]] = []
+            groups_in_order = sorted(groups.values())
+            for n, group_a in enumerate(groups_in_order):
+                for group_b in groups_in_order[n + 1 :]:
+                    meets = self.graph.meeting(group_a, at, group_b, at)
+                    for ia, ib in np.argwhere(meets):
+                        a, b = ordered(group_a[ia], group_b[ib])
+                        known = self.graph.edge(a, b)
+                        if (a, b) in self.joined or (known is not None and known.valid):
+                            continue
+                        found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
+            count: Counter[str] = Counter()
+            for _, a, b in sorted(found):
+                if count[a] >= limit or count[b] >= limit:
+                    continue
+                if self.enqueue((a, b), at[a].inverse().compose(at[b])):
+                    self.joined.add((a, b))
+                    count[a] += 1
+                    count[b] += 1
+                    queued += 1
+        self.stats.join_pairs += queued
+
+    def idle_pairs(self, p: Placement) -> int:
+        """With nothing else to do: one more pose-free pair for a submap of each component apart
+        from the global map (:meth:`idle_candidates`: robots not in it yet), its next most
+        similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
+        how many were queued. Every submap's candidates are tried in turn: in a building where
+        most views look alike (racks), the descriptor ranks the right partner anywhere."""
+        if p.result is None or len(p.result.components) < 2:
+            return 0
+        budget = self.config.merge.far_budget
+        queued = 0
+        by_component: dict[int, list[str]] = {}
+        for key in self.idle_candidates(p):
+            by_component.setdefault(p.where[key], []).append(key)
+        for i, candidates in sorted(by_component.items()):
+            mine = set(p.result.components[i].members)
+            for key in sorted(candidates, key=lambda k: (self.far_tries.get(k, 0), k)):
+                if self.far_tries.get(key, 0) >= budget:
+                    continue
+                others = self._far(key, mine, p, within=False)
+                if others:
+                    self._queue_far(key, others[0])
+                    self.idle.add(ordered(others[0], key))
+                    queued += 1
+                    break
+                self.far_tries[key] = budget  # none left
+        return queued
+
+    def idle_candidates(self, p: Placement) -> list[str]:
+        """The submaps the idle search tries (:meth:`idle_pairs`), whose tries :meth:`searching`
+        counts (they must be the same, or a step with nothing to queue would have work for ever):
+        of each component but the global map, its final submaps, or all of them if none is final
+        yet. Robots placed among themselves and not in the global map search on: two robots that
+        joined each other are still apart from the fleet."""
+        if p.result is None:
+            return []
+        out: list[str] = []
+        for i, component in enumerate(p.result.components):
+            if i == 0 and len(p.epochs_in[i]) > 1:
+                continue
+            finals = [k for k in component.members if self.submaps[k].final]
+            out += finals or list(component.members)
+        return out
+
+    def _predicted(self, key: str, p: Placement) -> Transform2D | None:
+        """Where the graph puts a submap in its component's frame: its refined pose, or its
+        predecessor's composed with its link."""
+        if p.result is None:
+            return None
+        pose = p.result.poses.get(key)
+        if pose is not None:
+            return pose
+        link = self.graph.link_to(key)
+        if link is not None and p.result.poses.get(link.a) is not None:
+            before = p.result.poses[link.a]
+            return before.compose(link.transform) if before is not None else None
+        return None
+
+    def _in_global_map(self, key: str, p: Placement) -> bool:
+        """Whether a submap (or its predecessor, for a new one) is in the largest component, the
+        global map, together with another epoch."""
+        link = self.graph.link_to(key)
+        index = p.where.get(key, p.where.get(link.a) if link is not None else None)
+        return index == 0 and len(p.epochs_in[0]) > 1
+
+    def _queue_far(self, key: str, other: str) -> None:
+        if self.enqueue(ordered(other, key), None):
+            self.far_tries[key] = self.far_tries.get(key, 0) + 1
+
+    def _component_members(self, key: str, p: Placement) -> set[str]:
+        """The submaps in ``key``'s component, by the last solve and its links."""
+        members = {key}
+        link = self.graph.link_to(key)
+        anchor = link.a if link is not None else key
+        component = p.component_of(anchor)
+        if component is not None:
+            members.update(component.members)
+        return members
+
+    def _near(self, key: str, mine: set[str], p: Placement) -> list[tuple[str, Transform2D]]:
+        """Submaps of ``key``'s component within reach of where the graph puts it, nearest first,
+        with the predicted pose of ``key`` in each; not its neighbours on its own chain."""
+        here = self._predicted(key, p)
+        if here is None or p.result is None:
+            return []
+        radius = self._radius(key)
+        out = []
+        for other in sorted(mine):
+            if other == key or _neighbours(key, other):
+                continue
+            there = p.result.poses.get(other)
+            if there is None:
+                continue
+            distance = math.hypot(here.x - there.x, here.y - there.y)
+            if distance <= radius + self._radius(other):
+                out.append((distance, other, there.inverse().compose(here)))
+        out.sort(key=lambda x: (x[0], x[1]))
+        return [(other, predicted) for _, other, predicted in out]
+
+    def _within_reach(self, a: str, b: str) -> bool:
+        """Whether registration from the predicted pose can find b on a: the drift the links
+        between two submaps of one robot's chain allow (three standard deviations of their
+        covariances, :meth:`~fleetmap.merger.joins.JoinJudge.chain_drift`) is within the
+        tracking's correspondence distance and 5 degrees; always for two robots' submaps (their
+        prediction comes through integrations)."""
+        drift = self.graph.chain_drift(a, b)
+        if drift is None:
+            return True
+        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
+
+    def _radius(self, key: str) -> float:
+        """How far a submap's walls reach from its frame (m)."""
+        seg = self.graph.map_of(key).segments
+        if len(seg) == 0:
+            return 0.0
+        return float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max())
+
+    def _far(self, key: str, mine: set[str], p: Placement, within: bool) -> list[str]:
+        """Submaps most like ``key`` (pairwise geometric histograms), of the other components, or of its
+        own beyond its reach (``within``), most similar first."""
+        h = self.graph.descriptor(key)
+        here = self._predicted(key, p)
+        candidates = []
+        for other in self.graph.keys:
+            if other == key or (other in mine) != within or _neighbours(key, other):
+                continue
+            if within and here is not None and p.result is not None:
+                there = p.result.poses.get(other)
+                if there is not None and math.hypot(here.x - there.x, here.y - there.y) <= self._radius(
+                    key
+                ) + self._radius(other):
+                    continue  # within reach: the near search's
+            if not self.graph.seen_enough(key, other) or self.graph.is_current(*ordered(other, key)):
+                continue
+            candidates.append((-similarity(self.graph.descriptor(other), h), other))
+        candidates.sort()
+        return [other for _, other in candidates]
+
+
+def _neighbours(a: str, b: str) -> bool:
+    """Whether two submaps are within two of each other on one robot's chain (they share
+    scans, or their links already say how they lie)."""
+    ra, ea, sa = parse_submap_key(a)
+    rb, eb, sb = parse_submap_key(b)
+    return ra == rb and ea == eb and sa is not None and sb is not None and abs(sa - sb) <= 2
