@@ -101,7 +101,7 @@ def ransac_align(
     p1, p2 = l1.points[c1], l2.points[c2]
     turn = wrap_angle(l1.headings[c1] - l2.headings[c2])
     i, j = _pairs(len(c1), rp.ransac_iterations, p.seed)
-    t, i, j = _hypotheses(p1, p2, turn, i, j, rp.ransac_support_distance, p.angle_difference_tolerance)
+    t = _hypotheses(p1, p2, turn, i, j, rp.ransac_support_distance, p.angle_difference_tolerance)
     if window is not None and len(t):
         t = t[window(t)]
     if len(t) == 0:
@@ -132,11 +132,9 @@ def _pairs(n: int, limit: int, seed: int) -> tuple[IntArray, IntArray]:
     return i, j
 
 
-def _hypotheses(
-    p1: Array, p2: Array, turn: Array, i: IntArray, j: IntArray, support: float, angle: float
-) -> tuple[Array, IntArray, IntArray]:
-    """Step 2: the transformation of each pair (i, j) of correspondences that keeps its distance
-    (eq. 1) and turns both landmarks' headings alike; ``(t, 3)`` and the pairs kept."""
+def _hypotheses(p1: Array, p2: Array, turn: Array, i: IntArray, j: IntArray, support: float, angle: float) -> Array:
+    """Step 2: ``(t, 3)``: the transformation of each pair (i, j) of correspondences that keeps its
+    distance (eq. 1) and turns both landmarks' headings alike."""
     v1 = p1[j] - p1[i]
     v2 = p2[j] - p2[i]
     d1, d2 = np.hypot(v1[:, 0], v1[:, 1]), np.hypot(v2[:, 0], v2[:, 1])
@@ -152,7 +150,7 @@ def _hypotheses(
     m2 = 0.5 * (p2[i] + p2[j])
     tx = m1[:, 0] - (c * m2[:, 0] - s * m2[:, 1])
     ty = m1[:, 1] - (s * m2[:, 0] + c * m2[:, 1])
-    return np.column_stack([tx, ty, theta]), i, j
+    return np.column_stack([tx, ty, theta])
 
 
 def _support_mask(t: Array, p1: Array, p2: Array, turn: Array, support: float, angle: float) -> Array:
