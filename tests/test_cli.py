@@ -42,6 +42,21 @@ def test_integrate_json_prints_the_contract_fields_and_recovers_the_example() ->
     assert out["valid"] is True and out["value"] > 3 and 0 < out["seconds"] < 5
 
 
+@pytest.mark.parametrize("how", ["--aligner", "--config"])
+def test_integrate_with_the_ransac_aligner_recovers_the_example(
+    how: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('[integration]\naligner = "ransac"\n')
+    choice = ["--aligner", "ransac"] if how == "--aligner" else ["--config", str(cfg)]
+    code = main(["integrate", str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json"), *choice, "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    r = json.loads(out)
+    assert math.hypot(r["x"] - 1.46997, r["y"] - 0.13850) < 0.02
+    assert abs(r["theta"] - 0.9) < math.radians(0.5) and r["valid"] is True
+
+
 def test_integrate_batch_answers_every_line_in_order(tmp_path: Path) -> None:
     a = json.loads((EXAMPLES / "scan_a.json").read_text())
     b = json.loads((EXAMPLES / "scan_b.json").read_text())
