@@ -26,11 +26,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
+from fleetmap.shared.io.sources import SourceScan
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.sources import ScenarioSource
 from fleetmap.scenarios import load_scenario, robot_stream
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.core.geometry import Transform2D
 from rosbags.rosbag2 import StoragePlugin
 from scipy.spatial import cKDTree

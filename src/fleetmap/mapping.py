@@ -26,7 +26,7 @@ import queue
 import re
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 
 from fleetmap.agent_processes import AgentProcesses, Finished
-from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.executor import Executor
 from fleetmap.report import SessionLog, write_outputs
@@ -42,53 +41,14 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.logs import read_ranges_jsonl
 from fleetmap.shared.io.messages import LocalMap, Message, Scan
+from fleetmap.shared.io.sources import SourceScan, open_input
 
 STEP_SECONDS = 5.0
 """Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
 keeps the graph current without solving it after every submap version)."""
 
 MAX_SPLIT = 64
-
-
-class RangesSource:
-    """The scans of a ranges JSONL file (``../shared/CONTRACTS.md``); no odometry."""
-
-    has_odometry = False
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self.name = str(path)
-
-    def __iter__(self) -> Iterator[SourceScan]:
-        for index, scan in enumerate(read_ranges_jsonl(self.path)):
-            yield _checked(self.name, index, scan.stamp, scan)
-
-
-def open_input(
-    path: str | Path, topic: str | None = None, odometry_topic: str | None = None, range_max: float = math.inf
-) -> ScanSource:
-    """The source of one input, by what it is: a ROS bag (a rosbag2 directory, an .mcap, .db3 or
-    ROS 1 .bag file, or a directory holding one such file), a ranges JSONL file (.jsonl), else a
-    CARMEN log (plain or .gz)."""
-    p = Path(path)
-    if p.is_dir():
-        if (p / "metadata.yaml").is_file():
-            return Ros2BagSource(p, topic, odometry_topic)
-        bags = sorted(f for f in p.iterdir() if f.suffix in BAG_SUFFIXES)
-        if not bags:
-            raise BadInput(str(path), "is a directory with no ROS bag (no metadata.yaml, .mcap, .db3 or .bag file)")
-        if len(bags) > 1:
-            raise BadInput(str(path), f"holds {len(bags)} bag files and no metadata.yaml; name one of them")
-        return Ros2BagSource(bags[0], topic, odometry_topic)
-    if not p.exists():
-        raise BadInput(str(path), "no such file")
-    if p.suffix in BAG_SUFFIXES:
-        return Ros2BagSource(p, topic, odometry_topic)
-    if p.name.endswith((".jsonl", ".jsonl.gz")):
-        return RangesSource(p)
-    return CarmenSource(p, range_max=range_max)
 
 
 def robot_name(path: str | Path, taken: set[str]) -> str:

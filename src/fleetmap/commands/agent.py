@@ -11,13 +11,14 @@ import sys
 from fleetmap.agents.agent import LOST_SCANS, Agent
 from fleetmap.agents.process import run_agent
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
-from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
 from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import check_name
 from fleetmap.shared.io.ros2_node import ros2_options
+from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, ScanSource
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
