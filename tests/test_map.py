@@ -44,7 +44,7 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
     for n, executor in enumerate((["--executor", "local", "--workers", "2"], ["--executor", "inline"])):
         out = tmp_path / f"run{n}"
         done = fleetmap(
-            "map", str(csail_start), "--out", str(out), "--split", "2", "--range-max", "81.91", "--no-progress",
+            "map", str(csail_start), "--out", str(out), "--split", "2", "--no-return-reading", "81.91", "--no-progress",
             *executor,
         )  # fmt: skip
         assert done.returncode == 0, done.stderr
@@ -111,8 +111,11 @@ def test_a_logs_two_halves_mapped_apart_merge_where_its_relations_put_them(datas
         log = tmp_path / f"{name}.clf"
         log.write_text("".join(part))
         out = tmp_path / name
-        done = fleetmap("map", str(log), "--out", str(out), "--range-max", "81.91", "--no-progress")
+        done = fleetmap("map", str(log), "--out", str(out), "--no-return-reading", "81.91", "--no-progress")
         assert done.returncode == 0, done.stderr
+        # the summary names each robot's merged map as poses.csv does (#0: the largest), not a count
+        header, row = done.stdout.splitlines()[:2]
+        assert header.split()[4:6] == ["in", "map"] and row.split()[4] == "#0", done.stdout
         maps.append(out / "global_map.json")
         # the maps fleetmap writes say where their walls were seen from
         assert len(json.loads(maps[-1].read_text()).get("viewpoints", ())) > 10

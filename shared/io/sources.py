@@ -140,7 +140,7 @@ class CarmenSource:
         if step < 1:
             raise BadInput("--step", f"must be at least 1, got {step}")
         if not range_max > 0:
-            raise BadInput("--range-max", f"must be positive, got {range_max}")
+            raise BadInput("--no-return-reading", f"must be positive, got {range_max}")
         self.start, self.stop, self.step, self.range_max = start, stop, step, range_max
         self.name = f"{path} [{start}:{'' if stop is None else stop}:{step}]"
 
