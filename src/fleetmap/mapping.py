@@ -311,7 +311,7 @@ def _summary(
 
 
 def write_poses_csv(path: Path, poses: list[tuple[str, float, int, Transform2D]]) -> None:
-    """``robot,stamp,component,x,y,theta`` (``../shared/CONTRACTS.md``), one line per placed scan."""
+    """``robot,stamp,component,x,y,theta`` (``docs/formats.md``), one line per placed scan."""
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["robot", "stamp", "component", "x", "y", "theta"])
