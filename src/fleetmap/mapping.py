@@ -173,10 +173,7 @@ def map_logs(
     ``tracking_processes`` worker processes (:class:`~fleetmap.agent_processes.AgentProcesses`;
     default: one per robot, up to one fewer than the CPUs; 0: in this process); the map is the same."""
     started = time.perf_counter()
-    if config.tracking.odometry == "on":
-        for p in pieces:
-            if not p.has_odometry:
-                raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+    _check_odometry(pieces, config)
     keys = FleetKeys()
     merger = Merger(keys, config, executor, keep_key_scans=True)
     log = SessionLog()
@@ -233,24 +230,47 @@ def map_logs(
         behind.finish(cancel=True)
         raise
     behind.finish()
+    by_index = merger.scan_poses()
+    poses = _with_stamps(by_index, pieces)
+    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
+    seconds = time.perf_counter() - started
+    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
+    _write_map_files(Path(out_dir), report, poses, pieces)
+    return MapResult(report, poses, by_index)
+
+
+def _check_odometry(pieces: list[Piece], config: FleetmapConfig) -> None:
+    if config.tracking.odometry == "on":
+        for p in pieces:
+            if not p.has_odometry:
+                raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+
+
+def _write_map_files(
+    folder: Path, report: dict[str, Any], poses: list[tuple[str, float, int, Transform2D]], pieces: list[Piece]
+) -> None:
+    """What ``fleetmap map`` adds to a session's outputs: report.json with its map section,
+    poses.csv, and one TUM trajectory per robot."""
+    (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_poses_csv(folder / "poses.csv", poses)
+    for p in pieces:
+        write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
+
+
+def _with_stamps(
+    by_index: dict[tuple[str, int], tuple[int, Transform2D]], pieces: list[Piece]
+) -> list[tuple[str, float, int, Transform2D]]:
+    """Every placed scan as ``(robot, stamp, component, pose)``, its stamp as its input gives it, by
+    robot in input order, then by stamp (the order poses.csv and the TUM files write)."""
     poses: list[tuple[str, float, int, Transform2D]] = []
     stamps = {p.robot: p.stamps for p in pieces}
-    by_index = merger.scan_poses()
     for (robot, index), (n, pose) in by_index.items():
         stamp = stamps[robot].get(index)
         if stamp is not None:
             poses.append((robot, stamp, n, pose))
     order = {p.robot: n for n, p in enumerate(pieces)}
     poses.sort(key=lambda x: (order[x[0]], x[1]))
-    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
-    seconds = time.perf_counter() - started
-    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
-    folder = Path(out_dir)
-    (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    write_poses_csv(folder / "poses.csv", poses)
-    for p in pieces:
-        write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
-    return MapResult(report, poses, by_index)
+    return poses
 
 
 def _summary(
