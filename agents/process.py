@@ -26,11 +26,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
+from fleetmap.shared.io.sources import SourceScan
 
 log = logging.getLogger(__name__)
 
@@ -193,11 +193,7 @@ def run_agent(
             publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
             if clock() - said >= STATUS_SECONDS:
                 said = clock()
-                c = agent.counts
-                log.info(
-                    "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
-                    agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
-                )  # fmt: skip
+                _log_status(agent, published)
         stopped = stopped or stop.is_set()  # a live source ends when stop is set
         publish(agent.finish())
         answer_requests()
@@ -207,15 +203,17 @@ def run_agent(
             handle.close()
     counts = agent.counts
     summary = AgentSummary(
-        agent.robot,
-        counts.scans,
-        counts.placed,
-        counts.epochs,
-        published,
-        republished,
-        requests.bad,
-        stopped,
+        agent.robot, counts.scans, counts.placed, counts.epochs, published, republished, requests.bad, stopped,
         clock() - started,
-    )
+    )  # fmt: skip
     log.info("%s", summary.line())
     return summary
+
+
+def _log_status(agent: Agent, published: int) -> None:
+    """The periodic line of a running agent."""
+    c = agent.counts
+    log.info(
+        "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
+        agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
+    )  # fmt: skip

@@ -158,7 +158,7 @@ class MotionParams:
 @dataclass(frozen=True)
 class PivotParams:
     """The pivot method's local-map builder (paper IV-C, Algorithm 6;
-    :class:`fleetmap.agents.localmap.PivotMapBuilder`), and what fleetmap adds to it."""
+    :class:`fleetmap.shared.core.pivotmap.PivotMapBuilder`), and what fleetmap adds to it."""
 
     pivot_witnesses: bool = ours(True)
     """A scan is placed only when two integrations agree on its pose (one wrong one cannot place it)."""

@@ -5,15 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import subprocess
 import sys
+import tomllib
 from collections.abc import Callable
+from fnmatch import fnmatch
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import load_config
 
+from fleetmap import config_args
 from fleetmap.cli import COMMANDS, build_parser, main
 from tests.helpers import ROOM
 
@@ -297,3 +302,35 @@ def test_a_service_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path: Pa
     finally:
         router.terminate()
         router.wait(20)
+
+
+def _help(command: str) -> str:
+    parser = build_parser(command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    return " ".join(sub.format_help().split()).replace("- ", "-")  # argparse wraps lines at a hyphen
+
+
+def test_the_basic_config_the_help_names_is_there_and_installs_with_the_package() -> None:
+    found = re.search(r"(\S+basic\.toml)", _help("map"))
+    assert found, "the --config help names no basic config"
+    named = Path(found.group(1))
+    assert named.is_file() and load_config(named).extraction.max_range > 0
+    # pip copies a package's files that pyproject.toml declares as its package data, and no others
+    package = Path(config_args.__file__).resolve().parent
+    declared = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert any(fnmatch(named.relative_to(package).as_posix(), g) for g in declared["package-data"]["fleetmap"])
+
+
+@pytest.mark.parametrize(
+    ("command", "args"),
+    [("map", ["log.clf", "--out", "o"]), ("extract", ["log.clf", "--format", "carmen", "--out", "o"])],
+)
+def test_a_logs_no_return_reading_is_named_apart_from_max_range_and_its_old_name_still_works(
+    command: str, args: list[str]
+) -> None:
+    parser = build_parser(command)
+    for flag in ("--no-return-reading", "--range-max"):
+        assert parser.parse_args([command, *args, flag, "50"]).no_return_reading == 50.0
+    assert math.isinf(parser.parse_args([command, *args]).no_return_reading)
+    shown = _help(command)
+    assert "--no-return-reading" in shown and "--range-max" not in shown

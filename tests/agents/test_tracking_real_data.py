@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import CarmenSource
 from fleetmap.scenarios.clocks import break_clock
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
+from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.mapping import Piece, map_logs, read_inputs
 
