@@ -124,6 +124,8 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
                 assert r1.wait_for_subscribers(KEYS.localmap("r1"), WAIT)
                 r1.publish(KEYS.localmap("r1"), r1_map.to_msgpack())
                 assert seen.wait_until(lambda got: any(k == KEYS.globalmap for k, _ in got), WAIT)
+                # the robot's pose is put just after the global map
+                assert seen.wait_until(lambda got: any(k == KEYS.pose("r1") for k, _ in got), WAIT)
                 assert alive.wait_for(2, WAIT)
                 token.close()
             merged = [decode(p) for k, p in seen.items if k == KEYS.globalmap]
