@@ -1,4 +1,4 @@
-"""A robot's front end: its scans tracked into small, overlapping submaps (``../shared/DESIGN.md``).
+"""A robot's front end: its scans tracked into small, overlapping submaps (``docs/design.md``).
 
 For each scan (:meth:`Tracker.add`):
 
