@@ -24,8 +24,9 @@ Conventions on the wire:
 from __future__ import annotations
 
 import math
+import sys
 import types
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence, Set
 from dataclasses import MISSING, dataclass, fields, is_dataclass
 from typing import Any, ClassVar, Self
 
@@ -815,30 +816,113 @@ Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | Mer
 MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep]] = {
     cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent, MergerStep)
 }
+_FIELD_NAMES: dict[type[Message], frozenset[str]] = {
+    cls: frozenset({"schema", "v", *(f.name for f in fields(cls))}) for cls in MESSAGE_TYPES.values()
+}
+"""Each message type's fields: the values of a payload worth decoding."""
 
 
-def unpack(data: bytes) -> dict[str, Any]:
-    """The msgpack map of a payload, with its schema and version checked, not yet its fields."""
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise BadMessage("message", None, f"expected bytes, got {type(data).__name__}")
-    if len(data) > MAX_PAYLOAD_BYTES:
-        raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
-    try:
-        raw = msgpack.unpackb(
-            data,
+_LIMITS: dict[str, Any] = {
+    # each checked against its header before anything is allocated
+    "max_array_len": 4 * MAX_SEGMENTS,
+    "max_map_len": MAX_MAPS + 64,
+    "max_str_len": 64 * 1024,
+    "max_bin_len": MAX_PAYLOAD_BYTES,
+    "max_ext_len": 0,
+}
+MAX_FIELDS = 64
+"""The most fields one message's top-level map may have (fleetmap's messages have at most 16)."""
+DECODED_BYTES_PER_BYTE = 16
+"""The decoding budget: what a payload decodes into (its containers and their items, as Python
+objects) may take this many bytes per payload byte, plus :data:`DECODED_SLACK`. Messages as
+fleetmap sends them carry their bulk in bins, about one byte per byte; a transform, the densest
+part, takes 11 (38 bytes on the wire, 410 as a dict); a payload of empty lists would take 64."""
+DECODED_SLACK = 1024 * 1024
+"""... plus this much, for small messages of many little fields."""
+_MOST_PER_BYTE = 64
+"""The most one payload byte can decode into (an empty list: 56 bytes, and its slot in its
+container), so a payload of at most ``DECODED_SLACK / (_MOST_PER_BYTE - DECODED_BYTES_PER_BYTE)``
+bytes is within its budget whatever it holds and is decoded without counting."""
+
+
+class _OverBudget(Exception):
+    pass
+
+
+class _DecodeBudget:
+    """Counts what msgpack decodes, container by container as each is built, and stops decoding
+    past the payload's budget: memory grows with the payload's size, not with how many items it
+    packs (a 16 MB payload of empty lists would otherwise take a gigabyte)."""
+
+    def __init__(self, size: int) -> None:
+        self.left = DECODED_BYTES_PER_BYTE * size + DECODED_SLACK
+
+    def _charge(self, size: int) -> None:
+        self.left -= size
+        if self.left < 0:
+            raise _OverBudget
+
+    def on_list(self, items: list[Any]) -> list[Any]:
+        self._charge(sys.getsizeof(items) + sum(map(sys.getsizeof, items)))
+        return items
+
+    def on_map(self, entries: dict[str, Any]) -> dict[str, Any]:
+        keys = sum(map(sys.getsizeof, entries.keys()))
+        self._charge(sys.getsizeof(entries) + keys + sum(map(sys.getsizeof, entries.values())))
+        return entries
+
+    def unpacker(self, data: bytes | bytearray | memoryview) -> msgpack.Unpacker:
+        unpacker = msgpack.Unpacker(
+            None,
             raw=False,
             strict_map_key=True,
-            # checked against each header before anything is allocated
-            max_array_len=4 * MAX_SEGMENTS,
-            max_map_len=MAX_MAPS + 64,
-            max_str_len=64 * 1024,
-            max_bin_len=MAX_PAYLOAD_BYTES,
-            max_ext_len=0,
+            list_hook=self.on_list,
+            object_hook=self.on_map,
+            max_buffer_size=max(len(data), 1),
+            **_LIMITS,
         )
-    except (msgpack.UnpackException, ValueError) as exc:
-        raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
-    if not isinstance(raw, dict):
-        raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
+        unpacker.feed(data)
+        return unpacker
+
+
+def _top_level(
+    data: bytes | bytearray | memoryview, budget: _DecodeBudget, wanted: Callable[[dict[str, Any]], Set[str]]
+) -> dict[str, Any]:
+    """The payload's map of fields, in two passes: the first decodes ``schema`` and ``v`` only,
+    the second the fields ``wanted`` of them; any other field is skipped over without being
+    decoded (a newer sender's field, or a decoding bomb under a name no message has)."""
+    raw: dict[str, Any] = {}
+    for names in ({"schema", "v"}, None):
+        unpacker = budget.unpacker(data)
+        try:
+            entries = unpacker.read_map_header()
+        except msgpack.OutOfData:
+            raise BadMessage("message", None, "not msgpack: no data") from None
+        except ValueError:  # not a map: decode it (within the budget) to say what it is
+            whole = budget.unpacker(data).unpack()
+            raise BadMessage("message", None, f"expected a msgpack map, got {type(whole).__name__}") from None
+        if entries > MAX_FIELDS:
+            raise BadMessage("message", None, f"{entries} fields is more than {MAX_FIELDS}")
+        if names is None:
+            names = wanted(raw)
+        for _ in range(entries):
+            name = unpacker.unpack()
+            if not isinstance(name, str):
+                raise BadMessage("message", None, f"not msgpack of named fields: a name is a {type(name).__name__}")
+            if name in names:
+                raw[name] = unpacker.unpack()
+            else:
+                unpacker.skip()
+        try:
+            unpacker.skip()
+        except msgpack.OutOfData:
+            continue
+        raise BadMessage("message", None, "not msgpack: extra data after the message")
+    return raw
+
+
+def _schema(raw: Mapping[str, Any]) -> type[Message]:
+    """The message type a payload's ``schema`` and ``v`` name, if this fleetmap reads it."""
     if "schema" not in raw:
         raise BadMessage("message", "schema", "missing")
     schema = raw["schema"]
@@ -848,6 +932,38 @@ def unpack(data: bytes) -> dict[str, Any]:
     cls = MESSAGE_TYPES[schema]
     if isinstance(version, bool) or version not in cls.READS:
         raise BadMessage(schema, "v", f"version {str(version)[:32]} is not one this fleetmap reads {cls.READS}")
+    return cls
+
+
+def _fields_of(raw: Mapping[str, Any]) -> Set[str]:
+    return _FIELD_NAMES[_schema(raw)]
+
+
+def unpack(data: bytes) -> dict[str, Any]:
+    """The msgpack map of a payload, with its schema and version checked, not yet its fields.
+
+    Decoding is bounded twice: every item's header is checked against the limits before it is
+    allocated, and what is decoded is counted as it is built (:class:`_DecodeBudget`), so a payload
+    costs at most a fixed multiple of its size whatever it packs. Fields its message does not have
+    are skipped without being decoded."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise BadMessage("message", None, f"expected bytes, got {type(data).__name__}")
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
+    try:
+        if len(data) * (_MOST_PER_BYTE - DECODED_BYTES_PER_BYTE) <= DECODED_SLACK:
+            raw = msgpack.unpackb(data, raw=False, strict_map_key=True, **_LIMITS)
+            if not isinstance(raw, dict):
+                raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
+        else:
+            raw = _top_level(data, _DecodeBudget(len(data)), _fields_of)
+    except _OverBudget:
+        raise BadMessage(
+            "message", None, f"{len(data)} bytes decode into more than {DECODED_BYTES_PER_BYTE} times their size"
+        ) from None
+    except (msgpack.UnpackException, ValueError) as exc:
+        raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
+    _schema(raw)
     return raw
 
 
