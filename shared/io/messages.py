@@ -892,7 +892,8 @@ def _top_level(
     the second the fields ``wanted`` of them; any other field is skipped over without being
     decoded (a newer sender's field, or a decoding bomb under a name no message has)."""
     raw: dict[str, Any] = {}
-    for names in ({"schema", "v"}, None):
+    passes: tuple[Set[str] | None, ...] = (frozenset({"schema", "v"}), None)
+    for names in passes:
         unpacker = budget.unpacker(data)
         try:
             entries = unpacker.read_map_header()
