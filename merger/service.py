@@ -192,14 +192,32 @@ class MergerService:
             except queue.Empty:
                 break
             if isinstance(item, bool):
-                robot = key.rsplit("/", 1)[-1]
-                log.info("robot %s %s", robot, "joined" if item else "left")
-                self._publish(self.merger.presence(robot, item, self.clock()))
+                robot = self._token_robot(key)
+                if robot is not None:
+                    log.info("robot %s %s", robot, "joined" if item else "left")
+                    self._publish(self.merger.presence(robot, item, self.clock()))
             else:
                 self._publish(self.merger.receive(key, item))
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
+
+    def _token_robot(self, key: str) -> str | None:
+        """The robot a liveliness token under ``alive/`` names; None, counted and logged, for a
+        token whose name is no robot id (anyone on an open fleet may declare one)."""
+        try:
+            parsed = self.keys.parse(key)
+        except BadInput:
+            parsed = None
+        if parsed is not None and parsed.kind == "alive":
+            return parsed.robot
+        stats = self.merger.stats
+        stats.malformed += 1
+        stats.malformed_reasons["liveliness token"] += 1
+        n = stats.malformed_reasons["liveliness token"]
+        if n <= 10 or n % 1000 == 0:
+            log.warning("ignored the liveliness token %r: not a robot id (%d such tokens so far)", key[:128], n)
+        return None
 
     def run_once(self) -> bool:
         """Take what arrived and step if there is work (a local map pending, or pairs of maps to

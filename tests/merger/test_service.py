@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import math
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -283,3 +284,31 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     for key, pose in whole.global_map.components[0].poses.items():
         other = restored.global_map.components[0].poses[key]
         assert pose.distance(other)[0] < 0.02 and pose.distance(other)[1] < 0.01
+
+
+@pytest.mark.slow  # two zenoh sessions on loopback
+def test_a_liveliness_token_that_names_no_robot_is_counted_and_the_merger_goes_on() -> None:
+    from fleetmap.merger.service import MergerService
+
+    from tests.bus_helpers import open_zenoh_pair
+
+    merger_bus, other = open_zenoh_pair(KEYS.fleet)
+    svc = MergerService(merger_bus, Merger(KEYS))
+    tokens = []
+    try:
+        svc.start()
+        # anyone on an open fleet may declare any token: one named like no robot, then a real robot
+        tokens.append(other.declare_liveliness(f"{KEYS.prefix}/alive/BAD"))
+        tokens.append(other.declare_liveliness(KEYS.alive("r9")))
+        deadline = time.monotonic() + 5.0
+        while "r9" not in svc.merger.robots and time.monotonic() < deadline:
+            svc.run_once()
+            time.sleep(0.01)
+        assert svc.merger.robots == ["r9"]
+        assert svc.merger.stats.malformed_reasons["liveliness token"] == 1
+    finally:
+        for token in tokens:
+            token.close()
+        svc.close()
+        other.close()
+        merger_bus.close()
