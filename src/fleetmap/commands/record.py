@@ -55,9 +55,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=KEY_RATE / 1e6,
         metavar="MB/S",
-        help=f"a key that writes faster than this in the long run (bursts of {KEY_BURST / 1e6:g} MB pass) has "
-        f"its messages dropped and counted: one flooding publisher cannot fill the disk; 0: no limit "
-        f"(default {KEY_RATE / 1e6:g})",
+        help=f"a robot (all its keys together; a key that is no robot's on its own) that writes faster than "
+        f"this in the long run (bursts of {KEY_BURST / 1e6:g} MB pass) has its messages dropped and counted: one "
+        f"flooding publisher cannot fill the disk; 0: no limit (default {KEY_RATE / 1e6:g})",
     )
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
