@@ -7,8 +7,9 @@ security).
 
 Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
 
-- robot ``rX``: put under ``P/robots/rX/**`` only, its global pose ``P/robots/rX/pose`` excepted
-  (the merger's); hold the liveliness token ``P/alive/rX`` only; read the merger's outputs
+- robot ``rX``: put on its own keys only, ``P/robots/rX/scan``, ``P/robots/rX/localmap`` and
+  ``P/robots/rX/events`` (not its global pose, the merger's, nor any key it makes up); hold the
+  liveliness token ``P/alive/rX`` only; read the merger's outputs
   (``P/merger/**``, its own global pose) and the fleet events (``P/events``).
 - ``merger``: read every robot (``P/robots/**``, ``P/alive/*``) and the fleet events; put under
   ``P/merger/**``, on ``P/events`` and on every robot's global pose ``P/robots/*/pose``; answer
@@ -156,8 +157,9 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         {"id": "viewer", "rules": [r["id"] for r in rules if r["id"].startswith("viewer-")], "subjects": ["viewer"]},
     ]
     for robot in robots:
-        # a robot's own keys: its scans, local maps, poses and events, and its presence
-        rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], [f"{p}/robots/{robot}/**"]))
+        # a robot's own keys: its scans, local maps and events, and its presence
+        own = [f"{p}/robots/{robot}/{leaf}" for leaf in ("scan", "localmap", "events")]
+        rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], own))
         rules.append(_rule(f"robot-{robot}-token", "ingress", ["liveliness_token"], [f"{p}/alive/{robot}"]))
         # ... and where the merger puts it
         rules.append(_rule(f"robot-{robot}-pose-in", "ingress", ["declare_subscriber"], [f"{p}/robots/{robot}/pose"]))
