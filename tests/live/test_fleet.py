@@ -363,21 +363,26 @@ def test_late_join_leave_crash_and_kidnap_in_one_session(tmp_path: Path) -> None
     assert report["messages_recorded"] == report["messages_seen"]
 
 
-def test_an_agent_started_before_its_router_waits_for_it_and_then_streams(tmp_path: Path) -> None:
-    # docker compose starts every service at once: an agent whose router is not up yet says so and
-    # tries again, backing off, instead of exiting
+def test_an_agent_and_a_recorder_started_before_their_router_wait_for_it_and_then_stream(tmp_path: Path) -> None:
+    # docker compose starts every service at once: an agent or recorder whose router is not up yet
+    # says so and tries again, backing off, instead of exiting
     endpoint = free_loopback_endpoint()
     common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
-    log = tmp_path / "agent.log"
+    log, recorder_log = tmp_path / "agent.log", tmp_path / "recorder.log"
     with processes() as procs:
         start(procs, "agent", "--robot", "r1", "--scenario", "department", "--speed", "4", *common, log=log)
+        recorder = start(procs, "record", "--out", str(tmp_path / "s.mcap"), *common, log=recorder_log)
         deadline = time.monotonic() + WAIT
-        while "nothing answers at" not in log.read_text(errors="replace"):
-            assert procs[0].poll() is None, log.read_text(errors="replace")
-            assert time.monotonic() < deadline, "the agent never said it was waiting for its router"
-            threading.Event().wait(0.1)
+        for process, said in ((procs[0], log), (recorder, recorder_log)):
+            while "nothing answers at" not in said.read_text(errors="replace"):
+                assert process.poll() is None, said.read_text(errors="replace")
+                assert time.monotonic() < deadline, f"{said.name}: never said it was waiting for its router"
+                threading.Event().wait(0.1)
         start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
         with ZenohBus.open(ZenohOptions(mode="client", connect=(endpoint,), fleet="t")) as bus:
             scans = Inbox()
             bus.subscribe(bus_keys().scan("r1"), scans)
             assert scans.wait_for(3, WAIT), log.read_text(errors="replace")
+        recorder.send_signal(signal.SIGTERM)
+        assert recorder.wait(WAIT) == 0, recorder_log.read_text(errors="replace")
+        assert "fleet/t/robots/r1/scan" in recorder_log.read_text(errors="replace")

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         # Validated first: a recording should not carry a scenario that cannot be read back.
         load_scenario(args.scenario)
         metadata["fleetmap.scenario"] = {"toml": Path(args.scenario).read_text(encoding="utf-8")}
-    with ZenohBus.open(config) as bus:
+    with ZenohBus.open(options) as bus:  # options, not config: it waits --connect-wait for a router
         writer = RecordingWriter(out)
         recorder = Recorder(
             writer,
