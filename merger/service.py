@@ -16,6 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from fleetmap.merger.clocks import CLOCK_SKEW, from_the_future
 from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
 from fleetmap.shared.errors import BadInput
@@ -95,6 +96,8 @@ class MergerService:
         """Robot poses between steps, from their placed scans (:mod:`fleetmap.merger.follow`)."""
         self._scans: queue.Queue[tuple[str, bytes]] = queue.Queue(POSE_QUEUE)
         self._follow_errors = 0
+        self.future_scans = 0
+        """Scans the pose thread dropped: stamped further ahead than :data:`CLOCK_SKEW`."""
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
 
@@ -158,7 +161,17 @@ class MergerService:
                 continue
             try:
                 scan = Scan.from_msgpack(payload)
-                if key == self.keys.scan(scan.robot):
+                if from_the_future(scan.stamp, self.clock()):
+                    self.future_scans += 1
+                    if self.future_scans <= 10 or self.future_scans % 1000 == 0:
+                        log.warning(
+                            "dropped a scan of %s stamped %.0f s ahead of this clock (more than %.0f s; %d so far)",
+                            scan.robot,
+                            scan.stamp - self.clock(),
+                            CLOCK_SKEW,
+                            self.future_scans,
+                        )
+                elif key == self.keys.scan(scan.robot):
                     self.follower.scan(scan)
             except BadMessage:
                 continue
