@@ -1,0 +1,255 @@
+"""Benchmark: a live fleet under attack (run on demand, not in CI).
+
+Each attack runs against real processes on loopback: a session of the department scenario
+(``fleetmap run``'s :class:`~fleetmap.runner.Session`: router, recorder, merger and three agents),
+with an attacker's own zenoh session on the same router that starts its attack once the merger is
+up, before the robots start, and keeps it up until they are done. Per attack it prints:
+
+- whether the merger and the recorder were still running when the robots were done,
+- the real robots placed (of 3),
+- the aligned map error (mean, m) and its difference from the attack-free baseline,
+- the merge latency median (s, arrival of a local map version at the recorder to the step that
+  took it in),
+- the peak resident memory (VmHWM) of each kind of process, against the baseline's,
+- what the attack left: the recording's size, and what the merger counted (from its log).
+
+With ``--secure`` the fleet logs in (``fleetmap secure``) and the attacker is robot r2, logged in
+as itself: the attacks an authenticated robot can make.
+
+    python benchmarks/hostile.py                          # every attack
+    python benchmarks/hostile.py --attacks token,bombs
+    python benchmarks/hostile.py --secure --attacks bombs,made-up-keys
+    python benchmarks/hostile.py --write-results
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgpack
+from fleetmap.scenarios import load_scenario
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.zenoh_config import ZenohOptions
+from results import markdown_table, write_section
+
+from fleetmap.runner import Session, SessionError
+
+Attack = Callable[[ZenohBus, FleetKeys, threading.Event], None]
+"""What an attacker does on its session (the bus), until the event is set."""
+
+BOMB = {"x": [[[]] * 800_000] * 20}
+"""The issue's decoding bomb: 16 MB of empty msgpack arrays (1.1-1.4 GB in every subscriber)."""
+
+
+def _packed(schema: str, v: int, **fields: Any) -> bytes:
+    packed: bytes = msgpack.packb({"schema": schema, "v": v, **fields})
+    return packed
+
+
+def token(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """A liveliness token under alive/ that names no robot (the merger exited 2 and crash-looped)."""
+    held = bus.declare_liveliness(f"{keys.prefix}/alive/BAD")
+    stop.wait()
+    held.close()
+
+
+def bombs(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """Six 16 MB payloads of empty arrays on a robot's events key, three under a field no message
+    has and three under one it has (``segments`` of a LocalMap)."""
+    for i in range(6):
+        fields = BOMB if i % 2 == 0 else {"segments": BOMB["x"]}
+        bus.publish(keys.robot_events("r2"), _packed("fleetmap.LocalMap", 2, **fields))
+        bus.flush()
+    stop.wait()
+
+
+def made_up_keys(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """12 x 8 MB under keys a robot makes up under its own prefix (each had the recorder's burst)."""
+    junk = bytes(8_000_000)
+    for k in range(12):
+        bus.publish(f"{keys.prefix}/robots/r2/k{k}", junk)
+        bus.flush()
+    stop.wait()
+
+
+ATTACKS: dict[str, Attack] = {"token": token, "bombs": bombs, "made-up-keys": made_up_keys}
+
+
+class MemorySampler(threading.Thread):
+    """The peak resident memory (VmHWM, MB) of each kind of the session's processes, read from /proc
+    every quarter second (a process's peak is kept by the kernel: the last reading before it ends)."""
+
+    def __init__(self, session: Session) -> None:
+        super().__init__(daemon=True)
+        self.session = session
+        self.stop = threading.Event()
+        self.peak: dict[str, float] = {}
+
+    def run(self) -> None:
+        while not self.stop.wait(0.25):
+            for child in list(self.session.children):
+                if child.popen is None or child.popen.poll() is not None:
+                    continue
+                try:
+                    status = Path(f"/proc/{child.popen.pid}/status").read_text()
+                except OSError:
+                    continue
+                found = re.search(r"VmHWM:\s+(\d+) kB", status)
+                if found:
+                    role = child.name.split("-", 1)[0]
+                    self.peak[role] = max(self.peak.get(role, 0.0), int(found.group(1)) / 1024)
+
+
+@dataclasses.dataclass
+class HostileSession(Session):
+    """A session whose attacker starts once the merger is up, before the robots, and stops when
+    they are done; it notes whether the services were still running then."""
+
+    attack: Attack | None = None
+    alive: dict[str, bool] = dataclasses.field(default_factory=dict)
+    sampler: MemorySampler | None = None
+
+    def _play(self, scenario_file, config_file, merger_args, merger, feeds=None):  # type: ignore[no-untyped-def]
+        self.sampler = MemorySampler(self)
+        self.sampler.start()
+        stop = threading.Event()
+        attacker = None
+        if self.attack is not None:
+            flags = self._zenoh("r2")
+            if self.secure:
+                options = ZenohOptions(config_file=flags[1], fleet=self.fleet)
+            else:
+                options = ZenohOptions(mode="client", connect=(flags[1],), fleet=self.fleet)
+            bus = ZenohBus.open(options)
+            attacker = threading.Thread(target=self.attack, args=(bus, options.keys, stop), daemon=True)
+            attacker.start()
+        try:
+            merger = super()._play(scenario_file, config_file, merger_args, merger, feeds)
+        finally:
+            self.alive = {c.name: c.running for c in self.children if c.name in ("merger", "recorder")}
+            stop.set()
+            if attacker is not None:
+                attacker.join(30)
+                bus.close()
+        return merger
+
+
+def run_one(name: str, attack: Attack | None, speed: float, secure: bool, out: Path) -> dict[str, Any]:
+    scenario = dataclasses.replace(load_scenario("department"), events=())
+    session = HostileSession(
+        scenario, out, FleetmapConfig(), speed=speed, fleet="hostile", progress=False, secure=secure, attack=attack
+    )
+    row: dict[str, Any] = {"attack": name}
+    start = time.monotonic()
+    try:
+        report = session.run()
+        row.update(
+            placed=report["robots_placed"],
+            error=report["map_error_aligned_mean_m"],
+            latency=report.get("merge_latency_median_s"),
+            recording_mb=(out / "session.mcap").stat().st_size / 1e6,
+        )
+    except SessionError as exc:
+        row["failed"] = str(exc)[:200]
+    finally:
+        if session.sampler is not None:
+            session.sampler.stop.set()
+    row["seconds"] = time.monotonic() - start
+    row["alive"] = session.alive
+    row["peak_mb"] = dict(session.sampler.peak) if session.sampler else {}
+    merger_log = out / "logs" / "merger.log"
+    row["merger_said"] = _counted(merger_log.read_text(errors="replace")) if merger_log.exists() else ""
+    return row
+
+
+def _counted(log: str) -> str:
+    """The merger's own words on what it dropped, refused or ignored (first of each kind)."""
+    said = []
+    for pattern in (r"ignored the liveliness token", r"dropped a malformed", r"refused [^:]*", r"dropped a \S+"):
+        found = re.search(pattern, log)
+        if found:
+            said.append(found.group(0))
+    return "; ".join(dict.fromkeys(said))
+
+
+def _fmt(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _peak(row: dict[str, Any], base: dict[str, Any], role: str) -> str:
+    mb, baseline = row["peak_mb"].get(role, 0.0), base["peak_mb"].get(role, 0.0)
+    return f"{mb:.0f} ({mb / baseline:.1f}x)" if baseline else f"{mb:.0f}"
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    base = rows[0]
+    header = ["attack", "merger, recorder alive", "robots placed", "map error (m)", "vs baseline (m)", "latency (s)"]
+    header += ["peak MB merger / recorder / agent", "recording (MB)", "the merger said"]
+    lines = []
+    for row in rows:
+        alive = ", ".join("yes" if row["alive"].get(s) else "NO" for s in ("merger", "recorder"))
+        if "failed" in row:
+            lines.append([row["attack"], alive, "-", "-", "-", "-", "-", "-", row["failed"]])
+            continue
+        delta = None if row["error"] is None or base.get("error") is None else row["error"] - base["error"]
+        peak = " / ".join(_peak(row, base, role) for role in ("merger", "recorder", "agent"))
+        lines.append(
+            [
+                row["attack"],
+                alive,
+                f"{row['placed']}/3",
+                _fmt(row["error"]),
+                _fmt(delta, 4) if row is not base else "baseline",
+                _fmt(row["latency"], 2),
+                peak,
+                f"{row['recording_mb']:.1f}",
+                row["merger_said"] or "-",
+            ]
+        )
+    return markdown_table(header, lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--attacks", default=",".join(ATTACKS), help=f"comma-separated, of {', '.join(ATTACKS)}")
+    parser.add_argument("--speed", type=float, default=4.0, help="scenario seconds per wall second (default 4)")
+    parser.add_argument("--secure", action="store_true", help="a logged-in fleet; the attacker is robot r2")
+    parser.add_argument("--write-results", action="store_true", help="write the table into RESULTS.md")
+    args = parser.parse_args()
+    names = [a.strip() for a in args.attacks.split(",") if a.strip()]
+    unknown = [n for n in names if n not in ATTACKS]
+    if unknown:
+        raise SystemExit(f"--attacks: unknown {', '.join(unknown)} (known: {', '.join(ATTACKS)})")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in ["baseline", *names]:
+            row = run_one(name, ATTACKS.get(name), args.speed, args.secure, Path(tmp) / name)
+            print(f"{name}: {row}", flush=True)
+            rows.append(row)
+    text = table(rows)
+    print(text)
+    if args.write_results:
+        fleet = "secured fleet (the attacker logged in as robot r2)" if args.secure else "open fleet"
+        body = (
+            f"The department scenario (3 robots, speed {args.speed:g}) on loopback, an {fleet}; each attack starts "
+            "once the merger is up, before the robots, and lasts until they are done. Latency: median from a local "
+            "map version's arrival to the merger step that took it in. Peak: VmHWM of each kind of process, and "
+            "its ratio to the baseline's.\n\n" + text
+        )
+        section = "hostile-secure" if args.secure else "hostile"
+        title = "A fleet under attack" + (", secured" if args.secure else "") + " (`benchmarks/hostile.py`)"
+        write_section(section, title, body)
+
+
+if __name__ == "__main__":
+    main()
