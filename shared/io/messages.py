@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import sys
 import types
-from collections.abc import Callable, Mapping, Sequence, Set
+from collections.abc import Mapping, Sequence, Set
 from dataclasses import MISSING, dataclass, fields, is_dataclass
 from typing import Any, ClassVar, Self
 
@@ -813,6 +813,13 @@ class MergerStep(WireMessage):
 Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep
 """Any message of the bus."""
 
+_CONTAINER_TYPES = ("Transform2D", "LaserRanges", "EpochLink", "SubmapLink", "tuple[")
+"""What a field's annotation names when its wire value is a msgpack map or array; every other
+field is one number, string or flag, or packed bytes (arrays travel as bins, and always have)."""
+_CONTAINER_HEADERS = frozenset([*range(0x80, 0xA0), 0xDC, 0xDD, 0xDE, 0xDF])
+"""The first byte of a msgpack map or array (fixmap, fixarray, array 16/32, map 16/32)."""
+
+
 MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep]] = {
     cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent, MergerStep)
 }
@@ -820,6 +827,11 @@ _FIELD_NAMES: dict[type[Message], frozenset[str]] = {
     cls: frozenset({"schema", "v", *(f.name for f in fields(cls))}) for cls in MESSAGE_TYPES.values()
 }
 """Each message type's fields: the values of a payload worth decoding."""
+_CONTAINER_FIELDS: dict[type[Message], frozenset[str]] = {
+    cls: frozenset(f.name for f in fields(cls) if any(t in str(f.type) for t in _CONTAINER_TYPES))
+    for cls in MESSAGE_TYPES.values()
+}
+"""... and those of them whose value is a msgpack map or array."""
 
 
 _LIMITS: dict[str, Any] = {
@@ -885,14 +897,14 @@ class _DecodeBudget:
         return unpacker
 
 
-def _top_level(
-    data: bytes | bytearray | memoryview, budget: _DecodeBudget, wanted: Callable[[dict[str, Any]], Set[str]]
-) -> dict[str, Any]:
+def _top_level(data: bytes | bytearray | memoryview, budget: _DecodeBudget) -> dict[str, Any]:
     """The payload's map of fields, in two passes: the first decodes ``schema`` and ``v`` only,
-    the second the fields ``wanted`` of them; any other field is skipped over without being
-    decoded (a newer sender's field, or a decoding bomb under a name no message has)."""
+    the second its message's fields; any other field is skipped over without being decoded (a
+    newer sender's field, or a decoding bomb under a name no message has), and a map or array
+    where its message has a single value or packed bytes is refused from its first byte."""
     raw: dict[str, Any] = {}
     passes: tuple[Set[str] | None, ...] = (frozenset({"schema", "v"}), None)
+    containers: Set[str] = frozenset()
     for names in passes:
         unpacker = budget.unpacker(data)
         try:
@@ -905,15 +917,18 @@ def _top_level(
         if entries > MAX_FIELDS:
             raise BadMessage("message", None, f"{entries} fields is more than {MAX_FIELDS}")
         if names is None:
-            names = wanted(raw)
+            cls = _schema(raw)
+            names, containers = _FIELD_NAMES[cls], _CONTAINER_FIELDS[cls]
         for _ in range(entries):
             name = unpacker.unpack()
             if not isinstance(name, str):
                 raise BadMessage("message", None, f"not msgpack of named fields: a name is a {type(name).__name__}")
-            if name in names:
-                raw[name] = unpacker.unpack()
-            else:
+            if name not in names:
                 unpacker.skip()
+                continue
+            if name not in containers and name not in ("schema", "v") and data[unpacker.tell()] in _CONTAINER_HEADERS:
+                raise BadMessage(raw["schema"], name, "expected one value or packed bytes, got a msgpack map or array")
+            raw[name] = unpacker.unpack()
         try:
             unpacker.skip()
         except msgpack.OutOfData:
@@ -936,10 +951,6 @@ def _schema(raw: Mapping[str, Any]) -> type[Message]:
     return cls
 
 
-def _fields_of(raw: Mapping[str, Any]) -> Set[str]:
-    return _FIELD_NAMES[_schema(raw)]
-
-
 def unpack(data: bytes) -> dict[str, Any]:
     """The msgpack map of a payload, with its schema and version checked, not yet its fields.
 
@@ -957,7 +968,7 @@ def unpack(data: bytes) -> dict[str, Any]:
             if not isinstance(raw, dict):
                 raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
         else:
-            raw = _top_level(data, _DecodeBudget(len(data)), _fields_of)
+            raw = _top_level(data, _DecodeBudget(len(data)))
     except _OverBudget:
         raise BadMessage(
             "message", None, f"{len(data)} bytes decode into more than {DECODED_BYTES_PER_BYTE} times their size"

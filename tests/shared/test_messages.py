@@ -592,20 +592,23 @@ def _decoding_peak(payload: bytes) -> tuple[float, str]:
 
 
 @pytest.mark.parametrize(
-    ("field", "bomb"),
+    ("field", "bomb", "refused"),
     [
-        ("x", [[[]] * 60_000] * 10),  # a name no LocalMap field has: skipped over, never decoded
-        ("segments", [[[]] * 60_000] * 10),  # a field it has: counted as it decodes, refused past the budget
-        ("link", [{"": ""}] * 200_000),
+        # a name no LocalMap field has: skipped over, never decoded
+        ("x", [[[]] * 60_000] * 10, "fleetmap.LocalMap field 'robot': missing"),
+        # a field that is packed bytes on the wire: refused from the array's first byte
+        ("segments", [[[]] * 60_000] * 10, "fleetmap.LocalMap field 'segments': expected one value or packed bytes"),
+        # a field that is a map: counted as it decodes, refused past the budget
+        ("link", [{"": ""}] * 200_000, "message: 600"),
     ],
 )
-def test_a_payload_packing_millions_of_items_decodes_into_a_bounded_multiple_of_its_size(field, bomb):
+def test_a_payload_packing_millions_of_items_decodes_into_a_bounded_multiple_of_its_size(field, bomb, refused):
     # each packed item is one byte on the wire and 56 or more as a Python object: unbounded, a 16 MB
     # payload took over a gigabyte in every subscriber
     payload = msgpack.packb({"schema": "fleetmap.LocalMap", "v": 2, field: bomb})
     peak, reason = _decoding_peak(payload)
     assert peak < DECODED_BYTES_PER_BYTE * len(payload) + DECODED_SLACK + 1_000_000 < 32 * len(payload), peak
-    assert reason.startswith("fleetmap.LocalMap field 'robot': missing" if field == "x" else "message: ")
+    assert reason.startswith(refused), reason
 
 
 def test_messages_as_sent_decode_within_their_budget():
