@@ -67,6 +67,7 @@ EVENT_KINDS = frozenset(
         "epoch",  # a robot started a new local map (robot: who; detail: why)
         "kidnap",  # a scenario carried a robot away (ground truth, for the report)
         "relocalized",  # the merger placed a robot's new epoch in the global map again
+        "refused",  # the merger refuses a robot's epoch (detail: which, and why): a second agent under its id
         "merger_start",
         "merger_stop",
         "republish_request",  # a (re)started merger asks every robot for its latest local map
