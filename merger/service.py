@@ -46,6 +46,10 @@ STEP_SECONDS = 0.25
 integration that finds this much time gone; the other pairs wait for the next step."""
 
 
+class _Recalled(bytes):
+    """A submap the recorder kept, recalled at start (its robot may have left long ago)."""
+
+
 class MergerService:
     """:class:`Merger` on a bus: the live service (``fleetmap merger``).
 
@@ -68,6 +72,7 @@ class MergerService:
             raise BadInput("step_seconds", f"must be 0 (no budget) or a positive number, got {step_seconds}")
         self.bus = bus
         self.merger = merger
+        merger.require_presence = True  # a live fleet's robots hold liveliness tokens
         self.keys = merger.keys
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
@@ -133,7 +138,7 @@ class MergerService:
             except BadMessage:
                 self.merger.stats.malformed += 1
                 continue
-            self._inbox.put((keys.localmap(robot), payload))
+            self._inbox.put((keys.localmap(robot), _Recalled(payload)))
             recalled += 1
         if recalled:
             log.info("recalled %d submaps from the recorder", recalled)
@@ -171,7 +176,7 @@ class MergerService:
                             CLOCK_SKEW,
                             self.future_scans,
                         )
-                elif key == self.keys.scan(scan.robot):
+                elif key == self.keys.scan(scan.robot) and self.merger.follows(scan.robot, scan.epoch):
                     self.follower.scan(scan)
             except BadMessage:
                 continue
@@ -210,7 +215,7 @@ class MergerService:
                     log.info("robot %s %s", robot, "joined" if item else "left")
                     self._publish(self.merger.presence(robot, item, self.clock()))
             else:
-                self._publish(self.merger.receive(key, item))
+                self._publish(self.merger.receive(key, item, self.clock(), recalled=isinstance(item, _Recalled)))
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
@@ -253,7 +258,7 @@ class MergerService:
             now = time.monotonic()
             return now >= long or (now >= short and self._maps_arrived != arrived)
 
-        out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
+        out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None, now=self.clock())
         self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
         self._publish_step(out)

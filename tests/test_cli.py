@@ -11,6 +11,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
@@ -205,6 +206,8 @@ def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path
     binary.write_bytes(bytes(range(256)))
     flipped = tmp_path / "flipped.mcap"
     flipped.write_bytes(_byte_flipped_recording())
+    shape = tmp_path / "merger.state"  # msgpack, of the state's version, holding a list where its robots go
+    shape.write_bytes(msgpack.packb({"v": 2, "submaps": [], "edges": [], "robots": [1], "seq": 0, "stamp": 0}))
     cases = [
         (["merge", scan, scan.replace("_a", "_b"), "--plot", str(tmp_path / "nowhere" / "g.png")], "does not exist"),
         (["run", "--out", str(tmp_path / "a-file" / "run")], "cannot be made a folder (--out)"),
@@ -215,6 +218,7 @@ def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path
         (["replay", str(flipped), "--out", str(tmp_path / "r1")], f"{flipped}: corrupt MCAP file"),
         (["recover", str(flipped), str(tmp_path / "fixed.mcap")], f"{flipped}: corrupt MCAP file"),
         (["replay", str(flipped), "--out", str(tmp_path / "r2"), "--from", "nan"], "--from: must be a number"),
+        (["merger", "--state", str(shape), "--listen", "tcp/127.0.0.1:0"], f"{shape}: cannot load the merger state"),
     ]
     for args, says in cases:
         r = fleetmap(*args)

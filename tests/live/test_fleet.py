@@ -160,6 +160,7 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     good, _ = true_local_map("department", "r1", 0, 6)
     maps = Inbox()
     bus.subscribe(keys.globalmap, maps)
+    bus.declare_liveliness(keys.alive("r1"))  # the merger listens to robots holding their token
     bus.publish(keys.localmap("r1"), good.to_msgpack())
     assert maps.wait_for(1, WAIT), "the merger stopped answering after the flood"
     state = GlobalMap.from_msgpack(bus.query(keys.state, timeout=5.0)[0])
@@ -208,6 +209,7 @@ def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_l
         merger = start(procs, "merger", *common, "--state", str(state), log=tmp_path / "merger.log")
         assert bus.wait_for_subscribers(keys.localmap("r1"), WAIT)
         for robot in ("r1", "r2", "r3"):
+            bus.declare_liveliness(keys.alive(robot))
             for epoch, first in enumerate(range(0, 32, 8)):
                 m = true_local_map("department", robot, first, first + 8, epoch=epoch)[0]
                 bus.publish(keys.localmap(robot), m.to_msgpack())
@@ -235,6 +237,8 @@ def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_d
         merger = start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
         assert services.wait_for(2, WAIT)
         first = true_local_map("department", "r1", 0, 8)[0]
+        for robot in ("r1", "r2"):
+            bus.declare_liveliness(keys.alive(robot))
         bus.publish(keys.localmap("r1"), first.to_msgpack())
         assert steps.wait_for(1, WAIT)
         merger.kill()  # down, while r1 sends its final version and r2 maps and finishes
@@ -286,9 +290,11 @@ def test_a_full_disk_is_said_loudly_and_the_services_keep_serving(tmp_path: Path
         shapes = [
             true_local_map("department", r, e * 10, e * 10 + 20, epoch=e)[0] for r in ("r1", "r2", "r3") for e in (0, 1)
         ]
+        for robot in ("r1", "r2", "r3"):
+            bus.declare_liveliness(keys.alive(robot))
         for version in range(20):
             for m in shapes:
-                v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose)
+                v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose, m.previous_epoch_link)
                 bus.publish(keys.localmap(v.robot), v.to_msgpack())
                 sent.append(v)
         bus.flush()

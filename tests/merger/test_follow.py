@@ -105,6 +105,7 @@ def test_poses_stream_at_scan_rate_between_steps_on_the_bus() -> None:
     service.start()
     try:
         for r, (m, _) in maps.items():
+            robot.declare_liveliness(KEYS.alive(r))  # a live merger listens to robots holding their token
             robot.publish(KEYS.localmap(r), m.to_msgpack())
         assert service.run_once()
         stepped = [p for p in poses if p.robot == "r1"]
