@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import re
+import signal
 import tempfile
 import threading
 import time
@@ -35,17 +37,22 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.messages import LocalMap, Scan
+from fleetmap.shared.io.recording import RecordingReader
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 from results import markdown_table, write_section
 
 from fleetmap.runner import Session, SessionError
 
-Attack = Callable[[ZenohBus, FleetKeys, threading.Event], None]
-"""What an attacker does on its session (the bus), until the event is set."""
+Attack = Callable[["HostileSession", ZenohBus, FleetKeys, threading.Event], None]
+"""What an attacker does on its zenoh session (the bus), until the event is set; it may start and
+stop the session's processes."""
 
 BOMB = {"x": [[[]] * 800_000] * 20}
 """The issue's decoding bomb: 16 MB of empty msgpack arrays (1.1-1.4 GB in every subscriber)."""
@@ -56,14 +63,14 @@ def _packed(schema: str, v: int, **fields: Any) -> bytes:
     return packed
 
 
-def token(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+def token(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
     """A liveliness token under alive/ that names no robot (the merger exited 2 and crash-looped)."""
     held = bus.declare_liveliness(f"{keys.prefix}/alive/BAD")
     stop.wait()
     held.close()
 
 
-def bombs(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+def bombs(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
     """Six 16 MB payloads of empty arrays on a robot's events key, three under a field no message
     has and three under one it has (``segments`` of a LocalMap)."""
     for i in range(6):
@@ -73,16 +80,80 @@ def bombs(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
     stop.wait()
 
 
-def made_up_keys(bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
-    """12 x 8 MB under keys a robot makes up under its own prefix (each had the recorder's burst)."""
-    junk = bytes(8_000_000)
+def made_up_keys(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """12 x 8 MB (random: no compression helps) under keys a robot makes up under its own prefix
+    (each key had the recorder's 64 MB burst)."""
     for k in range(12):
-        bus.publish(f"{keys.prefix}/robots/r2/k{k}", junk)
+        bus.publish(f"{keys.prefix}/robots/r2/k{k}", os.urandom(8_000_000))
         bus.flush()
     stop.wait()
 
 
-ATTACKS: dict[str, Attack] = {"token": token, "bombs": bombs, "made-up-keys": made_up_keys}
+def fake_robots(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """Valid local maps of 1000 robots that hold no liveliness token, before the real ones start
+    (they filled the 256-robot limit: every message of the real robots was refused)."""
+    walls = np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [4.0, 3.0, 0.0, 3.0]])
+    for i in range(1000):
+        bus.publish(keys.localmap(f"f{i}"), LocalMap(f"f{i}", 0, 0, 1.0, walls + i % 7, 3, final=True).to_msgpack())
+    bus.flush()
+    stop.wait()
+
+
+def future_stamp(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """One placed scan of r1 stamped 9.2e9 s (under the format's limit), once r1 is placed: r1 got
+    no pose for the rest of the session."""
+    stop.wait(3.0)
+    scan = Scan("r1", 0, 10**6, 9.2e9, np.zeros((0, 4)), submap=0, pose=Transform2D())
+    bus.publish(keys.scan("r1"), scan.to_msgpack())
+    bus.flush()
+    stop.wait()
+
+
+def _second_r2(session: HostileSession, kill_first: bool, stop: threading.Event) -> None:
+    """Another ``fleetmap agent --robot r2`` on the same path, 3 s into the session; the first one
+    SIGKILLed before (a reboot) or left running (two live r2)."""
+    if stop.wait(3.0):
+        return
+    if kill_first:
+        for child in session.children:
+            if child.name == "agent-r2":
+                child.signal(signal.SIGKILL)
+    out = session.out_dir
+    session._child(
+        "agent-r2-again",
+        "agent",
+        "--robot",
+        "r2",
+        "--scenario",
+        str(out / "scenario.toml"),
+        "--speed",
+        str(session.speed),
+        "--config",
+        str(out / "config.toml"),
+        *session._zenoh("r2"),
+    )
+    stop.wait()
+
+
+def reboot(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """r2 SIGKILLed 3 s in and started again under its id (its new r2/0/0 replaced a final submap)."""
+    _second_r2(session, True, stop)
+
+
+def twin(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """A second live r2, 3 s in (the map split into two components)."""
+    _second_r2(session, False, stop)
+
+
+ATTACKS: dict[str, Attack] = {
+    "token": token,
+    "bombs": bombs,
+    "made-up-keys": made_up_keys,
+    "fake-robots": fake_robots,
+    "future-stamp": future_stamp,
+    "reboot": reboot,
+    "twin": twin,
+}
 
 
 class MemorySampler(threading.Thread):
@@ -131,7 +202,7 @@ class HostileSession(Session):
             else:
                 options = ZenohOptions(mode="client", connect=(flags[1],), fleet=self.fleet)
             bus = ZenohBus.open(options)
-            attacker = threading.Thread(target=self.attack, args=(bus, options.keys, stop), daemon=True)
+            attacker = threading.Thread(target=self.attack, args=(self, bus, options.keys, stop), daemon=True)
             attacker.start()
         try:
             merger = super()._play(scenario_file, config_file, merger_args, merger, feeds)
@@ -158,6 +229,7 @@ def run_one(name: str, attack: Attack | None, speed: float, secure: bool, out: P
             error=report["map_error_aligned_mean_m"],
             latency=report.get("merge_latency_median_s"),
             recording_mb=(out / "session.mcap").stat().st_size / 1e6,
+            r1_poses=_poses_of(out / "session.mcap", FleetKeys("hostile").pose("r1")),
         )
     except SessionError as exc:
         row["failed"] = str(exc)[:200]
@@ -169,7 +241,15 @@ def run_one(name: str, attack: Attack | None, speed: float, secure: bool, out: P
     row["peak_mb"] = dict(session.sampler.peak) if session.sampler else {}
     merger_log = out / "logs" / "merger.log"
     row["merger_said"] = _counted(merger_log.read_text(errors="replace")) if merger_log.exists() else ""
+    recorder_log = out / "logs" / "recorder.log"
+    said = recorder_log.read_text(errors="replace") if recorder_log.exists() else ""
+    row["throttled"] = said.count("faster than --max-key-rate")
     return row
+
+
+def _poses_of(recording: Path, key: str) -> int:
+    with RecordingReader(recording) as reader:
+        return sum(1 for m in reader.messages(topics=[key], warn=False))
 
 
 def _counted(log: str) -> str:
@@ -194,12 +274,13 @@ def _peak(row: dict[str, Any], base: dict[str, Any], role: str) -> str:
 def table(rows: list[dict[str, Any]]) -> str:
     base = rows[0]
     header = ["attack", "merger, recorder alive", "robots placed", "map error (m)", "vs baseline (m)", "latency (s)"]
-    header += ["peak MB merger / recorder / agent", "recording (MB)", "the merger said"]
+    header += ["peak MB merger / recorder / agent", "recording (MB)", "recorder throttled", "r1 poses"]
+    header += ["the merger said"]
     lines = []
     for row in rows:
         alive = ", ".join("yes" if row["alive"].get(s) else "NO" for s in ("merger", "recorder"))
         if "failed" in row:
-            lines.append([row["attack"], alive, "-", "-", "-", "-", "-", "-", row["failed"]])
+            lines.append([row["attack"], alive, "-", "-", "-", "-", "-", "-", "-", "-", row["failed"]])
             continue
         delta = None if row["error"] is None or base.get("error") is None else row["error"] - base["error"]
         peak = " / ".join(_peak(row, base, role) for role in ("merger", "recorder", "agent"))
@@ -213,6 +294,8 @@ def table(rows: list[dict[str, Any]]) -> str:
                 _fmt(row["latency"], 2),
                 peak,
                 f"{row['recording_mb']:.1f}",
+                str(row["throttled"]),
+                str(row["r1_poses"]),
                 row["merger_said"] or "-",
             ]
         )
