@@ -395,6 +395,7 @@ def test_a_second_live_agent_under_an_id_is_refused_and_a_restarted_one_is_taken
     # r2 killed and started again: its first epoch after the ones held is taken
     merger.presence("r2", False, 2.0)
     merger.presence("r2", True, 3.0)
+    merger.receive(KEYS.scan("r2"), Scan("r2", 4, 0, 1.0, np.zeros((0, 4))).to_msgpack())  # before its first map
     merger.receive(KEYS.localmap("r2"), _box("r2", epoch=4).to_msgpack())
     assert merger.pending == 2
 
