@@ -255,7 +255,7 @@ def _poses_of(recording: Path, key: str) -> int:
 def _counted(log: str) -> str:
     """The merger's own words on what it dropped, refused or ignored (first of each kind)."""
     said = []
-    for pattern in (r"ignored the liveliness token", r"dropped a malformed", r"refused [^:]*", r"dropped a \S+"):
+    for pattern in (r"ignored the liveliness token", r"dropped a malformed", r"refused [^:\n]*", r"dropped a \S+"):
         found = re.search(pattern, log)
         if found:
             said.append(found.group(0))
@@ -308,6 +308,7 @@ def main() -> None:
     parser.add_argument("--speed", type=float, default=4.0, help="scenario seconds per wall second (default 4)")
     parser.add_argument("--secure", action="store_true", help="a logged-in fleet; the attacker is robot r2")
     parser.add_argument("--write-results", action="store_true", help="write the table into RESULTS.md")
+    parser.add_argument("--out", help="keep each session's folder (logs, recording) here")
     args = parser.parse_args()
     names = [a.strip() for a in args.attacks.split(",") if a.strip()]
     unknown = [n for n in names if n not in ATTACKS]
@@ -316,7 +317,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in ["baseline", *names]:
-            row = run_one(name, ATTACKS.get(name), args.speed, args.secure, Path(tmp) / name)
+            row = run_one(name, ATTACKS.get(name), args.speed, args.secure, Path(args.out or tmp) / name)
             print(f"{name}: {row}", flush=True)
             rows.append(row)
     text = table(rows)
