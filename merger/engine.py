@@ -351,6 +351,8 @@ class Merger:
         s.queue = {pair: t for pair, t in s.queue.items() if gone.isdisjoint(pair)}
         s.finished_epochs = {e for e in s.finished_epochs if parse_map_key(e)[0] != robot}
         self._forgotten = bool(mine) or self._forgotten
+        if gone & self.placement.where.keys():  # the last solve's components name them: solve without
+            self.placement = Placement.of(self.graph.solve(fuse_maps=False) if len(self.graph) else None)
         del self._robots[robot]
         log.info("forgot robot %s: it left before any of its %d submaps was placed", robot, len(mine))
 

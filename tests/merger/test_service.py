@@ -357,6 +357,7 @@ def test_fake_robots_without_tokens_or_gone_unplaced_take_no_room(maps, tmp_path
     assert merger.stats.refused["max_robots"] == 1 and merger.pending == 2  # f1 and r1 count, r2 waits
     merger.step()
     merger.presence("f1", False, 2.0)
+    assert merger.has_work and merger.pending == 0  # to solve without f1 (its submap was in the last solve)
     merger.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack())
     merger.step()
     merger.save_state(tmp_path / "state")
