@@ -435,10 +435,10 @@ class Merger:
                     limit is None and enough is not None and taken and enough()
                 ):
                     break
-                pair, predicted = next(iter(queue.items()))
+                pair, predicted = self.schedule.next_pair()
                 if any({j.a, j.b} == set(pair) for j, _ in running):
                     break
-                del queue[pair]
+                self.schedule.take(pair)
                 taken += 1
                 job = self.schedule.job(pair, predicted)
                 if job is not None:

@@ -418,3 +418,34 @@ def test_stamps_label_a_robot_s_maps_and_do_not_order_them(maps) -> None:  # typ
     out = _decoded(merger.step(now=now + 2.0))
     pose = next(p for p in out if isinstance(p, RobotPose))
     assert pose.stamp == now - 3600.0 and merger.global_map.stamp == now + 2.0
+
+
+def test_robots_take_turns_at_integration_so_a_flood_delays_only_its_robot(maps) -> None:  # type: ignore[no-untyped-def]
+    # 2,000 epochs of one robot left 6,031 pairs queued ahead of the real robots' for a minute
+    merger = Merger(KEYS)
+    for epoch in range(30):
+        link = EpochLink(epoch - 1, "lost") if epoch else None
+        merger.receive(KEYS.localmap("f"), _box("f", epoch=epoch, previous_epoch_link=link, final=True).to_msgpack())
+    merger.receive(KEYS.localmap("r1"), maps["r1"][0].to_msgpack())
+    out = _decoded(merger.step(limit=2))
+    edges = [m for m in out if isinstance(m, MergeEdge)]
+    assert merger.queued > 20 and len(edges) == 2
+    assert [sorted({e.a.split("/")[0], e.b.split("/")[0]}) for e in edges][1] == ["f", "r1"]  # r1's turn came second
+
+
+def test_the_global_map_is_the_component_of_the_most_robots_not_of_one_robot_s_many_epochs(maps) -> None:  # type: ignore[no-untyped-def]
+    # a robot flooding its own key with epochs of one shape made their component the "largest": no
+    # real robot was placed any more
+    merger = Merger(KEYS)
+    for epoch in range(4):
+        link = EpochLink(epoch - 1, "lost") if epoch else None
+        merger.receive(KEYS.localmap("f"), _box("f", epoch=epoch, previous_epoch_link=link, final=True).to_msgpack())
+    for robot in ("r1", "r2"):
+        merger.receive(KEYS.localmap(robot), maps[robot][0].to_msgpack())
+    while merger.has_work:
+        merger.step()
+    robots_of = [{k.split("/")[0] for k in c.members} for c in merger.global_map.components]
+    assert any(
+        len({k.split("/")[1] for k in c.members if k.startswith("f/")}) > 2 for c in merger.global_map.components
+    )
+    assert robots_of[0] == {"r1", "r2"}
