@@ -115,6 +115,8 @@ class Merger:
         self._forgotten = False
         """Robots were forgotten since the last solve (:meth:`presence`): solve again."""
         self._said_refused: set[tuple[str, int]] = set()
+        self._left: set[str] = set()
+        """Robots that left with none of their submaps placed (yet)."""
 
     @property
     def config(self) -> FleetmapConfig:
@@ -317,14 +319,18 @@ class Merger:
 
     def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
         """A robot's liveliness token appeared or went: a join or leave event. Its maps stay,
-        unless none of them was ever placed: a robot that left before it was merged with anything
-        is forgotten, its submaps and all (it takes no room, in memory or in the state file)."""
+        unless none of them is placed once the merger has tried them all: a robot that left and
+        was merged with nothing is forgotten, its submaps and all (it takes no room, in memory or
+        in the state file; :meth:`_forget_the_unplaced`)."""
         if not self.require_presence and not self._room_for(robot):
             return []
         r = self._robot(robot)
         r.present, r.live = present, False
-        if not present and not self._placed_robot(robot):
-            self._forget(robot)
+        if present:
+            self._left.discard(robot)
+        else:
+            self._left.add(robot)
+            self._forget_the_unplaced()
         kind = "join" if present else "leave"
         return [Outgoing(self.keys.events, FleetEvent(kind, robot, max(stamp, 0.0)).to_msgpack())]
 
@@ -336,6 +342,29 @@ class Merger:
             if owner == robot and self.placement.gives_poses(index, epoch):
                 return True
         return False
+
+    def _forget_the_unplaced(self) -> None:
+        """Forget the robots that left, none of whose submaps is placed, once nothing of theirs is
+        left to try (no submap waiting, no pair queued, no search budget left): a busy merger does
+        not forget a robot it has not got to yet."""
+        for robot in sorted(self._left):
+            if self._placed_robot(robot):
+                self._left.discard(robot)
+            elif not self._work_for(robot):
+                self._left.discard(robot)
+                self._forget(robot)
+
+    def _work_for(self, robot: str) -> bool:
+        def mine(key: str) -> bool:
+            return key.split("/", 1)[0] == robot
+
+        s = self.schedule
+        budget = self.config.merge.far_budget
+        return (
+            any(mine(k) for k in self._pending)
+            or any(mine(a) or mine(b) for a, b in s.queue)
+            or any(mine(k) and s.far_tries.get(k, 0) < budget for k in s.idle_candidates(self.placement))
+        )
 
     def _forget(self, robot: str) -> None:
         mine = [k for k in [*self.submaps, *self._pending] if parse_submap_key(k)[0] == robot]
@@ -484,6 +513,7 @@ class Merger:
         )
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         self._last_out = out
+        self._forget_the_unplaced()
         return out
 
     def where_it_stands(self) -> list[Outgoing]:

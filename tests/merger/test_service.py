@@ -357,13 +357,19 @@ def test_fake_robots_without_tokens_or_gone_unplaced_take_no_room(maps, tmp_path
     assert merger.stats.refused["max_robots"] == 1 and merger.pending == 2  # f1 and r1 count, r2 waits
     merger.step()
     merger.presence("f1", False, 2.0)
-    assert merger.has_work and merger.pending == 0  # to solve without f1 (its submap was in the last solve)
     merger.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack())
-    merger.step()
+    # a robot that finished and left before a busy merger got to its map is not forgotten for that
+    merger.presence("r1", False, 3.0)  # placed: it stays, and no longer counts
+    merger.presence("r3", True, 3.0)
+    merger.receive(KEYS.localmap("r3"), maps["r3"][0].to_msgpack())
+    merger.presence("r3", False, 4.0)
+    assert "r3" in merger.robots
+    while merger.has_work:  # f1 is forgotten once its submap has had its tries
+        merger.step()
     merger.save_state(tmp_path / "state")
     restored = _live()
     restored.load_state(tmp_path / "state")
-    assert restored.robots == ["r1", "r2"] and len(restored.global_map.components) == 1
+    assert restored.robots == ["r1", "r2", "r3"] and len(restored.global_map.components) == 1
 
 
 def test_a_final_submap_never_changes(maps) -> None:  # type: ignore[no-untyped-def]
