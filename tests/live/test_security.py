@@ -129,6 +129,9 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
                 r1.publish(KEYS.localmap("r1"), r1_map.to_msgpack())
                 assert seen.wait_until(lambda got: any(k == KEYS.globalmap for k, _ in got), WAIT)
                 assert alive.wait_for(2, WAIT)
+                # a robot may ask the merger's state: a restarted agent begins after its epochs there
+                state = [GlobalMap.from_msgpack(p) for p in r1.query(KEYS.state, timeout=WAIT)]
+                assert len(state) == 1 and state[0].component_of("r1/0/0") is not None
                 token.close()
             merged = [decode(p) for k, p in seen.items if k == KEYS.globalmap]
             assert all(isinstance(m, GlobalMap) and m.stamp < 9e9 for m in merged)
