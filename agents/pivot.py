@@ -2,7 +2,7 @@
 pivot method (scans in, bus messages out; no network, no clock).
 
 For every scan the agent extracts segments (paper III-D) and grows its local map online with the
-pivot method (paper IV-C, Algorithm 6; :class:`~fleetmap.agents.localmap.PivotMapBuilder`): each
+pivot method (paper IV-C, Algorithm 6; :class:`~fleetmap.shared.core.pivotmap.PivotMapBuilder`): each
 scan is integrated with the previous placed one, its transform composed with that scan's pose, and
 the scan fused into the map, whose frame is the first scan's laser frame.
 
@@ -16,7 +16,7 @@ half a second did not drive there; nor, while it drives on straight, farther alo
 it can brake or speed up (``max_acceleration``). Where a scan matches two places almost equally
 (a hallway one door further, or turned round), or matches better one rack back of where it
 validly matches as the robot drove, the robot's own recent motion decides (the builder's motion
-prior, ``motion_prior_radius``; see :class:`~fleetmap.agents.localmap.PivotMapBuilder`). One
+prior, ``motion_prior_radius``; see :class:`~fleetmap.shared.core.pivotmap.PivotMapBuilder`). One
 unplaced scan
 followed by a placed one (a person walking by the laser) changes nothing, but for an epoch's
 second scan: a local map of one scan is no context to place a later scan on across one that
@@ -49,11 +49,11 @@ import logging
 from dataclasses import dataclass
 
 from fleetmap.agents.counts import AgentCounts
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths
 from fleetmap.shared.core.mapgrid import viewpoints_of
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import MIN_SEGMENT_LENGTH, SegmentMap
 from fleetmap.shared.errors import BadInput

@@ -26,11 +26,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
 from fleetmap.shared.io.keys import FleetKeys, parse_submap_key
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, Message, Scan, decode
+from fleetmap.shared.io.sources import SourceScan
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +153,13 @@ def first_epoch(bus: Bus, keys: FleetKeys, robot: str) -> int:
     return newest + 1
 
 
+def _start_after_known(bus: Bus, keys: FleetKeys, agent: Agent) -> None:
+    epoch = first_epoch(bus, keys, agent.robot)
+    if epoch:
+        log.info("%s: the merger holds its epochs up to %d: this run starts at epoch %d", agent.robot, epoch - 1, epoch)
+        agent.start_at(epoch)
+
+
 def run_agent(
     source: Iterable[SourceScan],
     agent: Agent,
@@ -199,11 +206,7 @@ def run_agent(
     stopped = False
     try:
         if start_after_known:
-            epoch = first_epoch(bus, keys, agent.robot)
-            if epoch:
-                log.info("%s: the merger holds epochs of %s up to %d: this run starts at epoch %d", *(
-                    agent.robot, agent.robot, epoch - 1, epoch))  # fmt: skip
-                agent.start_at(epoch)
+            _start_after_known(bus, keys, agent)
         handles.append(bus.subscribe(keys.events, requests.on_event))
         if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
             log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))
@@ -226,11 +229,7 @@ def run_agent(
             publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
             if clock() - said >= STATUS_SECONDS:
                 said = clock()
-                c = agent.counts
-                log.info(
-                    "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
-                    agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
-                )  # fmt: skip
+                _log_status(agent, published)
         stopped = stopped or stop.is_set()  # a live source ends when stop is set
         publish(agent.finish())
         answer_requests()
@@ -240,15 +239,17 @@ def run_agent(
             handle.close()
     counts = agent.counts
     summary = AgentSummary(
-        agent.robot,
-        counts.scans,
-        counts.placed,
-        counts.epochs,
-        published,
-        republished,
-        requests.bad,
-        stopped,
+        agent.robot, counts.scans, counts.placed, counts.epochs, published, republished, requests.bad, stopped,
         clock() - started,
-    )
+    )  # fmt: skip
     log.info("%s", summary.line())
     return summary
+
+
+def _log_status(agent: Agent, published: int) -> None:
+    """The periodic line of a running agent."""
+    c = agent.counts
+    log.info(
+        "%s: %d scans, %d placed, %d epochs, %d local maps, %d messages published",
+        agent.robot, c.scans, c.placed, c.epochs, c.local_maps, published,
+    )  # fmt: skip

@@ -5,7 +5,7 @@ so the agent's own Zenoh session subscribes to the robot's topics as a ROS 2 nod
 
 - ``<namespace>/scan``: sensor_msgs/LaserScan, the scans, with the robot's own header stamps;
 - ``<namespace>/odom``: nav_msgs/Odometry, the base's odometry, interpolated at each scan's stamp
-  (:class:`~fleetmap.agents.sources.OdometryTrack`, as for a bag); without it, tf ``odom ->
+  (:class:`~fleetmap.shared.io.sources.OdometryTrack`, as for a bag); without it, tf ``odom ->
   base_link`` (or ``base_footprint``) on ``<namespace>/tf``;
 - ``<namespace>/tf_static``: the laser's mounting on the base (transient local: an advanced
   subscriber with history gets what the robot published before the agent started).
@@ -41,20 +41,20 @@ from typing import Any
 import numpy as np
 import zenoh
 import zenoh.ext
-from fleetmap.agents.sources import (
-    BASE_FRAMES,
-    ODOMETRY_FRAMES,
-    OdometryTrack,
-    SourceScan,
-    _checked,
-    _planar,
-    laser_odometry,
-    laser_scan,
-)
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.logs import OdometryReading
+from fleetmap.shared.io.sources import (
+    BASE_FRAMES,
+    ODOMETRY_FRAMES,
+    OdometryTrack,
+    SourceScan,
+    checked_scan,
+    laser_odometry,
+    laser_scan,
+    planar_pose,
+)
 
 log = logging.getLogger(__name__)
 
@@ -248,7 +248,7 @@ class Ros2LiveSource:
         index = self._index
         self._index += 1
         try:
-            scan = _checked(topic, index, stamp, laser_scan(msg, stamp))
+            scan = checked_scan(topic, index, stamp, laser_scan(msg, stamp))
         except BadInput as exc:
             self._drop(topic, "bad scan", exc.reason)
             return
@@ -258,7 +258,7 @@ class Ros2LiveSource:
         stamp = _stamp(msg.header.stamp)
         if not self._newer(self.topics.odom, stamp):
             return
-        pose = _planar(msg.pose.pose.position, msg.pose.pose.orientation)
+        pose = planar_pose(msg.pose.pose.position, msg.pose.pose.orientation)
         if not all(math.isfinite(v) for v in pose):
             self._drop(self.topics.odom, "pose not finite")
             return
@@ -268,7 +268,7 @@ class Ros2LiveSource:
     def _on_tf(self, topic: str, msg: Any) -> None:
         for t in msg.transforms:
             parent, child = str(t.header.frame_id).lstrip("/"), str(t.child_frame_id).lstrip("/")
-            planar = _planar(t.transform.translation, t.transform.rotation)
+            planar = planar_pose(t.transform.translation, t.transform.rotation)
             if topic == self.topics.tf_static:
                 self._mounting[f"{parent}>{child}"] = Transform2D(*planar)
             elif parent.rsplit("/", 1)[-1] in ODOMETRY_FRAMES and child.rsplit("/", 1)[-1] in BASE_FRAMES:

@@ -77,6 +77,9 @@ from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
+CHI2_99_3DOF = 11.345
+"""The chi-square distribution's 99 % quantile at 3 degrees of freedom (an SE(2) increment's)."""
+
 
 KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
@@ -232,6 +235,10 @@ class Tracker:
         self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
         self._inserted_at: tuple[float, Transform2D] | None = None
+        self._odometry_step: Prediction | None = None
+        """The last scan's odometry prediction as the wheels gave it (:meth:`_judge_odometry_sign`)."""
+        self.reversed_odometry = 0.0
+        """The belief that the odometry's translation has lost its sign (:meth:`_judge_odometry_sign`)."""
         self.bad_odometry = 0
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
 
@@ -286,7 +293,11 @@ class Tracker:
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
-            return [self._place(seq, index, stamp, scan, segments, samples, odometry, fit, status)]
+            before = self._pose
+            step = self._place(seq, index, stamp, scan, segments, samples, odometry, fit, status)
+            if before is not None and self._pose is not None:
+                self._judge_odometry_sign(before.inverse().compose(self._pose))
+            return [step]
         self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
@@ -326,10 +337,15 @@ class Tracker:
         elapsed = self.clock.elapsed(seconds, seq - self._seq)
         velocity = from_velocity(self._velocity, elapsed, self.params, integration.motion.max_acceleration)
         out = []
+        self._odometry_step = None
         if self.use_odometry and odometry is not None:
             increment, why = odometry_increment(self._odometry, odometry, elapsed, integration.motion.max_speed)
             if increment is not None:
-                odometry_prediction = from_odometry(increment, self.params)
+                odometry_prediction = self._odometry_step = from_odometry(increment, self.params)
+                if self.reversed_odometry > 0.5:
+                    odometry_prediction = replace(
+                        odometry_prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta)
+                    )
                 if not self.clock.trusted:
                     # read at a wrong stamp, the odometry is off by the robot's motion over the
                     # stamp's error: the stamps' interval less the sequence's, a period at least
@@ -352,6 +368,47 @@ class Tracker:
             # does not drift but is off scan by scan; each is also a start of its own
             out = [fused(velocity, out[0]), velocity, out[0]]
         return out
+
+    def _judge_odometry_sign(self, moved: Transform2D) -> None:
+        """Update the belief that the odometry's translation has lost its sign, from the motion the
+        scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),
+        filtered forward (Rabiner 1989, the forward algorithm). Each state predicts the increment
+        (the odometry's, or its translation negated, its turn kept), with the odometry's own
+        uncertainty. Some logs' odometry adds up the wheels' speed without its sign, so reversing it
+        drives forward (fr079's, and the corrected log made from it, which carries no speed to
+        tell: 103 of its 4,790 steps); along a corridor the walls cannot say which way the robot
+        went, and the odometry's prior decides. A robot changes its direction of travel only
+        through standing still: after a step the odometry cannot tell from standing still (within
+        ``odometry_translation_sigma``) either state is as likely, and the next steps' evidence
+        decides; while the robot moves, the belief holds unless a step only the other state explains
+        turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
+        validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
+        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
+        step = self._odometry_step
+        if step is None:
+            return
+        signed = step.increment
+        if math.hypot(signed.x, signed.y) < self.params.odometry_translation_sigma:
+            self.reversed_odometry = 0.5  # standing still: either way next
+            return
+        unsigned = Transform2D(-signed.x, -signed.y, signed.theta)
+        information = step.information()
+
+        def distance(predicted: Transform2D) -> float:
+            off = predicted.inverse().compose(moved).as_array()
+            off[2] = float(wrap_angle(off[2]))
+            return float(off @ information @ off)
+
+        d_signed, d_unsigned = distance(signed), distance(unsigned)
+        low = min(d_signed, d_unsigned)  # likelihoods relative to the likelier state's
+        if low > CHI2_99_3DOF:
+            return  # neither state explains the step (the validation gate): the odometry is off otherwise
+        l_signed, l_unsigned = math.exp(-0.5 * (d_signed - low)), math.exp(-0.5 * (d_unsigned - low))
+        # a belief held while moving is never quite certain: a step that only the other state
+        # explains, by a likelihood ratio over 1e9, still turns it (a sparse log's robot can stop
+        # and reverse between two scans)
+        b = min(max(self.reversed_odometry, 1e-9), 1.0 - 1e-9)
+        self.reversed_odometry = b * l_unsigned / (b * l_unsigned + (1.0 - b) * l_signed)
 
     def _fit(
         self,

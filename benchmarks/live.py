@@ -47,12 +47,12 @@ from pathlib import Path
 import numpy as np
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
-from fleetmap.agents.sources import Ros2BagSource
 from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.sources import Ros2BagSource
 from results import write_section
 
 from fleetmap.report import merge_latencies

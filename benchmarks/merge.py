@@ -59,12 +59,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.agents.pivot import PivotFrontEnd
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen

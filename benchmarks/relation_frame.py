@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from fleetmap.agents.sources import CarmenSource
 from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, register
+from fleetmap.shared.io.sources import CarmenSource
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 

@@ -147,7 +147,7 @@ def run(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
         cmd = [sys.executable, "-m", "fleetmap", "map", str(data / path), "--out", str(out)]
-        cmd += ["--split", str(split), "--range-max", str(range_max), "--json", "--no-progress", *extra]
+        cmd += ["--split", str(split), "--no-return-reading", str(range_max), "--json", "--no-progress", *extra]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if done.returncode != 0:
             raise SystemExit(f"{' '.join(cmd)} failed ({done.returncode}):\n{done.stderr[-3000:]}")

@@ -183,8 +183,8 @@ def merge_section(sc: Scenario, scans: dict[str, list[ScanMap]], config: Fleetma
     fleetmap.merger cannot be imported.
     """
     try:
-        from fleetmap.agents.localmap import PivotMapBuilder
         from fleetmap.merger.posegraph import PoseGraph
+        from fleetmap.shared.core.pivotmap import PivotMapBuilder
     except ImportError:
         print("merge: not available yet")
         return None

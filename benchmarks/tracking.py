@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import CarmenSource
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.clocks import CLOCKS, break_clock
 from fleetmap.scenarios.loader import list_scenarios
@@ -47,6 +46,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
+from fleetmap.shared.io.sources import CarmenSource
 from results import write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args

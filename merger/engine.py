@@ -452,36 +452,7 @@ class Merger:
             self.schedule.submap(m, m.epoch == self._robots[m.robot].epoch, self.placement)
         if not queue and not refuse:
             self.schedule.idle_pairs(self.placement)
-        new_edges: list[Edge] = []
-        taken = 0
-        running: deque[tuple[PairJob, JobHandle]] = deque()
-        while queue or running:
-            # as many in flight as the executor keeps busy; results taken in the queue's order, so
-            # the graph is the same whichever executor ran them (a pair whose two submaps are in
-            # flight already waits for that result: whether it is due depends on it)
-            while queue and len(running) < self.executor.capacity:
-                if (limit is not None and taken >= limit) or (
-                    limit is None and enough is not None and taken and enough()
-                ):
-                    break
-                pair, predicted = self.schedule.next_pair()
-                if any({j.a, j.b} == set(pair) for j, _ in running):
-                    break
-                self.schedule.take(pair)
-                taken += 1
-                job = self.schedule.job(pair, predicted)
-                if job is not None:
-                    running.append((job, self.executor.submit(job, self.graph.indexes)))
-            if not running:
-                break
-            job, handle = running.popleft()
-            try:
-                result = handle.result()
-            except Exception as exc:  # a job that failed where it ran: the merger goes on without it
-                self.stats.failed += 1
-                log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
-                continue
-            new_edges.append(self.graph.take(job, result))
+        new_edges, taken = self._integrate(limit, enough)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -515,6 +486,42 @@ class Merger:
         self._last_out = out
         self._forget_the_unplaced()
         return out
+
+    def _integrate(self, limit: int | None, enough: Callable[[], bool] | None) -> tuple[list[Edge], int]:
+        """Integrate the queued pairs (all, ``limit`` of them, or until ``enough()``) on the executor
+        and take their edges into the graph; the edges and how many pairs were taken off the queue."""
+        queue = self.schedule.queue
+        new_edges: list[Edge] = []
+        taken = 0
+        running: deque[tuple[PairJob, JobHandle]] = deque()
+        while queue or running:
+            # as many in flight as the executor keeps busy; results taken in the queue's order, so
+            # the graph is the same whichever executor ran them (a pair whose two submaps are in
+            # flight already waits for that result: whether it is due depends on it)
+            while queue and len(running) < self.executor.capacity:
+                if (limit is not None and taken >= limit) or (
+                    limit is None and enough is not None and taken and enough()
+                ):
+                    break
+                pair, predicted = self.schedule.next_pair()
+                if any({j.a, j.b} == set(pair) for j, _ in running):
+                    break
+                self.schedule.take(pair)
+                taken += 1
+                job = self.schedule.job(pair, predicted)
+                if job is not None:
+                    running.append((job, self.executor.submit(job, self.graph.indexes)))
+            if not running:
+                break
+            job, handle = running.popleft()
+            try:
+                result = handle.result()
+            except Exception as exc:  # a job that failed where it ran: the merger goes on without it
+                self.stats.failed += 1
+                log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
+                continue
+            new_edges.append(self.graph.take(job, result))
+        return new_edges, taken
 
     def where_it_stands(self) -> list[Outgoing]:
         """What a merger restored from its state publishes first: its last step's messages again,

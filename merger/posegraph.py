@@ -19,7 +19,8 @@ path, and three standard deviations of what its links' covariances add up to, so
 robot's own submaps closes and a wrong match across a room does not. Each component's poses are
 then refined together by robust least squares over SE(2) (GTSAM's Levenberg-Marquardt: links as
 their covariance says, integrations through a Cauchy loss, the anchor fixed), and an integration
-that still disagrees with the refined poses by more than the cycle tolerance is rejected and the
+that still disagrees with the refined poses by more than one integration's base tolerance (no
+drift term: the refined poses already spread the drift) is rejected and the
 component solved again: only edges that agree with the graph count, so one wrong integration cannot
 move a map. Each component is one global map; its walls are the submaps' fused one segment per
 stretch of wall (:class:`~fleetmap.shared.core.walls.WallMap`).

@@ -104,6 +104,25 @@ def _pose2(t: Transform2D) -> gtsam.Pose2:
     return gtsam.Pose2(t.x, t.y, t.theta)
 
 
+class _Factors:
+    """The between-factors of the key scans' graph, and which scans they join (union-find)."""
+
+    def __init__(self, n: int) -> None:
+        self.factors: list[tuple[int, int, Transform2D, _Noise, _Noise]] = []
+        self.parent = list(range(n))
+
+    def root(self, i: int) -> int:
+        parent = self.parent
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def add(self, i: int, j: int, between: Transform2D, gaussian: _Noise, robust: _Noise) -> None:
+        self.factors.append((i, j, between, gaussian, robust))
+        self.parent[self.root(i)] = self.root(j)
+
+
 def refine_key_scans(
     keys: Sequence[KeyScan],
     submap_poses: Mapping[str, Transform2D],
@@ -123,19 +142,7 @@ def refine_key_scans(
     if not keys:
         return ScanRefinement({})
     start = [submap_poses[k.submap].compose(k.pose) for k in keys]
-    ids = {(k.robot, k.index): i for i, k in enumerate(keys)}
-    factors: list[tuple[int, int, Transform2D, _Noise, _Noise]] = []
-    parent = list(range(len(keys)))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    def add(i: int, j: int, between: Transform2D, gaussian: _Noise, robust: _Noise) -> None:
-        factors.append((i, j, between, gaussian, robust))
-        parent[root(i)] = root(j)
+    graph = _Factors(len(keys))
 
     # chain edges: consecutive key scans of an epoch, by the robot's tracking
     for i in range(len(keys) - 1):
@@ -147,19 +154,53 @@ def refine_key_scans(
             continue
         length = max(math.hypot(between.x, between.y), MIN_STRETCH)
         chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(tracking, length))
-        add(i, i + 1, between, chain, chain)
+        graph.add(i, i + 1, between, chain, chain)
 
-    # scan-to-submap edges
-    positions = np.array([[p.x, p.y] for p in start])
-    tree = cKDTree(positions)
+    out = ScanRefinement({})
+    joined = _scan_to_submap_edges(keys, start, submap_poses, walls, merge, tracking, graph, out)
+
+    # the integrations of pairs no scan joins
     by_submap: dict[str, list[int]] = {}
     for i, k in enumerate(keys):
         by_submap.setdefault(k.submap, []).append(i)
+    for e in integrations:
+        if tuple(sorted((e.a, e.b))) in joined or e.a not in by_submap or e.b not in by_submap:
+            continue
+        i, j = by_submap[e.a][0], by_submap[e.b][0]
+        between = keys[i].pose.inverse().compose(e.transform).compose(keys[j].pose)
+        graph.add(i, j, between, e.gaussian, e.robust)
+
+    held = [by_submap[anchor][0]] if anchor in by_submap else []
+    fixed = {graph.root(i) for i in held}
+    for i in range(len(keys)):  # a part nothing joins to the anchor keeps its poses
+        if graph.root(i) not in fixed:
+            held.append(i)
+            fixed.add(graph.root(i))
+    solved = _solved(start, held, graph.factors)
+    for i, k in enumerate(keys):
+        q = solved.atPose2(i)
+        out.poses[(k.robot, k.index)] = Transform2D(q.x(), q.y(), q.theta())
+    return out
+
+
+def _scan_to_submap_edges(
+    keys: list[KeyScan],
+    start: list[Transform2D],
+    submap_poses: Mapping[str, Transform2D],
+    walls: Mapping[str, Array],
+    merge: MergeParams,
+    tracking: TrackingParams,
+    graph: _Factors,
+    out: ScanRefinement,
+) -> set[tuple[str, str]]:
+    """Each key scan registered on the other submaps it lies in (not its chain neighbours), the
+    fits kept as edges to their nearest key scan (counted in ``out``); the pairs of submaps joined."""
+    positions = np.array([[p.x, p.y] for p in start])
+    tree = cKDTree(positions)
     references: dict[str, ReferenceMap] = {}
     prior = np.diag([merge.scan_prior_translation**-2, merge.scan_prior_translation**-2, merge.scan_prior_rotation**-2])
     robust = gtsam.noiseModel.mEstimator.Cauchy.Create(merge.robust_scale)
     joined: set[tuple[str, str]] = set()
-    out = ScanRefinement({})
     for i, k in enumerate(keys):
         nearest: dict[str, tuple[float, int]] = {}
         for j in tree.query_ball_point(positions[i], merge.scan_search_radius):
@@ -191,24 +232,18 @@ def refine_key_scans(
             there = keys[j].pose  # the submap's key scan nearest to it, in the submap's frame
             information = pose_information_in_own_frame(fit.scan_information, fit.pose.theta) + np.eye(3) * 1e-6
             gaussian = gtsam.noiseModel.Gaussian.Information(information)
-            add(j, i, there.inverse().compose(fit.pose), gaussian, gtsam.noiseModel.Robust.Create(robust, gaussian))
+            graph.add(
+                j, i, there.inverse().compose(fit.pose), gaussian, gtsam.noiseModel.Robust.Create(robust, gaussian)
+            )
             joined.add(tuple(sorted((k.submap, submap))))  # type: ignore[arg-type]
             out.constraints += 1
+    return joined
 
-    # the integrations of pairs no scan joins
-    for e in integrations:
-        if tuple(sorted((e.a, e.b))) in joined or e.a not in by_submap or e.b not in by_submap:
-            continue
-        i, j = by_submap[e.a][0], by_submap[e.b][0]
-        between = keys[i].pose.inverse().compose(e.transform).compose(keys[j].pose)
-        add(i, j, between, e.gaussian, e.robust)
 
-    held = [by_submap[anchor][0]] if anchor in by_submap else []
-    fixed = {root(i) for i in held}
-    for i in range(len(keys)):  # a part nothing joins to the anchor keeps its poses
-        if root(i) not in fixed:
-            held.append(i)
-            fixed.add(root(i))
+def _solved(
+    start: list[Transform2D], held: list[int], factors: list[tuple[int, int, Transform2D, _Noise, _Noise]]
+) -> gtsam.Values:
+    """The key scans' poses (by number) that best fit the factors, the ``held`` scans where they start."""
     solved = gtsam.Values()
     for i, p in enumerate(start):
         solved.insert(i, _pose2(p))
@@ -224,10 +259,7 @@ def refine_key_scans(
         for i, j, between, plain, loss in factors:
             graph.add(gtsam.BetweenFactorPose2(i, j, _pose2(between), loss if with_loss else plain))
         solved = gtsam.LevenbergMarquardtOptimizer(graph, solved, params).optimize()
-    for (robot, index), i in ids.items():
-        q = solved.atPose2(i)
-        out.poses[(robot, index)] = Transform2D(q.x(), q.y(), q.theta())
-    return out
+    return solved
 
 
 def _neighbours(a: str, b: str) -> bool:

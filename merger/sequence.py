@@ -10,18 +10,18 @@ Every method returns the merged map in S_1's frame and the pose of every input m
 (None for a map that could not be placed). Where the paper assumes every integration succeeds,
 fleetmap checks validity: a map that does not integrate with its predecessor is left unplaced and
 the next one is integrated with the last map that was placed. The pivot method runs online, as a
-robot agent grows its local map scan by scan, in :class:`fleetmap.agents.localmap.PivotMapBuilder`.
+robot agent grows its local map scan by scan, in :class:`fleetmap.shared.core.pivotmap.PivotMapBuilder`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.fusion import fuse
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, integrate
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.errors import BadInput
 

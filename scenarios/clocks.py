@@ -8,7 +8,7 @@ interpolates it there, a ROS driver looks it up in tf), a wrong stamp makes the 
 a burst's scans all read the odometry of its last one, as if the robot had stood still.
 
 :func:`break_clock` turns a source's scans (anything with ``stamp`` and ``odometry`` fields, such as
-:class:`fleetmap.agents.sources.SourceScan` or a scenario's scans) into the same scans as such a
+:class:`fleetmap.shared.io.sources.SourceScan` or a scenario's scans) into the same scans as such a
 robot would have recorded them: the ranges and the order are the laser's; the stamps are the
 broken clock's; the odometry is the true odometry track read at the broken clock's stamps (or at
 a skewed clock's). The true stamps stay with the caller, who scores by scan index.

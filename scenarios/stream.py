@@ -4,7 +4,8 @@
 its index, stamp (scenario seconds), true laser pose (world frame) and the simulated
 :class:`~fleetmap.shared.core.rangescan.RangeScan`. The noise of scan k of robot r is drawn from its own
 generator seeded by (scenario seed, robot id, k): every run of a scenario gives the same scans,
-and a stream restarted at scan k gives the same scans from there on.
+and a stream restarted at scan k gives the same scans from there on. :class:`ScenarioSource` is
+the same stream as an agent's scan source.
 
 The true pose is ground truth for scoring: an agent sends the scan, never the pose (the scan's
 ``odom`` is left empty for that reason).
@@ -15,13 +16,17 @@ from __future__ import annotations
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from fleetmap.scenarios.fleet import PlannedScan, Scenario, plan
 from fleetmap.scenarios.laser import noisy_ranges, true_ranges
+from fleetmap.scenarios.loader import load_scenario
 from fleetmap.scenarios.odometry import simulate_odometry
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io.sources import SourceScan, checked_scan
 
 
 @dataclass(frozen=True)
@@ -67,3 +72,25 @@ def robot_stream(scenario: Scenario, robot_id: str, start_index: int = 0) -> Ite
     odometry = simulate_odometry(planned, scenario.odometry, scenario.seed, robot_id)
     for p, odom in zip(planned[start_index:], odometry[start_index:], strict=True):
         yield replace(simulate(scenario, p), odometry=odom)
+
+
+class ScenarioSource:
+    """The scans of one robot of a scenario (bundled name, file, or a loaded Scenario), as a
+    :class:`~fleetmap.shared.io.sources.ScanSource`: what ``fleetmap agent --scenario`` plugs into
+    an agent. A robot the scenario does not have is :class:`~fleetmap.shared.errors.BadInput`."""
+
+    def __init__(self, scenario: str | Path | Scenario, robot: str) -> None:
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        if robot not in self.scenario.robot_ids:
+            raise BadInput(
+                f"robot {robot!r}",
+                f"not in scenario {self.scenario.name!r} (its robots: {', '.join(self.scenario.robot_ids)})",
+            )
+        self.robot = robot
+        self.name = f"scenario {self.scenario.name}, robot {robot}"
+        self.has_odometry = self.scenario.odometry.enabled
+
+    def __iter__(self) -> Iterator[SourceScan]:
+        for simulated in robot_stream(self.scenario, self.robot):
+            # simulated.pose is the ground truth: it stays here
+            yield checked_scan(self.name, simulated.index, simulated.stamp, simulated.scan, simulated.odometry)

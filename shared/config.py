@@ -36,7 +36,9 @@ from fleetmap.shared.errors import ConfigError
 
 Heuristic = Literal["all", "consecutive", "random", "histogram", "auto"]
 HEURISTICS: tuple[str, ...] = get_args(Heuristic)
+Aligner = Literal["paper", "ransac"]
 FrontEnd = Literal["tracking", "pivot"]
+Residual = Literal["point_to_line", "point_to_curve"]
 Odometry = Literal["auto", "on", "off"]
 
 log = logging.getLogger(__name__)
@@ -156,7 +158,7 @@ class MotionParams:
 @dataclass(frozen=True)
 class PivotParams:
     """The pivot method's local-map builder (paper IV-C, Algorithm 6;
-    :class:`fleetmap.agents.localmap.PivotMapBuilder`), and what fleetmap adds to it."""
+    :class:`fleetmap.shared.core.pivotmap.PivotMapBuilder`), and what fleetmap adds to it."""
 
     pivot_witnesses: bool = ours(True)
     """A scan is placed only when two integrations agree on its pose (one wrong one cannot place it)."""
@@ -180,6 +182,19 @@ class PivotParams:
     drives on straight ahead in the new heading."""
     simplify_from: int = ours(200)
     """The built map is simplified once it holds more segments than this (and half again each time)."""
+
+
+@dataclass(frozen=True)
+class RansacParams:
+    """The RANSAC aligner over landmark correspondences (Ballesta et al. 2009, Section 3.1;
+    :mod:`fleetmap.shared.core.ransac`; docs/decisions/012-the-other-papers.md)."""
+
+    ransac_support_distance: float = ours(0.2)
+    """A correspondence supports a transformation that maps it within this (m) (the paper's th2)."""
+    ransac_min_supports: int = ours(3)
+    """A transformation with fewer supports aligns nothing (the paper's min, 20 visual landmarks)."""
+    ransac_iterations: int = ours(2000)
+    """Pairs of correspondences tried (the paper's M, 70): every pair while there are at most this many."""
 
 
 @dataclass(frozen=True)
@@ -266,7 +281,11 @@ class IntegrationParams:
     simplify_tolerance: float = ours(0.05)
     """Partial maps: segments within this (m) of one line become one segment per covered stretch
     (0: never simplify; :mod:`fleetmap.shared.core.simplify`)."""
+    aligner: Aligner = ours("paper", basic=True)
+    """paper: the paper's integration (Algorithms 1-4); ransac: RANSAC over corner and wall-end
+    landmarks matched by their descriptors (Ballesta et al. 2009), valued and judged alike."""
     validity: ValidityParams = section(ValidityParams)
+    ransac: RansacParams = section(RansacParams)
     motion: MotionParams = section(MotionParams)
     pivot: PivotParams = section(PivotParams)
 
@@ -367,6 +386,9 @@ class TrackingParams:
     """auto: use the source's odometry when it has some; on: require it; off: constant velocity only."""
     sample_spacing: float = ours(0.10)
     """Metres between the points sampled along a scan's segments for registration."""
+    registration: Residual = ours("point_to_line")
+    """point_to_line: a scan point's residual is its distance from the submap wall's tangent line;
+    point_to_curve: from the curve through the submap's points near it (Armesto et al.'s eICP)."""
     voxel_size: float = ours(0.05)
     """Cell size (m) of a submap's registration grid (the mean point and normal of each cell)."""
     residual_sigma: float = ours(0.03)
@@ -477,6 +499,7 @@ SECTIONS: dict[str, type] = {
     "extraction": ExtractionParams,
     "integration": IntegrationParams,
     "integration.validity": ValidityParams,
+    "integration.ransac": RansacParams,
     "integration.motion": MotionParams,
     "integration.pivot": PivotParams,
     "tracking": TrackingParams,

@@ -5,8 +5,12 @@ from __future__ import annotations
 import gzip
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from fleetmap.mapping import MapResult, Piece
 
 
 def data_dir() -> Path | None:
@@ -41,3 +45,26 @@ def csail_start(datasets: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
                     break
     out.write_text("".join(lines))
     return out
+
+
+@pytest.fixture(scope="session")
+def csail_pieces(csail_start: Path) -> list[Piece]:
+    """The CSAIL_SCANS real scans (mit-csail) as two robots, as ``fleetmap map --split 2`` reads them."""
+    from fleetmap.mapping import read_inputs
+
+    return read_inputs([str(csail_start)], 2, None, 81.91, None)
+
+
+@pytest.fixture(scope="session")
+def csail_in_line(csail_pieces: list[Piece], tmp_path_factory: pytest.TempPathFactory) -> tuple[MapResult, Path]:
+    """``csail_pieces`` mapped in this process alone (the agents in line, the integrations inline),
+    and the folder of its outputs: the map every other way of running the same mapping (worker
+    processes, a process pool, the command) must give exactly. Mapped once for the whole session."""
+    from fleetmap.merger.executor import InlineExecutor
+    from fleetmap.shared.config import FleetmapConfig
+
+    from fleetmap.mapping import map_logs
+
+    out = tmp_path_factory.mktemp("csail-in-line")
+    result = map_logs(csail_pieces, out, FleetmapConfig(), None, InlineExecutor(), tracking_processes=0)
+    return result, out

@@ -10,13 +10,13 @@ import pytest
 from fleetmap.shared.config import FleetmapConfig
 
 from fleetmap.agent_processes import AgentProcesses
-from fleetmap.mapping import Piece, map_logs, read_inputs
+from fleetmap.mapping import MapResult, Piece, map_logs
 
 
 @pytest.fixture(scope="module")
-def pieces(csail_start: Path) -> list[Piece]:
+def pieces(csail_pieces: list[Piece]) -> list[Piece]:
     """360 real scans (mit-csail) as two robots."""
-    return read_inputs([str(csail_start)], 2, None, 81.91, None)
+    return csail_pieces
 
 
 def _order(pieces: list[Piece]) -> list[tuple[int, int]]:
@@ -25,8 +25,10 @@ def _order(pieces: list[Piece]) -> list[tuple[int, int]]:
 
 
 @pytest.mark.slow
-def test_agents_in_worker_processes_map_as_agents_in_line(pieces: list[Piece], tmp_path: Path) -> None:
-    in_line = map_logs(pieces, tmp_path / "in-line", FleetmapConfig(), tracking_processes=0)
+def test_agents_in_worker_processes_map_as_agents_in_line(
+    pieces: list[Piece], csail_in_line: tuple[MapResult, Path], tmp_path: Path
+) -> None:
+    in_line = csail_in_line[0]
     apart = map_logs(pieces, tmp_path / "apart", FleetmapConfig(), tracking_processes=2)
     assert len(in_line.poses) > 300
     assert apart.poses == in_line.poses

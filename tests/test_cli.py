@@ -6,19 +6,24 @@ import argparse
 import io
 import json
 import math
+import re
 import subprocess
 import sys
+import tomllib
 from collections.abc import Callable
+from fnmatch import fnmatch
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
+from fleetmap.shared.config import load_config
 from fleetmap.shared.io.messages import FleetEvent
 from fleetmap.shared.io.recording import RecordingWriter
 from mcap.writer import CompressionType
 
+from fleetmap import config_args
 from fleetmap.cli import COMMANDS, build_parser, main
 from tests.helpers import ROOM
 
@@ -45,6 +50,21 @@ def test_integrate_json_prints_the_contract_fields_and_recovers_the_example() ->
     assert math.hypot(out["x"] - 1.46997, out["y"] - 0.13850) < 0.02
     assert abs(out["theta"] - 0.9) < math.radians(0.5)
     assert out["valid"] is True and out["value"] > 3 and 0 < out["seconds"] < 5
+
+
+@pytest.mark.parametrize("how", ["--aligner", "--config"])
+def test_integrate_with_the_ransac_aligner_recovers_the_example(
+    how: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('[integration]\naligner = "ransac"\n')
+    choice = ["--aligner", "ransac"] if how == "--aligner" else ["--config", str(cfg)]
+    code = main(["integrate", str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json"), *choice, "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    r = json.loads(out)
+    assert math.hypot(r["x"] - 1.46997, r["y"] - 0.13850) < 0.02
+    assert abs(r["theta"] - 0.9) < math.radians(0.5) and r["valid"] is True
 
 
 def test_integrate_batch_answers_every_line_in_order(tmp_path: Path) -> None:
@@ -312,3 +332,35 @@ def test_a_service_writes_its_threads_stacks_on_sigusr1_and_goes_on(tmp_path: Pa
     finally:
         router.terminate()
         router.wait(20)
+
+
+def _help(command: str) -> str:
+    parser = build_parser(command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+    return " ".join(sub.format_help().split()).replace("- ", "-")  # argparse wraps lines at a hyphen
+
+
+def test_the_basic_config_the_help_names_is_there_and_installs_with_the_package() -> None:
+    found = re.search(r"(\S+basic\.toml)", _help("map"))
+    assert found, "the --config help names no basic config"
+    named = Path(found.group(1))
+    assert named.is_file() and load_config(named).extraction.max_range > 0
+    # pip copies a package's files that pyproject.toml declares as its package data, and no others
+    package = Path(config_args.__file__).resolve().parent
+    declared = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert any(fnmatch(named.relative_to(package).as_posix(), g) for g in declared["package-data"]["fleetmap"])
+
+
+@pytest.mark.parametrize(
+    ("command", "args"),
+    [("map", ["log.clf", "--out", "o"]), ("extract", ["log.clf", "--format", "carmen", "--out", "o"])],
+)
+def test_a_logs_no_return_reading_is_named_apart_from_max_range_and_its_old_name_still_works(
+    command: str, args: list[str]
+) -> None:
+    parser = build_parser(command)
+    for flag in ("--no-return-reading", "--range-max"):
+        assert parser.parse_args([command, *args, flag, "50"]).no_return_reading == 50.0
+    assert math.isinf(parser.parse_args([command, *args]).no_return_reading)
+    shown = _help(command)
+    assert "--no-return-reading" in shown and "--range-max" not in shown

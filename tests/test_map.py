@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.sources import ScenarioSource
 from fleetmap.scenarios import load_scenario, robot_stream
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.core.geometry import Transform2D
 from rosbags.rosbag2 import StoragePlugin
 from scipy.spatial import cKDTree
 
 from fleetmap.cli import main
-from fleetmap.mapping import _Behind
+from fleetmap.mapping import MapResult, _Behind
 from tests.agents.test_sources import write_bag, write_scans_rosbag2
 from tests.conftest import CSAIL_SCANS as SCANS
 from tests.shared.test_occupancy import read_map_server
@@ -36,20 +36,16 @@ def _rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-@pytest.mark.slow  # maps 360 real scans twice as two robots (about 30 s)
+@pytest.mark.slow  # maps 360 real scans as two robots (about 15 s)
 def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
-    csail_start: Path, datasets: Path, tmp_path: Path
+    csail_start: Path, csail_in_line: tuple[MapResult, Path], datasets: Path, tmp_path: Path
 ) -> None:
-    runs = []
-    for n, executor in enumerate((["--executor", "local", "--workers", "2"], ["--executor", "inline"])):
-        out = tmp_path / f"run{n}"
-        done = fleetmap(
-            "map", str(csail_start), "--out", str(out), "--split", "2", "--range-max", "81.91", "--no-progress",
-            *executor,
-        )  # fmt: skip
-        assert done.returncode == 0, done.stderr
-        runs.append(out)
-    first, second = runs
+    first, second = tmp_path / "run", csail_in_line[1]
+    done = fleetmap(
+        "map", str(csail_start), "--out", str(first), "--split", "2", "--no-return-reading", "81.91", "--no-progress",
+        "--executor", "local", "--workers", "2",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
     for name in (
         "global_map.json",
         "global_map.png",
@@ -59,8 +55,8 @@ def test_a_real_log_cut_in_two_maps_as_one_with_its_own_stamps(
         "csail-start-2.tum",
     ):
         assert (first / name).is_file(), name
-    # the same inputs give the same outputs, byte for byte, whether a process pool or the mapping
-    # process itself ran the integrations
+    # the same inputs give the same outputs, byte for byte, whether the command's worker processes
+    # and process pool ran the tracking and the integrations or the mapping process alone did
     assert (first / "poses.csv").read_bytes() == (second / "poses.csv").read_bytes()
     text = (first / "poses.csv").read_text()
     assert text.splitlines()[0] == "robot,stamp,component,x,y,theta"
@@ -111,8 +107,11 @@ def test_a_logs_two_halves_mapped_apart_merge_where_its_relations_put_them(datas
         log = tmp_path / f"{name}.clf"
         log.write_text("".join(part))
         out = tmp_path / name
-        done = fleetmap("map", str(log), "--out", str(out), "--range-max", "81.91", "--no-progress")
+        done = fleetmap("map", str(log), "--out", str(out), "--no-return-reading", "81.91", "--no-progress")
         assert done.returncode == 0, done.stderr
+        # the summary names each robot's merged map as poses.csv does (#0: the largest), not a count
+        header, row = done.stdout.splitlines()[:2]
+        assert header.split()[4:6] == ["in", "map"] and row.split()[4] == "#0", done.stdout
         maps.append(out / "global_map.json")
         # the maps fleetmap writes say where their walls were seen from
         assert len(json.loads(maps[-1].read_text()).get("viewpoints", ())) > 10

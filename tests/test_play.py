@@ -5,9 +5,9 @@ from __future__ import annotations
 import threading
 
 import pytest
-from fleetmap.agents.sources import Ros2BagSource
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.ros2_node import Ros2Node
+from fleetmap.shared.io.sources import Ros2BagSource
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 
 from fleetmap.commands.play import play_bag

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fleetmap.agents.sources import Ros2BagSource, ScenarioSource
 from fleetmap.scenarios import load_scenario
+from fleetmap.scenarios.stream import ScenarioSource
+from fleetmap.shared.io.sources import Ros2BagSource
 
 from fleetmap.ros2_robots import write_robot_bag
 

@@ -20,6 +20,7 @@ from fleetmap.shared.config import HEURISTICS, IntegrationParams, TrackingParams
 from fleetmap.shared.core.candidates import IntArray, find_transformations
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths, wrap_angle
 from fleetmap.shared.core.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
+from fleetmap.shared.core.ransac import ransac_align
 from fleetmap.shared.core.refine import refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments
@@ -55,7 +56,7 @@ class Integration:
     valid: bool
     seconds: float
     candidates: int
-    """Distinct transformations evaluated."""
+    """Distinct transformations evaluated (ransac: hypotheses whose supports were counted)."""
     heuristic: str
     """The heuristic whose transformation won (for auto: the one that found it first)."""
     violation: float = 0.0
@@ -217,7 +218,8 @@ def integrate(
     index2: MapIndex | None = None,
     window: Window | None = None,
 ) -> Integration:
-    """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity.
+    """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity
+    (with ``aligner`` ransac, the transformation is Ballesta et al.'s instead: :func:`_integrate_ransac`).
 
     The best transformation has the highest *score*: its transformation value minus the wall
     length it puts in the seen free space of the other map (:mod:`fleetmap.shared.core.visibility` for
@@ -235,6 +237,8 @@ def integrate(
         raise BadInput("heuristic", f"unknown heuristic {h!r} (known: {', '.join(HEURISTICS)})")
     check_map(m1, "S1")
     check_map(m2, "S2")
+    if p.aligner == "ransac":
+        return _integrate_ransac(m1, m2, p, index1, index2, window)
     start = time.perf_counter()
     large = takes_large_path(m1, m2, p)
     solid: float | None = None
@@ -259,6 +263,74 @@ def integrate(
         violation=violation,
         solid_violation=solid_violation,
         runner_up=max(runner_up, 0.0),
+        matches=matches,
+        rivals=tuple(rivals),
+    )
+
+
+def _integrate_ransac(
+    m1: SegmentMap,
+    m2: SegmentMap,
+    p: IntegrationParams,
+    index1: MapIndex | None,
+    index2: MapIndex | None,
+    window: Window | None,
+) -> Integration:
+    """S2 on S1 by Ballesta et al.'s RANSAC over landmark correspondences
+    (:mod:`fleetmap.shared.core.ransac`), its transformation refined on the walls and valued and
+    judged as :func:`integrate` values and judges its own: the paper's transformation value, the wall
+    put in the other map's seen free space, the validity rule, whose rivals are RANSAC's next
+    hypotheses clearly different from the best. An independent search, the same verdict."""
+    start = time.perf_counter()
+    found = ransac_align(m1.segments, m2.segments, p, None if window is None else window.contains)
+    large = takes_large_path(m1, m2, p)
+    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, p, m1.ordered, m2.ordered)
+    free: FreeSpace | GridFreeSpace
+    if large:
+        i1 = index1 if index1 is not None else index_for(m1, p)
+        i2 = index2 if index2 is not None else index_for(m2, p)
+        free = GridFreeSpace(i1, i2)
+    else:
+        free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
+    refuse = not (large and free.active)
+    best = _Choice(Transform2D.identity(), 0.0, 0.0, 0)
+    rivals: list[tuple[Transform2D, float]] = []
+    if found.supports:
+        best = _evaluated(prep, free, found.transform, 0, p)
+        if p.refine:
+            # Landmarks place S2 within their support distance: refined coarse first, as a candidate
+            # picked by its value alone is (the right transformation's walls may lie beyond the
+            # paper's matching reach).
+            best = _refined(prep, free, replace(best, coarse=True), p, 12, refuse)
+        if best.score <= 0:
+            best = _Choice(Transform2D.identity(), 0.0, 0.0, 0)
+    if best.value > 0 and found.others:
+        centre = _overlap_centre(prep, best.transform, p) if large else None
+        hypotheses = np.array([t.as_array() for t, _ in found.others])
+        open_ = clearly_different(best.transform, centre, p.validity)(hypotheses)
+        while open_.any() and len(rivals) < p.rivals:
+            other = _evaluated(prep, free, Transform2D.from_array(hypotheses[int(np.argmax(open_))]), 0, p)
+            rivals.append((other.transform, other.score))
+            open_ &= clearly_different(other.transform, centre, p.validity)(hypotheses)
+    rivals = _best_rivals(rivals, p)
+    runner_up = max((score for _, score in rivals), default=0.0)
+    violation = best.value - best.score
+    solid = violation
+    limited = p.validity.map_free_space_min_length > 0 or p.validity.map_free_space_clearance > 0
+    maps = not (m1.ordered or m2.ordered)
+    if limited and maps and isinstance(free, GridFreeSpace) and free.active and best.value > 0:
+        solid = float(free.violation(best.transform.as_array(), solid=True)[0])
+    matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    return Integration(
+        transform=best.transform,
+        value=best.value,
+        valid=is_valid(best.value, violation, runner_up, m1, m2, p, large, solid),
+        seconds=time.perf_counter() - start,
+        candidates=found.hypotheses,
+        heuristic="ransac",
+        violation=violation,
+        solid_violation=solid,
+        runner_up=runner_up,
         matches=matches,
         rivals=tuple(rivals),
     )

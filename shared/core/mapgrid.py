@@ -12,7 +12,7 @@ map's walls in the other's free space; the right one does not.
 - **Viewpoints.** A map may carry the poses of the scans it was built from, in its own frame:
   ``SegmentMap.extras["viewpoints"]``, rows ``[x, y, theta, bearing_min, bearing_max]`` (the
   bearings, in the scan's frame, that its segments span). The pivot method records them
-  (:class:`fleetmap.agents.localmap.PivotMapBuilder`); they survive a map file (extra keys are
+  (:class:`fleetmap.shared.core.pivotmap.PivotMapBuilder`); they survive a map file (extra keys are
   kept). A scan (an ``ordered`` map) has one, at its origin.
 - **Free grid.** The cells seen free from any viewpoint: from each viewpoint, the range profile of
   the map's own segments (:func:`fleetmap.shared.core.visibility.range_profile`: the nearest wall in

@@ -70,18 +70,24 @@ class WallMap:
         hi = self._extent[alive, 1:2]
         return np.hstack([c + lo * u, c + hi * u])
 
-    def add(self, segments: Array) -> None:
+    def add(self, segments: Array, weights: Array | None = None) -> None:
         """Add segments ``(n, 4)`` in the map's frame, longest first (long walls set the lines).
+
+        A wall's line is fitted to its segments by length; ``weights`` ``(n,)``, if given, multiply
+        each segment's share (the information per metre on its offset,
+        :func:`fleetmap.shared.core.kalman_fusion.offset_information`: the fit is then Ballesta et
+        al.'s uncertainty-weighted fusion instead of the paper's unweighted Algorithm 5).
 
         Which walls each segment lies on is tested for all of them at once, against the walls as
         they were before; the segments of one scan do not overlap one another, so a wall one of
         them starts is not one another of them joins."""
         seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
         length = np.hypot(seg[:, 2] - seg[:, 0], seg[:, 3] - seg[:, 1])
+        scale = np.ones(len(seg)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(len(seg))
         real = np.flatnonzero(length > 1e-9)
         if len(real) == 0:
             return
-        seg, length = seg[real], length[real]
+        seg, length, scale = seg[real], length[real], scale[real]
         hits = self._walls_for(seg, length)
         redirect: dict[int, int] = {}
 
@@ -99,10 +105,11 @@ class WallMap:
                 if k not in joined:
                     joined.append(k)
             if not joined:
-                self._new_wall(seg[i, 0:2], seg[i, 2:4], (seg[i, 2:4] - seg[i, 0:2]) / length[i], float(length[i]))
+                d = (seg[i, 2:4] - seg[i, 0:2]) / length[i]
+                self._new_wall(seg[i, 0:2], seg[i, 2:4], d, float(length[i]), float(scale[i]))
                 continue
             keep = joined[0]
-            self._moments[keep] += _segment_moments(ax, ay, bx, by, float(length[i]))
+            self._moments[keep] += _segment_moments(ax, ay, bx, by, float(length[i] * scale[i]))
             ends = touched.setdefault(keep, [])
             ends += [(ax, ay), (bx, by)]
             for other in joined[1:]:
@@ -147,7 +154,7 @@ class WallMap:
         order = np.argsort(-span, kind="stable")
         return [alive[order][row[order]] for row in hit]
 
-    def _new_wall(self, a: Array, b: Array, d: Array, length: float) -> None:
+    def _new_wall(self, a: Array, b: Array, d: Array, length: float, scale: float = 1.0) -> None:
         if self._n == len(self._alive):
             grow = len(self._alive)
             self._moments = np.vstack([self._moments, np.zeros((grow, 6))])
@@ -156,7 +163,7 @@ class WallMap:
             self._alive = np.concatenate([self._alive, np.zeros(grow, dtype=bool)])
         k = self._n
         self._n += 1
-        self._moments[k] = _segment_moments(float(a[0]), float(a[1]), float(b[0]), float(b[1]), length)
+        self._moments[k] = _segment_moments(float(a[0]), float(a[1]), float(b[0]), float(b[1]), length * scale)
         self._alive[k] = True
         self._line[k] = (a[0], a[1], d[0], d[1])
         self._extent[k] = (0.0, length)
@@ -232,11 +239,11 @@ class WallMap:
         return sorted(out)
 
 
-def _segment_moments(ax: float, ay: float, bx: float, by: float, length: float) -> tuple[float, ...]:
-    """A segment's share of a wall's line fit: its two ends weighted by its length, and its own
-    spread along itself (length / 12 times its direction's outer product), as in
-    :func:`fleetmap.shared.core.simplify._fit`."""
-    w = length
+def _segment_moments(ax: float, ay: float, bx: float, by: float, weight: float) -> tuple[float, ...]:
+    """A segment's share of a wall's line fit: its two ends weighted by ``weight`` (its length, times
+    its information per metre where weighted), and its own spread along itself (weight / 12 times
+    its direction's outer product), as in :func:`fleetmap.shared.core.simplify._fit`."""
+    w = weight
     ex, ey = bx - ax, by - ay
     return (
         2.0 * w,

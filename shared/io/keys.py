@@ -1,7 +1,6 @@
 """Zenoh key expressions of a fleet, and the names that go into them.
 
-Everything a fleet says lives under one prefix, ``fleet/<fleet>`` (``../shared/DESIGN.md``, wire
-conventions)::
+Everything a fleet says lives under one prefix, ``fleet/<fleet>`` (``docs/formats.md``, bus keys)::
 
     fleet/<fleet>/robots/<robot>/scan        Scan
     fleet/<fleet>/robots/<robot>/localmap    LocalMap

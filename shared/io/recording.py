@@ -30,6 +30,7 @@ import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
+from importlib.metadata import version as package_version
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, Self
@@ -73,9 +74,11 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from zstandard import ZstdError
 
-from fleetmap import __version__
-
 log = logging.getLogger(__name__)
+
+LIBRARY = f"fleetmap {package_version('fleetmap')}"
+"""What a recording names as the library that wrote it (the installed package's version: this
+layer imports nothing of fleetmap above ``shared``)."""
 
 RAW_ENCODING = "msgpack"
 """The message encoding of the raw channels (registered in the MCAP well-known encodings)."""
@@ -153,7 +156,7 @@ class RecordingWriter:
         else:
             stream = output
         self._writer = Writer(stream, chunk_size=chunk_size, compression=compression)
-        self._writer.start(profile=PROFILE, library=f"fleetmap {__version__}")
+        self._writer.start(profile=PROFILE, library=LIBRARY)
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._sequence: Counter[int] = Counter()
@@ -624,7 +627,7 @@ class RecordingReader:
         do): schemas, channels (Foxglove views included), messages with their times and sequence
         numbers, metadata and attachments. A finished file is copied the same way."""
         writer = Writer(target, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD)
-        writer.start(profile=PROFILE, library=f"fleetmap {__version__} (recovered)")
+        writer.start(profile=PROFILE, library=f"{LIBRARY} (recovered)")
         schemas: dict[int, int] = {0: 0}
         channels: dict[int, int] = {}
         messages = 0

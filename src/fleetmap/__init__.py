@@ -9,4 +9,7 @@ Following Amigoni, Gasparini & Gini, "Building Segment-Based Maps Without Pose I
 - ``fleetmap.scenarios``: simulated worlds, the laser simulator and ground-truth metrics
 """
 
-__version__ = "0.1.0"
+from importlib.metadata import version
+
+__version__ = version("fleetmap")
+"""The installed package's version (``pyproject.toml`` holds it)."""

@@ -11,11 +11,14 @@ import re
 import textwrap
 from collections.abc import Sequence
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 from fleetmap.shared.config import SECTIONS, FleetmapConfig, apply_overrides, load_config
 
 HELP_ALL = "--help-all"
+BASIC_CONFIG = Path(__file__).resolve().parent / "examples" / "basic.toml"
+"""The basic parameters' config file, installed with the package (``--config`` help names it)."""
 
 
 class _HelpAll(argparse.Action):
@@ -41,7 +44,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str
         "--config",
         metavar="FILE",
         help="a TOML file of algorithm parameters, one table per stage ([extraction], [integration], "
-        "[integration.validity], ...; fleetmap/examples/basic.toml holds the basic ones)",
+        f"[integration.validity], ...; {BASIC_CONFIG} holds the basic ones: copy it)",
     )
     parser.add_argument(HELP_ALL, action=_HelpAll, help="show this help with every algorithm parameter, and exit")
     basic = parser.add_argument_group("basic parameters (override --config)")

@@ -26,7 +26,7 @@ import queue
 import re
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 
 from fleetmap.agent_processes import AgentProcesses, Finished
-from fleetmap.agents.sources import BAG_SUFFIXES, CarmenSource, Ros2BagSource, ScanSource, SourceScan, _checked
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.executor import Executor
 from fleetmap.report import SessionLog, write_outputs
@@ -42,53 +41,14 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.logs import read_ranges_jsonl
 from fleetmap.shared.io.messages import LocalMap, Message, Scan
+from fleetmap.shared.io.sources import SourceScan, open_input
 
 STEP_SECONDS = 5.0
 """Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
 keeps the graph current without solving it after every submap version)."""
 
 MAX_SPLIT = 64
-
-
-class RangesSource:
-    """The scans of a ranges JSONL file (``../shared/CONTRACTS.md``); no odometry."""
-
-    has_odometry = False
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self.name = str(path)
-
-    def __iter__(self) -> Iterator[SourceScan]:
-        for index, scan in enumerate(read_ranges_jsonl(self.path)):
-            yield _checked(self.name, index, scan.stamp, scan)
-
-
-def open_input(
-    path: str | Path, topic: str | None = None, odometry_topic: str | None = None, range_max: float = math.inf
-) -> ScanSource:
-    """The source of one input, by what it is: a ROS bag (a rosbag2 directory, an .mcap, .db3 or
-    ROS 1 .bag file, or a directory holding one such file), a ranges JSONL file (.jsonl), else a
-    CARMEN log (plain or .gz)."""
-    p = Path(path)
-    if p.is_dir():
-        if (p / "metadata.yaml").is_file():
-            return Ros2BagSource(p, topic, odometry_topic)
-        bags = sorted(f for f in p.iterdir() if f.suffix in BAG_SUFFIXES)
-        if not bags:
-            raise BadInput(str(path), "is a directory with no ROS bag (no metadata.yaml, .mcap, .db3 or .bag file)")
-        if len(bags) > 1:
-            raise BadInput(str(path), f"holds {len(bags)} bag files and no metadata.yaml; name one of them")
-        return Ros2BagSource(bags[0], topic, odometry_topic)
-    if not p.exists():
-        raise BadInput(str(path), "no such file")
-    if p.suffix in BAG_SUFFIXES:
-        return Ros2BagSource(p, topic, odometry_topic)
-    if p.name.endswith((".jsonl", ".jsonl.gz")):
-        return RangesSource(p)
-    return CarmenSource(p, range_max=range_max)
 
 
 def robot_name(path: str | Path, taken: set[str]) -> str:
@@ -213,10 +173,7 @@ def map_logs(
     ``tracking_processes`` worker processes (:class:`~fleetmap.agent_processes.AgentProcesses`;
     default: one per robot, up to one fewer than the CPUs; 0: in this process); the map is the same."""
     started = time.perf_counter()
-    if config.tracking.odometry == "on":
-        for p in pieces:
-            if not p.has_odometry:
-                raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+    _check_odometry(pieces, config)
     keys = FleetKeys()
     merger = Merger(keys, config, executor, keep_key_scans=True)
     log = SessionLog()
@@ -273,24 +230,47 @@ def map_logs(
         behind.finish(cancel=True)
         raise
     behind.finish()
+    by_index = merger.scan_poses()
+    poses = _with_stamps(by_index, pieces)
+    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
+    seconds = time.perf_counter() - started
+    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
+    _write_map_files(Path(out_dir), report, poses, pieces)
+    return MapResult(report, poses, by_index)
+
+
+def _check_odometry(pieces: list[Piece], config: FleetmapConfig) -> None:
+    if config.tracking.odometry == "on":
+        for p in pieces:
+            if not p.has_odometry:
+                raise BadInput(p.source, "has no odometry (--odometry on needs it; auto uses it where there is some)")
+
+
+def _write_map_files(
+    folder: Path, report: dict[str, Any], poses: list[tuple[str, float, int, Transform2D]], pieces: list[Piece]
+) -> None:
+    """What ``fleetmap map`` adds to a session's outputs: report.json with its map section,
+    poses.csv, and one TUM trajectory per robot."""
+    (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_poses_csv(folder / "poses.csv", poses)
+    for p in pieces:
+        write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
+
+
+def _with_stamps(
+    by_index: dict[tuple[str, int], tuple[int, Transform2D]], pieces: list[Piece]
+) -> list[tuple[str, float, int, Transform2D]]:
+    """Every placed scan as ``(robot, stamp, component, pose)``, its stamp as its input gives it, by
+    robot in input order, then by stamp (the order poses.csv and the TUM files write)."""
     poses: list[tuple[str, float, int, Transform2D]] = []
     stamps = {p.robot: p.stamps for p in pieces}
-    by_index = merger.scan_poses()
     for (robot, index), (n, pose) in by_index.items():
         stamp = stamps[robot].get(index)
         if stamp is not None:
             poses.append((robot, stamp, n, pose))
     order = {p.robot: n for n, p in enumerate(pieces)}
     poses.sort(key=lambda x: (order[x[0]], x[1]))
-    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
-    seconds = time.perf_counter() - started
-    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
-    folder = Path(out_dir)
-    (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    write_poses_csv(folder / "poses.csv", poses)
-    for p in pieces:
-        write_tum(folder / f"{p.robot}.tum", [x for x in poses if x[0] == p.robot])
-    return MapResult(report, poses, by_index)
+    return poses
 
 
 def _summary(
@@ -351,7 +331,7 @@ def _summary(
 
 
 def write_poses_csv(path: Path, poses: list[tuple[str, float, int, Transform2D]]) -> None:
-    """``robot,stamp,component,x,y,theta`` (``../shared/CONTRACTS.md``), one line per placed scan."""
+    """``robot,stamp,component,x,y,theta`` (``docs/formats.md``), one line per placed scan."""
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["robot", "stamp", "component", "x", "y", "theta"])

@@ -118,38 +118,16 @@ def replay(
         t = (m.log_time - t_first) / 1e9
         return (opts.start is None or t >= opts.start) and (opts.stop is None or t <= opts.stop)
 
-    decoded: list[tuple[RecordedMessage, Any]] = []
-    for m in recorded:
-        if not m.topic.startswith(keys.prefix + "/"):
-            continue
-        try:
-            decoded.append((m, decode(m.payload)))
-        except BadMessage:
-            session.malformed += 1
+    decoded = _decoded(recorded, keys, session)
     if not decoded:
         why = f" ({warning.removeprefix(source + ': ')})" if warning else ""
         raise BadInput(source, f"holds no fleetmap message of fleet {fleet!r}{why}")
     if warning:
         log.warning("%s", warning)
     if opts.robots is not None:
-        present = {r for _, msg in decoded if (r := getattr(msg, "robot", None)) is not None}
-        if missing := sorted(opts.robots - present):
-            listed = ", ".join(sorted(present)) or "none"
-            raise BadInput("--robots", f"no robot {', '.join(missing)} in {source} (its robots: {listed})")
+        _check_robots(opts.robots, decoded, source)
     output_folder(out_dir, "--out")
-    # A merger restored from its state publishes its last step again (Merger.where_it_stands):
-    # the same bytes, fed once.
-    steps: list[MergerStep] = []
-    fed: set[bytes] = set()
-    for m, msg in decoded:
-        if isinstance(msg, MergerStep) and m.payload not in fed:
-            fed.add(m.payload)
-            steps.append(msg)
-    live = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap)), None)
-    # the live map a replay is compared with: the last one whose step the recording holds (a
-    # recorder killed between a step's global map and its MergerStep kept the map, not the step)
-    stepped = {step.seq for step in steps}
-    compared = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap) and msg.seq in stepped), None)
+    steps, live, compared = _steps_and_live_maps(decoded)
     exact = bool(steps) and not partial
 
     def wanted(msg: Any) -> bool:
@@ -173,35 +151,10 @@ def replay(
     at_live: GlobalMap | None = None
     pace = _Pacer(opts.speed)
     if exact:
-        by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
-        for n, step in enumerate(steps):
-            for key, version in zip(step.maps, step.versions, strict=True):
-                if key.count("/") == 1:  # a version-1 map key (no submap): an epoch's map is its submap 0
-                    key = f"{key}/0"
-                found = by_version.get((key, version))
-                if found is None:
-                    log.warning("local map %s version %d is not in the recording", key, version)
-                    continue
-                pace.wait(found[0].log_time)
-                robot = found[1].robot
-                merger.receive(keys.localmap(robot), found[0].payload)
-                inputs.append(f"{key}@{version}")
-            take(merger.step(limit=step.integrations))
-            if compared is not None and step.seq == compared.seq:
-                at_live = merger.global_map  # the step that published the live map compared with
-            if progress:
-                progress(n + 1, len(steps))
-        while merger.has_work:  # a recording that ends before the live merger caught up
-            take(merger.step())
+        at_live = _follow_steps(merger, steps, decoded, compared, pace, take, inputs, progress)
     else:
         maps = [(m, msg) for m, msg in decoded if isinstance(msg, LocalMap) and wanted(msg) and selected(m)]
-        for n, (m, msg) in enumerate(maps):
-            pace.wait(m.log_time)
-            merger.receive(keys.localmap(msg.robot), m.payload)
-            inputs.append(f"{msg.submap_key}@{msg.version}")
-            take(merger.step())
-            if progress:
-                progress(n + 1, len(maps))
+        _feed_in_order(merger, maps, pace, take, inputs, progress)
     report = write_outputs(session, make_truth(scenario), out_dir, f"fleetmap replay: {Path(path).name}")
     result = ReplayResult(report, exact, warning, live, merger.global_map, merger.stats.steps, inputs)
     report["replay"] = {
@@ -217,6 +170,106 @@ def replay(
 
     _write_json(Path(out_dir) / "report.json", report)
     return result
+
+
+def _decoded(
+    recorded: list[RecordedMessage], keys: FleetKeys, session: SessionLog
+) -> list[tuple[RecordedMessage, Any]]:
+    """The recorded messages of the fleet, decoded (those that do not decode counted in ``session``)."""
+    decoded: list[tuple[RecordedMessage, Any]] = []
+    for m in recorded:
+        if not m.topic.startswith(keys.prefix + "/"):
+            continue
+        try:
+            decoded.append((m, decode(m.payload)))
+        except BadMessage:
+            session.malformed += 1
+    return decoded
+
+
+def _check_robots(robots: frozenset[str], decoded: list[tuple[RecordedMessage, Any]], source: str) -> None:
+    """``--robots``: every robot named is one the recording holds."""
+    present = {r for _, msg in decoded if (r := getattr(msg, "robot", None)) is not None}
+    if missing := sorted(robots - present):
+        listed = ", ".join(sorted(present)) or "none"
+        raise BadInput("--robots", f"no robot {', '.join(missing)} in {source} (its robots: {listed})")
+
+
+def _steps_and_live_maps(
+    decoded: list[tuple[RecordedMessage, Any]],
+) -> tuple[list[MergerStep], GlobalMap | None, GlobalMap | None]:
+    """The merger's steps as recorded, its last global map, and the last one whose step the
+    recording holds (the live map a replay is compared with: a recorder killed between a step's
+    global map and its MergerStep kept the map, not the step)."""
+    # A merger restored from its state publishes its last step again (Merger.where_it_stands):
+    # the same bytes, fed once.
+    steps: list[MergerStep] = []
+    fed: set[bytes] = set()
+    for m, msg in decoded:
+        if isinstance(msg, MergerStep) and m.payload not in fed:
+            fed.add(m.payload)
+            steps.append(msg)
+    live = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap)), None)
+    stepped = {step.seq for step in steps}
+    compared = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap) and msg.seq in stepped), None)
+    return steps, live, compared
+
+
+def _follow_steps(
+    merger: Merger,
+    steps: list[MergerStep],
+    decoded: list[tuple[RecordedMessage, Any]],
+    compared: GlobalMap | None,
+    pace: _Pacer,
+    take: Callable[[list[Any]], None],
+    inputs: list[str],
+    progress: Callable[[int, int], None] | None,
+) -> GlobalMap | None:
+    """Feed the merger the local map versions each recorded step took and step it as far as that
+    step integrated (``take`` hears what it publishes, ``inputs`` the versions fed); then on, for a
+    recording that ends before the live merger caught up. The global map after the step that
+    published ``compared`` (None if none did)."""
+    keys = merger.keys
+    at_live: GlobalMap | None = None
+    by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
+    for n, step in enumerate(steps):
+        for key, version in zip(step.maps, step.versions, strict=True):
+            if key.count("/") == 1:  # a version-1 map key (no submap): an epoch's map is its submap 0
+                key = f"{key}/0"
+            found = by_version.get((key, version))
+            if found is None:
+                log.warning("local map %s version %d is not in the recording", key, version)
+                continue
+            pace.wait(found[0].log_time)
+            robot = found[1].robot
+            merger.receive(keys.localmap(robot), found[0].payload)
+            inputs.append(f"{key}@{version}")
+        take(merger.step(limit=step.integrations))
+        if compared is not None and step.seq == compared.seq:
+            at_live = merger.global_map  # the step that published the live map compared with
+        if progress:
+            progress(n + 1, len(steps))
+    while merger.has_work:  # a recording that ends before the live merger caught up
+        take(merger.step())
+    return at_live
+
+
+def _feed_in_order(
+    merger: Merger,
+    maps: list[tuple[RecordedMessage, LocalMap]],
+    pace: _Pacer,
+    take: Callable[[list[Any]], None],
+    inputs: list[str],
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    """A partial replay: each selected local map version in recording order, a step after each."""
+    for n, (m, msg) in enumerate(maps):
+        pace.wait(m.log_time)
+        merger.receive(merger.keys.localmap(msg.robot), m.payload)
+        inputs.append(f"{msg.submap_key}@{msg.version}")
+        take(merger.step())
+        if progress:
+            progress(n + 1, len(maps))
 
 
 class _Pacer:

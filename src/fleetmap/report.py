@@ -3,7 +3,7 @@
 A live run and a replay write the same outputs from the same input: the messages of the session
 in order (:class:`SessionLog`). With a scenario the report scores against its ground truth (the
 true pose of every scan, never seen by the algorithms); a replay of real data has no truth, and
-its error and coverage fields are null (``../shared/CONTRACTS.md``).
+its error and coverage fields are null (``docs/formats.md``).
 
 The frame of a submap ``<robot>/<epoch>/<submap>`` is the laser frame of its frame scan (the
 message says which; an epoch's first submap's is the epoch's first scan, and so is the frame of a
@@ -418,7 +418,7 @@ def _overlap_stamp(log: SessionLog, truth: Truth, event: Kidnap) -> float | None
 
 def global_map_json(log: SessionLog) -> dict[str, Any]:
     """global_map.json: the largest component as a map file, with the pose of every epoch's frame
-    (``<robot>/<epoch>``, ``../shared/CONTRACTS.md``) and of every submap (or null)."""
+    (``<robot>/<epoch>``, ``docs/formats.md``) and of every submap (or null)."""
     main = log.main
     segments = np.asarray(main.segments) if main is not None else np.zeros((0, 4))
     out = SegmentMap(segments.round(6), ordered=False, oriented=True).to_json_dict()

@@ -338,10 +338,15 @@ class Session:
         finally:
             for c in reversed(self.children):
                 c.stop()
-        seconds = time.monotonic() - started
+        return self._report(options.keys, time.monotonic() - started, expected)
+
+    def _report(self, keys: FleetKeys, seconds: float, expected: dict[str, int]) -> dict[str, Any]:
+        """The session's outputs from its recording, and report.json with the run's own figures
+        (``expected``: the messages the runner saw, per topic)."""
+        out = self.out_dir
         reader = RecordingReader(out / "session.mcap")
         with reader:
-            session = log_from_recording(((m.topic, m.payload) for m in reader.messages()), options.keys)
+            session = log_from_recording(((m.topic, m.payload) for m in reader.messages()), keys)
             latencies = merge_latencies((m.payload, m.log_time) for m in reader.messages(warn=False))
             counts = reader.topic_counts()
         report = write_outputs(session, make_truth(self.scenario), out, f"fleetmap run: {self.scenario.name}")

@@ -11,11 +11,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 from fleetmap.agents.agent import LOST_SCANS, Agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import Scenario, SimulatedScan, load_scenario, robot_stream
 from fleetmap.scenarios.loader import parse_scenario
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.io.messages import FleetEvent, Message
+from fleetmap.shared.io.sources import SourceScan
 
 KIDNAPPED_DENSE = """
 name = "kidnapped-dense"

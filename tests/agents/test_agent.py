@@ -11,13 +11,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import load_scenario, map_error, robot_stream
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.messages import FleetEvent, LocalMap, Scan, decode
+from fleetmap.shared.io.sources import SourceScan
 
 from tests.agents.conftest import blocked, epoch_events, kidnap_index, run, source_scans
 

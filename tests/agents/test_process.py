@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.process import run_agent
-from fleetmap.agents.sources import SourceScan
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.bus import InMemoryBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import Component, FleetEvent, GlobalMap, LocalMap, Scan, decode
+from fleetmap.shared.io.sources import SourceScan
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from tests.agents.conftest import kidnap_index, pivot, source_scans

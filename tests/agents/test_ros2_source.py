@@ -10,11 +10,11 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
-from fleetmap.agents.sources import SourceScan
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.ros2_node import Ros2Node
+from fleetmap.shared.io.sources import SourceScan
 
 from tests.bus_helpers import WAIT, open_zenoh_pair
 
@@ -169,7 +169,7 @@ def test_without_odometry_a_scan_goes_on_without_after_a_short_wait():
     assert got[0].odometry is None and got[0].stamp == 5.0
 
 
-def test_topic_names_and_domains_are_checked():
+def test_topic_names_and_domains_arechecked_scan():
     t = Ros2Topics.of("/robot_a", "front/scan", "/odom", 3)
     assert (t.scan, t.odom, t.tf, t.tf_static) == ("/robot_a/front/scan", "/odom", "/robot_a/tf", "/robot_a/tf_static")
     with pytest.raises(Exception, match="domain"):

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScenarioSource, SourceScan
 from fleetmap.scenarios import robot_stream
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, SourceScan
 from mcap_ros2.writer import Writer
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import Counter
 from pathlib import Path
@@ -9,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
-from fleetmap.agents.sources import CarmenSource
 from fleetmap.scenarios.clocks import break_clock
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
+from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.mapping import Piece, map_logs, read_inputs
 
@@ -106,3 +107,23 @@ def test_a_log_with_a_scan_a_metre_does_not_slide_along_its_corridors(datasets: 
             errors[i] = round(math.hypot(error.x, error.y), 2)
     assert len(errors) >= 55
     assert max(errors.values()) < 0.5, errors
+
+
+def test_a_robot_reversing_down_a_corridor_on_odometry_without_its_sign_is_placed_where_it_went(
+    datasets: Path,
+) -> None:
+    # freiburg-079-corrected's odometry adds up the wheels' speed without its sign (as fr079's own
+    # does, but with no speed in the log to tell): from scan 1372 the robot reverses 2.5 m down a
+    # corridor while its odometry drives forward, and the walls there cannot say which way it went
+    path = datasets / "corrected" / "freiburg-079-corrected.log.gz"
+    truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
+    agent = Agent("r1", FleetmapConfig(), odometry=True)
+    poses: dict[int, Transform2D] = {}
+    for s in itertools.islice(CarmenSource(path, range_max=math.inf), 1340, 1400):
+        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        if agent.epoch_pose is not None:
+            poses[s.index] = agent.epoch_pose
+    moved = truth[1372].inverse().compose(truth[1395])
+    assert moved.x < -2.0  # backwards, in the robot's own frame
+    error = moved.inverse().compose(poses[1372].inverse().compose(poses[1395]))
+    assert math.hypot(error.x, error.y) < 0.2, f"{math.hypot(error.x, error.y):.2f} m off"

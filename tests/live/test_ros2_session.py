@@ -7,8 +7,8 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from fleetmap.agents.sources import ScenarioSource
 from fleetmap.scenarios import load_scenario
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io.recording import RecordingReader
 

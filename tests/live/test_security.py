@@ -128,6 +128,8 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
                 assert r1.wait_for_subscribers(KEYS.localmap("r1"), WAIT)
                 r1.publish(KEYS.localmap("r1"), r1_map.to_msgpack())
                 assert seen.wait_until(lambda got: any(k == KEYS.globalmap for k, _ in got), WAIT)
+                # the robot's pose is put just after the global map
+                assert seen.wait_until(lambda got: any(k == KEYS.pose("r1") for k, _ in got), WAIT)
                 assert alive.wait_for(2, WAIT)
                 # a robot may ask the merger's state: a restarted agent begins after its epochs there
                 state = [GlobalMap.from_msgpack(p) for p in r1.query(KEYS.state, timeout=WAIT)]

@@ -10,34 +10,37 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from fleetmap.merger.executor import Executor, InlineExecutor, LocalExecutor, make_executor
+from fleetmap.merger.executor import Executor, LocalExecutor, make_executor
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 
 from fleetmap.cli import main
-from fleetmap.mapping import Piece, map_logs, read_inputs
+from fleetmap.mapping import MapResult, Piece, map_logs
 
 WAIT = 120.0
 """Seconds a killer thread waits for a worker to kill (a bound, never reached when it works)."""
 
 
 @pytest.fixture(scope="module")
-def pieces(csail_start: Path) -> list[Piece]:
+def pieces(csail_pieces: list[Piece]) -> list[Piece]:
     """360 real scans (mit-csail) as two robots: a merge of a dozen submaps and their integrations."""
-    return read_inputs([str(csail_start)], 2, None, 81.91, None)
+    return csail_pieces
 
 
 Poses = list[tuple[str, float, int, float, float, float]]
 
 
-def _merge(pieces: list[Piece], executor: Executor, out: Path) -> Poses:
-    result = map_logs(pieces, out, FleetmapConfig(), None, executor)
+def _poses(result: MapResult) -> Poses:
     return [(robot, stamp, c, p.x, p.y, p.theta) for robot, stamp, c, p in result.poses]
 
 
+def _merge(pieces: list[Piece], executor: Executor, out: Path) -> Poses:
+    return _poses(map_logs(pieces, out, FleetmapConfig(), None, executor))
+
+
 @pytest.fixture(scope="module")
-def inline_poses(pieces: list[Piece], tmp_path_factory: pytest.TempPathFactory) -> Poses:
-    poses = _merge(pieces, InlineExecutor(), tmp_path_factory.mktemp("inline"))
+def inline_poses(csail_in_line: tuple[MapResult, Path]) -> Poses:
+    poses = _poses(csail_in_line[0])
     assert len(poses) == len({(r, s) for r, s, *_ in poses}) > 300 and {c for _, _, c, *_ in poses} == {0}
     return poses
 

@@ -9,11 +9,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.graph import Edge, MapGraph
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 
 from tests.helpers import NORTH_LANE, OMNI, ROOM, scan_map, scenario_scans

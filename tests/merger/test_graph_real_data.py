@@ -8,11 +8,11 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
 

@@ -8,11 +8,11 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.merger.sequence import SequenceResult, pivot, sequential, tree
 from fleetmap.scenarios.laser import LaserParams
 from fleetmap.shared.config import IntegrationParams, tuned
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 
 from tests.helpers import NORTH_LANE, ROOM, scan_map, scenario_scans

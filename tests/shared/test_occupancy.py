@@ -141,7 +141,7 @@ def test_no_wall_stands_where_the_robot_stood(
     piece.write_text("".join(lines))
     out = tmp_path / "out"
     done = subprocess.run(
-        [sys.executable, "-m", "fleetmap", "map", str(piece), "--out", str(out), "--range-max", range_max,
+        [sys.executable, "-m", "fleetmap", "map", str(piece), "--out", str(out), "--no-return-reading", range_max,
          "--no-progress"],
         capture_output=True, text=True, timeout=600, check=False,
     )  # fmt: skip

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.localmap import PivotMapBuilder
 from fleetmap.shared.config import ExtractionParams, IntegrationParams, tuned
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
+from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
 

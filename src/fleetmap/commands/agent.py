@@ -11,13 +11,15 @@ import sys
 from fleetmap.agents.agent import LOST_SCANS, Agent
 from fleetmap.agents.process import run_agent
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
-from fleetmap.agents.sources import CarmenSource, Ros2BagSource, ScanSource, ScenarioSource
+from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import check_name
 from fleetmap.shared.io.ros2_node import ros2_options
+from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, ScanSource
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -61,13 +63,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     source.add_argument("--start", type=int, default=0, metavar="N", help="CARMEN: first scan (default 0)")
     source.add_argument("--stop", type=int, default=None, metavar="M", help="CARMEN: stop before scan M (default: end)")
     source.add_argument("--step", type=int, default=1, metavar="K", help="CARMEN: every K-th scan (default 1)")
-    source.add_argument(
-        "--range-max",
-        type=float,
-        default=math.inf,
-        metavar="R",
-        help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
-    )
+    add_no_return_reading(source)
     source.add_argument(
         "--topic",
         default=None,
@@ -117,14 +113,14 @@ def make_source(args: argparse.Namespace) -> ScanSource:
     if args.scenario is not None:
         return ScenarioSource(args.scenario, args.robot)
     if args.carmen is not None:
-        return CarmenSource(args.carmen, args.start, args.stop, args.step, args.range_max)
+        return CarmenSource(args.carmen, args.start, args.stop, args.step, args.no_return_reading)
     return Ros2BagSource(args.ros2_bag, args.topic, args.odometry_topic)
 
 
 def check_source_flags(args: argparse.Namespace) -> None:
     """Refuse the flags of a source that is not the one given."""
-    if args.carmen is None and (args.start, args.stop, args.step, args.range_max) != (0, None, 1, math.inf):
-        raise BadInput("--start/--stop/--step/--range-max", "apply to --carmen only")
+    if args.carmen is None and (args.start, args.stop, args.step, args.no_return_reading) != (0, None, 1, math.inf):
+        raise BadInput("--start/--stop/--step/--no-return-reading", "apply to --carmen only")
     if args.ros2_bag is None and (args.topic is not None or args.odometry_topic is not None):
         raise BadInput("--topic/--odometry-topic", "apply to --ros2-bag only")
     if not args.ros2 and (args.namespace, args.scan_topic, args.odom_topic, args.domain) != ("", "scan", "odom", 0):

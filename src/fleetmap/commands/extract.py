@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.rangescan import RangeScan
@@ -31,12 +31,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="what the input is: a CARMEN log, or ranges JSONL (one range scan per line)",
     )
     p.add_argument("--out", required=True, help="output JSONL file ('-' for stdout)")
-    p.add_argument(
-        "--range-max",
-        type=float,
-        default=math.inf,
-        help="CARMEN FLASER/RLASER no-return reading: readings at or above it are dropped (e.g. 81.91)",
-    )
+    add_no_return_reading(p)
     add_config_arguments(p, ["extraction"])
     p.set_defaults(func=run)
 
@@ -53,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         raise BadInput(args.input, "no such file")
     out = sys.stdout if args.out == "-" else None
     lines = []
-    for scan in scans_of(args.input, args.format, args.range_max):
+    for scan in scans_of(args.input, args.format, args.no_return_reading):
         seg = extract_segments(scan, config.extraction)
         lines.append(json.dumps({"stamp": scan.stamp, "segments": seg.round(6).tolist(), "ordered": True}))
     text = "\n".join(lines) + ("\n" if lines else "")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Any
 
+from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.errors import BadInput
@@ -41,13 +41,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="TOPIC",
         help="ROS bags: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
     )
-    given.add_argument(
-        "--range-max",
-        type=float,
-        default=math.inf,
-        metavar="R",
-        help="CARMEN FLASER/RLASER no-return reading: readings at or above it are no return (e.g. 81.91)",
-    )
+    add_no_return_reading(given)
     made = p.add_argument_group("output")
     made.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
     made.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
@@ -64,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise BadInput(str(out), "exists and is not a directory (--out)")
-    pieces = read_inputs(args.inputs, args.split, args.topic, args.range_max, args.odometry_topic)
+    pieces = read_inputs(args.inputs, args.split, args.topic, args.no_return_reading, args.odometry_topic)
     bars: list[object] = []
 
     def progress(done: int, total: int) -> None:
@@ -95,10 +89,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def table(summary: dict[str, Any]) -> str:
-    """One line per robot, then the totals."""
-    rows = [("robot", "scans", "placed", "epochs", "components", "odometry")]
+    """One line per robot, then the totals. A robot's maps are named as poses.csv names them
+    (``#0`` is the largest merged map); ``-`` where none of its scans got a pose."""
+    rows = [("robot", "scans", "placed", "epochs", "in map", "odometry")]
     for r in summary["robots"]:
-        comps = ",".join(str(c) for c in r["components"]) or "-"
+        comps = ",".join(f"#{c}" for c in r["components"]) or "-"
         rows.append(
             (
                 r["robot"],
@@ -114,8 +109,8 @@ def table(summary: dict[str, Any]) -> str:
     share = summary["time_share"]
     split = summary["session_s"] < summary["duration_s"]
     lines.append(
-        f"{summary['submaps']} submaps in {summary['components']} component(s) "
-        f"(largest {summary['largest_component_submaps']}); "
+        f"{summary['submaps']} submaps in {summary['components']} merged map(s) "
+        f"(#0, the largest, holds {summary['largest_component_submaps']}); "
         f"{summary['integrations']} integrations ({summary['integrations_near']} near a prediction, "
         f"{summary['integrations_idle']} while idle); "
         f"{summary['seconds']:.1f} s for {summary['duration_s']:.0f} s of log"

@@ -1,9 +1,11 @@
-"""Where an agent's scans come from: a simulated robot, a CARMEN log, or a ROS bag.
+"""Where an agent's scans come from: a CARMEN log, a ROS bag or a ranges JSONL file (one home for
+scan input; the simulator is a source of the same kind, :class:`fleetmap.scenarios.stream.ScenarioSource`,
+that the command line plugs in). :func:`open_input` opens a file by what it is.
 
 Every source yields :class:`SourceScan` ``(index, stamp, scan)`` in order, with the robot's
 odometry at the scan where it has some; ``stamp`` is in seconds and paces a live agent. No true
-pose ever leaves a source: the scenario's true poses and the corrected poses written in a CARMEN
-log stay here, so the algorithms see the ranges and the robot's own odometry alone (which tracks
+pose ever leaves a source: a simulation's true poses and the corrected poses written in a CARMEN
+log stay in it, so the algorithms see the ranges and the robot's own odometry alone (which tracks
 the robot's own scans, never relates two robots' maps).
 
 Odometry, per source (``has_odometry`` says whether there is any):
@@ -15,12 +17,13 @@ Odometry, per source (``has_odometry`` says whether there is any):
   by type, or named), else the tf transform
   from the odometry frame to the robot's base (on /tf), interpolated at the scan's stamp; the
   laser's mounting (base to laser, on /tf_static) is applied when the bag has it.
+- **ranges JSONL** (the format of ``docs/formats.md``): none.
 - **Scenario**: the simulator's wheel odometry (:mod:`fleetmap.scenarios.odometry`): it drifts,
   and it does not see a robot being carried.
 
 Problems with the input raise :class:`~fleetmap.shared.errors.BadInput` naming it: a missing or
-unreadable file, a bag without the topic, a robot the scenario does not have, or a source that
-yields no scan at all. Files are checked when the source is made, before an agent goes on the bus.
+unreadable file, a bag without the topic, or a source that yields no scan at all. Files are
+checked when the source is made, before an agent goes on the bus.
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-from fleetmap.scenarios.fleet import Scenario
-from fleetmap.scenarios.loader import load_scenario
-from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.logs import OdometryReading, read_carmen, read_carmen_lines, read_carmen_odometry
+from fleetmap.shared.io.logs import (
+    OdometryReading,
+    read_carmen,
+    read_carmen_lines,
+    read_carmen_odometry,
+    read_ranges_jsonl,
+)
 from fleetmap.shared.io.messages import MAX_STAMP
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
@@ -89,7 +95,9 @@ class ScanSource(Protocol):
     def __iter__(self) -> Iterator[SourceScan]: ...
 
 
-def _checked(source: str, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> SourceScan:
+def checked_scan(
+    source: str, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None
+) -> SourceScan:
     """The scan as an agent gets it: a valid stamp and beam geometry, no pose but the odometry."""
     where = f"{source}: scan {index}"
     if not math.isfinite(stamp) or stamp < 0:
@@ -112,26 +120,6 @@ def _existing_file(path: str | Path, what: str) -> Path:
     return p
 
 
-class ScenarioSource:
-    """The scans of one robot of a scenario (bundled name, file, or a loaded Scenario)."""
-
-    def __init__(self, scenario: str | Path | Scenario, robot: str) -> None:
-        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-        if robot not in self.scenario.robot_ids:
-            raise BadInput(
-                f"robot {robot!r}",
-                f"not in scenario {self.scenario.name!r} (its robots: {', '.join(self.scenario.robot_ids)})",
-            )
-        self.robot = robot
-        self.name = f"scenario {self.scenario.name}, robot {robot}"
-        self.has_odometry = self.scenario.odometry.enabled
-
-    def __iter__(self) -> Iterator[SourceScan]:
-        for simulated in robot_stream(self.scenario, self.robot):
-            # simulated.pose is the ground truth: it stays here
-            yield _checked(self.name, simulated.index, simulated.stamp, simulated.scan, simulated.odometry)
-
-
 class CarmenSource:
     """Laser scans ``[start:stop:step]`` of a CARMEN log (FLASER, RLASER, ROBOTLASER1; plain or .gz).
 
@@ -152,7 +140,7 @@ class CarmenSource:
         if step < 1:
             raise BadInput("--step", f"must be at least 1, got {step}")
         if not range_max > 0:
-            raise BadInput("--range-max", f"must be positive, got {range_max}")
+            raise BadInput("--no-return-reading", f"must be positive, got {range_max}")
         self.start, self.stop, self.step, self.range_max = start, stop, step, range_max
         self.name = f"{path} [{start}:{'' if stop is None else stop}:{step}]"
 
@@ -167,7 +155,7 @@ class CarmenSource:
             if index >= self.start and (index - self.start) % self.step == 0:
                 yielded += 1
                 odometry = track.at(line, scan.stamp) if track else _pose(scan.odometry)
-                yield _checked(str(self.path), index, scan.stamp, scan, odometry)
+                yield checked_scan(str(self.path), index, scan.stamp, scan, odometry)
         if not yielded:
             raise BadInput(str(self.path), f"no laser scan from index {self.start} on (the log has {total})")
 
@@ -332,11 +320,11 @@ class Ros2BagSource:
             if name == topic:
                 stamp = _stamp_of(ros.header.stamp, log_time)
                 pose = ros.pose.pose
-                readings.append(OdometryReading(len(readings), stamp, _planar(pose.position, pose.orientation)))
+                readings.append(OdometryReading(len(readings), stamp, planar_pose(pose.position, pose.orientation)))
                 base = base or ros.child_frame_id
             elif topic is None or name.endswith("tf_static"):
                 for t in ros.transforms:
-                    planar = _planar(t.transform.translation, t.transform.rotation)
+                    planar = planar_pose(t.transform.translation, t.transform.rotation)
                     parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
                     if name.endswith("tf_static"):
                         mounting[f"{parent}>{child}"] = Transform2D(*planar)
@@ -388,7 +376,46 @@ class Ros2BagSource:
 
     def _scan(self, index: int, log_time_ns: int, msg: Any, track: OdometryTrack | None = None) -> SourceScan:
         stamp = _stamp_of(msg.header.stamp, log_time_ns)
-        return _checked(self.name, index, stamp, laser_scan(msg, stamp), laser_odometry(track, stamp))
+        return checked_scan(self.name, index, stamp, laser_scan(msg, stamp), laser_odometry(track, stamp))
+
+
+class RangesSource:
+    """The scans of a ranges JSONL file (``docs/formats.md``); no odometry."""
+
+    has_odometry = False
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.name = str(path)
+
+    def __iter__(self) -> Iterator[SourceScan]:
+        for index, scan in enumerate(read_ranges_jsonl(self.path)):
+            yield checked_scan(self.name, index, scan.stamp, scan)
+
+
+def open_input(
+    path: str | Path, topic: str | None = None, odometry_topic: str | None = None, range_max: float = math.inf
+) -> ScanSource:
+    """The source of one input, by what it is: a ROS bag (a rosbag2 directory, an .mcap, .db3 or
+    ROS 1 .bag file, or a directory holding one such file), a ranges JSONL file (.jsonl), else a
+    CARMEN log (plain or .gz)."""
+    p = Path(path)
+    if p.is_dir():
+        if (p / "metadata.yaml").is_file():
+            return Ros2BagSource(p, topic, odometry_topic)
+        bags = sorted(f for f in p.iterdir() if f.suffix in BAG_SUFFIXES)
+        if not bags:
+            raise BadInput(str(path), "is a directory with no ROS bag (no metadata.yaml, .mcap, .db3 or .bag file)")
+        if len(bags) > 1:
+            raise BadInput(str(path), f"holds {len(bags)} bag files and no metadata.yaml; name one of them")
+        return Ros2BagSource(bags[0], topic, odometry_topic)
+    if not p.exists():
+        raise BadInput(str(path), "no such file")
+    if p.suffix in BAG_SUFFIXES:
+        return Ros2BagSource(p, topic, odometry_topic)
+    if p.name.endswith((".jsonl", ".jsonl.gz")):
+        return RangesSource(p)
+    return CarmenSource(p, range_max=range_max)
 
 
 def laser_scan(msg: Any, stamp: float) -> RangeScan:
@@ -436,7 +463,7 @@ def _stamp_of(header_stamp: Any, log_time_ns: int) -> float:
     return stamp if stamp != 0 else log_time_ns * 1e-9
 
 
-def _planar(position: Any, orientation: Any) -> tuple[float, float, float]:
+def planar_pose(position: Any, orientation: Any) -> tuple[float, float, float]:
     """(x, y, yaw) of a ROS 3D pose: the heading of its quaternion about the vertical."""
     qx, qy, qz, qw = (float(orientation.x), float(orientation.y), float(orientation.z), float(orientation.w))
     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
