@@ -98,6 +98,16 @@ class Agent:
         """The messages to publish for one scan, in order (see the module docstring)."""
         return self._front.add_scan(index, stamp, scan, odometry)
 
+    def start_at(self, epoch: int) -> None:
+        """Number this run's first epoch ``epoch`` (before the first scan): a robot restarted
+        under its id begins after the epochs the merger already holds of it, never rewriting one;
+        its first epoch has no link to them (it does not know where it is relative to them)."""
+        if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+            raise BadInput("epoch", f"expected a non-negative integer, got {epoch!r}")
+        if self.counts.scans:
+            raise BadInput("epoch", "a run's first epoch is set before its first scan")
+        self._front.start_at(epoch)
+
     def relocalized(self, epoch: int) -> None:
         """The merger placed this robot's ``epoch`` (its "relocalized" event)."""
         self._front.relocalized(epoch)
@@ -128,10 +138,14 @@ class TrackingFrontEnd:
         self._placed = 0
         self._local_maps = 0
         self._stamp = 0.0
+        self._first_epoch = 0
+
+    def start_at(self, epoch: int) -> None:
+        self.tracker.first_epoch = self._first_epoch = epoch
 
     @property
     def epoch(self) -> int:
-        return max(self.tracker.epoch, 0)
+        return max(self.tracker.epoch, self._first_epoch)
 
     @property
     def epoch_pose(self) -> Transform2D | None:
@@ -139,7 +153,8 @@ class TrackingFrontEnd:
 
     @property
     def counts(self) -> AgentCounts:
-        return AgentCounts(self._scans, self._placed, self.tracker.epoch + 1, self._local_maps)
+        epochs = self.tracker.epoch + 1 - self._first_epoch if self.tracker.epoch >= 0 else 0
+        return AgentCounts(self._scans, self._placed, epochs, self._local_maps)
 
     def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None) -> list[Message]:
         segments = extract_segments(scan, self.config.extraction)
@@ -218,7 +233,11 @@ class TrackingFrontEnd:
         link = None
         if submap.link_transform is not None and submap.link_covariance is not None:
             link = SubmapLink(submap.number - 1, submap.link_transform, tuple(submap.link_covariance.ravel().tolist()))
-        previous = EpochLink(ep - 1, KIDNAP_REASON.format(n=self.config.tracking.kidnap_after)) if ep > 0 else None
+        previous = (
+            EpochLink(ep - 1, KIDNAP_REASON.format(n=self.config.tracking.kidnap_after))
+            if ep > self._first_epoch
+            else None
+        )
         placed = submap.placed
         message = LocalMap(
             self.robot,

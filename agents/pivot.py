@@ -160,6 +160,7 @@ class PivotFrontEnd:
         self.kidnap_after = kidnap_after
         self.lost_scans = lost_scans
         self._epoch = _Epoch(0, self.config, None)
+        self._first_epoch = 0
         self._closed: list[LocalMap] = []
         """The latest version of every closed epoch, in epoch order."""
         self._closed_maps: list[EpochMap] = []
@@ -170,6 +171,10 @@ class PivotFrontEnd:
         self._placed = 0
         self._local_maps = 0
         self._last_stamp = 0.0
+
+    def start_at(self, epoch: int) -> None:
+        self._epoch = _Epoch(epoch, self.config, None)
+        self._first_epoch = epoch
 
     @property
     def epoch(self) -> int:
@@ -190,7 +195,8 @@ class PivotFrontEnd:
 
     @property
     def counts(self) -> AgentCounts:
-        return AgentCounts(self._scans, self._placed, self.epoch + int(self._epoch.started), self._local_maps)
+        epochs = self.epoch - self._first_epoch + int(self._epoch.started)
+        return AgentCounts(self._scans, self._placed, epochs, self._local_maps)
 
     def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> list[Message]:
         """The messages to publish for one scan, in order (see the module docstring); the pivot

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 from fleetmap.agents.agent import Agent
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
-from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, Message, Scan, decode
+from fleetmap.shared.io.keys import FleetKeys, parse_submap_key
+from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, Message, Scan, decode
 from fleetmap.shared.io.sources import SourceScan
 
 log = logging.getLogger(__name__)
@@ -129,6 +129,37 @@ def message_key(keys: FleetKeys, message: Message) -> str:
     raise TypeError(f"an agent does not publish {type(message).__name__}")
 
 
+FIRST_EPOCH_WAIT = 2.0
+"""Seconds a starting agent waits for the merger to say which epochs of its robot it holds."""
+
+
+def first_epoch(bus: Bus, keys: FleetKeys, robot: str) -> int:
+    """The first epoch of this run of ``robot``: after every epoch of it in the merger's global map
+    (its state queryable), so a robot restarted under its id, or a second one started by mistake,
+    never publishes a submap the merger holds already; 0 when the merger holds none of it or none
+    answers (a merger that starts later refuses a run that reuses epoch numbers)."""
+    newest = -1
+    for payload in bus.query(keys.state, timeout=FIRST_EPOCH_WAIT):
+        try:
+            global_map = GlobalMap.from_msgpack(payload)
+        except BadMessage as exc:
+            log.warning("%s: the merger's state is not a global map (%s); starting at epoch 0", robot, exc)
+            return 0
+        for component in global_map.components:
+            for member in component.members:
+                owner, epoch, _ = parse_submap_key(member)
+                if owner == robot:
+                    newest = max(newest, epoch)
+    return newest + 1
+
+
+def _start_after_known(bus: Bus, keys: FleetKeys, agent: Agent) -> None:
+    epoch = first_epoch(bus, keys, agent.robot)
+    if epoch:
+        log.info("%s: the merger holds its epochs up to %d: this run starts at epoch %d", agent.robot, epoch - 1, epoch)
+        agent.start_at(epoch)
+
+
 def run_agent(
     source: Iterable[SourceScan],
     agent: Agent,
@@ -139,13 +170,16 @@ def run_agent(
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], object] | None = None,
     wait_for_listener: float = 0.0,
+    start_after_known: bool = True,
 ) -> AgentSummary:
     """Run ``agent`` on ``source`` over ``bus`` until the source ends or ``stop`` is set.
 
     ``sleep(seconds)`` waits between scans (default: ``stop.wait``, so a stop cuts the wait
     short); ``clock`` and ``sleep`` are injectable so a test can step the pacing. With
     ``wait_for_listener`` > 0 the first scan waits up to that many seconds for something to
-    subscribe to the robot's local maps (a merger or recorder starting at the same time).
+    subscribe to the robot's local maps (a merger or recorder starting at the same time). With
+    ``start_after_known`` the run's first epoch follows the robot's epochs the merger holds
+    (:func:`first_epoch`).
     """
     if not speed >= 0:
         raise BadInput("speed", f"must be 0 (as fast as possible) or positive, got {speed}")
@@ -171,6 +205,8 @@ def run_agent(
     handles: list[Handle] = [bus.declare_liveliness(keys.alive(agent.robot))]
     stopped = False
     try:
+        if start_after_known:
+            _start_after_known(bus, keys, agent)
         handles.append(bus.subscribe(keys.events, requests.on_event))
         if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
             log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))

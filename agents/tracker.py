@@ -209,6 +209,8 @@ class Tracker:
         self.params = self.config.tracking
         self.use_odometry = odometry
         self.epoch = -1
+        self.first_epoch = 0
+        """The number of the first epoch (a robot restarted under its id goes on after its earlier run's)."""
         """The current epoch (-1 before the first scan with segments)."""
         self.active: list[Submap] = []
         """The active submaps, oldest (the matching one) first."""
@@ -283,7 +285,7 @@ class Tracker:
         samples = sample_segments(segments, self.params.sample_spacing)
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
-            return [TrackStep("empty", max(self.epoch, 0), None, None)]
+            return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None)]
         if self.epoch < 0:
             return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
         predictions = self._predictions(seq, stamp, odometry)
@@ -706,7 +708,7 @@ class Tracker:
             submap.finished = True
             self.finished.append(submap)
         self.active = []
-        self.epoch += 1
+        self.epoch = max(self.epoch + 1, self.first_epoch)
         self._submaps = 0
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
         self._odometry = odometry

@@ -18,6 +18,7 @@ events); the state file a merger resumes from (:mod:`fleetmap.merger.state`); wh
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections import deque
@@ -25,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from fleetmap.merger.clocks import from_the_future
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
 from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Edge, MergeResult
@@ -47,7 +49,7 @@ from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import sample_segments
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys
+from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_map_key, parse_submap_key
 from fleetmap.shared.io.messages import (
     BadMessage,
     FleetEvent,
@@ -63,6 +65,9 @@ from fleetmap.shared.io.messages import (
 __all__ = ["Merger", "MergerStats", "Outgoing"]
 
 log = logging.getLogger(__name__)
+
+_NO_ROBOT = Robot()
+"""Who a robot the merger does not know is (refused nothing)."""
 
 
 class Merger:
@@ -103,6 +108,15 @@ class Merger:
         """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
         self._key_scans: dict[str, list[KeyScan]] = {}
         """The key scans of every submap, by submap key (:meth:`_take_scan`)."""
+        self.require_presence = False
+        """A live merger's robots hold liveliness tokens (:meth:`presence`): a message of a robot it
+        does not know and that holds none is dropped, and ``max_robots`` counts the robots that hold
+        one and were heard since. Offline (a log, a replay) every robot counts from its first map."""
+        self._forgotten = False
+        """Robots were forgotten since the last solve (:meth:`presence`): solve again."""
+        self._said_refused: set[tuple[str, int]] = set()
+        self._left: set[str] = set()
+        """Robots that left with none of their submaps placed (yet)."""
 
     @property
     def config(self) -> FleetmapConfig:
@@ -120,8 +134,11 @@ class Merger:
         return self.placement.result
 
     # -- input -----------------------------------------------------------------------------
-    def receive(self, key: str, payload: bytes) -> list[Outgoing]:
-        """Take one message off the bus; a malformed one is dropped, logged and counted."""
+    def receive(self, key: str, payload: bytes, now: float | None = None, recalled: bool = False) -> list[Outgoing]:
+        """Take one message off the bus; a malformed one is dropped, logged and counted. ``now``:
+        the receiver's clock (s since 1970), against which a stamp too far ahead is refused
+        (:mod:`fleetmap.merger.clocks`); ``recalled``: a submap the recorder kept (its robot may
+        have left long ago)."""
         try:
             message = decode(payload)
         except BadMessage as exc:
@@ -131,18 +148,31 @@ class Merger:
                 log.warning("dropped a malformed message on %s: %s (%d so far)", key, exc, self.stats.malformed)
             return []
         self.stats.received[message.SCHEMA] += 1
-        if not self._robots_own(key, message) or not self._room_for(getattr(message, "robot", None)):
+        robot = getattr(message, "robot", None)
+        if not self._robots_own(key, message) or not self._admitted(robot, recalled) or not self._room_for(robot):
+            return []
+        if robot is not None and from_the_future(message.stamp, now):
+            self._drop(
+                "future_stamp", f"a {message.SCHEMA} of {robot} stamped {message.stamp - (now or 0):.0f} s ahead"
+            )
+            return []
+        epoch = getattr(message, "epoch", None)
+        if robot is not None and epoch in self._robots.get(robot, _NO_ROBOT).refused:
+            self._drop("second_agent", f"a {message.SCHEMA} of {robot}'s epoch {epoch}, a second agent's")
             return []
         if isinstance(message, LocalMap):
             if key != self.keys.localmap(message.robot):
                 self.stats.ignored += 1
                 return []
-            self._take_submap(message)
+            return self._take_submap(message)
         elif isinstance(message, Scan):
             if key != self.keys.scan(message.robot):
                 self.stats.ignored += 1
                 return []
-            self._robot(message.robot)  # a robot that only scans so far is known, not placed
+            r = self._robot(message.robot)  # a robot that only scans so far is known, not placed
+            # heard: a scan of an epoch taken (a restarted agent's scans of its new epoch come
+            # before that epoch's first submap, and would make it look like a second agent)
+            r.live = r.live or message.epoch in r.epochs
             self._take_scan(message)
         elif isinstance(message, FleetEvent) and message.kind == "epoch" and message.robot is not None:
             self._robot(message.robot)
@@ -173,12 +203,35 @@ class Merger:
             )
         return False
 
-    def _room_for(self, robot: str | None) -> bool:
-        """Whether the merger may keep track of ``robot`` (one it knows, or one more under the limit)."""
-        if robot is None or robot in self._robots or len(self._robots) < self.config.merge.max_robots:
+    def _admitted(self, robot: str | None, recalled: bool) -> bool:
+        """Whether a live merger listens to ``robot``: one it knows (its maps stay after it left),
+        or one that holds its liveliness token; else the message is dropped and counted."""
+        if not self.require_presence or robot is None or recalled or robot in self._robots:
             return True
-        self._refuse("max_robots", f"a message of robot {robot!r}, {len(self._robots)} robots known")
+        self._drop("absent", f"a message of robot {robot!r}, which holds no liveliness token")
         return False
+
+    def _room_for(self, robot: str | None) -> bool:
+        """Whether the merger may keep track of ``robot`` (one it counts already, or one more under
+        the limit). A live merger counts the robots that hold their token and were heard since."""
+        r = self._robots.get(robot) if robot is not None else None
+        if robot is None or (r is not None and (r.live or not self.require_presence)):
+            return True
+        if self.require_presence:
+            counted = sum(1 for x in self._robots.values() if x.present and x.live)
+        else:
+            counted = len(self._robots)
+        if counted < self.config.merge.max_robots:
+            return True
+        self._refuse("max_robots", f"a message of robot {robot!r}, {counted} robots counted")
+        return False
+
+    def _drop(self, reason: str, what: str) -> None:
+        """Count (and log, the first times) a message refused for ``reason``."""
+        self.stats.refused[reason] += 1
+        n = self.stats.refused[reason]
+        if n <= 10 or n % 1000 == 0:
+            log.warning("dropped %s (%s: %d so far)", what, reason.replace("_", " "), n)
 
     def _refuse(self, limit: str, what: str) -> None:
         """Count (and log, the first times) something a limit of ``merge`` refused."""
@@ -192,21 +245,58 @@ class Merger:
     def _robot(self, name: str) -> Robot:
         return self._robots.setdefault(name, Robot())
 
-    def _take_submap(self, m: LocalMap) -> None:
+    def _take_submap(self, m: LocalMap) -> list[Outgoing]:
         key = m.submap_key
         held = self.submaps.get(key)
         waiting = self._pending.get(key)
         if (held is not None and m.version <= held.version) or (waiting is not None and m.version <= waiting.version):
             self.stats.stale += 1
-            return
+            return []
+        if (held is not None and held.final) or (waiting is not None and waiting.final):
+            self._drop("final_submap", f"version {m.version} of submap {key}, final at an earlier version")
+            return []
+        if not self._same_agent(m):
+            return [self._refused_event(m.robot, m.epoch)] if (m.robot, m.epoch) not in self._said_refused else []
         if len(m.segments) == 0:
             self.stats.ignored += 1
-            return
+            return []
         if len(m.segments) > self.config.merge.max_submap_segments:
             self._refuse("max_submap_segments", f"submap {key} of {len(m.segments)} segments")
-            return
-        self._robot(m.robot)  # known from its first map (max_robots counts it)
+            return []
+        r = self._robot(m.robot)  # known from its first map (max_robots counts it)
+        r.live = True
+        r.epochs.add(m.epoch)
         self._pending[key] = m
+        return []
+
+    def _same_agent(self, m: LocalMap) -> bool:
+        """Whether a submap of an epoch new to the merger comes from the agent it hears already:
+        a new epoch without a link to an earlier one (an agent's first) newer than every epoch of a
+        robot whose token is held and that was heard since is a second agent under its id, started
+        by mistake; it and the epochs that descend from it are refused, and the first agent keeps
+        its maps. After the robot left, such an epoch is its restarted agent, taken."""
+        r = self._robots.get(m.robot)
+        if r is None or m.epoch in r.epochs:
+            return True
+        link = m.previous_epoch_link
+        second = link is None and r.present and r.live and bool(r.epochs) and m.epoch > max(r.epochs)
+        if not second and (link is None or link.epoch not in r.refused):
+            return True
+        r.refused.add(m.epoch)
+        self._drop("second_agent", f"epoch {m.epoch} of {m.robot} from a second live agent under its id")
+        return False
+
+    def _refused_event(self, robot: str, epoch: int) -> Outgoing:
+        """The event that says an epoch of ``robot`` is refused (once an epoch), so that whoever
+        waits for its maps to be merged (``fleetmap run``) knows they never will be."""
+        self._said_refused.add((robot, epoch))
+        detail = json.dumps({"epoch": epoch, "why": "a second live agent under its id"})
+        return Outgoing(self.keys.events, FleetEvent("refused", robot, self.stamp, detail).to_msgpack())
+
+    def follows(self, robot: str, epoch: int) -> bool:
+        """Whether the pose of ``robot``'s epoch may follow its scans: an epoch the merger took."""
+        r = self._robots.get(robot)
+        return r is not None and epoch in r.epochs
 
     def _take_scan(self, scan: Scan) -> None:
         """Keep a placed scan that is a key scan of its submap (:func:`fleetmap.merger.scangraph.is_key`)."""
@@ -228,13 +318,72 @@ class Merger:
         self.stats.key_scans += 1
 
     def presence(self, robot: str, present: bool, stamp: float) -> list[Outgoing]:
-        """A robot's liveliness token appeared or went: a join or leave event. Its maps stay."""
-        if not self._room_for(robot):
+        """A robot's liveliness token appeared or went: a join or leave event. Its maps stay,
+        unless none of them is placed once the merger has tried them all: a robot that left and
+        was merged with nothing is forgotten, its submaps and all (it takes no room, in memory or
+        in the state file; :meth:`_forget_the_unplaced`)."""
+        if not self.require_presence and not self._room_for(robot):
             return []
         r = self._robot(robot)
-        r.present = present
+        r.present, r.live = present, False
+        if present:
+            self._left.discard(robot)
+        else:
+            self._left.add(robot)
+            self._forget_the_unplaced()
         kind = "join" if present else "leave"
         return [Outgoing(self.keys.events, FleetEvent(kind, robot, max(stamp, 0.0)).to_msgpack())]
+
+    def _placed_robot(self, robot: str) -> bool:
+        """Whether a submap of ``robot`` is in a component its pose is given in (merged with
+        another epoch, or its first epoch in the largest component)."""
+        for key, index in self.placement.where.items():
+            owner, epoch, _ = parse_submap_key(key)
+            if owner == robot and self.placement.gives_poses(index, epoch):
+                return True
+        return False
+
+    def _forget_the_unplaced(self) -> None:
+        """Forget the robots that left, none of whose submaps is placed, once nothing of theirs is
+        left to try (no submap waiting, no pair queued, no search budget left): a busy merger does
+        not forget a robot it has not got to yet."""
+        for robot in sorted(self._left):
+            if self._placed_robot(robot):
+                self._left.discard(robot)
+            elif not self._work_for(robot):
+                self._left.discard(robot)
+                self._forget(robot)
+
+    def _work_for(self, robot: str) -> bool:
+        def mine(key: str) -> bool:
+            return key.split("/", 1)[0] == robot
+
+        s = self.schedule
+        budget = self.config.merge.far_budget
+        return (
+            any(mine(k) for k in self._pending)
+            or any(mine(a) or mine(b) for a, b in s.queue)
+            or any(mine(k) and s.far_tries.get(k, 0) < budget for k in s.idle_candidates(self.placement))
+        )
+
+    def _forget(self, robot: str) -> None:
+        mine = [k for k in [*self.submaps, *self._pending] if parse_submap_key(k)[0] == robot]
+        s = self.schedule
+        for key in mine:
+            self.graph.remove_map(key)
+            self.submaps.pop(key, None)
+            self._pending.pop(key, None)
+            s.scheduled.pop(key, None)
+            s.far_tries.pop(key, None)
+            self._key_scans.pop(key, None)
+        gone = set(mine)
+        s.queue = {pair: t for pair, t in s.queue.items() if gone.isdisjoint(pair)}
+        s.finished_epochs = {e for e in s.finished_epochs if parse_map_key(e)[0] != robot}
+        self._forgotten = bool(mine) or self._forgotten
+        if gone & self.placement.where.keys():  # the last solve's components name them: solve without
+            self.placement = Placement.of(self.graph.solve(fuse_maps=False) if len(self.graph) else None)
+        del self._robots[robot]
+        log.info("forgot robot %s: it left before any of its %d submaps was placed", robot, len(mine))
 
     @property
     def pending(self) -> int:
@@ -264,7 +413,12 @@ class Merger:
         """Whether a step has something to do: submaps pending, pairs to integrate, or robots
         apart from the global map whose submaps have candidates left to try
         (:meth:`~fleetmap.merger.schedule.PairSchedule.idle_pairs`)."""
-        return bool(self._pending) or bool(self.schedule.queue) or self.schedule.searching(self.placement)
+        return (
+            bool(self._pending)
+            or bool(self.schedule.queue)
+            or self.schedule.searching(self.placement)
+            or self._forgotten
+        )
 
     @property
     def queued(self) -> int:
@@ -273,18 +427,24 @@ class Merger:
 
     # -- one step --------------------------------------------------------------------------
     def step(
-        self, limit: int | None = None, enough: Callable[[], bool] | None = None, fuse: bool = True
+        self,
+        limit: int | None = None,
+        enough: Callable[[], bool] | None = None,
+        fuse: bool = True,
+        now: float | None = None,
     ) -> list[Outgoing]:
         """Take the submaps received since the last step into the graph, integrate the pairs due
         (all of them, ``limit`` of them as a replay repeats a live step, or until ``enough()`` says
         the step took long enough), solve, and return the messages to publish. With ``fuse``
         False the global map's walls are left out (an offline run fuses them once, at its end: a
-        step with ``fuse`` after one without solves again, work or none, to publish them)."""
+        step with ``fuse`` after one without solves again, work or none, to publish them). ``now``
+        (the merger's clock) stamps the step; without it (offline) the newest submap's stamp does."""
         refuse = fuse and self._unfused and not self.has_work
         if not self.has_work and not refuse:
             return []
         batch = list(self._pending.values())
         self._pending.clear()
+        self._forgotten = False
         for m in batch:
             self._enter(m)
         queue = self.schedule.queue
@@ -296,7 +456,7 @@ class Merger:
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
-        self.stamp = max([self.stamp] + [m.stamp for m in batch])
+        self.stamp = now if now is not None else max([self.stamp] + [m.stamp for m in batch])
         out: list[Outgoing] = []
         for e in new_edges:
             t = e.transform
@@ -324,6 +484,7 @@ class Merger:
         )
         out.append(Outgoing(self.keys.steps, step.to_msgpack()))
         self._last_out = out
+        self._forget_the_unplaced()
         return out
 
     def _integrate(self, limit: int | None, enough: Callable[[], bool] | None) -> tuple[list[Edge], int]:
@@ -342,10 +503,10 @@ class Merger:
                     limit is None and enough is not None and taken and enough()
                 ):
                     break
-                pair, predicted = next(iter(queue.items()))
+                pair, predicted = self.schedule.next_pair()
                 if any({j.a, j.b} == set(pair) for j, _ in running):
                     break
-                del queue[pair]
+                self.schedule.take(pair)
                 taken += 1
                 job = self.schedule.job(pair, predicted)
                 if job is not None:
@@ -377,8 +538,13 @@ class Merger:
         r = self._robot(m.robot)
         if m.epoch > r.epoch:
             r.epoch, r.at = m.epoch, None
-        if m.epoch == r.epoch and m.pose is not None and m.stamp >= r.stamp:
+        # the newest by the robot's own count (submap, version), not by its stamps (a clock that
+        # stepped back, or one far-future stamp, would keep an old pose for good)
+        held = self.submaps.get(r.at[0]) if r.at is not None else None
+        newer = held is None or (m.submap, m.version) >= (held.submap, held.version)
+        if m.epoch == r.epoch and m.pose is not None and newer:
             r.at, r.stamp = (key, m.pose), m.stamp
+        r.epochs.add(m.epoch)
         segment_map = SegmentMap(np.array(m.segments), ordered=False, oriented=True)
         if m.viewpoints is not None and len(m.viewpoints):
             segment_map = with_viewpoints(segment_map, m.viewpoints)
@@ -451,6 +617,8 @@ class Merger:
         except (ValueError, KeyError, TypeError, IndexError) as exc:
             raise BadInput(str(path), f"cannot load the merger state: {exc}") from None
         self.graph, self.submaps, self._robots = fresh.graph, fresh.submaps, state.robots
+        for name, r in self._robots.items():
+            r.epochs = {parse_submap_key(k)[1] for k in self.submaps if parse_submap_key(k)[0] == name}
         self.seq, self.stamp, self._last_out = state.seq, state.stamp, state.last_out
         s = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse)
         s.finished_epochs = fresh.schedule.finished_epochs

@@ -8,6 +8,10 @@ the global map is ``frames[submap] * scan.pose`` with the frames of the last mer
 map when a merge refines it. A scan in a submap no merge has placed yet (a robot's newest, or one
 never merged), an unplaced scan or one of an older epoch says nothing: the last pose stands until a
 merge or a placed scan gives a new one, never a guess.
+
+Which scan is newer is the robot's own count (epoch, then scan index), not its stamps: a robot
+whose clock steps back (its count going on) starts a new *clock epoch*, ordered after the one
+before, instead of having every later pose judged older than the last one said.
 """
 
 from __future__ import annotations
@@ -34,8 +38,12 @@ class PoseFollower:
         self._frames: Frames = {}
         self._latest: dict[str, Scan] = {}
         """Each robot's newest placed scan of its newest epoch."""
-        self._said: dict[str, tuple[int, float]] = {}
-        """(epoch, stamp) of the last pose said of each robot: never an older one after it."""
+        self._said: dict[str, tuple[int, int, float]] = {}
+        """(epoch, clock epoch, stamp) of the last pose said of each robot: never an older one after it."""
+        self._clock: dict[str, int] = {}
+        """Per robot: how many times its clock stepped back while its scan count went on."""
+        self.clock_steps = 0
+        """Clock epochs started, all robots together."""
 
     def merged(self, frames: Frames) -> None:
         """A merge landed: its submaps' frames replace the previous ones."""
@@ -51,8 +59,12 @@ class PoseFollower:
             held = self._latest.get(scan.robot)
             if held is None and self.max_robots is not None and len(self._latest) >= self.max_robots:
                 return None
-            if held is not None and (scan.epoch, scan.stamp) < (held.epoch, held.stamp):
-                return None
+            if held is not None:
+                if (scan.epoch, scan.index) <= (held.epoch, held.index):
+                    return None  # older, or again
+                if scan.epoch == held.epoch and scan.stamp < held.stamp:
+                    self._clock[scan.robot] = self._clock.get(scan.robot, 0) + 1
+                    self.clock_steps += 1
             self._latest[scan.robot] = scan
             return self._said_from(scan)
 
@@ -62,23 +74,29 @@ class PoseFollower:
         older than the last pose said of the robot."""
         with self._lock:
             held = self._latest.get(pose.robot)
-            if held is not None and held.epoch == pose.epoch and held.stamp > pose.stamp:
+            clock = self._clock.get(pose.robot, 0)
+            same = held is not None and held.epoch == pose.epoch
+            if held is not None and same and (held.stamp > pose.stamp or clock):
                 fresher = self._said_from(held)
                 if fresher is not None:
                     return fresher
-            if (pose.epoch, pose.stamp) < self._said.get(pose.robot, (-1, -1.0)):
+            if held is not None and same and clock and pose.stamp > held.stamp:
+                clock -= 1  # stamped past the newest scan since the robot's clock stepped back: of the clock before
+            said = (pose.epoch, clock, pose.stamp)
+            if said < self._said.get(pose.robot, (-1, -1, -1.0)):
                 return None
-            self._said[pose.robot] = (pose.epoch, pose.stamp)
+            self._said[pose.robot] = said
             self._say(pose)
             return pose
 
     def _said_from(self, scan: Scan) -> RobotPose | None:
         assert scan.pose is not None
         frame = self._frames.get(f"{scan.robot}/{scan.epoch}/{scan.submap}")
-        if frame is None or (scan.epoch, scan.stamp) < self._said.get(scan.robot, (-1, -1.0)):
+        said = (scan.epoch, self._clock.get(scan.robot, 0), scan.stamp)
+        if frame is None or said < self._said.get(scan.robot, (-1, -1, -1.0)):
             return None
         component, at = frame
         pose = RobotPose(scan.robot, scan.epoch, scan.stamp, at.compose(scan.pose), component)
-        self._said[scan.robot] = (scan.epoch, scan.stamp)
+        self._said[scan.robot] = said
         self._say(pose)
         return pose

@@ -48,6 +48,13 @@ class Robot:
     """The robot's newest pose: (submap key, pose in that submap); None when it is lost."""
     relocalized: set[int] = field(default_factory=set)
     present: bool = False
+    live: bool = False
+    """A message of it was taken since its liveliness token appeared (what ``max_robots`` counts,
+    with ``present``, in a live merger)."""
+    epochs: set[int] = field(default_factory=set)
+    """The epochs of it the merger took a submap of."""
+    refused: set[int] = field(default_factory=set)
+    """Epochs of a second agent under its id, and those that descend from them."""
 
 
 def epoch_of(key: str) -> str:

@@ -362,9 +362,12 @@ class PoseGraph(JoinJudge):
             for k in order:
                 self._solution[k] = (anchor, paths[k], poses[k])
             out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))
-        # the global map first: the component of the most robots' epochs, then of the most submaps
+        # the global map first: the component of the most robots, then of the most robots' epochs,
+        # then of the most submaps (one robot's many epochs, a flood of its own key, never outweigh
+        # the fleet's map)
         out.sort(
             key=lambda c: (
+                -len({_robot_of(k) for k in c.members}),
                 -len({_chain_of(k) for k in c.members}),
                 -len(c.members),
                 -sum(self._nodes[k].map.total_length for k in c.members),
@@ -455,3 +458,9 @@ class PoseGraph(JoinJudge):
             held = (maps, walls.segments)
         self._walls_now[key] = held
         return held[1]
+
+
+def _robot_of(key: str) -> str:
+    """The robot a node belongs to: a submap's (``robot/epoch/submap``), else the node itself (a map file)."""
+    parts = key.split("/")
+    return parts[0] if len(parts) == 3 else key

@@ -54,9 +54,10 @@ log = logging.getLogger(__name__)
 FLUSH_INTERVAL = 0.5
 """Seconds a received message may wait in memory before its chunk is written."""
 KEY_RATE = 4e6
-"""Bytes per second one key may write into the recording in the long run (``--max-key-rate``):
-a robot's scans with their raw beams and its submaps come to tens of kB/s; a flood on one key is
-cut to this, each message it drops counted."""
+"""Bytes per second one robot (all its keys together), or one key that is no robot's, may write
+into the recording in the long run (``--max-key-rate``): a robot's scans with their raw beams and
+its submaps come to tens of kB/s; a flood is cut to this, each message it drops counted. Per robot,
+not per key: a robot may put under keys it makes up, each of which would have had a bucket."""
 KEY_BURST = 64e6
 """... and in one burst (a merger's state answered at once, a robot republishing every submap)."""
 TICK_PERIOD = 0.1
@@ -227,7 +228,9 @@ class Recorder:
         """The newest version of every submap recorded: (version, payload)."""
         self._key_rate, self._key_burst = key_rate, key_burst
         self._buckets: dict[str, tuple[float, int]] = {}
-        """Per key: the bytes it may still write now, and when that was worked out (ns)."""
+        """Per robot (or key, :meth:`_writer_of`): the bytes it may still write now, and when that was
+        worked out (ns)."""
+        self._robots_prefix = f"{keys.prefix}/robots/"
         for name, data in (metadata or {}).items():
             writer.add_metadata(name, data)
 
@@ -324,15 +327,25 @@ class Recorder:
                     self._fail(exc)
         return self.summary()
 
+    def _writer_of(self, key: str) -> str:
+        """Whose rate a message on ``key`` counts against: the robot of any key under
+        ``robots/<robot>/`` (made-up keys included), else the key itself."""
+        if key.startswith(self._robots_prefix):
+            robot = key[len(self._robots_prefix) :].split("/", 1)[0]
+            return f"{self._robots_prefix}{robot}"
+        return key
+
     def _admit(self, key: str, size: int, now_ns: int) -> bool:
-        """Whether ``key`` may write ``size`` more bytes now (a token bucket: ``key_rate`` bytes/s,
-        ``key_burst`` at once); a message it may not is dropped and counted."""
+        """Whether the writer of ``key`` (:meth:`_writer_of`) may write ``size`` more bytes now (a
+        token bucket: ``key_rate`` bytes/s, ``key_burst`` at once); a message it may not is dropped
+        and counted."""
         if self._key_rate <= 0:
             return True
-        tokens, since = self._buckets.get(key, (self._key_burst, now_ns))
+        writer = self._writer_of(key)
+        tokens, since = self._buckets.get(writer, (self._key_burst, now_ns))
         tokens = min(self._key_burst, tokens + max(now_ns - since, 0) * 1e-9 * self._key_rate)
         admitted = size <= tokens
-        self._buckets[key] = (tokens - size if admitted else tokens, now_ns)
+        self._buckets[writer] = (tokens - size if admitted else tokens, now_ns)
         if not admitted:
             self._counts.throttled += 1
             n = self._counts.throttled

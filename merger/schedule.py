@@ -86,6 +86,11 @@ class PairSchedule:
         """Queued pairs that :meth:`idle_pairs` chose."""
         self.joined: set[Pair] = set()
         """Pairs :meth:`queue_joined` queued (each once: a pair that did not register stays so)."""
+        self.owner: dict[Pair, str] = {}
+        """The robot whose submap queued each pair (whose turn takes it: :meth:`next_pair`)."""
+        self._owner = ""
+        self._served = ""
+        """The robot whose pair was taken last."""
 
     def enqueue(self, pair: Pair, predicted: Transform2D | None) -> bool:
         """Queue a pair to integrate (once); False if it was queued already or the queue is full."""
@@ -94,8 +99,26 @@ class PairSchedule:
         if len(self.queue) >= self.config.merge.max_queued_pairs:
             self._refuse("max_queued_pairs", f"pair {pair[0]} {pair[1]}, {len(self.queue)} queued")
             return False
+        self.owner[pair] = self._owner
         self.queue[pair] = predicted
         return True
+
+    def next_pair(self) -> tuple[Pair, Transform2D | None]:
+        """The next queued pair to integrate: the oldest of the robot whose turn it is. Robots take
+        turns (round-robin over the robots with pairs queued, each pair the robot's whose submap
+        queued it), so one robot's flood of submaps or epochs delays its own integrations, not the
+        others'. The queue must not be empty."""
+        first: dict[str, Pair] = {}
+        for pair in self.queue:
+            first.setdefault(self.owner.get(pair, ""), pair)
+        robots = sorted(first)
+        pair = first[next((r for r in robots if r > self._served), robots[0])]
+        return pair, self.queue[pair]
+
+    def take(self, pair: Pair) -> None:
+        """A pair off the queue (being integrated): its robot had its turn."""
+        del self.queue[pair]
+        self._served = self.owner.pop(pair, "")
 
     def searching(self, p: Placement) -> bool:
         """Whether robots apart from the global map have submaps with candidates left to try."""
@@ -122,6 +145,7 @@ class PairSchedule:
         """Queue the integrations a submap version is due (see the module docstring); ``current``:
         it is of its robot's current epoch."""
         key = m.submap_key
+        self._owner = m.robot
         mp = self.config.merge
         placed = p.placed_epoch(f"{m.robot}/{m.epoch}")
         last = self.scheduled.get(key)
@@ -206,6 +230,7 @@ class PairSchedule:
             for _, a, b in sorted(found):
                 if count[a] >= limit or count[b] >= limit:
                     continue
+                self._owner = parse_submap_key(b)[0]
                 if self.enqueue((a, b), at[a].inverse().compose(at[b])):
                     self.joined.add((a, b))
                     count[a] += 1
@@ -233,6 +258,7 @@ class PairSchedule:
                     continue
                 others = self._far(key, mine, p, within=False)
                 if others:
+                    self._owner = parse_submap_key(key)[0]
                     self._queue_far(key, others[0])
                     self.idle.add(ordered(others[0], key))
                     queued += 1

@@ -16,6 +16,7 @@ from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from fleetmap.merger.clocks import CLOCK_SKEW, from_the_future
 from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
 from fleetmap.shared.errors import BadInput
@@ -45,6 +46,10 @@ STEP_SECONDS = 0.25
 integration that finds this much time gone; the other pairs wait for the next step."""
 
 
+class _Recalled(bytes):
+    """A submap the recorder kept, recalled at start (its robot may have left long ago)."""
+
+
 class MergerService:
     """:class:`Merger` on a bus: the live service (``fleetmap merger``).
 
@@ -67,6 +72,7 @@ class MergerService:
             raise BadInput("step_seconds", f"must be 0 (no budget) or a positive number, got {step_seconds}")
         self.bus = bus
         self.merger = merger
+        merger.require_presence = True  # a live fleet's robots hold liveliness tokens
         self.keys = merger.keys
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
@@ -95,6 +101,8 @@ class MergerService:
         """Robot poses between steps, from their placed scans (:mod:`fleetmap.merger.follow`)."""
         self._scans: queue.Queue[tuple[str, bytes]] = queue.Queue(POSE_QUEUE)
         self._follow_errors = 0
+        self.future_scans = 0
+        """Scans the pose thread dropped: stamped further ahead than :data:`CLOCK_SKEW`."""
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
 
@@ -130,7 +138,7 @@ class MergerService:
             except BadMessage:
                 self.merger.stats.malformed += 1
                 continue
-            self._inbox.put((keys.localmap(robot), payload))
+            self._inbox.put((keys.localmap(robot), _Recalled(payload)))
             recalled += 1
         if recalled:
             log.info("recalled %d submaps from the recorder", recalled)
@@ -158,7 +166,17 @@ class MergerService:
                 continue
             try:
                 scan = Scan.from_msgpack(payload)
-                if key == self.keys.scan(scan.robot):
+                if from_the_future(scan.stamp, self.clock()):
+                    self.future_scans += 1
+                    if self.future_scans <= 10 or self.future_scans % 1000 == 0:
+                        log.warning(
+                            "dropped a scan of %s stamped %.0f s ahead of this clock (more than %.0f s; %d so far)",
+                            scan.robot,
+                            scan.stamp - self.clock(),
+                            CLOCK_SKEW,
+                            self.future_scans,
+                        )
+                elif key == self.keys.scan(scan.robot) and self.merger.follows(scan.robot, scan.epoch):
                     self.follower.scan(scan)
             except BadMessage:
                 continue
@@ -192,14 +210,32 @@ class MergerService:
             except queue.Empty:
                 break
             if isinstance(item, bool):
-                robot = key.rsplit("/", 1)[-1]
-                log.info("robot %s %s", robot, "joined" if item else "left")
-                self._publish(self.merger.presence(robot, item, self.clock()))
+                robot = self._token_robot(key)
+                if robot is not None:
+                    log.info("robot %s %s", robot, "joined" if item else "left")
+                    self._publish(self.merger.presence(robot, item, self.clock()))
             else:
-                self._publish(self.merger.receive(key, item))
+                self._publish(self.merger.receive(key, item, self.clock(), recalled=isinstance(item, _Recalled)))
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
+
+    def _token_robot(self, key: str) -> str | None:
+        """The robot a liveliness token under ``alive/`` names; None, counted and logged, for a
+        token whose name is no robot id (anyone on an open fleet may declare one)."""
+        try:
+            parsed = self.keys.parse(key)
+        except BadInput:
+            parsed = None
+        if parsed is not None and parsed.kind == "alive":
+            return parsed.robot
+        stats = self.merger.stats
+        stats.malformed += 1
+        stats.malformed_reasons["liveliness token"] += 1
+        n = stats.malformed_reasons["liveliness token"]
+        if n <= 10 or n % 1000 == 0:
+            log.warning("ignored the liveliness token %r: not a robot id (%d such tokens so far)", key[:128], n)
+        return None
 
     def run_once(self) -> bool:
         """Take what arrived and step if there is work (a local map pending, or pairs of maps to
@@ -222,7 +258,7 @@ class MergerService:
             now = time.monotonic()
             return now >= long or (now >= short and self._maps_arrived != arrived)
 
-        out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None)
+        out = self.merger.step(enough=past_deadline if self.step_seconds > 0 else None, now=self.clock())
         self._save()
         self._snapshot = self.merger.global_map.to_msgpack()
         self._publish_step(out)

@@ -108,8 +108,17 @@ def read_state(path: str | Path) -> MergerState:
             far_tries={str(k): int(v) for k, v in state.get("far_tries", {}).items()},
             last_out=[Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])],
         )
-    except (OSError, ValueError, KeyError, TypeError, IndexError, msgpack.UnpackException, BadMessage) as exc:
-        raise BadInput(source, f"cannot load the merger state: {exc}") from None
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+        IndexError,
+        AttributeError,
+        msgpack.UnpackException,
+        BadMessage,
+    ) as exc:  # any shape of file: the merger's own of another version, or not its at all
+        raise BadInput(source, f"cannot load the merger state (not one a merger saved): {exc}"[:300]) from None
 
 
 def _edge_to_dict(e: Edge) -> dict[str, Any]:

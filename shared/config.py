@@ -668,6 +668,8 @@ def load_config(path: str | Path | None = None) -> FleetmapConfig:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(str(p), "no such config file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(str(p), "not a text file (not UTF-8)") from None
     except OSError as exc:
         raise ConfigError(str(p), f"cannot read: {exc.strerror}") from None
     try:

@@ -71,11 +71,12 @@ def _clear(x: float, y: float) -> bool:
 def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch: int = 0, version: int = 0):  # type: ignore[no-untyped-def]
     """A robot's local map built from its scans ``start:stop`` placed at their TRUE poses (a perfect
     agent), as the LocalMap message the merger receives; its frame is scan ``start``'s, as an
-    agent's epoch would be. Returns (message, true pose of the frame in the world). A bundled
-    scenario's scans are its sparse copy's (:func:`sparse`)."""
+    agent's epoch would be (an epoch after the first follows the one before, as an agent's do).
+    Returns (message, true pose of the frame in the world). A bundled scenario's scans are its
+    sparse copy's (:func:`sparse`)."""
     from fleetmap.scenarios import load_scenario, robot_stream
     from fleetmap.shared.core.fusion import fuse
-    from fleetmap.shared.io.messages import LocalMap
+    from fleetmap.shared.io.messages import EpochLink, LocalMap
 
     sc = load_scenario(sparse(scenario_name))
     scans = [s for s in robot_stream(sc, robot) if start <= s.index < stop]
@@ -87,7 +88,8 @@ def true_local_map(scenario_name: str, robot: str, start: int, stop: int, epoch:
         merged = SegmentMap(t.apply(m.segments), oriented=True) if merged is None else fuse(merged, m, t)
     assert merged is not None
     last = frame.inverse().compose(scans[-1].pose)
-    message = LocalMap(robot, epoch, version, scans[-1].stamp, merged.segments, len(scans), last)
+    link = EpochLink(epoch - 1, "lost") if epoch > 0 else None
+    message = LocalMap(robot, epoch, version, scans[-1].stamp, merged.segments, len(scans), last, link)
     return message, frame
 
 

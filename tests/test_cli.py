@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import re
@@ -13,10 +14,14 @@ from collections.abc import Callable
 from fnmatch import fnmatch
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import load_config
+from fleetmap.shared.io.messages import FleetEvent
+from fleetmap.shared.io.recording import RecordingWriter
+from mcap.writer import CompressionType
 
 from fleetmap import config_args
 from fleetmap.cli import COMMANDS, build_parser, main
@@ -197,6 +202,19 @@ def test_a_service_told_to_write_into_a_missing_folder_exits_2_before_it_starts(
     assert r.returncode == 2 and len(lines) == 1 and str(target) in lines[0] and says in lines[0], r.stderr
 
 
+def _byte_flipped_recording() -> bytes:
+    """A small recording with bytes flipped where the mcap library decodes text (a channel's
+    topic): it raised UnicodeDecodeError, an exit 1 with a traceback's last line."""
+    stream = io.BytesIO()
+    writer = RecordingWriter(stream, compression=CompressionType.NONE)
+    writer.write_raw("fleet/default/events", FleetEvent("recorder_start", None, 1.0).to_msgpack(), 1, 1)
+    writer.finish()
+    data = bytearray(stream.getvalue())
+    at = data.index(b"fleet/default/events")
+    data[at : at + 4] = b"\xff\xfe\xfd\xfc"
+    return bytes(data)
+
+
 @pytest.mark.slow  # runs fleetmap processes
 def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path) -> None:
     # no exception names, no Rust error structures, no numpy warnings: one line naming the fault
@@ -204,11 +222,23 @@ def test_input_faults_of_every_command_exit_2_with_one_plain_line(tmp_path: Path
     huge = tmp_path / "huge.json"
     huge.write_text(json.dumps({"segments": [[0, 0, 1e308, 0], [0, 1, 2, 3]], "ordered": False}))
     scan = str(EXAMPLES / "scan_a.json")
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(bytes(range(256)))
+    flipped = tmp_path / "flipped.mcap"
+    flipped.write_bytes(_byte_flipped_recording())
+    shape = tmp_path / "merger.state"  # msgpack, of the state's version, holding a list where its robots go
+    shape.write_bytes(msgpack.packb({"v": 2, "submaps": [], "edges": [], "robots": [1], "seq": 0, "stamp": 0}))
     cases = [
         (["merge", scan, scan.replace("_a", "_b"), "--plot", str(tmp_path / "nowhere" / "g.png")], "does not exist"),
         (["run", "--out", str(tmp_path / "a-file" / "run")], "cannot be made a folder (--out)"),
         (["router", "--listen", "bogus"], "--listen bogus: Endpoints must be of the form"),
+        (["router", "--listen", "tcp/127.0.0.1:99999"], "port 99999 is not a port number"),
         (["integrate", str(huge), scan], "segment 0 lies beyond 1e+06 m of the origin"),
+        (["integrate", scan, scan, "--config", str(binary)], f"{binary}: not a text file"),
+        (["replay", str(flipped), "--out", str(tmp_path / "r1")], f"{flipped}: corrupt MCAP file"),
+        (["recover", str(flipped), str(tmp_path / "fixed.mcap")], f"{flipped}: corrupt MCAP file"),
+        (["replay", str(flipped), "--out", str(tmp_path / "r2"), "--from", "nan"], "--from: must be a number"),
+        (["merger", "--state", str(shape), "--listen", "tcp/127.0.0.1:0"], f"{shape}: cannot load the merger state"),
     ]
     for args, says in cases:
         r = fleetmap(*args)

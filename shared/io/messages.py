@@ -24,8 +24,9 @@ Conventions on the wire:
 from __future__ import annotations
 
 import math
+import sys
 import types
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, Sequence, Set
 from dataclasses import MISSING, dataclass, fields, is_dataclass
 from typing import Any, ClassVar, Self
 
@@ -66,6 +67,7 @@ EVENT_KINDS = frozenset(
         "epoch",  # a robot started a new local map (robot: who; detail: why)
         "kidnap",  # a scenario carried a robot away (ground truth, for the report)
         "relocalized",  # the merger placed a robot's new epoch in the global map again
+        "refused",  # the merger refuses a robot's epoch (detail: which, and why): a second agent under its id
         "merger_start",
         "merger_stop",
         "republish_request",  # a (re)started merger asks every robot for its latest local map
@@ -812,33 +814,132 @@ class MergerStep(WireMessage):
 Message = Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep
 """Any message of the bus."""
 
+_CONTAINER_TYPES = ("Transform2D", "LaserRanges", "EpochLink", "SubmapLink", "tuple[")
+"""What a field's annotation names when its wire value is a msgpack map or array; every other
+field is one number, string or flag, or packed bytes (arrays travel as bins, and always have)."""
+_CONTAINER_HEADERS = frozenset([*range(0x80, 0xA0), 0xDC, 0xDD, 0xDE, 0xDF])
+"""The first byte of a msgpack map or array (fixmap, fixarray, array 16/32, map 16/32)."""
+
+
 MESSAGE_TYPES: dict[str, type[Scan | LocalMap | MergeEdge | GlobalMap | RobotPose | FleetEvent | MergerStep]] = {
     cls.SCHEMA: cls for cls in (Scan, LocalMap, MergeEdge, GlobalMap, RobotPose, FleetEvent, MergerStep)
 }
+_FIELD_NAMES: dict[type[Message], frozenset[str]] = {
+    cls: frozenset({"schema", "v", *(f.name for f in fields(cls))}) for cls in MESSAGE_TYPES.values()
+}
+"""Each message type's fields: the values of a payload worth decoding."""
+_CONTAINER_FIELDS: dict[type[Message], frozenset[str]] = {
+    cls: frozenset(f.name for f in fields(cls) if any(t in str(f.type) for t in _CONTAINER_TYPES))
+    for cls in MESSAGE_TYPES.values()
+}
+"""... and those of them whose value is a msgpack map or array."""
 
 
-def unpack(data: bytes) -> dict[str, Any]:
-    """The msgpack map of a payload, with its schema and version checked, not yet its fields."""
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise BadMessage("message", None, f"expected bytes, got {type(data).__name__}")
-    if len(data) > MAX_PAYLOAD_BYTES:
-        raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
-    try:
-        raw = msgpack.unpackb(
-            data,
+_LIMITS: dict[str, Any] = {
+    # each checked against its header before anything is allocated
+    "max_array_len": 4 * MAX_SEGMENTS,
+    "max_map_len": MAX_MAPS + 64,
+    "max_str_len": 64 * 1024,
+    "max_bin_len": MAX_PAYLOAD_BYTES,
+    "max_ext_len": 0,
+}
+MAX_FIELDS = 64
+"""The most fields one message's top-level map may have (fleetmap's messages have at most 16)."""
+DECODED_BYTES_PER_BYTE = 16
+"""The decoding budget: what a payload decodes into (its containers and their items, as Python
+objects) may take this many bytes per payload byte, plus :data:`DECODED_SLACK`. Messages as
+fleetmap sends them carry their bulk in bins, about one byte per byte; a transform, the densest
+part, takes 11 (38 bytes on the wire, 410 as a dict); a payload of empty lists would take 64."""
+DECODED_SLACK = 1024 * 1024
+"""... plus this much, for small messages of many little fields."""
+_MOST_PER_BYTE = 64
+"""The most one payload byte can decode into (an empty list: 56 bytes, and its slot in its
+container), so a payload of at most ``DECODED_SLACK / (_MOST_PER_BYTE - DECODED_BYTES_PER_BYTE)``
+bytes is within its budget whatever it holds and is decoded without counting."""
+
+
+class _OverBudget(Exception):
+    pass
+
+
+class _DecodeBudget:
+    """Counts what msgpack decodes, container by container as each is built, and stops decoding
+    past the payload's budget: memory grows with the payload's size, not with how many items it
+    packs (a 16 MB payload of empty lists would otherwise take a gigabyte)."""
+
+    def __init__(self, size: int) -> None:
+        self.left = DECODED_BYTES_PER_BYTE * size + DECODED_SLACK
+
+    def _charge(self, size: int) -> None:
+        self.left -= size
+        if self.left < 0:
+            raise _OverBudget
+
+    def on_list(self, items: list[Any]) -> list[Any]:
+        self._charge(sys.getsizeof(items) + sum(map(sys.getsizeof, items)))
+        return items
+
+    def on_map(self, entries: dict[str, Any]) -> dict[str, Any]:
+        keys = sum(map(sys.getsizeof, entries.keys()))
+        self._charge(sys.getsizeof(entries) + keys + sum(map(sys.getsizeof, entries.values())))
+        return entries
+
+    def unpacker(self, data: bytes | bytearray | memoryview) -> msgpack.Unpacker:
+        unpacker = msgpack.Unpacker(
+            None,
             raw=False,
             strict_map_key=True,
-            # checked against each header before anything is allocated
-            max_array_len=4 * MAX_SEGMENTS,
-            max_map_len=MAX_MAPS + 64,
-            max_str_len=64 * 1024,
-            max_bin_len=MAX_PAYLOAD_BYTES,
-            max_ext_len=0,
+            list_hook=self.on_list,
+            object_hook=self.on_map,
+            max_buffer_size=max(len(data), 1),
+            **_LIMITS,
         )
-    except (msgpack.UnpackException, ValueError) as exc:
-        raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
-    if not isinstance(raw, dict):
-        raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
+        unpacker.feed(data)
+        return unpacker
+
+
+def _top_level(data: bytes | bytearray | memoryview, budget: _DecodeBudget) -> dict[str, Any]:
+    """The payload's map of fields, in two passes: the first decodes ``schema`` and ``v`` only,
+    the second its message's fields; any other field is skipped over without being decoded (a
+    newer sender's field, or a decoding bomb under a name no message has), and a map or array
+    where its message has a single value or packed bytes is refused from its first byte."""
+    raw: dict[str, Any] = {}
+    passes: tuple[Set[str] | None, ...] = (frozenset({"schema", "v"}), None)
+    containers: Set[str] = frozenset()
+    for names in passes:
+        unpacker = budget.unpacker(data)
+        try:
+            entries = unpacker.read_map_header()
+        except msgpack.OutOfData:
+            raise BadMessage("message", None, "not msgpack: no data") from None
+        except ValueError:  # not a map: decode it (within the budget) to say what it is
+            whole = budget.unpacker(data).unpack()
+            raise BadMessage("message", None, f"expected a msgpack map, got {type(whole).__name__}") from None
+        if entries > MAX_FIELDS:
+            raise BadMessage("message", None, f"{entries} fields is more than {MAX_FIELDS}")
+        if names is None:
+            cls = _schema(raw)
+            names, containers = _FIELD_NAMES[cls], _CONTAINER_FIELDS[cls]
+        for _ in range(entries):
+            name = unpacker.unpack()
+            if not isinstance(name, str):
+                raise BadMessage("message", None, f"not msgpack of named fields: a name is a {type(name).__name__}")
+            if name not in names:
+                unpacker.skip()
+                continue
+            if name not in containers and name not in ("schema", "v") and data[unpacker.tell()] in _CONTAINER_HEADERS:
+                raise BadMessage(raw["schema"], name, "expected one value or packed bytes, got a msgpack map or array")
+            raw[name] = unpacker.unpack()
+        try:
+            unpacker.skip()
+        except msgpack.OutOfData:
+            continue
+        raise BadMessage("message", None, "not msgpack: extra data after the message")
+    return raw
+
+
+def _schema(raw: Mapping[str, Any]) -> type[Message]:
+    """The message type a payload's ``schema`` and ``v`` name, if this fleetmap reads it."""
     if "schema" not in raw:
         raise BadMessage("message", "schema", "missing")
     schema = raw["schema"]
@@ -848,6 +949,34 @@ def unpack(data: bytes) -> dict[str, Any]:
     cls = MESSAGE_TYPES[schema]
     if isinstance(version, bool) or version not in cls.READS:
         raise BadMessage(schema, "v", f"version {str(version)[:32]} is not one this fleetmap reads {cls.READS}")
+    return cls
+
+
+def unpack(data: bytes) -> dict[str, Any]:
+    """The msgpack map of a payload, with its schema and version checked, not yet its fields.
+
+    Decoding is bounded twice: every item's header is checked against the limits before it is
+    allocated, and what is decoded is counted as it is built (:class:`_DecodeBudget`), so a payload
+    costs at most a fixed multiple of its size whatever it packs. Fields its message does not have
+    are skipped without being decoded."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise BadMessage("message", None, f"expected bytes, got {type(data).__name__}")
+    if len(data) > MAX_PAYLOAD_BYTES:
+        raise BadMessage("message", None, f"{len(data)} bytes is more than {MAX_PAYLOAD_BYTES}")
+    try:
+        if len(data) * (_MOST_PER_BYTE - DECODED_BYTES_PER_BYTE) <= DECODED_SLACK:
+            raw = msgpack.unpackb(data, raw=False, strict_map_key=True, **_LIMITS)
+            if not isinstance(raw, dict):
+                raise BadMessage("message", None, f"expected a msgpack map, got {type(raw).__name__}")
+        else:
+            raw = _top_level(data, _DecodeBudget(len(data)))
+    except _OverBudget:
+        raise BadMessage(
+            "message", None, f"{len(data)} bytes decode into more than {DECODED_BYTES_PER_BYTE} times their size"
+        ) from None
+    except (msgpack.UnpackException, ValueError) as exc:
+        raise BadMessage("message", None, f"not msgpack: {exc}"[:200]) from None
+    _schema(raw)
     return raw
 
 

@@ -21,8 +21,11 @@ such a file up to there and reports how much it read.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import math
+import os
+import struct
 import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping
@@ -69,6 +72,7 @@ from mcap.records import Attachment, Channel, Message, Metadata
 from mcap.records import Schema as McapSchema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+from zstandard import ZstdError
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +122,23 @@ def seconds_to_ns(stamp: float) -> int:
 # --- writer ---
 
 
+def _open_alone(path: Path) -> IO[bytes]:
+    """``path`` opened for writing, emptied, and locked for as long as it is open: a second writer
+    of the same file (two recorders started together, both finding it free) is refused, not left
+    to interleave its records with the first's. The lock goes with the process, however it ends."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise BadInput(str(path), f"cannot write: {exc.strerror}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise BadInput(str(path), "another recorder is writing it; give this one another --out") from None
+    os.ftruncate(fd, 0)
+    return os.fdopen(fd, "wb")
+
+
 class RecordingWriter:
     """An MCAP file of raw and Foxglove channels. Channels and schemas are registered on first use."""
 
@@ -130,10 +151,7 @@ class RecordingWriter:
     ) -> None:
         self._owned: IO[bytes] | None = None
         if isinstance(output, (str, Path)):
-            try:
-                self._owned = open(output, "wb")  # noqa: SIM115 - closed by finish()
-            except OSError as exc:
-                raise BadInput(str(output), f"cannot write: {exc.strerror}") from None
+            self._owned = _open_alone(Path(output))
             stream: IO[bytes] = self._owned
         else:
             stream = output
@@ -461,6 +479,11 @@ class _Truncated(Exception):
     """The stream ended inside a record."""
 
 
+CORRUPT = (McapError, ValueError, struct.error, KeyError, IndexError, OverflowError, ZstdError, RuntimeError)
+"""What the mcap library raises, besides its own errors, on a file whose bytes are damaged (a text
+field that is no UTF-8, a length past the end, a chunk that does not decompress: zstd or lz4)."""
+
+
 class _ExactReader:
     """A stream whose short reads raise _Truncated, so a cut-off file ends in one known way."""
 
@@ -488,6 +511,15 @@ class RecoverReport:
     """Bytes of the source up to its last complete record ..."""
     size: int
     """... of its size."""
+
+
+def _corrupt(source: str, exc: Exception) -> BadInput:
+    """The one line that says a file's bytes are damaged, in plain words."""
+    if isinstance(exc, UnicodeDecodeError):
+        why = f"a name in it is not UTF-8 text (byte {exc.start})"
+    else:
+        why = str(exc) or type(exc).__name__
+    return BadInput(source, f"corrupt MCAP file: {why}"[:300])
 
 
 class RecordingReader:
@@ -560,8 +592,8 @@ class RecordingReader:
         try:
             for _, channel, message in make_reader(self._stream).iter_messages(log_time_order=True):
                 yield channel, message
-        except McapError as exc:
-            raise BadInput(self.source, f"corrupt MCAP file: {exc}") from None
+        except CORRUPT as exc:
+            raise _corrupt(self.source, exc) from None
 
     def _records(self, emit_chunks: bool) -> Iterator[Any]:
         """Every complete record of a file with no summary; stops (quietly) at the cut."""
@@ -574,8 +606,8 @@ class RecordingReader:
                 yield record
         except _Truncated:
             return
-        except McapError as exc:
-            raise BadInput(self.source, f"corrupt MCAP file: {exc}") from None
+        except CORRUPT as exc:
+            raise _corrupt(self.source, exc) from None
 
     def _streamed(self) -> Iterator[tuple[Channel, Message]]:
         channels: dict[int, Channel] = {}
@@ -623,8 +655,11 @@ class RecordingReader:
         out: dict[str, dict[str, str]] = {}
         if self.complete:
             self._stream.seek(self._start)
-            for record in make_reader(self._stream).iter_metadata():
-                out[record.name] = dict(record.metadata)
+            try:
+                for record in make_reader(self._stream).iter_metadata():
+                    out[record.name] = dict(record.metadata)
+            except CORRUPT as exc:
+                raise _corrupt(self.source, exc) from None
             return out
         for record in self._records(emit_chunks=True):
             if isinstance(record, Metadata):

@@ -7,9 +7,11 @@ security).
 
 Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
 
-- robot ``rX``: put under ``P/robots/rX/**`` only, its global pose ``P/robots/rX/pose`` excepted
-  (the merger's); hold the liveliness token ``P/alive/rX`` only; read the merger's outputs
-  (``P/merger/**``, its own global pose) and the fleet events (``P/events``).
+- robot ``rX``: put on its own keys only, ``P/robots/rX/scan``, ``P/robots/rX/localmap`` and
+  ``P/robots/rX/events`` (not its global pose, the merger's, nor any key it makes up); hold the
+  liveliness token ``P/alive/rX`` only; read the merger's outputs
+  (``P/merger/**``, its own global pose) and the fleet events (``P/events``), and query the
+  merger's state (a starting agent begins after the epochs the merger holds of its robot).
 - ``merger``: read every robot (``P/robots/**``, ``P/alive/*``) and the fleet events; put under
   ``P/merger/**``, on ``P/events`` and on every robot's global pose ``P/robots/*/pose``; answer
   ``P/merger/state``; hold ``P/services/merger``; ask the recorder for the maps it kept
@@ -98,9 +100,12 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         _rule("barrier-out", "egress", ["declare_queryable", "query", "reply"], ["fleetmap/barrier/**"]),
         # who subscribes and who is alive may be known to everyone of the fleet: declarations carry no data
         _rule("declarations-out", "egress", ALL_DECLARATIONS, [f"{p}/**"]),
-        # robots read the merger's outputs and the fleet events
+        # robots read the merger's outputs and the fleet events, and ask its state (a starting agent
+        # begins after the epochs the merger holds of its robot)
         _rule("robot-read-in", "ingress", ["declare_subscriber"], [f"{p}/merger/**", f"{p}/events"]),
         _rule("robot-read-out", "egress", ["put"], [f"{p}/merger/**", f"{p}/events"]),
+        _rule("robot-state-in", "ingress", ["query"], [f"{p}/merger/state"]),
+        _rule("robot-state-out", "egress", ["reply"], [f"{p}/merger/state"]),
         # a robot's global pose is the merger's to say (an explicit deny outranks the robot's own keys)
         _rule("robot-no-pose", "ingress", ["put"], [f"{p}/robots/*/pose"], permission="deny"),
         # the merger
@@ -142,7 +147,11 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
             "rules": ["barrier-in", "barrier-out", "declarations-out"],
             "subjects": [s["id"] for s in subjects],
         },
-        {"id": "robots-read", "rules": ["robot-read-in", "robot-read-out", "robot-no-pose"], "subjects": robots},
+        {
+            "id": "robots-read",
+            "rules": ["robot-read-in", "robot-read-out", "robot-state-in", "robot-state-out", "robot-no-pose"],
+            "subjects": robots,
+        },
         {
             "id": "merger",
             "rules": [r["id"] for r in rules if r["id"].startswith("merger-")],
@@ -156,8 +165,9 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         {"id": "viewer", "rules": [r["id"] for r in rules if r["id"].startswith("viewer-")], "subjects": ["viewer"]},
     ]
     for robot in robots:
-        # a robot's own keys: its scans, local maps, poses and events, and its presence
-        rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], [f"{p}/robots/{robot}/**"]))
+        # a robot's own keys: its scans, local maps and events, and its presence
+        own = [f"{p}/robots/{robot}/{leaf}" for leaf in ("scan", "localmap", "events")]
+        rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], own))
         rules.append(_rule(f"robot-{robot}-token", "ingress", ["liveliness_token"], [f"{p}/alive/{robot}"]))
         # ... and where the merger puts it
         rules.append(_rule(f"robot-{robot}-pose-in", "ingress", ["declare_subscriber"], [f"{p}/robots/{robot}/pose"]))

@@ -67,6 +67,9 @@ class ZenohOptions:
         check_name(self.fleet, "--fleet")
         if not (self.connect_wait >= 0 and math.isfinite(self.connect_wait)):
             raise BadInput("--connect-wait", f"must be a number of seconds, 0 or more, got {self.connect_wait}")
+        for flag, endpoints in (("--connect", self.connect), ("--listen", self.listen)):
+            for endpoint in endpoints:
+                _check_port(flag, endpoint)
 
     @property
     def keys(self) -> FleetKeys:
@@ -74,6 +77,18 @@ class ZenohOptions:
 
     def with_mode(self, mode: str) -> ZenohOptions:
         return ZenohOptions(mode, self.connect, self.listen, self.config_file, self.fleet, self.connect_wait)
+
+
+def _check_port(flag: str, endpoint: str) -> None:
+    """BadInput for an IP endpoint (``tcp/HOST:PORT``, udp, tls, quic, ws) whose port is a number
+    no socket has: zenoh accepts its form and fails only when the session opens."""
+    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+    protocol, _, address = locator.partition("/")
+    if protocol not in ("tcp", "udp", "tls", "quic", "ws") or ":" not in address:
+        return
+    port = address.rsplit(":", 1)[1]
+    if port.isdigit() and not 0 <= int(port) <= 65535:
+        raise BadInput(f"{flag} {endpoint}", f"port {port} is not a port number (0-65535)")
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode: bool = True, fleet: bool = True) -> None:

@@ -241,8 +241,11 @@ def build_report(log: SessionLog, truth: Truth | None) -> dict[str, Any]:
     latest_pose: dict[str, RobotPose] = {}
     for pose, _ in log.poses:
         latest_pose[pose.robot] = pose
-    # A robot is placed when a submap of its latest epoch is part of the global map.
-    latest_epoch = {r: max((e for (rr, e) in log.epoch_first_scan if rr == r), default=0) for r in robots}
+    # A robot is placed when a submap of its latest epoch is part of the global map (not counting
+    # the epochs the merger refused: a second agent's under its id).
+    refused = {(e.robot, _json(e.detail).get("epoch")) for e in log.events if e.kind == "refused"}
+    mine = [(r, e) for (r, e) in log.epoch_first_scan if (r, e) not in refused]
+    latest_epoch = {r: max((e for (rr, e) in mine if rr == r), default=0) for r in robots}
     main_members = set(final.components[0].members) if final is not None and final.components else set()
     main_epochs = {_epoch_key(k) for k in main_members}
     placed = [r for r in robots if f"{r}/{latest_epoch[r]}" in main_epochs]

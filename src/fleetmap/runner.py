@@ -13,6 +13,7 @@ the runner saw on the bus) and writes the outputs from the recording (:mod:`flee
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import shutil
@@ -36,7 +37,7 @@ from fleetmap.shared.errors import FleetmapError
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import BadMessage, LocalMap, MergerStep, Scan, decode
+from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.io.recording import RecordingReader
 from fleetmap.shared.io.security import write_fleet_security
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
@@ -110,6 +111,10 @@ class _Watch:
     queued: int = 0
     """Pairs of maps the merger still had to integrate after its last step."""
     services: set[str] = field(default_factory=set)
+    robots: frozenset[str] | None = None
+    """The session's robots: only their local maps are waited for (anyone may publish on a fleet)."""
+    refused: set[str] = field(default_factory=set)
+    """Epochs (``robot/epoch``) the merger said it refuses: their maps are not waited for."""
     lock: threading.Lock = field(default_factory=threading.Lock)
     changed: threading.Event = field(default_factory=threading.Event)
 
@@ -121,8 +126,11 @@ class _Watch:
         except BadMessage:
             return
         with self.lock:
-            if isinstance(message, LocalMap):
+            if isinstance(message, LocalMap) and (self.robots is None or message.robot in self.robots):
                 self.published[message.submap_key] = max(self.published.get(message.submap_key, -1), message.version)
+            elif isinstance(message, FleetEvent) and message.kind == "refused" and message.robot is not None:
+                with contextlib.suppress(ValueError, KeyError, TypeError):
+                    self.refused.add(f"{message.robot}/{int(json.loads(message.detail)['epoch'])}")
             elif isinstance(message, MergerStep):
                 for k, v in zip(message.maps, message.versions, strict=True):
                     self.integrated[k] = max(self.integrated.get(k, -1), v)
@@ -134,7 +142,10 @@ class _Watch:
         """Every local map version published is in the merger's graph, and integrated with the
         others (no pairs queued after its last step)."""
         with self.lock:
-            return self.queued == 0 and all(self.integrated.get(k, -1) >= v for k, v in self.published.items())
+            return self.queued == 0 and all(
+                self.integrated.get(k, -1) >= v or k.rsplit("/", 1)[0] in self.refused
+                for k, v in self.published.items()
+            )
 
 
 class _Ros2Feeds:
@@ -283,7 +294,7 @@ class Session:
             _wait(lambda: _port_open(endpoint), READY_TIMEOUT, "the zenoh router")
             with ZenohBus.open(options) as bus:
                 keys = options.keys
-                watch = _Watch()
+                watch = _Watch(robots=frozenset(r.id for r in self.scenario.robots))
                 bus.subscribe(keys.everything, watch.on_message)
                 bus.subscribe_liveliness(
                     keys.all_services, lambda k: watch.services.add(k.rsplit("/", 1)[-1]), lambda k: None

@@ -160,6 +160,7 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     good, _ = true_local_map("department", "r1", 0, 6)
     maps = Inbox()
     bus.subscribe(keys.globalmap, maps)
+    bus.declare_liveliness(keys.alive("r1"))  # the merger listens to robots holding their token
     bus.publish(keys.localmap("r1"), good.to_msgpack())
     assert maps.wait_for(1, WAIT), "the merger stopped answering after the flood"
     state = GlobalMap.from_msgpack(bus.query(keys.state, timeout=5.0)[0])
@@ -208,6 +209,7 @@ def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_l
         merger = start(procs, "merger", *common, "--state", str(state), log=tmp_path / "merger.log")
         assert bus.wait_for_subscribers(keys.localmap("r1"), WAIT)
         for robot in ("r1", "r2", "r3"):
+            bus.declare_liveliness(keys.alive(robot))
             for epoch, first in enumerate(range(0, 32, 8)):
                 m = true_local_map("department", robot, first, first + 8, epoch=epoch)[0]
                 bus.publish(keys.localmap(robot), m.to_msgpack())
@@ -235,6 +237,8 @@ def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_d
         merger = start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
         assert services.wait_for(2, WAIT)
         first = true_local_map("department", "r1", 0, 8)[0]
+        for robot in ("r1", "r2"):
+            bus.declare_liveliness(keys.alive(robot))
         bus.publish(keys.localmap("r1"), first.to_msgpack())
         assert steps.wait_for(1, WAIT)
         merger.kill()  # down, while r1 sends its final version and r2 maps and finishes
@@ -286,9 +290,11 @@ def test_a_full_disk_is_said_loudly_and_the_services_keep_serving(tmp_path: Path
         shapes = [
             true_local_map("department", r, e * 10, e * 10 + 20, epoch=e)[0] for r in ("r1", "r2", "r3") for e in (0, 1)
         ]
+        for robot in ("r1", "r2", "r3"):
+            bus.declare_liveliness(keys.alive(robot))
         for version in range(20):
             for m in shapes:
-                v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose)
+                v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose, m.previous_epoch_link)
                 bus.publish(keys.localmap(v.robot), v.to_msgpack())
                 sent.append(v)
         bus.flush()
@@ -363,21 +369,26 @@ def test_late_join_leave_crash_and_kidnap_in_one_session(tmp_path: Path) -> None
     assert report["messages_recorded"] == report["messages_seen"]
 
 
-def test_an_agent_started_before_its_router_waits_for_it_and_then_streams(tmp_path: Path) -> None:
-    # docker compose starts every service at once: an agent whose router is not up yet says so and
-    # tries again, backing off, instead of exiting
+def test_an_agent_and_a_recorder_started_before_their_router_wait_for_it_and_then_stream(tmp_path: Path) -> None:
+    # docker compose starts every service at once: an agent or recorder whose router is not up yet
+    # says so and tries again, backing off, instead of exiting
     endpoint = free_loopback_endpoint()
     common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
-    log = tmp_path / "agent.log"
+    log, recorder_log = tmp_path / "agent.log", tmp_path / "recorder.log"
     with processes() as procs:
         start(procs, "agent", "--robot", "r1", "--scenario", "department", "--speed", "4", *common, log=log)
+        recorder = start(procs, "record", "--out", str(tmp_path / "s.mcap"), *common, log=recorder_log)
         deadline = time.monotonic() + WAIT
-        while "nothing answers at" not in log.read_text(errors="replace"):
-            assert procs[0].poll() is None, log.read_text(errors="replace")
-            assert time.monotonic() < deadline, "the agent never said it was waiting for its router"
-            threading.Event().wait(0.1)
+        for process, said in ((procs[0], log), (recorder, recorder_log)):
+            while "nothing answers at" not in said.read_text(errors="replace"):
+                assert process.poll() is None, said.read_text(errors="replace")
+                assert time.monotonic() < deadline, f"{said.name}: never said it was waiting for its router"
+                threading.Event().wait(0.1)
         start(procs, "router", "--listen", endpoint, log=tmp_path / "router.log")
         with ZenohBus.open(ZenohOptions(mode="client", connect=(endpoint,), fleet="t")) as bus:
             scans = Inbox()
             bus.subscribe(bus_keys().scan("r1"), scans)
             assert scans.wait_for(3, WAIT), log.read_text(errors="replace")
+        recorder.send_signal(signal.SIGTERM)
+        assert recorder.wait(WAIT) == 0, recorder_log.read_text(errors="replace")
+        assert "fleet/t/robots/r1/scan" in recorder_log.read_text(errors="replace")

@@ -51,6 +51,9 @@ def test_secure_writes_owner_only_configs_and_prints_no_secret(
     passwords = [line.split(":", 1)[1] for line in (folder / "users.txt").read_text().splitlines()]
     assert len(passwords) == 5 and len(set(passwords)) == 5 and min(len(p) for p in passwords) >= 40
     assert not any(p in printed.out + printed.err for p in passwords)
+    # every command printed names the fleet: a robot run as printed without it talks to nobody
+    commands = [line for line in printed.out.splitlines() if "fleetmap agent" in line or "fleetmap merger" in line]
+    assert len(commands) == 2 and all("--fleet t " in line for line in commands), printed.out
     for path in folder.iterdir():
         assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
@@ -111,6 +114,7 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
             rogue.publish(KEYS.localmap("r1"), msgpack.packb({**wire, "version": 2**62}))
             rogue.publish(KEYS.scan("r1"), b"forged scan")
             rogue.publish(KEYS.pose("r2"), b"forged pose")  # its own key, but the merger's to say
+            rogue.publish(f"{KEYS.prefix}/robots/r2/k0", b"made-up key")  # under its own prefix, not a key it has
             rogue.publish(KEYS.globalmap, GlobalMap(10**9, 9e9, ()).to_msgpack())
             rogue.publish(KEYS.events, FleetEvent("republish_request", None, 1.0).to_msgpack())
             token = rogue.declare_liveliness(KEYS.alive("r1"))
@@ -127,6 +131,9 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
                 # the robot's pose is put just after the global map
                 assert seen.wait_until(lambda got: any(k == KEYS.pose("r1") for k, _ in got), WAIT)
                 assert alive.wait_for(2, WAIT)
+                # a robot may ask the merger's state: a restarted agent begins after its epochs there
+                state = [GlobalMap.from_msgpack(p) for p in r1.query(KEYS.state, timeout=WAIT)]
+                assert len(state) == 1 and state[0].component_of("r1/0/0") is not None
                 token.close()
             merged = [decode(p) for k, p in seen.items if k == KEYS.globalmap]
             assert all(isinstance(m, GlobalMap) and m.stamp < 9e9 for m in merged)
@@ -134,7 +141,7 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
         assert [p for k, p in seen.items if k == KEYS.localmap("r1")] == [r1_map.to_msgpack()]
         assert KEYS.pose("r1") in {k for k, _ in seen.items}  # the merger puts every robot's global pose
         assert KEYS.scan("r1") not in {k for k, _ in seen.items}
-        assert not any(p == b"forged pose" for _, p in seen.items)
+        assert not any(p in (b"forged pose", b"made-up key") for _, p in seen.items)
         events = [decode(p) for k, p in seen.items if k == KEYS.events]
         assert not any(isinstance(e, FleetEvent) and e.stamp == 1.0 for e in events)
         assert alive.items == [(KEYS.alive("r2"),), (KEYS.alive("r1"),)]
@@ -146,7 +153,7 @@ def test_only_the_fleets_own_robots_get_in_and_none_speaks_for_another(tmp_path:
         assert recorder.wait(WAIT) == 0
     with RecordingReader(recording) as reader:
         messages = [(m.topic, m.payload) for m in reader.messages()]
-    assert not any(p in (b"forged scan", b"forged pose") for _, p in messages)
+    assert not any(p in (b"forged scan", b"forged pose", b"made-up key") for _, p in messages)
     localmaps = [decode(p) for t, p in messages if t == KEYS.localmap("r1")]
     assert [m.version for m in localmaps] == [r1_map.version]
     assert all(decode(p).stamp < 9e9 for t, p in messages if t == KEYS.globalmap)

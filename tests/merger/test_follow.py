@@ -62,6 +62,23 @@ def test_a_placed_scan_gives_the_merged_submap_pose_composed_with_its_own() -> N
     assert len(said) == 3
 
 
+def test_a_robot_whose_clock_steps_back_an_hour_keeps_getting_poses() -> None:
+    # ordered by stamps, every pose after the step was older than the last one said: the robot's
+    # pose froze for the hour
+    said: list[RobotPose] = []
+    follower = PoseFollower(said.append)
+    follower.merged({"r1/0/0": (0, Transform2D(0.0, 0.0, 0.0))})
+    at = Transform2D(0.1, 0.0, 0.0)
+    for index, stamp in enumerate([5000.0, 5000.2, 1400.4, 1400.6, 1400.8]):
+        assert follower.scan(Scan("r1", 0, index, stamp, NO_SEGMENTS, submap=0, pose=at)) is not None
+    assert [p.stamp for p in said] == [5000.0, 5000.2, 1400.4, 1400.6, 1400.8] and follower.clock_steps == 1
+    # a merge's pose from a submap stamped on the clock before the step is older than the scans since
+    assert follower.step(RobotPose("r1", 0, 5000.1, at, 0)).stamp == 1400.8
+    # the same scan again, or an earlier one by its count, says nothing whatever its stamp
+    assert follower.scan(Scan("r1", 0, 4, 1400.8, NO_SEGMENTS, submap=0, pose=at)) is None
+    assert follower.scan(Scan("r1", 0, 3, 9000.0, NO_SEGMENTS, submap=0, pose=at)) is None
+
+
 def test_no_more_robots_are_followed_than_the_merger_keeps() -> None:
     follower = PoseFollower(max_robots=2)
     follower.merged({f"r{i}/0/0": (0, Transform2D(0.0, 0.0, 0.0)) for i in range(3)})
@@ -88,6 +105,7 @@ def test_poses_stream_at_scan_rate_between_steps_on_the_bus() -> None:
     service.start()
     try:
         for r, (m, _) in maps.items():
+            robot.declare_liveliness(KEYS.alive(r))  # a live merger listens to robots holding their token
             robot.publish(KEYS.localmap(r), m.to_msgpack())
         assert service.run_once()
         stepped = [p for p in poses if p.robot == "r1"]
@@ -105,6 +123,14 @@ def test_poses_stream_at_scan_rate_between_steps_on_the_bus() -> None:
             assert math.isclose(p.stamp, last + 0.2 * k) and p.component == 0 and p.pose is not None
             expected = frame.compose(maps["r1"][0].pose.compose(Transform2D(0.1 * k, 0.0, 0.0)))
             assert _close(p.pose, expected)
+        # a scan stamped far past this clock (9.2e9 s: under the format's limit) is dropped; had it
+        # been followed, no later pose of r1 would have been newer than it
+        future = maps["r1"][0].pose.compose(Transform2D(0.7, 0.0, 0.0))
+        robot.publish(KEYS.scan("r1"), Scan("r1", 0, 10**6, 9.2e9, NO_SEGMENTS, submap=0, pose=future).to_msgpack())
+        robot.publish(KEYS.scan("r1"), _scan("r1", last + 1.4, 0, future).to_msgpack())
+        with got:
+            assert got.wait_for(lambda: len(poses) >= len(stepped) + 6, timeout=30.0), poses
+        assert math.isclose(poses[-1].stamp, last + 1.4) and service.future_scans == 1
         assert merger.stats.steps == 1
     finally:
         service.close()

@@ -243,21 +243,25 @@ def test_any_stats_answer_decodes_or_raises_bad_message(payload: bytes) -> None:
     assert isinstance(summary.total, int) and isinstance(summary.table(), str)
 
 
-def test_a_key_flooding_the_recorder_is_cut_to_its_rate_and_the_others_are_not():
+@pytest.mark.parametrize("made_up_keys", [1, 12])
+def test_a_robot_flooding_the_recorder_is_cut_to_its_rate_and_the_others_are_not(made_up_keys):
+    # one key, or keys the robot made up under its own prefix (each had its own burst when the
+    # rate was per key): the robot's flood is cut to one rate either way
     stream = io.BytesIO()
     recorder = Recorder(RecordingWriter(stream), KEYS, key_rate=1e5, key_burst=2e5, foxglove=False)
     junk = b"\x00" * 10_000
     legit = Scan("r2", 0, 0, 0.0, SEGMENTS).to_msgpack()
-    for i in range(1000):  # 10 s of a 1 MB/s flood on r1's scan key, r2 scanning at 10 Hz beside it
+    flood_keys = [KEYS.scan("r1")] if made_up_keys == 1 else [f"{KEYS.prefix}/robots/r1/k{k}" for k in range(12)]
+    for i in range(1000):  # 10 s of a 1 MB/s flood by r1, r2 scanning at 10 Hz beside it
         t = SECOND + i * SECOND // 100
-        recorder.feed(KEYS.scan("r1"), junk, t)
+        recorder.feed(flood_keys[i % len(flood_keys)], junk, t)
         if i % 10 == 0:
             recorder.feed(KEYS.scan("r2"), legit, t)
     summary = recorder.finish()
-    flood = summary.payload_bytes[KEYS.scan("r1")]
+    flood = sum(summary.payload_bytes.get(k, 0) for k in flood_keys)
     assert flood <= 2e5 + 10 * 1e5 + len(junk)  # the burst plus the rate over 10 s
     assert summary.messages[KEYS.scan("r2")] == 100  # nothing of r2's is lost
-    assert summary.throttled == 1000 - summary.messages[KEYS.scan("r1")]
+    assert summary.throttled == 1000 - sum(summary.messages.get(k, 0) for k in flood_keys)
     assert "--max-key-rate" in summary.table()
 
 

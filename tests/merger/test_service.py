@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import functools
+import json
 import math
 import tempfile
+import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import msgpack
@@ -17,7 +20,17 @@ from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import FleetEvent, GlobalMap, LocalMap, MergeEdge, MergerStep, RobotPose, decode
+from fleetmap.shared.io.messages import (
+    EpochLink,
+    FleetEvent,
+    GlobalMap,
+    LocalMap,
+    MergeEdge,
+    MergerStep,
+    RobotPose,
+    Scan,
+    decode,
+)
 
 from tests.helpers import true_local_map
 
@@ -264,6 +277,7 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     merger = Merger(KEYS)
     svc = service.MergerService(InMemoryBus(), merger, state_file=state, step_seconds=1e-6)
     for r in ("r1", "r2", "r3"):
+        merger.presence(r, True, 0.0)  # a live merger listens to robots holding their token
         merger.receive(KEYS.localmap(r), maps[r][0].to_msgpack())
     stop = threading.Event()
     stop.set()
@@ -283,3 +297,161 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     for key, pose in whole.global_map.components[0].poses.items():
         other = restored.global_map.components[0].poses[key]
         assert pose.distance(other)[0] < 0.02 and pose.distance(other)[1] < 0.01
+
+
+@pytest.mark.slow  # two zenoh sessions on loopback
+def test_a_liveliness_token_that_names_no_robot_is_counted_and_the_merger_goes_on() -> None:
+    from fleetmap.merger.service import MergerService
+
+    from tests.bus_helpers import open_zenoh_pair
+
+    merger_bus, other = open_zenoh_pair(KEYS.fleet)
+    svc = MergerService(merger_bus, Merger(KEYS))
+    tokens = []
+    try:
+        svc.start()
+        # anyone on an open fleet may declare any token: one named like no robot, then a real robot
+        tokens.append(other.declare_liveliness(f"{KEYS.prefix}/alive/BAD"))
+        tokens.append(other.declare_liveliness(KEYS.alive("r9")))
+        deadline = time.monotonic() + 5.0
+        while "r9" not in svc.merger.robots and time.monotonic() < deadline:
+            svc.run_once()
+            time.sleep(0.01)
+        assert svc.merger.robots == ["r9"]
+        assert svc.merger.stats.malformed_reasons["liveliness token"] == 1
+    finally:
+        for token in tokens:
+            token.close()
+        svc.close()
+        other.close()
+        merger_bus.close()
+
+
+def _box(robot: str, epoch: int = 0, submap: int = 0, version: int = 0, **fields) -> LocalMap:  # type: ignore[no-untyped-def]
+    """A small valid submap (three walls of a box), as any process on an open fleet can send."""
+    walls = np.array([[0.0, 0.0, 4.0, 0.0], [4.0, 0.0, 4.0, 3.0], [4.0, 3.0, 0.0, 3.0]])
+    return LocalMap(robot, epoch, version, 1.0, walls, 3, Transform2D(), submap=submap, **fields)
+
+
+def _live(max_robots: int = 256) -> Merger:
+    merger = Merger(KEYS, FleetmapConfig(merge=MergeParams(max_robots=max_robots)))
+    merger.require_presence = True  # as MergerService makes it
+    return merger
+
+
+def test_fake_robots_without_tokens_or_gone_unplaced_take_no_room(maps, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    # 1000 ids' valid maps before the robots started filled the 256-robot limit for good, the
+    # state file too: the real robots' messages were all refused
+    merger = _live(max_robots=2)
+    for i in range(1000):
+        merger.receive(KEYS.localmap(f"f{i}"), _box(f"f{i}").to_msgpack())
+    assert merger.pending == 0 and merger.stats.refused["absent"] == 1000
+    # a fake that holds a token counts while it holds it, and is forgotten when it leaves unplaced
+    # (a few centimetres of wall: nothing to place it by)
+    merger.presence("f1", True, 1.0)
+    scrap = LocalMap("f1", 0, 0, 1.0, np.array([[0.0, 0.0, 0.05, 0.0], [0.0, 0.1, 0.0, 0.15]]), 1, Transform2D())
+    merger.receive(KEYS.localmap("f1"), scrap.to_msgpack())
+    for robot in ("r1", "r2"):
+        merger.presence(robot, True, 1.0)
+        merger.receive(KEYS.localmap(robot), maps[robot][0].to_msgpack())
+    assert merger.stats.refused["max_robots"] == 1 and merger.pending == 2  # f1 and r1 count, r2 waits
+    merger.step()
+    merger.presence("f1", False, 2.0)
+    merger.receive(KEYS.localmap("r2"), maps["r2"][0].to_msgpack())
+    # a robot that finished and left before a busy merger got to its map is not forgotten for that
+    merger.presence("r1", False, 3.0)  # placed: it stays, and no longer counts
+    merger.presence("r3", True, 3.0)
+    merger.receive(KEYS.localmap("r3"), maps["r3"][0].to_msgpack())
+    merger.presence("r3", False, 4.0)
+    assert "r3" in merger.robots
+    while merger.has_work:  # f1 is forgotten once its submap has had its tries
+        merger.step()
+    merger.save_state(tmp_path / "state")
+    restored = _live()
+    restored.load_state(tmp_path / "state")
+    assert restored.robots == ["r1", "r2", "r3"] and len(restored.global_map.components) == 1
+
+
+def test_a_final_submap_never_changes(maps) -> None:  # type: ignore[no-untyped-def]
+    # a robot restarted under its id published a new r2/0/0 over its final one (map error 0.017 -> 2.2 m)
+    merger = _live()
+    merger.presence("r1", True, 1.0)
+    final = LocalMap("r1", 0, 3, 5.0, maps["r1"][0].segments, 40, None, final=True)
+    merger.receive(KEYS.localmap("r1"), final.to_msgpack())
+    merger.step()
+    merger.receive(KEYS.localmap("r1"), _box("r1", version=9).to_msgpack())
+    assert merger.pending == 0 and merger.stats.refused["final_submap"] == 1
+    assert merger.submaps["r1/0/0"].version == 3
+
+
+def test_a_second_live_agent_under_an_id_is_refused_and_a_restarted_one_is_taken(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = _live()
+    merger.presence("r2", True, 1.0)
+    merger.receive(KEYS.localmap("r2"), _box("r2").to_msgpack())
+    merger.step()
+    # started elsewhere while r2 runs: its first epoch (no link to r2's) and the epochs after it
+    said = _decoded(merger.receive(KEYS.localmap("r2"), _box("r2", epoch=1).to_msgpack()))
+    assert [(e.kind, e.robot, json.loads(e.detail)["epoch"]) for e in said] == [("refused", "r2", 1)]
+    kidnapped = _box("r2", epoch=2, previous_epoch_link=EpochLink(1, "lost"))
+    merger.receive(KEYS.localmap("r2"), kidnapped.to_msgpack())
+    merger.receive(KEYS.scan("r2"), Scan("r2", 2, 7, 1.0, np.zeros((0, 4))).to_msgpack())
+    assert merger.pending == 0 and merger.stats.refused["second_agent"] == 3 and merger.robot_epoch("r2") == 0
+    # the first agent's own kidnap is its own epoch, linked to its earlier one
+    merger.receive(KEYS.localmap("r2"), _box("r2", epoch=3, previous_epoch_link=EpochLink(0, "lost")).to_msgpack())
+    assert merger.pending == 1
+    # r2 killed and started again: its first epoch after the ones held is taken
+    merger.presence("r2", False, 2.0)
+    merger.presence("r2", True, 3.0)
+    merger.receive(KEYS.scan("r2"), Scan("r2", 4, 0, 1.0, np.zeros((0, 4))).to_msgpack())  # before its first map
+    merger.receive(KEYS.localmap("r2"), _box("r2", epoch=4).to_msgpack())
+    assert merger.pending == 2
+
+
+def test_stamps_label_a_robot_s_maps_and_do_not_order_them(maps) -> None:  # type: ignore[no-untyped-def]
+    merger = _live()
+    merger.presence("r1", True, 1.0)
+    now = 1.8e9
+    m = maps["r1"][0]
+    # a stamp past the skew window is refused; the map's stamp is the step's time
+    merger.receive(KEYS.localmap("r1"), replace(m, stamp=9.2e9).to_msgpack(), now=now)
+    assert merger.pending == 0 and merger.stats.refused["future_stamp"] == 1
+    merger.receive(KEYS.localmap("r1"), replace(m, stamp=now + 3.0).to_msgpack(), now=now)
+    merger.step(now=now + 1.0)
+    assert merger.global_map.stamp == now + 1.0
+    # its clock steps back an hour: its next version still moves its pose
+    moved = replace(m, version=1, stamp=now - 3600.0, pose=m.pose.compose(Transform2D(0.5, 0.0, 0.0)))
+    merger.receive(KEYS.localmap("r1"), moved.to_msgpack(), now=now)
+    out = _decoded(merger.step(now=now + 2.0))
+    pose = next(p for p in out if isinstance(p, RobotPose))
+    assert pose.stamp == now - 3600.0 and merger.global_map.stamp == now + 2.0
+
+
+def test_robots_take_turns_at_integration_so_a_flood_delays_only_its_robot(maps) -> None:  # type: ignore[no-untyped-def]
+    # 2,000 epochs of one robot left 6,031 pairs queued ahead of the real robots' for a minute
+    merger = Merger(KEYS)
+    for epoch in range(30):
+        link = EpochLink(epoch - 1, "lost") if epoch else None
+        merger.receive(KEYS.localmap("f"), _box("f", epoch=epoch, previous_epoch_link=link, final=True).to_msgpack())
+    merger.receive(KEYS.localmap("r1"), maps["r1"][0].to_msgpack())
+    out = _decoded(merger.step(limit=2))
+    edges = [m for m in out if isinstance(m, MergeEdge)]
+    assert merger.queued > 20 and len(edges) == 2
+    assert [sorted({e.a.split("/")[0], e.b.split("/")[0]}) for e in edges][1] == ["f", "r1"]  # r1's turn came second
+
+
+def test_the_global_map_is_the_component_of_the_most_robots_not_of_one_robot_s_many_epochs(maps) -> None:  # type: ignore[no-untyped-def]
+    # a robot flooding its own key with epochs of one shape made their component the "largest": no
+    # real robot was placed any more
+    merger = Merger(KEYS)
+    for epoch in range(4):
+        link = EpochLink(epoch - 1, "lost") if epoch else None
+        merger.receive(KEYS.localmap("f"), _box("f", epoch=epoch, previous_epoch_link=link, final=True).to_msgpack())
+    for robot in ("r1", "r2"):
+        merger.receive(KEYS.localmap(robot), maps[robot][0].to_msgpack())
+    while merger.has_work:
+        merger.step()
+    robots_of = [{k.split("/")[0] for k in c.members} for c in merger.global_map.components]
+    assert any(
+        len({k.split("/")[1] for k in c.members if k.startswith("f/")}) > 2 for c in merger.global_map.components
+    )
+    assert robots_of[0] == {"r1", "r2"}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import struct
+import tracemalloc
 from dataclasses import replace
 
 import msgpack
@@ -14,6 +15,8 @@ from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys, map_key, parse_map_key
 from fleetmap.shared.io.messages import (
+    DECODED_BYTES_PER_BYTE,
+    DECODED_SLACK,
     MAX_PAYLOAD_BYTES,
     MAX_SEGMENTS,
     BadMessage,
@@ -572,3 +575,51 @@ def test_a_payload_that_would_blow_up_when_unpacked_is_refused_from_its_header()
         decode(huge_array)
     with pytest.raises(BadMessage, match="not msgpack"):
         decode(b"\x91" * 100_000 + b"\x00")  # nested 100,000 deep
+
+
+def _decoding_peak(payload: bytes) -> tuple[float, str]:
+    """Peak bytes allocated while decoding ``payload``, and why it was refused."""
+    tracemalloc.start()
+    try:
+        decode(payload)
+        reason = ""
+    except BadMessage as exc:
+        reason = str(exc)
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak, reason
+
+
+@pytest.mark.parametrize(
+    ("field", "bomb", "refused"),
+    [
+        # a name no LocalMap field has: skipped over, never decoded
+        ("x", [[[]] * 60_000] * 10, "fleetmap.LocalMap field 'robot': missing"),
+        # a field that is packed bytes on the wire: refused from the array's first byte
+        ("segments", [[[]] * 60_000] * 10, "fleetmap.LocalMap field 'segments': expected one value or packed bytes"),
+        # a field that is a map: counted as it decodes, refused past the budget
+        ("link", [{"": ""}] * 200_000, "message: 600"),
+    ],
+)
+def test_a_payload_packing_millions_of_items_decodes_into_a_bounded_multiple_of_its_size(field, bomb, refused):
+    # each packed item is one byte on the wire and 56 or more as a Python object: unbounded, a 16 MB
+    # payload took over a gigabyte in every subscriber
+    payload = msgpack.packb({"schema": "fleetmap.LocalMap", "v": 2, field: bomb})
+    peak, reason = _decoding_peak(payload)
+    assert peak < DECODED_BYTES_PER_BYTE * len(payload) + DECODED_SLACK + 1_000_000 < 32 * len(payload), peak
+    assert reason.startswith(refused), reason
+
+
+def test_messages_as_sent_decode_within_their_budget():
+    rng = np.random.default_rng(3)
+    members = [f"r{i}/{e}" for i in range(100) for e in range(200)]
+    components = [
+        Component(m[0], tuple(m), {k: Transform2D(1.0, 2.0, 0.5) for k in m}, rng.random((40, 4)) + np.ones(4))
+        for m in (members[i : i + 20] for i in range(0, len(members), 20))
+    ]
+    global_map = GlobalMap(7, 1.0, tuple(components)).to_msgpack()
+    step = MergerStep(3, 1.0, tuple(members), tuple(range(len(members)))).to_msgpack()
+    for payload in (global_map, step):
+        assert len(payload) > 100_000
+        assert decode(payload).to_msgpack() == payload

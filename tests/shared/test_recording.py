@@ -288,3 +288,16 @@ def test_events_are_log_lines_and_edges_have_no_view():
 def test_foxglove_schemas_are_the_sdk_ones():
     assert SCENE_UPDATE.name == "foxglove.SceneUpdate" and SCENE_UPDATE.encoding == "protobuf"
     assert "foxglove.SceneUpdate" in Schema(SCENE_UPDATE.data).messages
+
+
+def test_a_second_writer_of_a_recording_being_written_is_refused_by_name(tmp_path):
+    # two recorders started together both found session.mcap free; each wrote into it
+    path = tmp_path / "session.mcap"
+    first = RecordingWriter(path)
+    first.write_raw("fleet/t/events", FleetEvent("recorder_start", None, 1.0).to_msgpack(), 10, 10)
+    with pytest.raises(BadInput, match=f"{path}.*another recorder is writing it"):
+        RecordingWriter(path)
+    first.finish()
+    with RecordingReader(path) as reader:
+        assert [m.topic for m in reader.messages()] == ["fleet/t/events"]
+    RecordingWriter(path).finish()  # once the first is done with it, the file is free again

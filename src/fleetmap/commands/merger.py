@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.service import STEP_SECONDS, MergerService
 from fleetmap.ros2_outputs import NODE_NAME, Ros2Outputs
+from fleetmap.shared.config import MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire
 from fleetmap.shared.io.bus import ZenohBus
@@ -88,7 +90,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         executor.close()
     s = merger.stats
-    refused = ", ".join(f"{n} by --{limit.replace('_', '-')}" for limit, n in sorted(s.refused.items()))
+    limits = {f.name for f in dataclasses.fields(MergeParams)}
+    refused = ", ".join(
+        f"{n} by --{reason.replace('_', '-')}" if reason in limits else f"{n} ({reason.replace('_', ' ')})"
+        for reason, n in sorted(s.refused.items())
+    )
     log.warning(
         "merger stopped: %d steps, %d integrations (%d near a prediction), %d submaps; %d malformed messages "
         "dropped, %d naming another robot than their key's%s",

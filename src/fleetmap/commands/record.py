@@ -55,9 +55,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         default=KEY_RATE / 1e6,
         metavar="MB/S",
-        help=f"a key that writes faster than this in the long run (bursts of {KEY_BURST / 1e6:g} MB pass) has "
-        f"its messages dropped and counted: one flooding publisher cannot fill the disk; 0: no limit "
-        f"(default {KEY_RATE / 1e6:g})",
+        help=f"a robot (all its keys together; a key that is no robot's on its own) that writes faster than "
+        f"this in the long run (bursts of {KEY_BURST / 1e6:g} MB pass) has its messages dropped and counted: one "
+        f"flooding publisher cannot fill the disk; 0: no limit (default {KEY_RATE / 1e6:g})",
     )
     add_zenoh_arguments(p)
     p.set_defaults(func=run)
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         # Validated first: a recording should not carry a scenario that cannot be read back.
         load_scenario(args.scenario)
         metadata["fleetmap.scenario"] = {"toml": Path(args.scenario).read_text(encoding="utf-8")}
-    with ZenohBus.open(config) as bus:
+    with ZenohBus.open(options) as bus:  # options, not config: it waits --connect-wait for a router
         writer = RecordingWriter(out)
         recorder = Recorder(
             writer,

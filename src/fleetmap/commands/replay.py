@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from fleetmap.config_args import add_config_arguments, config_from_args
@@ -36,8 +37,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.speed < 0:
-        raise BadInput("--speed", f"must not be negative, got {args.speed}")
+    if not (args.speed >= 0 and math.isfinite(args.speed)):
+        raise BadInput("--speed", f"must be 0 (as fast as possible) or a positive factor, got {args.speed}")
+    for flag, seconds in (("--from", args.start), ("--to", args.stop)):
+        if seconds is not None and not (seconds >= 0 and math.isfinite(seconds)):
+            raise BadInput(flag, f"must be a number of seconds from the start, 0 or more, got {seconds}")
     if args.start is not None and args.stop is not None and args.stop < args.start:
         raise BadInput("--to", f"{args.stop} is before --from {args.start}")
     robots = frozenset(r.strip() for r in args.robots.split(",") if r.strip()) if args.robots else None

@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     written = write_fleet_security(out, args.fleet, robots, args.listen or None, args.connect or None, tls=args.tls)
     print(f"fleetmap secure: fleet {args.fleet!r}, {len(robots)} robots, {len(written)} files in {out.resolve()}/")
     print(f"  router:  fleetmap router --zenoh-config {out.resolve()}/router.json5")
-    print(f"  robot:   fleetmap agent --robot {robots[0]} --zenoh-config {out.resolve()}/{robots[0]}.json5 ...")
+    robot = f"--robot {robots[0]} --fleet {args.fleet}"
+    print(f"  robot:   fleetmap agent {robot} --zenoh-config {out.resolve()}/{robots[0]}.json5 ...")
     print(f"  merger:  fleetmap merger --fleet {args.fleet} --zenoh-config {out.resolve()}/merger.json5 ...")
     print(f"  record:  fleetmap record --fleet {args.fleet} --zenoh-config {out.resolve()}/recorder.json5 ...")
     return 0

@@ -10,7 +10,6 @@ import time
 from fleetmap.merger.view import DEFAULT_PORT, GRID_PERIOD, FoxgloveServer, LiveView, ViewService
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import ZenohBus
-from fleetmap.shared.io.zenoh_config import zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -43,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise BadInput("--duration", f"must be a positive number of seconds, got {args.duration}")
     options = zenoh_options_from_args(args)
-    with ZenohBus.open(zenoh_config(options)) as bus:
+    with ZenohBus.open(options) as bus:
         try:
             server = FoxgloveServer(args.host, args.port)
         except RuntimeError as exc:  # the port taken, the address not this host's
