@@ -13,7 +13,7 @@ Conventions on the wire:
 - segments travel as one ``bin`` of little-endian float64, ``n * 4`` values ``[x1, y1, x2, y2]``,
   and decode to a read-only ``(n, 4)`` array; NaN, infinite coordinates and zero-length segments
   are refused;
-- transforms are maps ``{"x", "y", "theta"}`` (``../shared/CONTRACTS.md``, Transform);
+- transforms are maps ``{"x", "y", "theta"}`` (``docs/formats.md``);
 - ``stamp`` is seconds (the scan's time: simulated or wall clock), finite and non-negative;
 - a robot's local map of one epoch is named by its map key ``<robot>/<epoch>``, one submap of it
   by ``<robot>/<epoch>/<submap>`` (:mod:`fleetmap.shared.io.keys`);
@@ -296,7 +296,7 @@ class LaserRanges:
     """A scan's raw laser readings, kept so replays and viewers can use them.
 
     Beam i points at ``angle_min + i * angle_increment``; a reading that is not finite, is <= 0
-    or is >= ``range_max`` is no return (``../shared/CONTRACTS.md``, Range scan). Readings travel
+    or is >= ``range_max`` is no return (``docs/formats.md``, range scans). Readings travel
     as little-endian float32.
     """
 

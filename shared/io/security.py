@@ -2,8 +2,8 @@
 
 ``fleetmap secure`` writes a router config and one client config per role. The router enforces
 the rules below; every robot and service runs as a *client* of it with scouting off, because peers
-that link to each other directly bypass a router's rules (``../shared/NOTES-zenoh-mcap.md``,
-security).
+that link to each other directly bypass a router's rules (checked on zenoh 1.x: a router's access
+control applies to what passes through it, not to a link two peers open between themselves).
 
 Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
 
