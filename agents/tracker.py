@@ -52,6 +52,7 @@ from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import scan_viewpoint
 from fleetmap.shared.core.motion import (
+    CHI2_3DOF_99,
     Prediction,
     ScanClock,
     from_odometry,
@@ -76,9 +77,6 @@ from fleetmap.shared.core.tracking import (
 from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
-
-CHI2_99_3DOF = 11.345
-"""The chi-square distribution's 99 % quantile at 3 degrees of freedom (an SE(2) increment's)."""
 
 
 KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
@@ -209,9 +207,9 @@ class Tracker:
         self.params = self.config.tracking
         self.use_odometry = odometry
         self.epoch = -1
+        """The current epoch (-1 before the first scan with segments)."""
         self.first_epoch = 0
         """The number of the first epoch (a robot restarted under its id goes on after its earlier run's)."""
-        """The current epoch (-1 before the first scan with segments)."""
         self.active: list[Submap] = []
         """The active submaps, oldest (the matching one) first."""
         self.finished: list[Submap] = []
@@ -401,7 +399,7 @@ class Tracker:
 
         d_signed, d_unsigned = distance(signed), distance(unsigned)
         low = min(d_signed, d_unsigned)  # likelihoods relative to the likelier state's
-        if low > CHI2_99_3DOF:
+        if low > CHI2_3DOF_99:
             return  # neither state explains the step (the validation gate): the odometry is off otherwise
         l_signed, l_unsigned = math.exp(-0.5 * (d_signed - low)), math.exp(-0.5 * (d_unsigned - low))
         # a belief held while moving is never quite certain: a step that only the other state

@@ -98,6 +98,10 @@ CHI2_1DOF_99 = 6.635
 """The chi-square bound of one degree of freedom at 99 %: how far (in standard deviations, squared)
 a registered motion may lie beyond what the robot can drive before it says the clock is wrong."""
 
+CHI2_3DOF_99 = 11.345
+"""The chi-square bound of three degrees of freedom at 99 %: an SE(2) increment's squared
+Mahalanobis distance past which its prediction does not explain it (the validation gate)."""
+
 
 class ScanClock:
     """How much time passed between a robot's scans, as the evidence supports it.
