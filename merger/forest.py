@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 
-from fleetmap.merger.graph import Edge
+from fleetmap.merger.graph import Component, Edge
 from fleetmap.shared.core.geometry import Array, Transform2D
 
 _Sums = tuple[float, float, float, float, float, float, float, float, int]
@@ -63,6 +64,19 @@ class RootedForest:
                     self.at[u] = self.at[k].compose(e.transform)
                     self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
                     queue.append(u)
+
+    def add_root(self, key: str) -> None:
+        """A new tree of one node."""
+        self.parent[key], self.depth[key], self.root[key] = None, 0, key
+        self.at[key], self._sums[key] = Transform2D.identity(), _ZERO
+
+    def add_leaf(self, e: Edge, covariances: dict[tuple[str, str], Array]) -> None:
+        """Hang ``e.b`` (a tree of one node) from ``e.a``: the forest as if rooted again, for the
+        cost of one node."""
+        k, u = e.a, e.b
+        self.parent[u], self.depth[u], self.root[u] = e, self.depth[k] + 1, self.root[k]
+        self.at[u] = self.at[k].compose(e.transform)
+        self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
 
     def lowest_common(self, a: str, b: str) -> str | None:
         """The lowest common ancestor of two nodes (None: in different trees)."""
@@ -131,3 +145,37 @@ def _add(
         sums[7] + 0.5 * float(cov[0, 0] + cov[1, 1]),
         sums[8],
     )
+
+
+@dataclass
+class KeptForest:
+    """A solve's spanning forest and what it rests on, kept for the next solve
+    (:meth:`~fleetmap.merger.posegraph.PoseGraph._kept_solve`): the tree, its loop closures and the
+    integrations it rejected; each submap's group (``root``), pose in its group's frame (``rel``)
+    and the groups' members; the tree's adjacency, both ways round, and the forest rooted."""
+
+    tree: list[Edge]
+    loops: list[Edge]
+    conflicts: list[Edge]
+    """The integrations the forest rejected: joins refused, cycles that do not close."""
+    root: dict[str, str]
+    rel: dict[str, Transform2D]
+    members: dict[str, list[str]]
+    adjacency: dict[str, list[Edge]]
+    forest: RootedForest
+    rejected: list[Edge] = field(default_factory=list)
+    """Every integration the solve rejected (the conflicts, the culprits, those the refined poses
+    disagree with)."""
+    contested: bool = False
+    """Whether the culprit vote, counting every conflict, accuses a tree join (:func:`~fleetmap.merger.graph._culprit`):
+    then only the accusers' groups decide it, and they may decide otherwise as they grow."""
+    excluded: set[tuple[str, str]] = field(default_factory=set)
+    """The integrations left out of the forest as culprits or joins their groups do not bear out."""
+    edges: dict[tuple[str, str], Edge] = field(default_factory=dict)
+    """Every edge the forest was built from, by key."""
+    aside: dict[tuple[str, str], Edge] = field(default_factory=dict)
+    """The integrations left out (``excluded``, and those the refined poses disagree with), by key."""
+    versions: dict[str, int] = field(default_factory=dict)
+    """Every submap's version when the forest was built."""
+    components: dict[str, Component] = field(default_factory=dict)
+    """The refined components, by their group's root."""

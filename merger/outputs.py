@@ -15,6 +15,7 @@ the pair schedule (:mod:`fleetmap.merger.schedule`) reads it too.
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass, field
 
@@ -57,8 +58,9 @@ class Robot:
     """Epochs of a second agent under its id, and those that descend from them."""
 
 
+@functools.lru_cache(maxsize=1 << 16)
 def epoch_of(key: str) -> str:
-    """The ``robot/epoch`` a submap key belongs to."""
+    """The ``robot/epoch`` a submap key belongs to (kept: every step asks it of every submap)."""
     robot, epoch, _ = parse_submap_key(key)
     return f"{robot}/{epoch}"
 

@@ -38,7 +38,7 @@ from dataclasses import replace
 
 import gtsam
 import numpy as np
-from fleetmap.merger.forest import RootedForest
+from fleetmap.merger.forest import KeptForest, RootedForest
 from fleetmap.merger.graph import (
     Component,
     Edge,
@@ -111,10 +111,21 @@ class PoseGraph(JoinJudge):
         """Each component's refined poses and the edges they disagree with, by its anchor, members
         and edges, from the last solve (:meth:`_refined_components`)."""
         self._last_refined = self._refined_now
+        self._kept: KeptForest | None = None
+        """The last solve's forest, for the next to carry on (:meth:`_kept_solve`)."""
+        self._ranks: dict[int, tuple[Component, tuple[int, int, int, float]]] = {}
+        """Each component's rank for the global map (:meth:`_global_first`), by the component."""
+        self._ambiguity: dict[tuple[str, str], tuple[Edge, int, int, bool]] = {}
+        """Each invalid integration's :meth:`_ambiguous` at its two submaps' versions."""
+        self.whole_solves = 0
+        self.kept_solves = 0
+        """Solves of the whole graph, and solves that carried the last one on."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
         self._solution.pop(key, None)
+        self._kept = None
+        self._ambiguity = {k: v for k, v in self._ambiguity.items() if key not in k}
 
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);
@@ -123,22 +134,19 @@ class PoseGraph(JoinJudge):
         return super()._work(key, m) if _map_file(key) else m
 
     def solve(self, fuse_maps: bool = True) -> MergeResult:
+        """The global maps: the forest and the refined poses kept from the last solve where the
+        step only added to them (:meth:`_kept_solve`), else found again from the whole graph
+        (:meth:`_whole_solve`)."""
         links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
-        order = {k: n.order for k, n in self._nodes.items()}
         valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
-        valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
-        disagreeing: set[tuple[str, str]] = set()
         self._last_walls, self._walls_now = self._walls_now, {}
-        self._last_refined, self._refined_now = self._refined_now, {}
-        for _ in range(self.merge.max_rejection_rounds):
-            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing])
-            components, off = self._refined_components(tree, loops)
-            if not off:
-                break
-            for e in off:
-                log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
-            disagreeing.update(e.key() for e in off)
-        rejected += [e for e in valid if e.key() in disagreeing and e.valid]
+        kept = self._kept_solve(links, valid) if self._kept is not None else None
+        if kept is None:
+            self.whole_solves += 1
+            components, tree, loops, rejected = self._whole_solve(links, valid)
+        else:
+            self.kept_solves += 1
+            components, tree, loops, rejected = kept
         if fuse_maps:  # the walls of the final round's components only
             components = [replace(c, segments=self._walls(list(c.members), c.poses)) for c in components]
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
@@ -147,7 +155,200 @@ class PoseGraph(JoinJudge):
                 poses.update(c.poses)
         return MergeResult(poses, components, tree, loops, rejected)
 
-    def _forest(self, links: list[Edge], valid: list[Edge]) -> tuple[list[Edge], list[Edge], list[Edge]]:
+    def _kept_solve(
+        self, links: list[Edge], valid: list[Edge]
+    ) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]] | None:
+        """The last solve's forest and poses carried on by what this step added, where that alone
+        decides the answer (issue 49: a step costs what it adds); None where the whole graph must
+        be solved again (:meth:`_whole_solve`).
+
+        Kept, the forest grows as Kruskal's would from its new edges, most valuable first: a new
+        submap hangs from its robot's chain by its link (a leaf: the rooted forest grows by one
+        node, the chain's refined poses stand and the leaf's follows from its link, exactly the
+        least-squares answer), an integration within one tree is checked against the tree's path
+        (a loop that closes: the component is refined again from its last poses), and one between
+        two trees that the groups do not bear out is refused, as the whole solve would. Everything
+        else that could change the answer calls for the whole solve: a submap or an edge gone or
+        changed, a join taken, a cycle that does not close, a link between two grown groups, a
+        join or a culprit that a grown group may now decide otherwise, an integration the refined
+        poses now disagree with or agree with again. A step that adds nothing but new versions of
+        submaps changes no pose."""
+        kept = self._kept
+        assert kept is not None
+        if any(k not in self._nodes for k in kept.versions):
+            return None
+        taken = {e.key(): e for e in links}
+        aside = 0
+        for e in valid:
+            key = e.key()
+            if key in kept.aside:
+                if kept.aside[key] is not e and kept.aside[key] != e:
+                    return None  # integrated again: the whole solve judges it
+                aside += 1
+                continue
+            taken[key] = e
+        new: list[Edge] = []
+        for key, e in taken.items():
+            held = kept.edges.get(key)
+            if held is None:
+                new.append(e)
+            elif held is not e and held != e:
+                return None
+        if len(taken) - len(new) != len(kept.edges) or aside != len(kept.aside):
+            return None  # an edge left
+        grown = {k for k, n in self._nodes.items() if kept.versions.get(k) != n.version}
+        if not new and not grown:
+            return self._kept_result(kept)
+        root, rel, members, adjacency, forest = kept.root, kept.rel, kept.members, kept.adjacency, kept.forest
+        for k in self._nodes:
+            if k not in root:
+                root[k], rel[k], members[k], adjacency[k] = k, Transform2D.identity(), [k], []
+                forest.add_root(k)
+        order = {k: n.order for k, n in self._nodes.items()}
+        new.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
+        touched: set[str] = set()  # the groups this step changed
+        refine: set[str] = set()  # ... and of those, the ones whose cycles changed
+        for e in new:
+            ra, rb = root[e.a], root[e.b]
+            if ra != rb:
+                if not e.valid:
+                    continue  # an ambiguous integration joins nothing (_kruskal)
+                if not e.link:
+                    if self._join_holds(e, members[ra], members[rb], rel, adjacency):
+                        return None  # a join: the whole solve judges it with its rivals
+                    kept.conflicts.append(e)
+                    kept.rejected.append(e)
+                    continue
+                if len(members[ra]) > 1 and len(members[rb]) > 1:
+                    return None
+                leaf = e if len(members[rb]) == 1 else e.reversed()
+                _unite(e, root, rel, members, kept.tree, adjacency)
+                forest.add_leaf(leaf, self._link_covariances)
+                kept.components.pop(rb if root[e.a] == ra else ra, None)  # the group that joined the other
+                touched.add(root[e.a])
+                continue
+            touched.add(ra)
+            if e.link:
+                kept.loops.append(e)
+                refine.add(ra)
+                continue
+            tol_t, tol_r = self._tolerance_between(forest, e.a, e.b)
+            predicted = rel[e.a].inverse().compose(rel[e.b])
+            if e.valid:
+                if not _within(predicted, e.transform, tol_t, tol_r):
+                    return None  # a cycle that does not close: the culprit rule decides
+                kept.loops.append(e)
+                refine.add(ra)
+                continue
+            hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+            agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
+            if len(agreeing) == 1:
+                kept.loops.append(replace(agreeing[0], valid=True))
+                refine.add(ra)
+        touched.update(root[k] for k in grown)
+        if not self._kept_verdicts_stand(kept, touched):
+            return None
+        for r in touched:
+            if not self._kept_component(kept, r, r in refine):
+                return None
+        kept.edges.update((e.key(), e) for e in new)
+        kept.versions = {k: n.version for k, n in self._nodes.items()}
+        return self._kept_result(kept)
+
+    def _kept_verdicts_stand(self, kept: KeptForest, touched: set[str]) -> bool:
+        """Whether what the forest decided about the groups this step changed stands: the joins
+        it refused still fail, its joins still hold, and no culprit appears (each decided as
+        :meth:`_kruskal` and :meth:`_forest` decide it, the verdicts kept where nothing new bears
+        on them: :meth:`_kept_verdict`)."""
+        root, members, rel, adjacency = kept.root, kept.members, kept.rel, kept.adjacency
+        for e in kept.conflicts:
+            ra, rb = root[e.a], root[e.b]
+            regrown = ra != rb and (ra in touched or rb in touched)
+            if regrown and e.valid and not e.link and self._join_holds(e, members[ra], members[rb], rel, adjacency):
+                return False
+        for r in touched:
+            group = set(members[r])
+            joins = [t for t in kept.tree if not t.link and t.a in group]
+            if not joins:
+                continue
+            for e in sorted(joins, key=lambda e: (e.value, e.key())):
+                side_b = set(_bfs_order(adjacency, e.b, cut=e.key()))
+                side_a = [k for k in members[r] if k not in side_b]
+                if not self._join_holds(e, side_a, sorted(side_b), rel, adjacency):
+                    return False
+            # new loops only add support, and a new leaf is on no cycle: the vote can find a culprit
+            # only where the last one had a candidate that its accusers' groups did not bear out
+            accusers = [e for e in kept.conflicts if e.a in group and e.b in group] if kept.contested else []
+            if accusers:
+                loops = [e for e in kept.loops if e.a in group]
+                if self._culprit(joins, loops, accusers, adjacency, kept.forest) is not None:
+                    return False
+        return True
+
+    def _kept_component(self, kept: KeptForest, r: str, cycles_changed: bool) -> bool:
+        """Group ``r``'s component after this step: its kept poses, the new leaves' from their
+        links, or, where its cycles changed, refined again from them; False where the refined
+        poses now disagree with an integration taken or agree with one left out."""
+        group = kept.members[r]
+        anchor = self._pick_anchor(group)
+        order = _bfs_order(kept.adjacency, anchor)
+        held = kept.components.get(r)
+        if held is not None and held.anchor == anchor and not cycles_changed:
+            poses = dict(held.poses)
+            for k in order:  # the leaves hung from the chain since: breadth first, parents first
+                if k not in poses:
+                    parent = kept.forest.parent[k]
+                    assert parent is not None
+                    poses[k] = poses[parent.a].compose(parent.transform)
+        else:
+            in_group = set(group)
+            tree = [e for e in kept.tree if e.a in in_group]
+            cycle_edges = [e for e in kept.loops if e.a in in_group]
+            poses, off = self._refined(anchor, order, kept.adjacency, tree + cycle_edges, bool(cycle_edges))
+            if off:
+                return False
+            tol_t, tol_r = self._tolerance(1)
+            for e in kept.aside.values():
+                if e.a in in_group and e.b in in_group and self._agrees(e, poses, tol_t, tol_r):
+                    return False
+        kept.components[r] = Component(anchor, tuple(order), poses, np.zeros((0, 4)))
+        return True
+
+    def _kept_result(self, kept: KeptForest) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]]:
+        return self._global_first(list(kept.components.values())), kept.tree, kept.loops, kept.rejected
+
+    def _whole_solve(
+        self, links: list[Edge], valid: list[Edge]
+    ) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]]:
+        """The forest from every edge, the components refined, and an integration the refined
+        poses disagree with left out and all found again (see the module); kept for the next
+        solve (:class:`~fleetmap.merger.forest.KeptForest`)."""
+        order = {k: n.order for k, n in self._nodes.items()}
+        valid = sorted(valid, key=lambda e: (-e.value, order[e.a], order[e.b]))
+        disagreeing: set[tuple[str, str]] = set()
+        self._last_refined, self._refined_now = self._refined_now, {}
+        for _ in range(self.merge.max_rejection_rounds):
+            built = self._forest(links, [e for e in valid if e.key() not in disagreeing])
+            components, off = self._refined_components(built.tree, built.loops)
+            if not off:
+                break
+            for e in off:
+                log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
+            disagreeing.update(e.key() for e in off)
+        rejected = built.rejected + [e for e in valid if e.key() in disagreeing and e.valid]
+        taken = {e.key(): e for e in links}
+        taken.update((e.key(), e) for e in valid if e.key() not in disagreeing)
+        built.aside = {e.key(): e for e in valid if e.key() in disagreeing or e.key() in built.excluded}
+        for key in built.aside:
+            taken.pop(key, None)
+        built.edges = taken
+        built.versions = {k: n.version for k, n in self._nodes.items()}
+        built.rejected = rejected
+        built.components = {built.root[c.anchor]: c for c in components}
+        self._kept = built
+        return components, built.tree, built.loops, rejected
+
+    def _forest(self, links: list[Edge], valid: list[Edge]) -> KeptForest:
         """The spanning forest (links first), its loop closures, and the integrations rejected: by
         the cycle check, by the culprit rule (:meth:`_culprit`), and joins that the two groups they
         join do not bear out once the forest is whole (:meth:`_join_holds` on the two sides of the
@@ -155,10 +356,9 @@ class PoseGraph(JoinJudge):
         may fail against what later joined them)."""
         excluded: set[tuple[str, str]] = set()
         while True:
-            tree, loops, conflicts, adjacency, forest = self._kruskal(
-                links + [e for e in valid if e.key() not in excluded]
-            )
-            culprit = self._culprit(tree, loops, conflicts, adjacency, forest)
+            built = self._kruskal(links + [e for e in valid if e.key() not in excluded])
+            tree, loops, conflicts, adjacency = built.tree, built.loops, built.conflicts, built.adjacency
+            culprit = self._culprit(tree, loops, conflicts, adjacency, built.forest)
             if culprit is None:
                 culprit = self._failed_join(tree, adjacency)
                 if culprit is not None:
@@ -168,8 +368,11 @@ class PoseGraph(JoinJudge):
             if culprit is None:
                 break
             excluded.add(culprit.key())
-        rejected = conflicts + [e for e in valid if e.key() in excluded]
-        return tree, loops, rejected
+        built.rejected = conflicts + [e for e in valid if e.key() in excluded]
+        built.excluded = excluded
+        joins = [t for t in tree if not t.link]
+        built.contested = _culprit(joins, loops, conflicts, built.forest.path_keys) is not None
+        return built
 
     def _culprit(
         self,
@@ -228,9 +431,7 @@ class PoseGraph(JoinJudge):
                 return e
         return None
 
-    def _kruskal(
-        self, edges: Iterable[Edge]
-    ) -> tuple[list[Edge], list[Edge], list[Edge], dict[str, list[Edge]], RootedForest]:
+    def _kruskal(self, edges: Iterable[Edge]) -> KeptForest:
         """Maximum spanning forest with the cycle check (links never rejected; see the module).
 
         An edge whose two submaps the forest already joins changes nothing in the forest, and its
@@ -301,7 +502,7 @@ class PoseGraph(JoinJudge):
                 agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
                 if len(agreeing) == 1:
                     loops.append(replace(agreeing[0], valid=True))
-        return tree, loops, conflicts, adjacency, forest
+        return KeptForest(tree, loops, conflicts, root, rel, members, adjacency, forest)
 
     def _tolerance_between(self, forest: RootedForest, a: str, b: str) -> tuple[float, float]:
         """:meth:`_cycle_tolerance` of the forest's path from a to b."""
@@ -314,10 +515,15 @@ class PoseGraph(JoinJudge):
         do): its alignment and its rivals' are hypotheses for a cycle to test."""
         if e.valid or e.link or not e.rivals or e.a not in self._nodes or e.b not in self._nodes:
             return False
-        ma, mb = self._nodes[e.a].map, self._nodes[e.b].map
-        return is_valid(
-            e.value, e.violation, 0.0, ma, mb, self.integration, large=True, solid_violation=e.solid_violation
+        na, nb = self._nodes[e.a], self._nodes[e.b]
+        held = self._ambiguity.get(e.key())
+        if held is not None and held[0] is e and held[1] == na.version and held[2] == nb.version:
+            return held[3]
+        ambiguous = is_valid(
+            e.value, e.violation, 0.0, na.map, nb.map, self.integration, large=True, solid_violation=e.solid_violation
         )
+        self._ambiguity[e.key()] = (e, na.version, nb.version, ambiguous)
+        return ambiguous
 
     def _refined_components(self, tree: list[Edge], loops: list[Edge]) -> tuple[list[Component], list[Edge]]:
         """Each component's poses refined together (walls not fused yet), and the integrations
@@ -343,37 +549,57 @@ class PoseGraph(JoinJudge):
             # poses (refinement only where something changed)
             signature = (anchor, tuple(order), tuple(sorted(edges, key=lambda e: e.key())))
             held = self._last_refined.get(signature)
-            paths = _joins_above(anchor, order, adjacency)
             if held is not None:
                 poses, disagreeing = dict(held[0]), held[1]
+                paths = _joins_above(anchor, order, adjacency)
+                for k in order:
+                    self._solution[k] = (anchor, paths[k], poses[k])
             else:
-                poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
-                if cycle_edges:
-                    poses = self._optimized(anchor, poses, edges)
-                    for e in edges:
-                        if e.link:
-                            continue
-                        dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
-                        tol_t, tol_r = self._tolerance(1)
-                        if dt > tol_t or dr > tol_r:
-                            disagreeing.append(e)
+                poses, disagreeing = self._refined(anchor, order, adjacency, edges, bool(cycle_edges))
             self._refined_now[signature] = (dict(poses), disagreeing)
             off += disagreeing
-            for k in order:
-                self._solution[k] = (anchor, paths[k], poses[k])
             out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))
-        # the global map first: the component of the most robots, then of the most robots' epochs,
-        # then of the most submaps (one robot's many epochs, a flood of its own key, never outweigh
-        # the fleet's map)
-        out.sort(
-            key=lambda c: (
-                -len({_robot_of(k) for k in c.members}),
-                -len({_chain_of(k) for k in c.members}),
-                -len(c.members),
-                -sum(self._nodes[k].map.total_length for k in c.members),
-            )
-        )
-        return out, off
+        return self._global_first(out), off
+
+    def _refined(
+        self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], edges: list[Edge], cycles: bool
+    ) -> tuple[dict[str, Transform2D], list[Edge]]:
+        """One component's poses, refined if its edges make ``cycles``, and the integrations they
+        disagree with by more than one integration's base tolerance."""
+        paths = _joins_above(anchor, order, adjacency)
+        poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
+        if cycles:
+            poses = self._optimized(anchor, poses, edges)
+            tol_t, tol_r = self._tolerance(1)
+            disagreeing = [e for e in edges if not e.link and not self._agrees(e, poses, tol_t, tol_r)]
+        for k in order:
+            self._solution[k] = (anchor, paths[k], poses[k])
+        return poses, disagreeing
+
+    @staticmethod
+    def _agrees(e: Edge, poses: dict[str, Transform2D], tol_t: float, tol_r: float) -> bool:
+        dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
+        return dt <= tol_t and dr <= tol_r
+
+    def _global_first(self, components: list[Component]) -> list[Component]:
+        """The components, the global map first: the component of the most robots, then of the
+        most robots' epochs, then of the most submaps (one robot's many epochs, a flood of its own
+        key, never outweigh the fleet's map)."""
+        held, self._ranks = self._ranks, {}
+        for c in components:  # kept by component: most are as the last solve left them
+            rank = held.get(id(c))
+            if rank is None or rank[0] is not c:
+                rank = (
+                    c,
+                    (
+                        -len({_robot_of(k) for k in c.members}),
+                        -len({_chain_of(k) for k in c.members}),
+                        -len(c.members),
+                        -sum(self._nodes[k].map.total_length for k in c.members),
+                    ),
+                )
+            self._ranks[id(c)] = rank
+        return sorted(components, key=lambda c: self._ranks[id(c)][1])
 
     def _initial_poses(
         self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], paths: dict[str, tuple[object, ...]]

@@ -9,6 +9,7 @@ counter-clockwise sweep, so they are oriented too.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -35,8 +36,9 @@ class SegmentMap:
     def __len__(self) -> int:
         return int(self.segments.shape[0])
 
-    @property
+    @cached_property
     def total_length(self) -> float:
+        """The segments' length in all (m; found once: the map does not change)."""
         return float(lengths(self.segments).sum())
 
     def to_json_dict(self) -> dict[str, Any]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.merger.engine import Merger
-from fleetmap.merger.graph import Edge
+from fleetmap.merger.graph import Edge, MergeResult
 from fleetmap.merger.outputs import Placement
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.scenarios import load_scenario, robot_stream
@@ -152,6 +152,13 @@ def test_the_same_submaps_in_another_order_give_the_same_map(fleet: Fleet) -> No
 def test_the_graph_solved_step_by_step_and_from_scratch_gives_the_same_poses(fleet: Fleet) -> None:
     # step by step the merger keeps its joins' verdicts and its solutions from step to step
     graph = _merged(fleet.finals).graph
+    kept = graph.solve()
+    _solves_as_a_whole(graph, kept)
+    assert len(kept.components[0].members) == len(fleet.truth)
+
+
+def _solves_as_a_whole(graph: PoseGraph, solved: MergeResult) -> None:
+    """Assert that the same graph solved from scratch gives ``solved``'s poses, within 1 mm."""
     scratch = PoseGraph(graph.integration, graph.merge, graph.tracking)
     for key in graph.keys:
         scratch.put_map(key, graph.map_of(key), graph.version_of(key))
@@ -159,10 +166,9 @@ def test_the_graph_solved_step_by_step_and_from_scratch_gives_the_same_poses(fle
         scratch.put_link(link.a, link.b, link.transform, graph._link_covariances[(link.a, link.b)])
     for e in graph.edges:
         scratch.add_edge(e)
-    kept, fresh = graph.solve(), scratch.solve()
-    assert [set(c.members) for c in kept.components] == [set(c.members) for c in fresh.components]
-    assert len(kept.components[0].members) == len(fleet.truth)
-    for key, pose in kept.poses.items():
+    fresh = scratch.solve()
+    assert [set(c.members) for c in solved.components] == [set(c.members) for c in fresh.components]
+    for key, pose in solved.poses.items():
         other = fresh.poses[key]
         assert (pose is None) == (other is None), key
         if pose is not None and other is not None:
@@ -213,7 +219,7 @@ def test_a_robot_whose_join_changed_is_solved_from_its_new_join(fleet: Fleet) ->
     for key in r2:  # as a wrong join had left them: the same anchor, another join above them
         anchor, _, pose = graph._solution[key]
         graph._solution[key] = (anchor, (("a wrong join", key),), turned.compose(pose))
-    graph._refined_now = {}  # nothing kept from the last solve: every component is refined again
+    graph._refined_now, graph._kept = {}, None  # nothing kept from the last solve: every component is refined again
     starts: list[dict[str, Transform2D]] = []
     solve_from = graph._initial_poses
 
@@ -388,3 +394,24 @@ def test_two_robots_whose_submaps_lie_on_each_other_two_ways_stay_apart() -> Non
     result = graph.solve()
     assert len(result.components) == 2, "a join two alignments bear out merged the robots"
     assert not any({"r1/0/0", "r2/0/0"} <= set(c.members) for c in result.components)
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s; shares the fleet)
+def test_a_graph_grown_submap_by_submap_carries_its_forest_on_and_ends_where_a_whole_solve_does(fleet: Fleet) -> None:
+    # issue 49: a step costs what it adds. Grown one submap at a time (its link and its
+    # integrations with the submaps already in), most solves carry the last one's forest and poses
+    # on; the poses are those of the same graph solved whole, within 1 mm.
+    source = _merged(fleet.finals).graph
+    links = {link.b: link for link in source.links}
+    grown = PoseGraph(source.integration, source.merge, source.tracking)
+    for key in sorted(source.keys, key=lambda k: source._nodes[k].order):
+        grown.put_map(key, source.map_of(key), source.version_of(key))
+        link = links.get(key)
+        if link is not None and link.a in grown:
+            grown.put_link(link.a, link.b, link.transform, source._link_covariances[(link.a, link.b)])
+        for e in source.edges:
+            if key in (e.a, e.b) and e.a in grown and e.b in grown:
+                grown.add_edge(e)
+        grown.solve()
+    assert grown.kept_solves >= len(source.keys) // 2, f"{grown.kept_solves} of {len(source.keys)} solves carried on"
+    _solves_as_a_whole(source, grown.solve())
