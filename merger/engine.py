@@ -29,6 +29,7 @@ import numpy as np
 from fleetmap.merger.clocks import from_the_future
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
 from fleetmap.merger.executor import Handle as JobHandle
+from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult
 from fleetmap.merger.outputs import (
     Outgoing,
@@ -52,6 +53,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_map_key, parse_submap_key
 from fleetmap.shared.io.messages import (
     BadMessage,
+    Component,
     FleetEvent,
     GlobalMap,
     LocalMap,
@@ -104,6 +106,8 @@ class Merger:
         self._robots: dict[str, Robot] = {}
         self._global: GlobalMap | None = None
         self._last_out: list[Outgoing] = []
+        self._made: dict[int, tuple[GraphComponent, Component]] = {}
+        """The global map's message components, by the solve's component (:func:`global_map_of`)."""
         self._unfused = False
         """Whether the last solve left the global map's walls out (``step(fuse=False)``)."""
         self._key_scans: dict[str, list[KeyScan]] = {}
@@ -470,7 +474,7 @@ class Merger:
         self._unfused = not fuse
         self.placement = Placement.of(solved)
         self.schedule.queue_joined(self.placement, apart)
-        self._global = global_map_of(solved, self.seq, self.stamp)
+        self._global = global_map_of(solved, self.seq, self.stamp, self._made)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))
         out += robot_pose_messages(self.keys, self._robots, self.submaps, self.placement, self.stamp)
         # Last: whoever sees the step has seen everything it produced (fleetmap run waits on it).
@@ -629,4 +633,4 @@ class Merger:
         if len(self.graph):
             solved = self.graph.solve()
             self.placement = Placement.of(solved)
-            self._global = global_map_of(solved, self.seq, self.stamp)
+            self._global = global_map_of(solved, self.seq, self.stamp, self._made)

@@ -128,11 +128,25 @@ class Placement:
         return frames
 
 
-def global_map_of(result: MergeResult, seq: int, stamp: float) -> GlobalMap:
-    components = tuple(
-        Component(c.anchor, tuple(c.members), dict(c.poses), np.asarray(c.segments)) for c in result.components
-    )
-    return GlobalMap(seq, stamp, components)
+def global_map_of(
+    result: MergeResult, seq: int, stamp: float, made: dict[int, tuple[GraphComponent, Component]] | None = None
+) -> GlobalMap:
+    """The global map message of a solve. ``made``: the message components of the last call, by
+    the solve's component, which a component the solve left as it was reuses (a step costs what
+    it changed; the dict is updated to this call's)."""
+    held = dict(made) if made is not None else {}
+    components = []
+    for c in result.components:
+        pair = held.get(id(c))
+        if pair is None or pair[0] is not c:
+            pair = (c, Component(c.anchor, tuple(c.members), dict(c.poses), np.asarray(c.segments)))
+        components.append(pair[1])
+        if made is not None:
+            made[id(c)] = pair
+    if made is not None:
+        for key in set(made) - {id(c) for c in result.components}:
+            del made[key]
+    return GlobalMap(seq, stamp, tuple(components))
 
 
 def robot_pose_messages(

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from collections.abc import Iterable
 from dataclasses import replace
 
@@ -113,7 +114,10 @@ class PoseGraph(JoinJudge):
         self._last_refined = self._refined_now
         self._kept: KeptForest | None = None
         """The last solve's forest, for the next to carry on (:meth:`_kept_solve`)."""
-        self._ranks: dict[int, tuple[Component, tuple[int, int, int, float]]] = {}
+        self._with_walls_now: dict[int, tuple[Component, Component]] = {}
+        """Each component of the last solve with its walls, by the component without (:meth:`_fused`)."""
+        self._with_walls = self._with_walls_now
+        self._ranks: dict[int, tuple[Component, tuple[int, int, int]]] = {}
         """Each component's rank for the global map (:meth:`_global_first`), by the component."""
         self._ambiguity: dict[tuple[str, str], tuple[Edge, int, int, bool]] = {}
         """Each invalid integration's :meth:`_ambiguous` at its two submaps' versions."""
@@ -140,6 +144,7 @@ class PoseGraph(JoinJudge):
         links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
         valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
         self._last_walls, self._walls_now = self._walls_now, {}
+        self._with_walls, self._with_walls_now = self._with_walls_now, {}
         kept = self._kept_solve(links, valid) if self._kept is not None else None
         if kept is None:
             self.whole_solves += 1
@@ -148,7 +153,7 @@ class PoseGraph(JoinJudge):
             self.kept_solves += 1
             components, tree, loops, rejected = kept
         if fuse_maps:  # the walls of the final round's components only
-            components = [replace(c, segments=self._walls(list(c.members), c.poses)) for c in components]
+            components = [self._fused(c) for c in components]
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
         for c in components:
             if len(c.members) > 1:
@@ -293,6 +298,8 @@ class PoseGraph(JoinJudge):
         anchor = self._pick_anchor(group)
         order = _bfs_order(kept.adjacency, anchor)
         held = kept.components.get(r)
+        if held is not None and held.anchor == anchor and not cycles_changed and len(held.members) == len(order):
+            return True  # new versions of its submaps only: the same poses
         if held is not None and held.anchor == anchor and not cycles_changed:
             poses = dict(held.poses)
             for k in order:  # the leaves hung from the chain since: breadth first, parents first
@@ -589,17 +596,17 @@ class PoseGraph(JoinJudge):
         for c in components:  # kept by component: most are as the last solve left them
             rank = held.get(id(c))
             if rank is None or rank[0] is not c:
-                rank = (
-                    c,
-                    (
-                        -len({_robot_of(k) for k in c.members}),
-                        -len({_chain_of(k) for k in c.members}),
-                        -len(c.members),
-                        -sum(self._nodes[k].map.total_length for k in c.members),
-                    ),
-                )
+                robots, chains = {_robot_of(k) for k in c.members}, {_chain_of(k) for k in c.members}
+                rank = (c, (-len(robots), -len(chains), -len(c.members)))
             self._ranks[id(c)] = rank
-        return sorted(components, key=lambda c: self._ranks[id(c)][1])
+        ranks = Counter(rank for _, rank in self._ranks.values())
+
+        def key(c: Component) -> tuple[int, int, int, float]:
+            rank = self._ranks[id(c)][1]
+            # the walls' length (their submaps' versions change it) only where the rest ties
+            return (*rank, -sum(self._nodes[k].map.total_length for k in c.members) if ranks[rank] > 1 else 0.0)
+
+        return sorted(components, key=key)
 
     def _initial_poses(
         self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], paths: dict[str, tuple[object, ...]]
@@ -669,6 +676,16 @@ class PoseGraph(JoinJudge):
                 graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self.edge_noise(e, robust)))
             values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
+
+    def _fused(self, c: Component) -> Component:
+        """A component with its walls (:meth:`_walls`): the last solve's same object where neither
+        its submaps and poses nor its walls changed."""
+        walls = self._walls(list(c.members), c.poses)
+        held = self._with_walls.get(id(c))
+        if held is None or held[0] is not c or held[1].segments is not walls:
+            held = (c, replace(c, segments=walls))
+        self._with_walls_now[id(c)] = held
+        return held[1]
 
     def _walls(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
         """The component's walls: every member's at its pose, one segment per stretch of wall; the
