@@ -72,6 +72,8 @@ class Placement:
     where: dict[str, int] = field(default_factory=dict)
     epoch_where: dict[str, int] = field(default_factory=dict)
     epochs_in: list[set[str]] = field(default_factory=list)
+    ties: dict[str, str] = field(default_factory=dict)
+    """Each epoch tied to others by integrations, with the one that stands for its group."""
 
     @classmethod
     def of(cls, result: MergeResult | None) -> Placement:
@@ -85,7 +87,25 @@ class Placement:
                 where[k] = i
             for epoch in epochs:
                 epoch_where.setdefault(epoch, i)
-        return cls(result, where, epoch_where, epochs_in)
+        ties: dict[str, str] = {}
+
+        def group(epoch: str) -> str:
+            while ties.get(epoch, epoch) != epoch:
+                epoch = ties[epoch]
+            return epoch
+
+        for e in [*result.tree, *result.loops] if result is not None else []:
+            if not e.link and e.a in where and e.b in where:
+                a, b = group(epoch_of(e.a)), group(epoch_of(e.b))
+                if a != b:
+                    ties[max(a, b)] = ties[min(a, b)] = min(a, b)
+        return cls(result, where, epoch_where, epochs_in, {epoch: group(epoch) for epoch in ties})
+
+    def tied(self, a: str, b: str) -> bool:
+        """Whether two submaps are of one epoch, or of epochs the last solve's integrations tie
+        (not a robot's start pose alone: :mod:`fleetmap.merger.startposes`)."""
+        ea, eb = epoch_of(a), epoch_of(b)
+        return ea == eb or (ea in self.ties and self.ties[ea] == self.ties.get(eb))
 
     def component_of(self, key: str) -> GraphComponent | None:
         index = self.where.get(key)

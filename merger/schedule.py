@@ -169,7 +169,7 @@ class PairSchedule:
                 # cannot have carried it out of registration's reach; else pose-free (a loop
                 # after a long way round: the search window as wide as the uncertainty), the
                 # most similar such submap only: the paper's integration costs ten registrations
-                if self._within_reach(other, key):
+                if self._within_reach(other, key, p):
                     self.enqueue((other, key), predicted)
                 else:
                     beyond.append(other)
@@ -223,8 +223,8 @@ class PairSchedule:
                     for ia, ib in np.argwhere(meets):
                         a, b = ordered(group_a[ia], group_b[ib])
                         known = self.graph.edge(a, b)
-                        if (a, b) in self.joined or (known is not None and known.valid):
-                            continue
+                        if (a, b) in self.joined or (known is not None and known.valid) or not p.tied(a, b):
+                            continue  # (robots together by their start poses alone: the near search's)
                         found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
             count: Counter[str] = Counter()
             for _, a, b in sorted(found):
@@ -337,15 +337,16 @@ class PairSchedule:
         out.sort(key=lambda x: (x[0], x[1]))
         return [(other, predicted) for _, other, predicted in out]
 
-    def _within_reach(self, a: str, b: str) -> bool:
+    def _within_reach(self, a: str, b: str, p: Placement) -> bool:
         """Whether registration from the predicted pose can find b on a: the drift the links
         between two submaps of one robot's chain allow (three standard deviations of their
         covariances, :meth:`~fleetmap.merger.joins.JoinJudge.chain_drift`) is within the
-        tracking's correspondence distance and 5 degrees; always for two robots' submaps (their
-        prediction comes through integrations)."""
+        tracking's correspondence distance and 5 degrees; for two robots' submaps, when their
+        prediction comes through integrations (:meth:`Placement.tied`), not through their start
+        poses alone (metres off: :mod:`fleetmap.merger.startposes`)."""
         drift = self.graph.chain_drift(a, b)
         if drift is None:
-            return True
+            return p.tied(a, b)
         return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
 
     def _radius(self, key: str) -> float:
