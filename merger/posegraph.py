@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 
 import gtsam
@@ -124,6 +124,12 @@ class PoseGraph(JoinJudge):
 
     def solve(self, fuse_maps: bool = True) -> MergeResult:
         links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
+        # the links between two robots' first submaps (their known start poses,
+        # fleetmap.merger.startposes) are the forest's weakest edges: it takes every integration
+        # first, so that a join of two robots is judged as any join is, and a start pose only
+        # unites what no integration joins (else it closes a cycle, and weighs in the refinement)
+        priors = [e for e in links if _robot_of(e.a) != _robot_of(e.b)]
+        links = [e for e in links if _robot_of(e.a) == _robot_of(e.b)]
         order = {k: n.order for k, n in self._nodes.items()}
         valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
         valid.sort(key=lambda e: (-e.value, order[e.a], order[e.b]))
@@ -131,7 +137,7 @@ class PoseGraph(JoinJudge):
         self._last_walls, self._walls_now = self._walls_now, {}
         self._last_refined, self._refined_now = self._refined_now, {}
         for _ in range(self.merge.max_rejection_rounds):
-            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing])
+            tree, loops, rejected = self._forest(links, [e for e in valid if e.key() not in disagreeing], priors)
             components, off = self._refined_components(tree, loops)
             if not off:
                 break
@@ -147,8 +153,10 @@ class PoseGraph(JoinJudge):
                 poses.update(c.poses)
         return MergeResult(poses, components, tree, loops, rejected)
 
-    def _forest(self, links: list[Edge], valid: list[Edge]) -> tuple[list[Edge], list[Edge], list[Edge]]:
-        """The spanning forest (links first), its loop closures, and the integrations rejected: by
+    def _forest(
+        self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()
+    ) -> tuple[list[Edge], list[Edge], list[Edge]]:
+        """The spanning forest (links first, ``priors`` last), its loop closures, and the integrations rejected: by
         the cycle check, by the culprit rule (:meth:`_culprit`), and joins that the two groups they
         join do not bear out once the forest is whole (:meth:`_join_holds` on the two sides of the
         tree edge: the forest is built greedily, and a join checked when its groups were small
@@ -156,7 +164,7 @@ class PoseGraph(JoinJudge):
         excluded: set[tuple[str, str]] = set()
         while True:
             tree, loops, conflicts, adjacency, forest = self._kruskal(
-                links + [e for e in valid if e.key() not in excluded]
+                [*links, *(e for e in valid if e.key() not in excluded), *priors]
             )
             culprit = self._culprit(tree, loops, conflicts, adjacency, forest)
             if culprit is None:

@@ -122,7 +122,7 @@ class PairSchedule:
 
     def searching(self, p: Placement) -> bool:
         """Whether robots apart from the global map have submaps with candidates left to try."""
-        if p.result is None or len(p.result.components) < 2:
+        if p.result is None or len(p.groups) < 2:
             return False
         budget = self.config.merge.far_budget
         return any(self.far_tries.get(k, 0) < budget for k in self.idle_candidates(p))
@@ -186,7 +186,8 @@ class PairSchedule:
         if not self._in_global_map(key, p):
             # the global map's own submaps are not searched for the others: each of theirs
             # searches it, and one direction is enough
-            for other in self._far(key, mine, p, within=False)[: mp.far_candidates]:
+            group = self._group_members(key, p)
+            for other in self._far(key, group, p, within=False)[: mp.far_candidates]:
                 self._queue_far(key, other)
 
     def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
@@ -244,15 +245,15 @@ class PairSchedule:
         similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
         how many were queued. Every submap's candidates are tried in turn: in a building where
         most views look alike (racks), the descriptor ranks the right partner anywhere."""
-        if p.result is None or len(p.result.components) < 2:
+        if p.result is None or len(p.groups) < 2:
             return 0
         budget = self.config.merge.far_budget
         queued = 0
-        by_component: dict[int, list[str]] = {}
+        by_group: dict[str, list[str]] = {}
         for key in self.idle_candidates(p):
-            by_component.setdefault(p.where[key], []).append(key)
-        for i, candidates in sorted(by_component.items()):
-            mine = set(p.result.components[i].members)
+            by_group.setdefault(p.ties.get(epoch_of(key), epoch_of(key)), []).append(key)
+        for group, candidates in by_group.items():
+            mine = set(p.groups[group])
             for key in sorted(candidates, key=lambda k: (self.far_tries.get(k, 0), k)):
                 if self.far_tries.get(key, 0) >= budget:
                     continue
@@ -269,17 +270,19 @@ class PairSchedule:
     def idle_candidates(self, p: Placement) -> list[str]:
         """The submaps the idle search tries (:meth:`idle_pairs`), whose tries :meth:`searching`
         counts (they must be the same, or a step with nothing to queue would have work for ever):
-        of each component but the global map, its final submaps, or all of them if none is final
-        yet. Robots placed among themselves and not in the global map search on: two robots that
-        joined each other are still apart from the fleet."""
+        of each group of submaps the integrations place together (a component, or each part of
+        one that known start poses alone hold together: :attr:`Placement.groups`) but the global
+        map's, its final submaps, or all of them if none is final yet. Robots placed among
+        themselves and not in the global map search on: two robots that joined each other are
+        still apart from the fleet."""
         if p.result is None:
             return []
         out: list[str] = []
-        for i, component in enumerate(p.result.components):
-            if i == 0 and len(p.epochs_in[i]) > 1:
+        for members in p.groups.values():
+            if members[0] in p.global_group:
                 continue
-            finals = [k for k in component.members if self.submaps[k].final]
-            out += finals or list(component.members)
+            finals = [k for k in members if self.submaps[k].final]
+            out += finals or list(members)
         return out
 
     def _predicted(self, key: str, p: Placement) -> Transform2D | None:
@@ -297,11 +300,22 @@ class PairSchedule:
         return None
 
     def _in_global_map(self, key: str, p: Placement) -> bool:
-        """Whether a submap (or its predecessor, for a new one) is in the largest component, the
-        global map, together with another epoch."""
+        """Whether a submap (or its predecessor, for a new one) is in the global map, placed there
+        with another epoch by integrations (:attr:`Placement.global_group`; not by a known start
+        pose alone, :mod:`fleetmap.merger.startposes`)."""
+        return self._placed_as(key, p) in p.global_group
+
+    def _placed_as(self, key: str, p: Placement) -> str:
+        """The submap whose place stands for ``key``'s: itself, or for a new one its predecessor
+        on its robot's chain."""
         link = self.graph.link_to(key)
-        index = p.where.get(key, p.where.get(link.a) if link is not None else None)
-        return index == 0 and len(p.epochs_in[0]) > 1
+        if key in p.where or link is None or link.a.split("/", 1)[0] != key.split("/", 1)[0]:
+            return key
+        return link.a
+
+    def _group_members(self, key: str, p: Placement) -> set[str]:
+        """The submaps the last solve's integrations place with ``key`` (:meth:`Placement.group_of`)."""
+        return {key, *(p.group_of(self._placed_as(key, p)) or ())}
 
     def _queue_far(self, key: str, other: str) -> None:
         if self.enqueue(ordered(other, key), None):

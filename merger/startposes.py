@@ -11,19 +11,23 @@ The shared frame is not a node of the pose graph (it has no walls to integrate, 
 each prior enters as a link between two robots' first submaps, from the first robot with a start
 pose whose first submap the merger took (the *hub*) to each later one, its transform the two start
 poses' relative pose and its covariance what the two priors give it (first order, the hub's heading
-error swinging the other robot about the hub). A link is what the pose graph already holds a
-robot's own chain with: its forest takes it first, its cycle check allows what it can be off by,
-and its refinement weighs it by its covariance, so robots with start poses are one component from
-their first submaps, and where their maps overlap the integrations, far firmer than a start pose,
-pull them right (an integration that closes the cycle through a start link is a loop closure, as
-one through a robot's drifting chain is). Only pairs through the hub get the two priors' covariance
-exactly; a pair of two other robots gets the hub's prior twice (looser than the truth: the cycle
-check allows a little more).
+error swinging the other robot about the hub). Only pairs through the hub get the two priors'
+covariance exactly; a pair of two other robots gets the hub's prior twice (looser than the truth).
 
-A pair of robots tied by nothing but start poses is not registered near where they put it
-(:meth:`~fleetmap.merger.outputs.Placement.tied`): the start poses are metres off where
-registration reaches centimetres, so such a pair is integrated pose-free, as robots nobody placed
-are, until an integration ties them.
+The pose graph takes these links as the weakest edges of its forest, after every integration
+(:meth:`~fleetmap.merger.posegraph.PoseGraph.solve`): an integration between two robots is judged
+as any join is (the pairs it then makes bear it out, no rival alignment holds as well), and a start
+pose unites only what no integration joins, so robots with start poses are one component from their
+first submaps. Once integrations join them, the start link closes a cycle and weighs in the
+refinement by its covariance, far less than the integrations: a start pose 3 m off is corrected
+where the maps meet. Taken before the integrations (as a robot's own links are), a loose start
+pose would let any integration within its metres of uncertainty in unjudged, as a loop closure
+(the warehouse: aisles 14 m apart alike, a robot placed 17 m off with its true start pose).
+
+Where the merger searches, robots held together by start poses alone count as apart
+(:attr:`~fleetmap.merger.outputs.Placement.groups`): they search each other pose-free as robots
+nobody placed do, and a pair of them is not registered near where the start poses put it (metres
+off, where registration reaches centimetres), until an integration ties them.
 """
 
 from __future__ import annotations
