@@ -76,3 +76,28 @@ def test_a_start_pose_without_uncertainty_is_refused_by_name() -> None:
     config = FleetmapConfig(merge=MergeParams(start_pose_sigma_translation=0.0))
     with pytest.raises(BadInput, match="start_pose_sigma_translation"):
         Merger(KEYS, config, start_poses={"r1": Transform2D()})
+
+
+def test_an_integration_between_two_robots_is_judged_as_a_join_not_let_in_by_their_start_poses() -> None:
+    # (about 0.1 s) one valid integration puts r2 5 m from where the start poses say, well within what
+    # a 1 m / 5 degree prior allows over 30 m: taken as a loop closure through the start poses, it would
+    # move r2 there unjudged (the warehouse: a robot an aisle off); judged as a join, one pair of
+    # submaps is not enough to bear it out, and the start poses hold
+    from fleetmap.merger.graph import Edge
+    from fleetmap.merger.posegraph import PoseGraph
+    from fleetmap.merger.startposes import StartFrame
+    from fleetmap.shared.core.segmap import SegmentMap
+
+    start = {"r1": Transform2D(0.0, 0.0, 0.0), "r2": Transform2D(30.0, 0.0, 0.0)}
+    graph = PoseGraph()
+    frame = StartFrame(start, MergeParams())
+    for robot in ("r1", "r2"):
+        graph.put_map(f"{robot}/0/0", SegmentMap(np.array(ROOMS[robot]), ordered=False, oriented=True))
+        frame.enter(graph, f"{robot}/0/0")
+    wrong = Edge("r1/0/0", "r2/0/0", Transform2D(25.0, 0.0, 0.0), 30.0, True)
+    graph.add_edge(wrong)
+    result = graph.solve()
+    assert result.poses["r1/0/0"] is not None and result.poses["r2/0/0"] is not None
+    found = result.poses["r1/0/0"].inverse().compose(result.poses["r2/0/0"])
+    assert found.distance(start["r2"])[0] < 1e-6
+    assert wrong.key() in {e.key() for e in result.rejected}

@@ -78,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
     executor = executor_from_args(args)
     try:
         merger = Merger(options.keys, config, executor, start_poses=start_poses)
+        if start_poses:
+            log.info("start poses of %s from %s", ", ".join(sorted(start_poses)), args.start_poses)
         if args.state and Path(args.state).exists():
             merger.load_state(args.state)
             log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
