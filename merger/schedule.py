@@ -22,6 +22,10 @@ just joined, or lost its place), as its active submap grows (each time its versi
 - *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
   the global map, up to ``far_budget`` tries a submap.
 
+Robots that known start poses alone hold in one component (:mod:`fleetmap.merger.startposes`)
+count as apart here until an integration ties them: they search each other *far* and *idle*, and
+their pairs are not registered near where the start poses put them.
+
 So integrating n submaps costs O(n) integrations, not n^2
 (:attr:`~fleetmap.merger.stats.MergerStats.integrations`).
 """
