@@ -83,12 +83,16 @@ def run_agents(
 
 
 def run_merger(
-    messages: list[tuple[float, int, Message]], config: FleetmapConfig, step: float
+    messages: list[tuple[float, int, Message]],
+    config: FleetmapConfig,
+    step: float,
+    start_poses: dict[str, Transform2D] | None = None,
 ) -> tuple[SessionLog, float]:
-    """The agents' messages in stamp order through one merger taking a step every ``step`` seconds; its seconds."""
+    """The agents' messages in stamp order through one merger taking a step every ``step`` seconds
+    (given the robots' ``start_poses``, if any); its seconds."""
     messages.sort(key=lambda x: (x[0], x[1]))
     keys = FleetKeys()
-    merger = Merger(keys, config)
+    merger = Merger(keys, config, start_poses=start_poses)
     log = SessionLog()
     start = time.perf_counter()
     due = step

@@ -42,6 +42,7 @@ from fleetmap.merger.outputs import scan_poses as placed_scan_poses
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.scangraph import KeyScan, is_key
 from fleetmap.merger.schedule import PairSchedule
+from fleetmap.merger.startposes import StartFrame
 from fleetmap.merger.state import MergerState, read_state, write_state
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
@@ -81,15 +82,20 @@ class Merger:
         config: FleetmapConfig | None = None,
         executor: Executor | None = None,
         keep_key_scans: bool = False,
+        start_poses: dict[str, Transform2D] | None = None,
     ) -> None:
         """``keep_key_scans``: keep the key scans it hears (:meth:`scan_poses` refines with them;
-        ``fleetmap map`` asks for it, a live merger that never calls it does not keep them)."""
+        ``fleetmap map`` asks for it, a live merger that never calls it does not keep them).
+        ``start_poses``: robots' known start poses in one shared frame, by robot id
+        (:mod:`fleetmap.merger.startposes`)."""
         self.keys = keys
         self.keep_key_scans = keep_key_scans
         self._config = config or FleetmapConfig()
         self.executor: Executor = executor or InlineExecutor()
         """Where the integrations run (:mod:`fleetmap.merger.executor`); the caller closes it."""
         self.graph = PoseGraph(self.config.integration, self.config.merge, self.config.tracking)
+        self.start = StartFrame(start_poses, self.config.merge) if start_poses else None
+        """The known start poses, linked into the graph as the robots' first submaps arrive."""
         self.solve_seconds = 0.0
         """How long the last step's solve took (what a step of integrations alone is worth)."""
         self.stats = MergerStats()
@@ -558,6 +564,8 @@ class Merger:
         if m.link is not None:
             previous = f"{m.robot}/{m.epoch}/{m.link.submap}"
             self.graph.put_link(previous, key, m.link.transform, m.link.covariance_matrix)
+        if self.start is not None:
+            self.start.enter(self.graph, key)
         self.submaps[key] = m
 
     # -- outputs ---------------------------------------------------------------------------
@@ -612,7 +620,7 @@ class Merger:
         """Restore a state written by :meth:`save_state` (the graph is rebuilt from its submaps and
         integrations, not recomputed)."""
         state = read_state(path)
-        fresh = Merger(self.keys, self.config)
+        fresh = Merger(self.keys, self.config, start_poses=self.start.poses if self.start is not None else None)
         try:
             for m in state.submaps:
                 fresh._enter(m)
@@ -620,7 +628,7 @@ class Merger:
                 fresh.graph.add_edge(e)
         except (ValueError, KeyError, TypeError, IndexError) as exc:
             raise BadInput(str(path), f"cannot load the merger state: {exc}") from None
-        self.graph, self.submaps, self._robots = fresh.graph, fresh.submaps, state.robots
+        self.graph, self.submaps, self._robots, self.start = fresh.graph, fresh.submaps, state.robots, fresh.start
         for name, r in self._robots.items():
             r.epochs = {parse_submap_key(k)[1] for k in self.submaps if parse_submap_key(k)[0] == name}
         self.seq, self.stamp, self._last_out = state.seq, state.stamp, state.last_out

@@ -74,6 +74,12 @@ class Placement:
     where: dict[str, int] = field(default_factory=dict)
     epoch_where: dict[str, int] = field(default_factory=dict)
     epochs_in: list[set[str]] = field(default_factory=list)
+    ties: dict[str, str] = field(default_factory=dict)
+    """Each epoch tied to others by integrations, with the one that stands for its group."""
+    groups: dict[str, list[str]] = field(default_factory=dict)
+    """The submaps the integrations place together, by the epoch that stands for them (each
+    component, split where only known start poses hold it together:
+    :mod:`fleetmap.merger.startposes`), in the components' order."""
 
     @classmethod
     def of(cls, result: MergeResult | None) -> Placement:
@@ -87,7 +93,45 @@ class Placement:
                 where[k] = i
             for epoch in epochs:
                 epoch_where.setdefault(epoch, i)
-        return cls(result, where, epoch_where, epochs_in)
+        ties: dict[str, str] = {}
+
+        def group(epoch: str) -> str:
+            while ties.get(epoch, epoch) != epoch:
+                epoch = ties[epoch]
+            return epoch
+
+        for e in [*result.tree, *result.loops] if result is not None else []:
+            if not e.link and e.a in where and e.b in where:
+                a, b = group(epoch_of(e.a)), group(epoch_of(e.b))
+                if a != b:
+                    ties[max(a, b)] = ties[min(a, b)] = min(a, b)
+        groups: dict[str, list[str]] = {}
+        for c in result.components if result is not None else []:
+            for k in c.members:
+                groups.setdefault(group(epoch_of(k)), []).append(k)
+        return cls(result, where, epoch_where, epochs_in, {epoch: group(epoch) for epoch in ties}, groups)
+
+    def group_of(self, key: str) -> list[str] | None:
+        """The submaps the integrations place with a submap (None: not placed)."""
+        if key not in self.where:
+            return None
+        epoch = epoch_of(key)
+        return self.groups.get(self.ties.get(epoch, epoch))
+
+    @functools.cached_property
+    def global_group(self) -> frozenset[str]:
+        """The global map's submaps as its integrations place them: the group of the largest
+        component's anchor, when it holds more than one epoch (else none)."""
+        if self.result is None or not self.result.components:
+            return frozenset()
+        group = self.group_of(self.result.components[0].anchor) or []
+        return frozenset(group) if len({epoch_of(k) for k in group}) > 1 else frozenset()
+
+    def tied(self, a: str, b: str) -> bool:
+        """Whether two submaps are of one epoch, or of epochs the last solve's integrations tie
+        (not a robot's start pose alone: :mod:`fleetmap.merger.startposes`)."""
+        ea, eb = epoch_of(a), epoch_of(b)
+        return ea == eb or (ea in self.ties and self.ties[ea] == self.ties.get(eb))
 
     def component_of(self, key: str) -> GraphComponent | None:
         index = self.where.get(key)

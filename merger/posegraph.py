@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 
 import gtsam
@@ -142,13 +142,21 @@ class PoseGraph(JoinJudge):
         step only added to them (:meth:`_kept_solve`), else found again from the whole graph
         (:meth:`_whole_solve`)."""
         links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
+        # the links between two robots' first submaps (their known start poses,
+        # fleetmap.merger.startposes) are the forest's weakest edges: it takes every integration
+        # first, so that a join of two robots is judged as any join is, and a start pose only
+        # unites what no integration joins (else it closes a cycle, and weighs in the refinement);
+        # a forest with them is solved whole (a later join may take a start pose's place)
+        priors = [e for e in links if _robot_of(e.a) != _robot_of(e.b)]
+        if priors:
+            links = [e for e in links if _robot_of(e.a) == _robot_of(e.b)]
         valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
         self._last_walls, self._walls_now = self._walls_now, {}
         self._with_walls, self._with_walls_now = self._with_walls_now, {}
-        kept = self._kept_solve(links, valid) if self._kept is not None else None
+        kept = self._kept_solve(links, valid) if self._kept is not None and not priors else None
         if kept is None:
             self.whole_solves += 1
-            components, tree, loops, rejected = self._whole_solve(links, valid)
+            components, tree, loops, rejected = self._whole_solve(links, valid, priors)
         else:
             self.kept_solves += 1
             components, tree, loops, rejected = kept
@@ -325,7 +333,7 @@ class PoseGraph(JoinJudge):
         return self._global_first(list(kept.components.values())), kept.tree, kept.loops, kept.rejected
 
     def _whole_solve(
-        self, links: list[Edge], valid: list[Edge]
+        self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()
     ) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]]:
         """The forest from every edge, the components refined, and an integration the refined
         poses disagree with left out and all found again (see the module); kept for the next
@@ -335,7 +343,7 @@ class PoseGraph(JoinJudge):
         disagreeing: set[tuple[str, str]] = set()
         self._last_refined, self._refined_now = self._refined_now, {}
         for _ in range(self.merge.max_rejection_rounds):
-            built = self._forest(links, [e for e in valid if e.key() not in disagreeing])
+            built = self._forest(links, [e for e in valid if e.key() not in disagreeing], priors)
             components, off = self._refined_components(built.tree, built.loops)
             if not off:
                 break
@@ -343,7 +351,7 @@ class PoseGraph(JoinJudge):
                 log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
             disagreeing.update(e.key() for e in off)
         rejected = built.rejected + [e for e in valid if e.key() in disagreeing and e.valid]
-        taken = {e.key(): e for e in links}
+        taken = {e.key(): e for e in (*links, *priors)}
         taken.update((e.key(), e) for e in valid if e.key() not in disagreeing)
         built.aside = {e.key(): e for e in valid if e.key() in disagreeing or e.key() in built.excluded}
         for key in built.aside:
@@ -355,15 +363,15 @@ class PoseGraph(JoinJudge):
         self._kept = built
         return components, built.tree, built.loops, rejected
 
-    def _forest(self, links: list[Edge], valid: list[Edge]) -> KeptForest:
-        """The spanning forest (links first), its loop closures, and the integrations rejected: by
+    def _forest(self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()) -> KeptForest:
+        """The spanning forest (links first, ``priors`` last), its loop closures, and the integrations rejected: by
         the cycle check, by the culprit rule (:meth:`_culprit`), and joins that the two groups they
         join do not bear out once the forest is whole (:meth:`_join_holds` on the two sides of the
         tree edge: the forest is built greedily, and a join checked when its groups were small
         may fail against what later joined them)."""
         excluded: set[tuple[str, str]] = set()
         while True:
-            built = self._kruskal(links + [e for e in valid if e.key() not in excluded])
+            built = self._kruskal([*links, *(e for e in valid if e.key() not in excluded), *priors])
             tree, loops, conflicts, adjacency = built.tree, built.loops, built.conflicts, built.adjacency
             culprit = self._culprit(tree, loops, conflicts, adjacency, built.forest)
             if culprit is None:

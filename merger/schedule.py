@@ -22,6 +22,10 @@ just joined, or lost its place), as its active submap grows (each time its versi
 - *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
   the global map, up to ``far_budget`` tries a submap.
 
+Robots that known start poses alone hold in one component (:mod:`fleetmap.merger.startposes`)
+count as apart here until an integration ties them: they search each other *far* and *idle*, and
+their pairs are not registered near where the start poses put them.
+
 So integrating n submaps costs O(n) integrations, not n^2
 (:attr:`~fleetmap.merger.stats.MergerStats.integrations`).
 """
@@ -122,7 +126,7 @@ class PairSchedule:
 
     def searching(self, p: Placement) -> bool:
         """Whether robots apart from the global map have submaps with candidates left to try."""
-        if p.result is None or len(p.result.components) < 2:
+        if p.result is None or len(p.groups) < 2:
             return False
         budget = self.config.merge.far_budget
         return any(self.far_tries.get(k, 0) < budget for k in self.idle_candidates(p))
@@ -169,7 +173,7 @@ class PairSchedule:
                 # cannot have carried it out of registration's reach; else pose-free (a loop
                 # after a long way round: the search window as wide as the uncertainty), the
                 # most similar such submap only: the paper's integration costs ten registrations
-                if self._within_reach(other, key):
+                if self._within_reach(other, key, p):
                     self.enqueue((other, key), predicted)
                 else:
                     beyond.append(other)
@@ -186,7 +190,8 @@ class PairSchedule:
         if not self._in_global_map(key, p):
             # the global map's own submaps are not searched for the others: each of theirs
             # searches it, and one direction is enough
-            for other in self._far(key, mine, p, within=False)[: mp.far_candidates]:
+            group = self._group_members(key, p)
+            for other in self._far(key, group, p, within=False)[: mp.far_candidates]:
                 self._queue_far(key, other)
 
     def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
@@ -223,8 +228,8 @@ class PairSchedule:
                     for ia, ib in np.argwhere(meets):
                         a, b = ordered(group_a[ia], group_b[ib])
                         known = self.graph.edge(a, b)
-                        if (a, b) in self.joined or (known is not None and known.valid):
-                            continue
+                        if (a, b) in self.joined or (known is not None and known.valid) or not p.tied(a, b):
+                            continue  # (robots together by their start poses alone: the near search's)
                         found.append((math.hypot(at[a].x - at[b].x, at[a].y - at[b].y), a, b))
             count: Counter[str] = Counter()
             for _, a, b in sorted(found):
@@ -244,15 +249,15 @@ class PairSchedule:
         similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
         how many were queued. Every submap's candidates are tried in turn: in a building where
         most views look alike (racks), the descriptor ranks the right partner anywhere."""
-        if p.result is None or len(p.result.components) < 2:
+        if p.result is None or len(p.groups) < 2:
             return 0
         budget = self.config.merge.far_budget
         queued = 0
-        by_component: dict[int, list[str]] = {}
+        by_group: dict[str, list[str]] = {}
         for key in self.idle_candidates(p):
-            by_component.setdefault(p.where[key], []).append(key)
-        for i, candidates in sorted(by_component.items()):
-            mine = set(p.result.components[i].members)
+            by_group.setdefault(p.ties.get(epoch_of(key), epoch_of(key)), []).append(key)
+        for group, candidates in by_group.items():
+            mine = set(p.groups[group])
             for key in sorted(candidates, key=lambda k: (self.far_tries.get(k, 0), k)):
                 if self.far_tries.get(key, 0) >= budget:
                     continue
@@ -269,17 +274,19 @@ class PairSchedule:
     def idle_candidates(self, p: Placement) -> list[str]:
         """The submaps the idle search tries (:meth:`idle_pairs`), whose tries :meth:`searching`
         counts (they must be the same, or a step with nothing to queue would have work for ever):
-        of each component but the global map, its final submaps, or all of them if none is final
-        yet. Robots placed among themselves and not in the global map search on: two robots that
-        joined each other are still apart from the fleet."""
+        of each group of submaps the integrations place together (a component, or each part of
+        one that known start poses alone hold together: :attr:`Placement.groups`) but the global
+        map's, its final submaps, or all of them if none is final yet. Robots placed among
+        themselves and not in the global map search on: two robots that joined each other are
+        still apart from the fleet."""
         if p.result is None:
             return []
         out: list[str] = []
-        for i, component in enumerate(p.result.components):
-            if i == 0 and len(p.epochs_in[i]) > 1:
+        for members in p.groups.values():
+            if members[0] in p.global_group:
                 continue
-            finals = [k for k in component.members if self.submaps[k].final]
-            out += finals or list(component.members)
+            finals = [k for k in members if self.submaps[k].final]
+            out += finals or list(members)
         return out
 
     def _predicted(self, key: str, p: Placement) -> Transform2D | None:
@@ -297,11 +304,22 @@ class PairSchedule:
         return None
 
     def _in_global_map(self, key: str, p: Placement) -> bool:
-        """Whether a submap (or its predecessor, for a new one) is in the largest component, the
-        global map, together with another epoch."""
+        """Whether a submap (or its predecessor, for a new one) is in the global map, placed there
+        with another epoch by integrations (:attr:`Placement.global_group`; not by a known start
+        pose alone, :mod:`fleetmap.merger.startposes`)."""
+        return self._placed_as(key, p) in p.global_group
+
+    def _placed_as(self, key: str, p: Placement) -> str:
+        """The submap whose place stands for ``key``'s: itself, or for a new one its predecessor
+        on its robot's chain."""
         link = self.graph.link_to(key)
-        index = p.where.get(key, p.where.get(link.a) if link is not None else None)
-        return index == 0 and len(p.epochs_in[0]) > 1
+        if key in p.where or link is None or link.a.split("/", 1)[0] != key.split("/", 1)[0]:
+            return key
+        return link.a
+
+    def _group_members(self, key: str, p: Placement) -> set[str]:
+        """The submaps the last solve's integrations place with ``key`` (:meth:`Placement.group_of`)."""
+        return {key, *(p.group_of(self._placed_as(key, p)) or ())}
 
     def _queue_far(self, key: str, other: str) -> None:
         if self.enqueue(ordered(other, key), None):
@@ -337,15 +355,16 @@ class PairSchedule:
         out.sort(key=lambda x: (x[0], x[1]))
         return [(other, predicted) for _, other, predicted in out]
 
-    def _within_reach(self, a: str, b: str) -> bool:
+    def _within_reach(self, a: str, b: str, p: Placement) -> bool:
         """Whether registration from the predicted pose can find b on a: the drift the links
         between two submaps of one robot's chain allow (three standard deviations of their
         covariances, :meth:`~fleetmap.merger.joins.JoinJudge.chain_drift`) is within the
-        tracking's correspondence distance and 5 degrees; always for two robots' submaps (their
-        prediction comes through integrations)."""
+        tracking's correspondence distance and 5 degrees; for two robots' submaps, when their
+        prediction comes through integrations (:meth:`Placement.tied`), not through their start
+        poses alone (metres off: :mod:`fleetmap.merger.startposes`)."""
         drift = self.graph.chain_drift(a, b)
         if drift is None:
-            return True
+            return p.tied(a, b)
         return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
 
     def _radius(self, key: str) -> float:

@@ -1,7 +1,8 @@
 """Ground-truth scores of a merged map (pure numpy: arrays in, numbers out).
 
 - **Map error**: points sampled along the merged map's segments (every ``spacing``), each at its
-  distance to the nearest true wall; the length-weighted mean and 95th percentile, in metres.
+  distance to the nearest true wall; the length-weighted mean, 95th percentile and root mean
+  square, in metres.
 - **Coverage**: the fraction of the *visible* wall length (the parts of the walls that the
   simulated scans hit, :func:`visible_walls`) that lies within ``tolerance`` of the merged map.
 - **Pose errors**: the merged map's frame ("global") is that of an anchor local map, which the
@@ -38,6 +39,8 @@ class MapError:
     mean: float
     p95: float
     max: float
+    rms: float = math.nan
+    """The root mean square (Dugarjav & Lee 2015, Table I's score)."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +84,12 @@ def map_error(segments: Array, walls: Array, spacing: float = 0.02) -> MapError:
         return MapError(math.nan, math.nan, math.nan)
     points, weights = _weighted_samples(seg, spacing)
     d = nearest_distance(points, walls)
-    return MapError(float(np.average(d, weights=weights)), weighted_quantile(d, weights, 0.95), float(d.max()))
+    return MapError(
+        float(np.average(d, weights=weights)),
+        weighted_quantile(d, weights, 0.95),
+        float(d.max()),
+        math.sqrt(float(np.average(d * d, weights=weights))),
+    )
 
 
 ALIGN_SPACING = 0.05

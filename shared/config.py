@@ -366,6 +366,13 @@ class MergeParams:
     """... and the most (m) it may move it ..."""
     scan_min_matched_share: float = ours(0.5)
     """... and the fit must match at least this share of the scan's walls."""
+    start_pose_sigma_translation: float = ours(1.0)
+    """A robot's known start pose (``--start-poses``; Dugarjav & Lee 2015, Section III) is off by
+    this (m, each axis, one standard deviation) ..."""
+    start_pose_sigma_rotation: float = ours(0.087)
+    """... and this (rad, 5 degrees). Loose on purpose: the prior only holds the robots in one frame
+    until their maps meet, and there their integrations correct it
+    (docs/decisions/012-the-other-papers.md)."""
     max_submap_segments: int = ours(5000)
     """The merger refuses a submap of more segments than this (dropped, logged and counted)."""
     max_robots: int = ours(256, basic=True)

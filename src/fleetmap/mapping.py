@@ -165,17 +165,22 @@ def map_logs(
     executor: Executor | None = None,
     on_step: Callable[[int, int, float], None] | None = None,
     tracking_processes: int | None = None,
+    start_poses: dict[str, Transform2D] | None = None,
 ) -> MapResult:
     """Map the pieces (see the module docstring) and write the outputs into ``out_dir``, the
     integrations run by ``executor`` (default: in this process; the map is the same).
     ``on_step(submaps, integrations, seconds)`` hears of every merger step: the submaps in its
     graph, the integrations it has done in all, and the seconds the step took. The agents track in
     ``tracking_processes`` worker processes (:class:`~fleetmap.agent_processes.AgentProcesses`;
-    default: one per robot, up to one fewer than the CPUs; 0: in this process); the map is the same."""
+    default: one per robot, up to one fewer than the CPUs; 0: in this process); the map is the same.
+    ``start_poses``: robots' known start poses in one frame, by robot id (a warning names those
+    given for no piece; :mod:`fleetmap.merger.startposes`)."""
     started = time.perf_counter()
     _check_odometry(pieces, config)
     keys = FleetKeys()
-    merger = Merger(keys, config, executor, keep_key_scans=True)
+    merger = Merger(keys, config, executor, keep_key_scans=True, start_poses=start_poses)
+    if merger.start is not None:
+        merger.start.warn_unknown([p.robot for p in pieces], "the inputs")
     log = SessionLog()
     # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))

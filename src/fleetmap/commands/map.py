@@ -11,6 +11,7 @@ from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io.startposes import read_start_poses
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -41,6 +42,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="TOPIC",
         help="ROS bags: the nav_msgs/Odometry topic (default: the first one, else tf odom -> base_link)",
     )
+    given.add_argument(
+        "--start-poses",
+        metavar="POSES.csv",
+        help="robot,x,y,theta lines: robots' laser poses when they start, in one frame (a header line allowed): each "
+        "is placed from its first submap, and corrected where its map meets the others' (robots are named as "
+        "poses.csv names them)",
+    )
     add_no_return_reading(given)
     made = p.add_argument_group("output")
     made.add_argument("--out", required=True, metavar="DIR", help="the output directory (created if needed)")
@@ -55,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetmap.mapping import map_logs, read_inputs
 
     config = config_from_args(args)
+    start_poses = read_start_poses(args.start_poses) if args.start_poses else None
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise BadInput(str(out), "exists and is not a directory (--out)")
@@ -74,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
     executor = executor_from_args(args)
     try:
-        result = map_logs(pieces, out, config, progress, executor)
+        result = map_logs(pieces, out, config, progress, executor, start_poses=start_poses)
     finally:
         executor.close()
         for bar in bars:

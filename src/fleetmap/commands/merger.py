@@ -18,6 +18,7 @@ from fleetmap.shared.io import ros2_wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
 from fleetmap.shared.io.ros2_node import Ros2Node, ros2_options
+from fleetmap.shared.io.startposes import read_start_poses
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -32,6 +33,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "graph in a file and resumes from it when restarted.",
     )
     p.add_argument("--state", metavar="FILE", help="state file: written after every step, loaded at start")
+    p.add_argument(
+        "--start-poses",
+        metavar="FILE",
+        help="robot,x,y,theta lines: robots' laser poses when they start, in one frame (a header line allowed): each "
+        "is placed from its first submap, and corrected where its map meets the others'",
+    )
     p.add_argument(
         "--step-seconds",
         type=float,
@@ -58,6 +65,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
+    start_poses = read_start_poses(args.start_poses) if args.start_poses else None
     options = zenoh_options_from_args(args)
     if args.ros2:
         options = ros2_options(options)  # a client of the robots' router by default
@@ -69,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
         raise BadInput("--domain", "applies to --ros2 only")
     executor = executor_from_args(args)
     try:
-        merger = Merger(options.keys, config, executor)
+        merger = Merger(options.keys, config, executor, start_poses=start_poses)
+        if start_poses:
+            log.info("start poses of %s from %s", ", ".join(sorted(start_poses)), args.start_poses)
         if args.state and Path(args.state).exists():
             merger.load_state(args.state)
             log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
