@@ -25,6 +25,11 @@ component solved again: only edges that agree with the graph count, so one wrong
 move a map. Each component is one global map; its walls are the submaps' fused one segment per
 stretch of wall (:class:`~fleetmap.shared.core.walls.WallMap`).
 
+A step costs what it adds (issue 49): the forest, its verdicts and the refined poses are kept
+from solve to solve, and a step that only adds submaps, their links and integrations that close
+loops or that the groups do not bear out carries them on (:meth:`PoseGraph._kept_solve`); the rest
+solves the whole graph again (:meth:`PoseGraph._whole_solve`).
+
 How a join of two groups is judged, and the robots' links it is judged through, is
 :mod:`fleetmap.merger.joins`; the forest's paths and their drift, :mod:`fleetmap.merger.forest`.
 """
