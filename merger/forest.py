@@ -163,6 +163,8 @@ class KeptForest:
     members: dict[str, list[str]]
     adjacency: dict[str, list[Edge]]
     forest: RootedForest
+    apart: list[Edge] = field(default_factory=list)
+    """The integrations between two trees: joins refused, and ambiguous ones (which join nothing)."""
     rejected: list[Edge] = field(default_factory=list)
     """Every integration the solve rejected (the conflicts, the culprits, those the refined poses
     disagree with)."""

@@ -230,12 +230,14 @@ class PoseGraph(JoinJudge):
             ra, rb = root[e.a], root[e.b]
             if ra != rb:
                 if not e.valid:
-                    continue  # an ambiguous integration joins nothing (_kruskal)
+                    kept.apart.append(e)  # an ambiguous integration joins nothing (_kruskal)
+                    continue
                 if not e.link:
                     if self._join_holds(e, members[ra], members[rb], rel, adjacency):
                         return None  # a join: the whole solve judges it with its rivals
                     kept.conflicts.append(e)
                     kept.rejected.append(e)
+                    kept.apart.append(e)
                     continue
                 if len(members[ra]) > 1 and len(members[rb]) > 1:
                     return None
@@ -263,6 +265,8 @@ class PoseGraph(JoinJudge):
             if len(agreeing) == 1:
                 kept.loops.append(replace(agreeing[0], valid=True))
                 refine.add(ra)
+        if any(root[e.a] == root[e.b] for e in kept.apart):
+            return None  # a new submap's link put two submaps in one tree that an integration did not join
         touched.update(root[k] for k in grown)
         if not self._kept_verdicts_stand(kept, touched):
             return None
@@ -279,7 +283,7 @@ class PoseGraph(JoinJudge):
         :meth:`_kruskal` and :meth:`_forest` decide it, the verdicts kept where nothing new bears
         on them: :meth:`_kept_verdict`)."""
         root, members, rel, adjacency = kept.root, kept.members, kept.rel, kept.adjacency
-        for e in kept.conflicts:
+        for e in kept.apart:
             ra, rb = root[e.a], root[e.b]
             regrown = ra != rb and (ra in touched or rb in touched)
             if regrown and e.valid and not e.link and self._join_holds(e, members[ra], members[rb], rel, adjacency):
@@ -522,7 +526,8 @@ class PoseGraph(JoinJudge):
                 agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
                 if len(agreeing) == 1:
                     loops.append(replace(agreeing[0], valid=True))
-        return KeptForest(tree, loops, conflicts, root, rel, members, adjacency, forest)
+        apart = [e for e in edges if not e.link and root[e.a] != root[e.b]]  # refused, or ambiguous
+        return KeptForest(tree, loops, conflicts, root, rel, members, adjacency, forest, apart=apart)
 
     def _tolerance_between(self, forest: RootedForest, a: str, b: str) -> tuple[float, float]:
         """:meth:`_cycle_tolerance` of the forest's path from a to b."""
