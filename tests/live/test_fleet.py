@@ -385,3 +385,33 @@ def test_an_agent_and_a_recorder_started_before_their_router_wait_for_it_and_the
         recorder.send_signal(signal.SIGTERM)
         assert recorder.wait(WAIT) == 0, recorder_log.read_text(errors="replace")
         assert "fleet/t/robots/r1/scan" in recorder_log.read_text(errors="replace")
+
+
+def _says(log: Path, text: str, timeout: float = WAIT) -> bool:
+    """Whether ``text`` appears in the log file within ``timeout`` seconds (checked every 0.1 s)."""
+    deadline = time.monotonic() + timeout
+    while text not in log.read_text():
+        if time.monotonic() > deadline:
+            return False
+        threading.Event().wait(0.1)
+    return True
+
+
+def test_a_second_merger_on_a_fleet_is_told_of_the_first_and_the_first_of_the_second(fleet) -> None:  # type: ignore[no-untyped-def]
+    """Two mergers on one fleet publish two global maps under one key (sequence numbers going
+    back); each says so: the second finds the first answering the state query, the first hears
+    the second's start. A merger restarted after the first stopped says nothing. About 3 s."""
+    _, endpoint, procs, tmp_path = fleet
+    common = ["--connect", endpoint, "--mode", "client", "--fleet", "t"]
+    first = procs[-1]
+    second = start(procs, "merger", *common, log=tmp_path / "second.log")
+    assert _says(tmp_path / "second.log", "another merger (answers the merger's state query)")
+    assert _says(tmp_path / "merger.log", "another merger (started: merger ")
+    for p in (second, first):
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(WAIT) == 0
+    third = start(procs, "merger", *common, log=tmp_path / "third.log")
+    assert _says(tmp_path / "third.log", "OPEN fleet")  # its session is open: it queries next, then stops
+    third.send_signal(signal.SIGTERM)
+    assert third.wait(WAIT) == 0
+    assert "another merger" not in (tmp_path / "third.log").read_text()
