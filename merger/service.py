@@ -17,6 +17,7 @@ from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.clocks import CLOCK_SKEW, from_the_future
 from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
@@ -78,6 +79,7 @@ class MergerService:
         self.bus = bus
         self.merger = merger
         merger.require_presence = True  # a live fleet's robots hold liveliness tokens
+        merger.budget = SubmapBudget.of(merger.config)  # and take the graph at a robot's pace
         self.keys = merger.keys
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
@@ -231,6 +233,7 @@ class MergerService:
                 if key == self.keys.events:
                     self._note_merger_start(item)
                 self._publish(self.merger.receive(key, item, self.clock(), recalled=isinstance(item, _Recalled)))
+        self.merger.release(self.clock())
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
