@@ -160,7 +160,11 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     good, _ = true_local_map("department", "r1", 0, 6)
     maps = Inbox()
     bus.subscribe(keys.globalmap, maps)
-    bus.declare_liveliness(keys.alive("r1"))  # the merger listens to robots holding their token
+    events = Inbox()
+    bus.subscribe(keys.events, events)
+    bus.declare_liveliness(keys.alive("r1"))  # the merger listens to robots holding their token ...
+    # ... once it has seen it: a token and a map put just after it may reach it the other way round
+    assert events.wait_until(lambda got: any(_joined(p, "r1") for _, p in got), WAIT)
     bus.publish(keys.localmap("r1"), good.to_msgpack())
     assert maps.wait_for(1, WAIT), "the merger stopped answering after the flood"
     state = GlobalMap.from_msgpack(bus.query(keys.state, timeout=5.0)[0])
@@ -169,6 +173,11 @@ def test_a_flood_of_malformed_messages_leaves_the_merger_running_and_counting(fl
     merger.wait(WAIT)
     log = (tmp / "merger.log").read_text()
     assert merger.returncode == 0 and "2000 malformed messages dropped" in log
+
+
+def _joined(payload: object, robot: str) -> bool:
+    event = decode(payload) if isinstance(payload, bytes) else None
+    return isinstance(event, FleetEvent) and event.kind == "join" and event.robot == robot
 
 
 def test_a_merger_restored_from_its_state_publishes_its_last_step_again(tmp_path: Path) -> None:
