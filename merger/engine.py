@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.clocks import from_the_future
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
 from fleetmap.merger.executor import Handle as JobHandle
@@ -109,6 +110,10 @@ class Merger:
         """Where the last solve put every submap and epoch."""
         self._pending: dict[str, LocalMap] = {}
         """Submap versions received since the last step, by submap key, in arrival order."""
+        self.budget: SubmapBudget | None = None
+        """A live merger's budget of new submaps per robot (:mod:`fleetmap.merger.budget`); None: none."""
+        self._held: dict[str, dict[str, LocalMap]] = {}
+        """Per robot, its new submaps the budget holds back, by submap key, in arrival order."""
         self._robots: dict[str, Robot] = {}
         self._global: GlobalMap | None = None
         self._last_out: list[Outgoing] = []
@@ -174,7 +179,7 @@ class Merger:
             if key != self.keys.localmap(message.robot):
                 self.stats.ignored += 1
                 return []
-            return self._take_submap(message)
+            return self._take_submap(message, now, recalled)
         elif isinstance(message, Scan):
             if key != self.keys.scan(message.robot):
                 self.stats.ignored += 1
@@ -255,10 +260,10 @@ class Merger:
     def _robot(self, name: str) -> Robot:
         return self._robots.setdefault(name, Robot())
 
-    def _take_submap(self, m: LocalMap) -> list[Outgoing]:
+    def _take_submap(self, m: LocalMap, now: float | None = None, recalled: bool = False) -> list[Outgoing]:
         key = m.submap_key
         held = self.submaps.get(key)
-        waiting = self._pending.get(key)
+        waiting = self._pending.get(key, self._held.get(m.robot, {}).get(key))
         if (held is not None and m.version <= held.version) or (waiting is not None and m.version <= waiting.version):
             self.stats.stale += 1
             return []
@@ -276,8 +281,39 @@ class Merger:
         r = self._robot(m.robot)  # known from its first map (max_robots counts it)
         r.live = True
         r.epochs.add(m.epoch)
-        self._pending[key] = m
+        budget = self.budget
+        if budget is not None and now is not None and not recalled and held is None and key not in self._pending:
+            self._hold(m, now, budget)
+        else:
+            self._pending[key] = m
         return []
+
+    def _hold(self, m: LocalMap, now: float, budget: SubmapBudget) -> None:
+        """A new submap under the budget (:mod:`fleetmap.merger.budget`): taken if its robot may
+        start one now and holds none back; else held back behind them, up to the budget's burst;
+        else refused and counted."""
+        held = self._held.setdefault(m.robot, {})
+        key = m.submap_key
+        if key in held or (not held and budget.admit(m.robot, now)):
+            (held if key in held else self._pending)[key] = m
+        elif len(held) < budget.burst:
+            held[key] = m
+        else:
+            self._drop("submap_budget", f"submap {key}: {m.robot} started more than {budget.burst:.0f} in a window")
+        if not held:
+            del self._held[m.robot]
+
+    def release(self, now: float) -> None:
+        """Take the submaps the budget held back that their robots may start by ``now``."""
+        if self.budget is None:
+            return
+        for robot in list(self._held):
+            held = self._held[robot]
+            while held and self.budget.admit(robot, now):
+                key = next(iter(held))
+                self._pending[key] = held.pop(key)
+            if not held:
+                del self._held[robot]
 
     def _same_agent(self, m: LocalMap) -> bool:
         """Whether a submap of an epoch new to the merger comes from the agent it hears already:
@@ -372,6 +408,7 @@ class Merger:
         budget = self.config.merge.far_budget
         return (
             any(mine(k) for k in self._pending)
+            or robot in self._held
             or any(mine(a) or mine(b) for a, b in s.queue)
             or any(mine(k) and s.far_tries.get(k, 0) < budget for k in s.idle_candidates(self.placement))
         )
@@ -386,6 +423,9 @@ class Merger:
             s.scheduled.pop(key, None)
             s.far_tries.pop(key, None)
             self._key_scans.pop(key, None)
+        self._held.pop(robot, None)
+        if self.budget is not None:
+            self.budget.forget(robot)
         gone = set(mine)
         s.queue = {pair: t for pair, t in s.queue.items() if gone.isdisjoint(pair)}
         s.finished_epochs = {e for e in s.finished_epochs if parse_map_key(e)[0] != robot}
@@ -410,13 +450,13 @@ class Merger:
 
     @property
     def waiting(self) -> list[str]:
-        """The submaps received that no step has taken into the graph yet."""
-        return list(self._pending)
+        """The submaps received that no step has taken into the graph yet (the budget's held back included)."""
+        return [*self._pending, *(k for held in self._held.values() for k in held)]
 
     @property
     def backlog(self) -> int:
         """Submaps received and pairs queued that no step has taken yet."""
-        return len(self._pending) + len(self.schedule.queue)
+        return len(self.waiting) + len(self.schedule.queue)
 
     @property
     def has_work(self) -> bool:
@@ -608,7 +648,7 @@ class Merger:
             edges=[e for e in self.graph.edges if not e.link],  # links come back with their submaps
             robots=self._robots,
             queue=s.queue,
-            pending=list(self._pending.values()),
+            pending=[*self._pending.values(), *(m for held in self._held.values() for m in held.values())],
             scheduled=s.scheduled,
             finals=s.finals,
             far_tries=s.far_tries,

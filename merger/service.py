@@ -10,12 +10,14 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import secrets
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.clocks import CLOCK_SKEW, from_the_future
 from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
@@ -41,6 +43,10 @@ STATUS_SECONDS = 5.0
 """Seconds between the live merger's status lines (INFO)."""
 STATUS_WINDOW = 60.0
 """The status line's latency covers the submaps merged in this many last seconds."""
+ANOTHER_MERGER = (
+    "another merger (%s) is on this fleet: two mergers publish two global maps under one key, and a shared "
+    "--state file is written by both; stop one"
+)
 STEP_SECONDS = 0.25
 """The live service's time budget for one step's integrations: a step ends after the first
 integration that finds this much time gone; the other pairs wait for the next step."""
@@ -73,6 +79,7 @@ class MergerService:
         self.bus = bus
         self.merger = merger
         merger.require_presence = True  # a live fleet's robots hold liveliness tokens
+        merger.budget = SubmapBudget.of(merger.config)  # and take the graph at a robot's pace
         self.keys = merger.keys
         self.state_file = Path(state_file) if state_file else None
         self.tick = tick
@@ -105,9 +112,17 @@ class MergerService:
         """Scans the pose thread dropped: stamped further ahead than :data:`CLOCK_SKEW`."""
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
+        self.instance = f"merger {secrets.token_hex(6)}"
+        """This service's name in its ``merger_start`` event, to tell another merger's start from its own."""
+        self.other_mergers: set[str] = set()
+        """Other mergers seen on the fleet: answering the state query at start, or starting later."""
 
     def start(self) -> None:
         keys = self.keys
+        # Another merger answers the state query (before this one declares its own): one fleet, two
+        # mergers, two global maps. Said, not refused: an operator decides which one to stop.
+        if self.bus.query(keys.state, timeout=RECALL_SECONDS):
+            self._another_merger("answers the merger's state query")
         self._handles.append(self.bus.subscribe(keys.all_localmaps, self._on_message))
         self._handles.append(self.bus.subscribe(keys.all_scans, self._on_scan))
         self._handles.append(self.bus.subscribe(keys.all_robot_events, self._on_message))
@@ -124,7 +139,7 @@ class MergerService:
         self._handles.append(self.bus.declare_liveliness(keys.service("merger")))
         self._following.start()
         now = self.clock()
-        self.bus.publish(keys.events, FleetEvent("merger_start", None, now).to_msgpack())
+        self.bus.publish(keys.events, FleetEvent("merger_start", None, now, self.instance).to_msgpack())
         # A (re)started merger says where it stands, and asks every robot for its latest local
         # map of every epoch.
         self._publish(self.merger.where_it_stands())
@@ -215,10 +230,26 @@ class MergerService:
                     log.info("robot %s %s", robot, "joined" if item else "left")
                     self._publish(self.merger.presence(robot, item, self.clock()))
             else:
+                if key == self.keys.events:
+                    self._note_merger_start(item)
                 self._publish(self.merger.receive(key, item, self.clock(), recalled=isinstance(item, _Recalled)))
+        self.merger.release(self.clock())
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
+
+    def _note_merger_start(self, payload: bytes) -> None:
+        """Warn of a ``merger_start`` event that is not this service's own: a second merger started."""
+        try:
+            event = FleetEvent.from_msgpack(payload)
+        except BadMessage:
+            return  # the engine counts it
+        if event.kind == "merger_start" and event.detail != self.instance:
+            self._another_merger(f"started: {event.detail or 'an older version'}")
+
+    def _another_merger(self, what: str) -> None:
+        self.other_mergers.add(what)
+        log.warning(ANOTHER_MERGER, what)
 
     def _token_robot(self, key: str) -> str | None:
         """The robot a liveliness token under ``alive/`` names; None, counted and logged, for a

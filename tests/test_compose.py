@@ -1,9 +1,13 @@
-"""docker-compose.yml runs fleetmap commands; there is no Docker engine here, so its commands are
-checked to be real commands of this CLI with valid arguments (their behaviour is tested in tests/live)."""
+"""docker-compose.yml (the secured fleet, the default) and docker-compose.open.yml (one machine) run
+fleetmap commands; there is no Docker engine here, so their commands are checked to be real commands
+of this CLI with valid arguments, and the secured deployment's commands are run as written, on
+loopback (the compose's host names and volumes replaced by an endpoint and folders)."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import threading
 from pathlib import Path
 
 import pytest
@@ -11,8 +15,8 @@ import pytest
 from fleetmap.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
-COMPOSE = ROOT / "docker-compose.yml"
-SECURE = ROOT / "docker-compose.secure.yml"
+COMPOSE = ROOT / "docker-compose.open.yml"
+SECURE = ROOT / "docker-compose.yml"
 
 
 def _commands(path: Path = COMPOSE) -> dict[str, list[str]]:
@@ -56,3 +60,69 @@ def test_the_secured_compose_gives_each_robot_and_service_its_own_config(tmp_pat
             assert text["transport"]["auth"]["usrpwd"]["user"] == (
                 robot or {"record": "recorder"}.get(command[1], command[1])
             )
+
+
+def _on_loopback(command: list[str], endpoint: str, folder: Path) -> list[str]:
+    """A compose command as it runs here: the router's address and the volumes replaced."""
+    out = []
+    for arg in command[1:]:
+        for there, here in (
+            ("tcp/0.0.0.0:7447", endpoint),
+            ("tcp/router:7447", endpoint),
+            ("/secure", str(folder / "secure")),
+            ("/data", str(folder / "data")),
+        ):
+            arg = arg.replace(there, here)
+        out.append(arg)
+    return out
+
+
+@pytest.mark.slow
+def test_the_default_compose_runs_a_secured_fleet_that_maps_and_says_nothing_of_an_open_one(tmp_path: Path) -> None:
+    """docker-compose.yml's own commands, in its order (secure, router, merger, recorder, an agent):
+    the robot is placed in the global map that a viewer logged in to the fleet sees; the open
+    compose's router says the fleet is open, the secured one does not. About 10 s."""
+    from fleetmap.shared.io.keys import FleetKeys
+    from fleetmap.shared.io.zenoh_config import free_loopback_endpoint
+
+    from tests.bus_helpers import Inbox
+    from tests.live.test_fleet import WAIT, fleetmap_cmd, processes, start
+    from tests.live.test_security import _open
+
+    endpoint = free_loopback_endpoint()
+    commands = {name: _on_loopback(c, endpoint, tmp_path) for name, c in _commands(SECURE).items()}
+    (tmp_path / "data").mkdir()
+    assert main(commands.pop("secure")) == 0
+    keys = FleetKeys("default")
+    with processes() as procs:
+        router = start(procs, *commands.pop("router"), log=tmp_path / "router.log")
+        viewer = _open(tmp_path / "secure" / "viewer.json5", wait=WAIT)
+        with viewer:
+            services, poses = Inbox(), Inbox()
+            viewer.subscribe_liveliness(keys.all_services, services, lambda k: None)
+            viewer.subscribe(keys.pose("r1"), poses)
+            start(procs, *commands.pop("merger"), log=tmp_path / "merger.log")
+            start(procs, *commands.pop("recorder"), log=tmp_path / "recorder.log")
+            assert services.wait_for(2, WAIT), services.items
+            agent = commands.pop("agent1")
+            agent[agent.index("--speed") + 1] = "8"
+            start(procs, *agent, log=tmp_path / "agent.log")
+            assert poses.wait_for(1, WAIT), "r1 was not placed"
+        router.terminate()
+        router.wait(WAIT)
+    assert "OPEN fleet" not in (tmp_path / "router.log").read_text()
+    assert "OPEN fleet" not in (tmp_path / "merger.log").read_text()
+    # the open compose's router says so within its first lines (killed after WAIT if it does not)
+    open_router = _on_loopback(_commands(COMPOSE)["router"], free_loopback_endpoint(), tmp_path)
+    child = subprocess.Popen(fleetmap_cmd(*open_router), stderr=subprocess.PIPE, text=True)
+    timer = threading.Timer(WAIT, child.kill)
+    timer.start()
+    said: list[str] = []
+    try:
+        while child.stderr is not None and len(said) < 5 and not any("OPEN fleet" in line for line in said):
+            said.append(child.stderr.readline())
+    finally:
+        timer.cancel()
+        child.terminate()
+        child.wait(WAIT)
+    assert any("OPEN fleet" in line for line in said), said

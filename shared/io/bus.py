@@ -11,8 +11,12 @@ queries; the publisher's for the in-memory bus); one that raises is logged and c
 :attr:`BusStats.callback_errors` and never reaches zenoh.
 
 Closing a zenoh session drops what it still has queued, so :meth:`ZenohBus.close` first flushes:
-it queries ``fleetmap/barrier/*``, which every ZenohBus answers, and the replies come back behind
-the data. A router with access control must allow query and reply on ``fleetmap/barrier/**``.
+it queries ``fleetmap/barrier/*``, which every ZenohBus answers under its own id, and the replies
+come back behind the data. Once every session this one is connected to (its routers and peers) has
+answered, nothing it published is left in its own queues: the flush ends there, so a session that
+holds a barrier queryable and never answers delays only the sessions connected to it directly (a
+client waits for its router alone). A router with access control must allow query and reply on
+``fleetmap/barrier/**``.
 """
 
 from __future__ import annotations
@@ -112,8 +116,9 @@ class Bus(Protocol):
         """Whether some subscriber matches ``key``, waiting up to ``timeout`` seconds for one."""
 
     def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
-        """Wait until what was published so far has reached the other fleetmap sessions; whether
-        they all confirmed within ``timeout`` seconds. ``close`` does it first."""
+        """Wait until what was published so far has left this session: every session it is connected
+        to (its router, or its peers) has it; whether they confirmed within ``timeout`` seconds.
+        ``close`` does it first, unless nothing was published since the last flush."""
 
     def close(self) -> None:
         """Flush, undeclare everything and leave; further calls raise BusError."""
@@ -246,9 +251,12 @@ class ZenohBus(_BusBase):
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._handles: list[_ZenohHandle] = []
         self._closed = False
+        self._flushed_at = 0
+        """``stats.published`` at the last flush (close does not flush again what one flushed)."""
         # Answers other sessions' flush(): the query travels behind their data, so its reply means
         # their data has left them. Without it, zenoh drops what is still queued when a session closes.
-        barrier = session.declare_queryable(f"{BARRIER_PREFIX}/{session.zid()}", _answer_barrier)
+        barrier_key = f"{BARRIER_PREFIX}/{session.zid()}"
+        barrier = session.declare_queryable(barrier_key, lambda query: _answer_barrier(query, barrier_key))
         self._handles.append(_ZenohHandle(barrier, self._forget))
 
     @classmethod
@@ -413,13 +421,24 @@ class ZenohBus(_BusBase):
     def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
         self._check_open()
         started = time.monotonic()
+        with self._lock:
+            self._flushed_at = self.stats.published
+        info = self.session.info
+        neighbours = {f"{BARRIER_PREFIX}/{zid}" for zid in [*info.routers_zid(), *info.peers_zid()]}
         replies = self.session.get(
             f"{BARRIER_PREFIX}/*",
             target=zenoh.QueryTarget.ALL,
             consolidation=zenoh.ConsolidationMode.NONE,
             timeout=timeout,
         )
-        answered = sum(1 for reply in replies if reply.ok is not None)
+        answered = 0
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            answered += 1
+            neighbours.discard(str(reply.ok.key_expr))
+            if not neighbours:
+                return True  # the next hops have it all: this session's queues are empty
         if time.monotonic() - started >= timeout:
             log.warning(
                 "flush: only %d sessions confirmed within %.1f s; what is still queued may be lost", answered, timeout
@@ -431,8 +450,8 @@ class ZenohBus(_BusBase):
         with self._lock:
             if self._closed:
                 return
-            published = self.stats.published
-        if published:
+            unflushed = self.stats.published > self._flushed_at
+        if unflushed:
             self.flush()
         with self._lock:
             self._closed = True
@@ -460,9 +479,10 @@ def _connects(config: zenoh.Config) -> bool:
     return bool(endpoints)
 
 
-def _answer_barrier(query: zenoh.Query) -> None:
+def _answer_barrier(query: zenoh.Query, key: str) -> None:
+    """Reply under this session's own barrier key, so the flushing session knows who answered."""
     with query:
-        query.reply(query.key_expr, b"")
+        query.reply(key, b"")
 
 
 def _short(exc: Exception) -> str:

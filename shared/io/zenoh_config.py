@@ -208,6 +208,25 @@ def describe(config: zenoh.Config) -> dict[str, str]:
     return out
 
 
+OPEN_FLEET = (
+    "an OPEN fleet: no logins, no access control; anyone who reaches its router may join as any robot or "
+    "service. For one machine (or a network you trust); on several hosts, `fleetmap secure` first "
+    "(docker-compose.yml does)"
+)
+"""What a router or merger without credentials says at start."""
+
+
+def is_open(config: zenoh.Config) -> bool:
+    """Whether a session of ``config`` belongs to an open fleet: it enforces no access control (a
+    router) and logs in as nobody (a client; a secured router refuses those)."""
+    try:
+        guarded = json.loads(config.get_json("access_control/enabled")) is True
+        user = json.loads(config.get_json("transport/auth/usrpwd/user"))
+    except zenoh.ZError:
+        return True
+    return not guarded and not user
+
+
 def endpoints_argv(options: ZenohOptions) -> list[str]:
     """The command-line flags that give a child process the same zenoh options."""
     argv: list[str] = []

@@ -3,7 +3,10 @@
 The merger is deterministic given the same local maps in the same order, and the live merger
 published, step by step, which local map versions it integrated (``MergerStep``). A full replay
 follows those steps with the recorded local maps, so it rebuilds exactly the live global map, even
-where the recorder heard two robots in the other order. A partial replay (``--from``/``--to``,
+where the recorder heard two robots in the other order. Where the merger restarted (a
+``merger_start`` event after its first step), the replay's merger restarts too, at the same step: from its own state
+file when the live one resumed from its state (its steps go on numbering), empty when it started
+afresh (they start again at 1). A partial replay (``--from``/``--to``,
 ``--robots``) feeds the selected local maps in recording order instead. A recording cut short by a
 crash is read up to its last complete chunk, with a warning saying how much was read.
 """
@@ -127,7 +130,7 @@ def replay(
     if opts.robots is not None:
         _check_robots(opts.robots, decoded, source)
     output_folder(out_dir, "--out")
-    steps, live, compared = _steps_and_live_maps(decoded)
+    steps, live, compared, restarts = _steps_and_live_maps(decoded)
     exact = bool(steps) and not partial
 
     def wanted(msg: Any) -> bool:
@@ -150,16 +153,21 @@ def replay(
     inputs: list[str] = []
     at_live: GlobalMap | None = None
     pace = _Pacer(opts.speed)
+    stepped = 0
     if exact:
-        at_live = _follow_steps(merger, steps, decoded, compared, pace, take, inputs, progress)
+        merger, at_live, stepped = _follow_steps(
+            merger, steps, restarts, decoded, compared, pace, take, inputs, progress
+        )
     else:
         maps = [(m, msg) for m, msg in decoded if isinstance(msg, LocalMap) and wanted(msg) and selected(m)]
         _feed_in_order(merger, maps, pace, take, inputs, progress)
     report = write_outputs(session, make_truth(scenario), out_dir, f"fleetmap replay: {Path(path).name}")
-    result = ReplayResult(report, exact, warning, live, merger.global_map, merger.stats.steps, inputs)
+    stepped = stepped or merger.stats.steps
+    result = ReplayResult(report, exact, warning, live, merger.global_map, stepped, inputs)
     report["replay"] = {
         "exact": exact,
-        "steps": merger.stats.steps,
+        "steps": stepped,
+        "merger_restarts": len(restarts) if exact else 0,
         "local_maps_fed": len(inputs),
         # against the map of the step that published the live one: a recording cut by a crash may
         # hold maps no recorded step took, which the replay goes on to integrate after it
@@ -197,42 +205,77 @@ def _check_robots(robots: frozenset[str], decoded: list[tuple[RecordedMessage, A
 
 def _steps_and_live_maps(
     decoded: list[tuple[RecordedMessage, Any]],
-) -> tuple[list[MergerStep], GlobalMap | None, GlobalMap | None]:
-    """The merger's steps as recorded, its last global map, and the last one whose step the
-    recording holds (the live map a replay is compared with: a recorder killed between a step's
-    global map and its MergerStep kept the map, not the step)."""
+) -> tuple[list[MergerStep], GlobalMap | None, GlobalMap | None, dict[int, bool]]:
+    """The merger's steps as recorded, its last global map, the last one whose step the recording
+    holds (the live map a replay is compared with: a recorder killed between a step's global map
+    and its MergerStep kept the map, not the step), and the merger's restarts: before which step
+    (index), and whether it resumed from its state (the step numbers go on) or not."""
     # A merger restored from its state publishes its last step again (Merger.where_it_stands):
     # the same bytes, fed once.
     steps: list[MergerStep] = []
     fed: set[bytes] = set()
+    # A restarted merger says merger_start, publishes where it stands (a step the killed one had
+    # saved but maybe not published: that one's, not the new one's), then asks for the robots'
+    # maps (republish_request): its own steps begin after that.
+    restarts: dict[int, bool] = {}
+    starting = restarted = False
     for m, msg in decoded:
-        if isinstance(msg, MergerStep) and m.payload not in fed:
-            fed.add(m.payload)
-            steps.append(msg)
+        if isinstance(msg, FleetEvent) and msg.robot is None and steps:
+            if msg.kind == "merger_start":
+                starting = True
+            elif msg.kind == "republish_request" and starting:
+                starting, restarted = False, True
+        if isinstance(msg, MergerStep):
+            if restarted:
+                restarts[len(steps)] = resumed = msg.seq > steps[-1].seq
+                restarted = False
+                if not resumed:
+                    fed.clear()  # an empty merger's steps may repeat the first one's, byte for byte
+            if m.payload not in fed:
+                fed.add(m.payload)
+                steps.append(msg)
     live = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap)), None)
     stepped = {step.seq for step in steps}
     compared = next((msg for _, msg in reversed(decoded) if isinstance(msg, GlobalMap) and msg.seq in stepped), None)
-    return steps, live, compared
+    return steps, live, compared, restarts
+
+
+def _restart(merger: Merger, resumed: bool) -> Merger:
+    """The merger a live one restarted as: a new one loaded from ``merger``'s state file (written
+    and read as the live one did), or an empty one."""
+    fresh = Merger(merger.keys, merger.config)
+    if resumed:
+        with tempfile.TemporaryDirectory() as tmp:
+            state = Path(tmp) / "merger.state"
+            merger.save_state(state)
+            fresh.load_state(state)
+    return fresh
 
 
 def _follow_steps(
     merger: Merger,
     steps: list[MergerStep],
+    restarts: dict[int, bool],
     decoded: list[tuple[RecordedMessage, Any]],
     compared: GlobalMap | None,
     pace: _Pacer,
     take: Callable[[list[Any]], None],
     inputs: list[str],
     progress: Callable[[int, int], None] | None,
-) -> GlobalMap | None:
+) -> tuple[Merger, GlobalMap | None, int]:
     """Feed the merger the local map versions each recorded step took and step it as far as that
     step integrated (``take`` hears what it publishes, ``inputs`` the versions fed); then on, for a
-    recording that ends before the live merger caught up. The global map after the step that
-    published ``compared`` (None if none did)."""
+    recording that ends before the live merger caught up; restarted where the live one was
+    (``restarts``, :func:`_restart`). The merger at the end, the global map after the step that
+    published ``compared`` (None if none did), and the steps taken."""
     keys = merger.keys
     at_live: GlobalMap | None = None
+    stepped = 0
     by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
     for n, step in enumerate(steps):
+        if n in restarts:
+            stepped += merger.stats.steps
+            merger = _restart(merger, restarts[n])
         for key, version in zip(step.maps, step.versions, strict=True):
             if key.count("/") == 1:  # a version-1 map key (no submap): an epoch's map is its submap 0
                 key = f"{key}/0"
@@ -251,7 +294,7 @@ def _follow_steps(
             progress(n + 1, len(steps))
     while merger.has_work:  # a recording that ends before the live merger caught up
         take(merger.step())
-    return at_live
+    return merger, at_live, stepped + merger.stats.steps
 
 
 def _feed_in_order(

@@ -14,6 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.engine import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.config import FleetmapConfig, MergeParams
@@ -455,3 +456,26 @@ def test_the_global_map_is_the_component_of_the_most_robots_not_of_one_robot_s_m
         len({k.split("/")[1] for k in c.members if k.startswith("f/")}) > 2 for c in merger.global_map.components
     )
     assert robots_of[0] == {"r1", "r2"}
+
+
+def test_a_robot_s_new_submaps_enter_the_graph_at_a_robot_s_pace_and_the_others_are_not_held_back(maps) -> None:  # type: ignore[no-untyped-def]
+    # 500 epochs of one robot took the merger to 2.1x its memory: under the budget a window's worth
+    # enters at once, as many again wait their turn, the rest is refused; r1 is not held back,
+    # and new versions of what a robot holds are never held back
+    merger = Merger(KEYS)
+    merger.budget = SubmapBudget.of(merger.config)
+    window = int(merger.budget.burst)
+    assert window == 36  # 0.6 new submaps a second (3 m/s, a submap every 5 m), over a minute
+    for epoch in range(500):
+        link = EpochLink(epoch - 1, "lost") if epoch else None
+        box = _box("f", epoch=epoch, previous_epoch_link=link, final=epoch > 0)
+        merger.receive(KEYS.localmap("f"), box.to_msgpack(), now=100.0)
+    merger.receive(KEYS.localmap("r1"), maps["r1"][0].to_msgpack(), now=100.0)
+    assert merger.pending == window + 1 and len(merger.waiting) == 2 * window + 1
+    assert merger.stats.refused["submap_budget"] == 500 - 2 * window
+    merger.receive(KEYS.localmap("f"), _box("f", epoch=0, version=1).to_msgpack(), now=100.0)
+    assert merger.pending == window + 1  # a new version of a submap taken: not a new submap
+    merger.release(110.0)  # ten seconds on: six more of f's
+    assert merger.pending == window + 1 + 6 and len(merger.waiting) == 2 * window + 1
+    merger.release(1000.0)
+    assert merger.pending == 2 * window + 1 and merger.waiting == list(merger._pending)

@@ -19,6 +19,7 @@ from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
 from fleetmap.shared.io.ros2_node import Ros2Node, ros2_options
 from fleetmap.shared.io.startposes import read_start_poses
+from fleetmap.shared.io.zenoh_config import OPEN_FLEET, is_open, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -84,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
             merger.load_state(args.state)
             log.warning("resumed from %s: %d maps, step %d", args.state, len(merger.graph), merger.seq)
         with stop_on_signals() as stop, ZenohBus.open(options) as bus:
+            if is_open(zenoh_config(options)):
+                log.warning("%s", OPEN_FLEET)
             service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
             node = Ros2Node(bus.session, NODE_NAME, domain=args.domain) if args.ros2 else None
             ros2 = Ros2Outputs(bus, options.keys, node, merge=config.merge) if node is not None else None

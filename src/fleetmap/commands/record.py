@@ -32,7 +32,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "file: one raw msgpack channel per key (exact bytes, for fleetmap replay) and Foxglove channels "
         "(scene line lists of scans, local and global maps; frame transforms of robots). Runs until "
         "SIGINT or SIGTERM (or --duration), then finishes the file and prints messages per topic. The "
-        "file is flushed every half second, so a crash loses at most about a second.",
+        "file is flushed every half second, so a crash loses at most about a second. A write that fails (a "
+        "full disk) ends it with exit code 1, so that a supervisor starts it again into a new file once "
+        "there is room (docker-compose.yml: restart: unless-stopped).",
     )
     p.add_argument(
         "--out",
@@ -102,7 +104,9 @@ def run(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop:
             service.start()
             print(f"recording {options.keys.everything} to {out} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
-            while not stop.wait(0.1):
+            # A failed write ends the recording: the file cannot go on past a cut chunk, and a recorder
+            # that stayed up recording nothing would never be restarted by its supervisor.
+            while not stop.wait(0.1) and not recorder.error:
                 if args.duration is not None and time.monotonic() - started >= args.duration:
                     break
             summary = service.stop()
@@ -114,7 +118,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"{summary.total_malformed} malformed messages recorded raw (no Foxglove view)")
     if summary.error:
         log.error(
-            "%s: %s; %d messages lost (fleetmap recover rewrites what the file holds)", out, summary.error, summary.lost
+            "%s: %s; %d messages lost; exiting (fleetmap recover rewrites what the file holds; started again, "
+            "the recorder writes a new file beside it)",
+            out,
+            summary.error,
+            summary.lost,
         )
         return 1
     return 0

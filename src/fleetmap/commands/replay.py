@@ -73,7 +73,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         info = result.report["replay"]
         same = {True: "identical to the live map", False: "DIFFERS from the live map", None: "partial replay"}
-        print(f"replayed {info['local_maps_fed']} local maps in {info['steps']} steps: {same[info['matches_live']]}")
+        restarts = info["merger_restarts"]
+        through = f" (through {restarts} merger restart{'s' * (restarts > 1)})" if restarts else ""
+        print(
+            f"replayed {info['local_maps_fed']} local maps in {info['steps']} steps: {same[info['matches_live']]}"
+            f"{through}"
+        )
         print(summary_table(result.report))
         print(f"outputs in {Path(args.out)}/")
     return 0

@@ -7,7 +7,7 @@ import logging
 import sys
 
 from fleetmap.shared.io.bus import ZenohBus
-from fleetmap.shared.io.zenoh_config import DEFAULT_ENDPOINT, describe, zenoh_config
+from fleetmap.shared.io.zenoh_config import DEFAULT_ENDPOINT, OPEN_FLEET, describe, is_open, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
@@ -32,6 +32,8 @@ def run(args: argparse.Namespace) -> int:
     with ZenohBus.open(config) as bus, stop_on_signals() as stop:
         described = describe(config)
         print(f"zenoh router {bus.session.zid()} listening on {described.get('listen/endpoints')}", file=sys.stderr)
+        if is_open(config):
+            log.warning("%s", OPEN_FLEET)
         while not stop.wait(0.5):
             continue
     print("zenoh router stopped")
