@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import sys
 import types
+import weakref
 from collections.abc import Mapping, Sequence, Set
 from dataclasses import MISSING, dataclass, fields, is_dataclass
 from typing import Any, ClassVar, Self
@@ -492,7 +493,17 @@ class WireMessage:
         return cls(**kwargs)
 
 
+_COMPONENT_WIRE: weakref.WeakKeyDictionary[Component, dict[str, Any]] = weakref.WeakKeyDictionary()
+"""Each global-map component's wire form, made once: a merger publishes the components no step
+changed again at every step."""
+
+
 def _to_wire(value: Any) -> Any:
+    if isinstance(value, Component):
+        held = _COMPONENT_WIRE.get(value)
+        if held is None:
+            held = _COMPONENT_WIRE[value] = {f.name: _to_wire(getattr(value, f.name)) for f in fields(value)}
+        return held
     if isinstance(value, np.ndarray):
         if value.dtype.kind in "iu":
             return np.ascontiguousarray(value, dtype="<i8").tobytes()
