@@ -235,9 +235,8 @@ class Tracker:
         self._inserted_at: tuple[float, Transform2D] | None = None
         self._odometry_step: Prediction | None = None
         """The last scan's odometry prediction as the wheels gave it (:meth:`_judge_odometry_sign`)."""
-        self._odometry_kind = (0.5, 0.5, 0.0)
-        """The belief (:meth:`_judge_odometry_sign`) that the odometry keeps its sign, that it has
-        lost it while the robot drives forward, and that it has lost it while the robot reverses."""
+        self.reversed_odometry = 0.0
+        """The belief that the odometry's translation has lost its sign (:meth:`_judge_odometry_sign`)."""
         self.bad_odometry = 0
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
 
@@ -341,7 +340,7 @@ class Tracker:
             increment, why = odometry_increment(self._odometry, odometry, elapsed, integration.motion.max_speed)
             if increment is not None:
                 odometry_prediction = self._odometry_step = from_odometry(increment, self.params)
-                if self.reversed_odometry > 0.5:  # the odometry drives forward while the robot reverses
+                if self.reversed_odometry > 0.5:
                     odometry_prediction = replace(
                         odometry_prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta)
                     )
@@ -368,39 +367,27 @@ class Tracker:
             out = [fused(velocity, out[0]), velocity, out[0]]
         return out
 
-    @property
-    def reversed_odometry(self) -> float:
-        """The belief that the robot reverses while its odometry says it drives forward."""
-        return self._odometry_kind[2]
-
     def _judge_odometry_sign(self, moved: Transform2D) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
-        scan was placed with: a hidden Markov model filtered forward (Rabiner 1989, the forward
-        algorithm). Some logs' odometry adds up the wheels' speed without its sign, so reversing
-        drives it forward (fr079's, and the corrected log made from it, which carries no speed to
+        scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),
+        filtered forward (Rabiner 1989, the forward algorithm). Each state predicts the increment
+        (the odometry's, or its translation negated, its turn kept), with the odometry's own
+        uncertainty. Some logs' odometry adds up the wheels' speed without its sign, so reversing it
+        drives forward (fr079's, and the corrected log made from it, which carries no speed to
         tell: 103 of its 4,790 steps); along a corridor the walls cannot say which way the robot
-        went, and the odometry's prior decides. What the odometry is does not change within a log;
-        only the robot's direction does. So three states: the odometry keeps its sign; it has lost
-        it and the robot drives forward; it has lost it and the robot reverses (the odometry's
-        translation negated, its turn kept). Each predicts the increment with the odometry's own
-        uncertainty. A robot changes its direction of travel only through standing still: after a
-        step the odometry cannot tell from standing still (within ``odometry_translation_sigma``)
-        a robot whose odometry lost its sign goes either way; while it moves, only a step that only
-        the other direction explains, by a likelihood ratio over 1e9, turns it (a sparse log's
-        robot can stop and reverse between two scans). A step neither explains (the chi-square
-        validation gate) says nothing of the sign. Where the odometry keeps its sign, every step
-        that follows a stop and goes the way the odometry says takes belief from the two lost
-        states, so the first weak hint of a reversal after a stop (aces cut in 4: one step, a
-        likelihood ratio of 3) no longer turns the prediction round
-        (docs/decisions/009-clocks-evidence-over-stamps.md)."""
+        went, and the odometry's prior decides. A robot changes its direction of travel only
+        through standing still: after a step the odometry cannot tell from standing still (within
+        ``odometry_translation_sigma``) either state is as likely, and the next steps' evidence
+        decides; while the robot moves, the belief holds unless a step only the other state explains
+        turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
+        validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
+        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
         step = self._odometry_step
         if step is None:
             return
-        keeps, forward, reverses = self._odometry_kind
         signed = step.increment
         if math.hypot(signed.x, signed.y) < self.params.odometry_translation_sigma:
-            lost = forward + reverses  # standing still: a robot whose odometry lost its sign goes either way next
-            self._odometry_kind = (keeps, 0.5 * lost, 0.5 * lost)
+            self.reversed_odometry = 0.5  # standing still: either way next
             return
         unsigned = Transform2D(-signed.x, -signed.y, signed.theta)
         information = step.information()
@@ -415,11 +402,11 @@ class Tracker:
         if low > CHI2_3DOF_99:
             return  # neither state explains the step (the validation gate): the odometry is off otherwise
         l_signed, l_unsigned = math.exp(-0.5 * (d_signed - low)), math.exp(-0.5 * (d_unsigned - low))
-        turn = 1e-9 * (forward + reverses)  # moving, the direction turns only on a ratio over 1e9
-        forward, reverses = max(forward, turn), max(reverses, turn)
-        keeps, forward, reverses = keeps * l_signed, forward * l_signed, reverses * l_unsigned
-        total = keeps + forward + reverses
-        self._odometry_kind = (keeps / total, forward / total, reverses / total)
+        # a belief held while moving is never quite certain: a step that only the other state
+        # explains, by a likelihood ratio over 1e9, still turns it (a sparse log's robot can stop
+        # and reverse between two scans)
+        b = min(max(self.reversed_odometry, 1e-9), 1.0 - 1e-9)
+        self.reversed_odometry = b * l_unsigned / (b * l_unsigned + (1.0 - b) * l_signed)
 
     def _fit(
         self,
