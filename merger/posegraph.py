@@ -293,11 +293,8 @@ class PoseGraph(JoinJudge):
             joins = [t for t in kept.tree if not t.link and t.a in group]
             if not joins:
                 continue
-            for e in sorted(joins, key=lambda e: (e.value, e.key())):
-                side_b = set(_bfs_order(adjacency, e.b, cut=e.key()))
-                side_a = [k for k in members[r] if k not in side_b]
-                if not self._join_holds(e, side_a, sorted(side_b), rel, adjacency):
-                    return False
+            if self._failed_join(joins, adjacency, rel) is not None:
+                return False
             # new loops only add support, and a new leaf is on no cycle: the vote can find a culprit
             # only where the last one had a candidate that its accusers' groups did not bear out
             accusers = [e for e in kept.conflicts if e.a in group and e.b in group] if kept.contested else []
@@ -339,7 +336,9 @@ class PoseGraph(JoinJudge):
         return True
 
     def _kept_result(self, kept: KeptForest) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]]:
-        return self._global_first(list(kept.components.values())), kept.tree, kept.loops, kept.rejected
+        # copies: the kept lists grow with the next steps, and a result once given stays as it was
+        components = self._global_first(list(kept.components.values()))
+        return components, list(kept.tree), list(kept.loops), list(kept.rejected)
 
     def _whole_solve(
         self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()
@@ -370,7 +369,7 @@ class PoseGraph(JoinJudge):
         built.rejected = rejected
         built.components = {built.root[c.anchor]: c for c in components}
         self._kept = built
-        return components, built.tree, built.loops, rejected
+        return components, list(built.tree), list(built.loops), list(rejected)
 
     def _forest(self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()) -> KeptForest:
         """The spanning forest (links first, ``priors`` last), its loop closures, and the integrations rejected: by
@@ -442,12 +441,15 @@ class PoseGraph(JoinJudge):
             if not voided:
                 return culprit
 
-    def _failed_join(self, tree: list[Edge], adjacency: dict[str, list[Edge]]) -> Edge | None:
-        """The weakest integration of the forest whose two sides do not bear it out, if any."""
+    def _failed_join(
+        self, tree: list[Edge], adjacency: dict[str, list[Edge]], poses: dict[str, Transform2D] | None = None
+    ) -> Edge | None:
+        """The weakest integration of ``tree`` whose two sides do not bear it out, if any (``poses``:
+        every submap's in its tree's frame, found along the tree if not given)."""
         joins = sorted((e for e in tree if not e.link), key=lambda e: (e.value, e.key()))
         if not joins:
             return None
-        poses = _tree_poses(self.keys, adjacency)
+        poses = _tree_poses(self.keys, adjacency) if poses is None else poses
         for e in joins:
             side_b = set(_bfs_order(adjacency, e.b, cut=e.key()))
             side_a = [k for k in _bfs_order(adjacency, e.a) if k not in side_b]
