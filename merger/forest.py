@@ -2,7 +2,7 @@
 
 The pose graph checks every integration that closes a cycle against the forest's path between its
 two submaps, with a tolerance that grows with what the path's links can have drifted
-(:meth:`~fleetmap.merger.posegraph.PoseGraph._cycle_tolerance`), and counts, for the culprit rule,
+(:meth:`~fleetmap.merger.chains.ChainGraph._cycle_tolerance`), and counts, for the culprit rule,
 the tree edges on every such path. Found by a breadth-first search and a walk along the path for
 each loop, that cost grew with the whole map at every step (issue 49). Here the forest is rooted
 once: each submap knows its parent edge, its depth and sums over the links from its root, so a

@@ -250,7 +250,7 @@ def _solved(
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     params.setRelativeErrorTol(1e-6)
-    # a graduated non-convexity in its simplest form, as the submap graph's (posegraph._optimized):
+    # a graduated non-convexity in its simplest form, as the submap graph's (refinement._optimized):
     # every edge as a Gaussian first, then from there with the Cauchy loss
     for with_loss in (False, True):
         graph = gtsam.NonlinearFactorGraph()

@@ -358,7 +358,7 @@ class PairSchedule:
     def _within_reach(self, a: str, b: str, p: Placement) -> bool:
         """Whether registration from the predicted pose can find b on a: the drift the links
         between two submaps of one robot's chain allow (three standard deviations of their
-        covariances, :meth:`~fleetmap.merger.joins.JoinJudge.chain_drift`) is within the
+        covariances, :meth:`~fleetmap.merger.chains.ChainGraph.chain_drift`) is within the
         tracking's correspondence distance and 5 degrees; for two robots' submaps, when their
         prediction comes through integrations (:meth:`Placement.tied`), not through their start
         poses alone (metres off: :mod:`fleetmap.merger.startposes`)."""

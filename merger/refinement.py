@@ -1,0 +1,186 @@
+"""Each component's poses refined together: robust least squares over SE(2) with GTSAM.
+
+Links weigh as their covariance says, integrations by how firmly their walls fix them (with a share
+of their value in every direction) through a Cauchy loss, the component's anchor fixed
+(:meth:`RefinedGraph.edge_noise`, :meth:`RefinedGraph._optimized`). The refinement starts where the
+last solve left each submap if it hangs from the same anchor by the same integrations
+(:meth:`RefinedGraph._initial_poses`), and a component whose submaps and edges are as the last
+solve had them keeps its poses. An integration the refined poses disagree with by more than one
+integration's base tolerance is handed back, for the solve to leave out.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gtsam
+import numpy as np
+from fleetmap.merger.graph import Component, Edge, _bfs_order, _disagreement
+from fleetmap.merger.spanning import ForestBuilder
+from fleetmap.shared.core.geometry import Transform2D, pose_information_in_own_frame
+
+
+def _pose2(t: Transform2D) -> gtsam.Pose2:
+    return gtsam.Pose2(t.x, t.y, t.theta)
+
+
+def _transform(p: gtsam.Pose2) -> Transform2D:
+    return Transform2D.from_array((p.x(), p.y(), p.theta()))
+
+
+def _joins_above(anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, tuple[object, ...]]:
+    """For each submap of a component, the integrations (not the links) on its spanning-tree path
+    from the anchor, each as its two submaps and its transform."""
+    paths: dict[str, tuple[object, ...]] = {anchor: ()}
+    for k in order:
+        for e in adjacency[k]:
+            if e.b not in paths:
+                paths[e.b] = paths[k] if e.link else (*paths[k], (e.a, e.b, *e.transform.as_array().tolist()))
+    return paths
+
+
+class RefinedGraph(ForestBuilder):
+    """Submaps, links and integrations, their spanning forest, and each component's refined poses."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:  # as ChainGraph's
+        super().__init__(*args, **kwargs)
+        self._solution: dict[str, tuple[str, tuple[object, ...], Transform2D]] = {}
+        """The last solve's pose of every placed node, with its component's anchor (a warm start)."""
+        self._refined_now: dict[tuple[object, ...], tuple[dict[str, Transform2D], list[Edge]]] = {}
+        """Each component's refined poses and the edges they disagree with, by its anchor, members
+        and edges, from the last solve (:meth:`_refined_components`)."""
+        self._last_refined = self._refined_now
+
+    def remove_map(self, key: str) -> None:
+        super().remove_map(key)
+        self._solution.pop(key, None)
+
+    def _begin_refinement(self) -> None:
+        """A whole solve starts: the refinements it makes are kept for the next, the last solve's
+        looked up (:meth:`_refined_components`)."""
+        self._last_refined, self._refined_now = self._refined_now, {}
+
+    def _refined_components(self, tree: list[Edge], loops: list[Edge]) -> tuple[list[Component], list[Edge]]:
+        """Each component's poses refined together (walls not fused yet; in the order of their
+        first submaps), and the integrations they disagree with."""
+        adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
+        for e in tree:
+            adjacency[e.a].append(e)
+            adjacency[e.b].append(e.reversed())
+        seen: set[str] = set()
+        out: list[Component] = []
+        off: list[Edge] = []
+        for start in self.keys:
+            if start in seen:
+                continue
+            group = _bfs_order(adjacency, start)
+            seen.update(group)
+            anchor = self._pick_anchor(group)
+            order = _bfs_order(adjacency, anchor)
+            group_set = set(group)
+            cycle_edges = [e for e in loops if e.a in group_set]
+            edges = [e for e in tree if e.a in group_set] + cycle_edges
+            # a component whose submaps and edges are all as the last solve had them keeps its
+            # poses (refinement only where something changed)
+            signature = (anchor, tuple(order), tuple(sorted(edges, key=lambda e: e.key())))
+            held = self._last_refined.get(signature)
+            if held is not None:
+                poses, disagreeing = dict(held[0]), held[1]
+                paths = _joins_above(anchor, order, adjacency)
+                for k in order:
+                    self._solution[k] = (anchor, paths[k], poses[k])
+            else:
+                poses, disagreeing = self._refined(anchor, order, adjacency, edges, bool(cycle_edges))
+            self._refined_now[signature] = (dict(poses), disagreeing)
+            off += disagreeing
+            out.append(Component(anchor, tuple(order), poses, np.zeros((0, 4))))
+        return out, off
+
+    def _refined(
+        self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], edges: list[Edge], cycles: bool
+    ) -> tuple[dict[str, Transform2D], list[Edge]]:
+        """One component's poses, refined if its edges make ``cycles``, and the integrations they
+        disagree with by more than one integration's base tolerance."""
+        paths = _joins_above(anchor, order, adjacency)
+        poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
+        if cycles:
+            poses = self._optimized(anchor, poses, edges)
+            tol_t, tol_r = self._tolerance(1)
+            disagreeing = [e for e in edges if not e.link and not self._agrees(e, poses, tol_t, tol_r)]
+        for k in order:
+            self._solution[k] = (anchor, paths[k], poses[k])
+        return poses, disagreeing
+
+    @staticmethod
+    def _agrees(e: Edge, poses: dict[str, Transform2D], tol_t: float, tol_r: float) -> bool:
+        dt, dr = _disagreement(poses[e.a].inverse().compose(poses[e.b]), e.transform)
+        return dt <= tol_t and dr <= tol_r
+
+    def _initial_poses(
+        self, anchor: str, order: list[str], adjacency: dict[str, list[Edge]], paths: dict[str, tuple[object, ...]]
+    ) -> dict[str, Transform2D]:
+        """Where the refinement starts: a submap's pose from the last solve where it hangs from the
+        same anchor by the same integrations, else the spanning tree's. A join that changed (one
+        wrong join replaced by the right one) starts from the new tree: started where the wrong join
+        had put them, a robot's submaps sit in a wrong minimum and the right join and its loops read
+        as disagreeing (docs/decisions/002-pose-graph.md)."""
+        poses = {anchor: Transform2D.identity()}
+        for k in order:
+            for e in adjacency[k]:
+                if e.b in poses:
+                    continue
+                held = self._solution.get(e.b)
+                same = held is not None and held[0] == anchor and held[1] == paths[e.b]
+                poses[e.b] = held[2] if held is not None and same else poses[k].compose(e.transform)
+        return poses
+
+    def edge_noise(self, e: Edge, robust: bool = True) -> gtsam.noiseModel.Base:
+        """How an edge weighs: a link by its covariance; an integration by how firmly its walls fix
+        it (with a share of its value in every direction), else by its value alone, through a
+        Cauchy loss."""
+        # a link's covariance and an integration's information are on b's pose in a's frame; the
+        # between factor's error is in b's frame
+        given = (
+            None
+            if e.information is None
+            else pose_information_in_own_frame(np.asarray(e.information), e.transform.theta)
+        )
+        if e.link and given is not None:
+            return gtsam.noiseModel.Gaussian.Information(given)
+        w2 = max(e.value, 1e-3)
+        sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
+        iso = np.diag([w2 / sigma_t**2, w2 / sigma_t**2, w2 / sigma_r**2])
+        information = iso
+        if given is not None:
+            candidate = given / sigma_t**2 + self.merge.isotropic_share * iso
+            if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
+                information = candidate
+        gaussian = gtsam.noiseModel.Gaussian.Information(information)
+        if not robust:
+            return gaussian
+        return gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(self.merge.robust_scale), gaussian
+        )
+
+    def _optimized(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
+        """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed),
+        in two rounds, a graduated non-convexity in its simplest form: every edge as a Gaussian
+        first (each integration here agreed with its cycle, so the least-squares solution spreads
+        what a loop corrects along the chain), then from there with the integrations' Cauchy loss
+        (an integration the others outvote weighs little). Started at the spanning tree's poses
+        with the robust loss at once, a loop that corrects a long chain's drift starts far off,
+        weighs next to nothing, and is never taken (docs/decisions/002-pose-graph.md)."""
+        ids = {k: i for i, k in enumerate(poses)}
+        values = gtsam.Values()
+        for k, pose in poses.items():
+            values.insert(ids[k], _pose2(pose))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(100)
+        params.setRelativeErrorTol(1e-6)
+        for robust in (False, True):
+            graph = gtsam.NonlinearFactorGraph()
+            graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
+            for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
+                graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self.edge_noise(e, robust)))
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
