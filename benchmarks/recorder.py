@@ -34,7 +34,8 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap
-from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
+from fleetmap.shared.io.recording import RecordingWriter
+from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 from results import markdown_table, write_section
 

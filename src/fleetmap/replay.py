@@ -32,7 +32,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.io.outputs import output_folder
-from fleetmap.shared.io.recording import RecordedMessage, RecordingReader
+from fleetmap.shared.io.recording_reader import RecordedMessage, RecordingReader
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, MergerStep, Scan, decode
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.security import write_fleet_security
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
