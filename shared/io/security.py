@@ -22,7 +22,7 @@ Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
   ``P``; query the merger's state and the recorder's statistics.
 
 Everyone may declare on ``fleetmap/barrier/**`` and query and reply there: :class:`ZenohBus`'s
-flush before closing (:mod:`fleetmap.shared.io.bus`). A client is known by its username (user and
+flush before closing (:mod:`fleetmap.shared.io.zenoh_bus`). A client is known by its username (user and
 password, ``transport.auth.usrpwd``) and, with TLS, also by its certificate's common name (mutual
 TLS); a subject needs both.
 
