@@ -40,7 +40,6 @@ BEING_SPLIT = frozenset(
         "shared/core/integration.py",
         "shared/core/tracking.py::register",
         "agents/process.py::run_agent",
-        "shared/io/security.py::access_control",
         "src/fleetmap/mapping.py::map_logs",
         "src/fleetmap/replay.py::replay",
     }
