@@ -41,7 +41,6 @@ BEING_SPLIT = frozenset(
         "shared/core/tracking.py::register",
         "agents/process.py::run_agent",
         "src/fleetmap/mapping.py::map_logs",
-        "src/fleetmap/replay.py::replay",
     }
 )
 """Breaches known and being split: ``path`` for a module, ``path::Qualified.name`` for a class or
