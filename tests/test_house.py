@@ -39,7 +39,6 @@ BEING_SPLIT = frozenset(
         "shared/config.py",
         "shared/core/integration.py",
         "shared/core/tracking.py::register",
-        "agents/process.py::run_agent",
         "src/fleetmap/mapping.py::map_logs",
     }
 )
