@@ -39,7 +39,6 @@ BEING_SPLIT = frozenset(
         "shared/config.py",
         "shared/core/integration.py",
         "shared/core/tracking.py::register",
-        "src/fleetmap/mapping.py::map_logs",
     }
 )
 """Breaches known and being split: ``path`` for a module, ``path::Qualified.name`` for a class or
