@@ -186,22 +186,7 @@ def run_agent(
     wait = sleep if sleep is not None else stop.wait
     requests = _FleetEvents(agent.robot)
     started = said = clock()
-    published = republished = 0
-
-    def publish(messages: list[Message]) -> None:
-        nonlocal published
-        for message in messages:
-            bus.publish(message_key(keys, message), message.to_msgpack())
-        published += len(messages)
-
-    def answer_requests() -> None:
-        nonlocal republished
-        if requests.take():
-            republished += 1
-            latest = agent.republish()
-            log.info("%s: republishing %d local maps", agent.robot, len(latest))
-            publish(latest)
-
+    out = _Outbox(bus, keys, agent, requests)
     handles: list[Handle] = [bus.declare_liveliness(keys.alive(agent.robot))]
     stopped = False
     try:
@@ -210,40 +195,82 @@ def run_agent(
         handles.append(bus.subscribe(keys.events, requests.on_event))
         if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
             log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))
-        first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
-        for item in source:
-            stamp = item.stamp
-            if first is None:
-                first = (stamp, clock())
-            elif speed > 0:
-                due = first[1] + (stamp - first[0]) / speed
-                while not stop.is_set() and (left := due - clock()) > 0:
-                    answer_requests()
-                    wait(min(left, POLL))
-            answer_requests()
-            if stop.is_set():
-                stopped = True
-                break
-            for epoch in requests.take_relocalized():
-                agent.relocalized(epoch)
-            publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
-            if clock() - said >= STATUS_SECONDS:
-                said = clock()
-                _log_status(agent, published)
+        stopped = _feed_scans(source, agent, out, speed, stop, clock, wait, said)
         stopped = stopped or stop.is_set()  # a live source ends when stop is set
-        publish(agent.finish())
-        answer_requests()
+        out.publish(agent.finish())
+        out.answer_requests()
         bus.flush()
     finally:
         for handle in reversed(handles):
             handle.close()
     counts = agent.counts
     summary = AgentSummary(
-        agent.robot, counts.scans, counts.placed, counts.epochs, published, republished, requests.bad, stopped,
-        clock() - started,
+        agent.robot, counts.scans, counts.placed, counts.epochs, out.published, out.republished, requests.bad,
+        stopped, clock() - started,
     )  # fmt: skip
     log.info("%s", summary.line())
     return summary
+
+
+class _Outbox:
+    """What a run publishes, counted, and the republish requests it answers, on the loop's thread."""
+
+    def __init__(self, bus: Bus, keys: FleetKeys, agent: Agent, requests: _FleetEvents) -> None:
+        self.bus = bus
+        self.keys = keys
+        self.agent = agent
+        self.requests = requests
+        self.published = 0
+        """Messages published (republished ones included)."""
+        self.republished = 0
+        """Republish requests answered."""
+
+    def publish(self, messages: list[Message]) -> None:
+        for message in messages:
+            self.bus.publish(message_key(self.keys, message), message.to_msgpack())
+        self.published += len(messages)
+
+    def answer_requests(self) -> None:
+        if self.requests.take():
+            self.republished += 1
+            latest = self.agent.republish()
+            log.info("%s: republishing %d local maps", self.agent.robot, len(latest))
+            self.publish(latest)
+
+
+def _feed_scans(
+    source: Iterable[SourceScan],
+    agent: Agent,
+    out: _Outbox,
+    speed: float,
+    stop: threading.Event,
+    clock: Callable[[], float],
+    wait: Callable[[float], object],
+    said: float,
+) -> bool:
+    """Step 3 of the module docstring: the scans to the agent at their stamps' pace, what it says
+    published, requests answered between scans; whether ``stop`` ended the run before the source
+    did. ``said``: when the last status line was logged (the clock's time)."""
+    first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
+    for item in source:
+        stamp = item.stamp
+        if first is None:
+            first = (stamp, clock())
+        elif speed > 0:
+            due = first[1] + (stamp - first[0]) / speed
+            while not stop.is_set() and (left := due - clock()) > 0:
+                out.answer_requests()
+                wait(min(left, POLL))
+        out.answer_requests()
+        if stop.is_set():
+            return True
+        for epoch in out.requests.take_relocalized():
+            agent.relocalized(epoch)
+        out.publish(agent.add_scan(item.index, stamp, item.scan, item.odometry))
+        if clock() - said >= STATUS_SECONDS:
+            said = clock()
+            _log_status(agent, out.published)
+    return False
 
 
 def _log_status(agent: Agent, published: int) -> None:

@@ -41,10 +41,10 @@ import numpy as np
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import EpochLink, LocalMap, Scan
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 from results import markdown_table, write_section
 

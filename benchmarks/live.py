@@ -51,7 +51,7 @@ from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.sources import Ros2BagSource
 from results import write_section
 

@@ -31,10 +31,11 @@ import msgpack
 import numpy as np
 from fleetmap.merger.recorder import Recorder, RecorderService
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap
-from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
+from fleetmap.shared.io.recording import RecordingWriter
+from fleetmap.shared.io.recording_reader import RecordingReader
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 from results import markdown_table, write_section
 
@@ -69,7 +70,7 @@ def in_process(payloads: list[tuple[str, bytes]], path: Path, foxglove: bool) ->
 PUBLISHER = """
 import sys
 import msgpack
-from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 
 with open(sys.argv[2], "rb") as f:

@@ -34,6 +34,7 @@ import msgpack
 from fleetmap.merger.listener import FleetListener
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, Handle
+from fleetmap.shared.io.foxglove_scene import FoxgloveScene
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys
 from fleetmap.shared.io.messages import (
     BadMessage,
@@ -47,7 +48,7 @@ from fleetmap.shared.io.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.io.recording import FoxgloveScene, RecordingWriter, seconds_to_ns
+from fleetmap.shared.io.recording import RecordingWriter, seconds_to_ns
 
 log = logging.getLogger(__name__)
 

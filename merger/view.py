@@ -3,7 +3,7 @@
 :class:`LiveView` is the library call: feed it ``(key, payload, receive_time_ns)`` and presence
 changes as the recorder is fed (:func:`~fleetmap.merger.recorder.checked_message`,
 :func:`~fleetmap.merger.recorder.presence_event`), and it hands the same Foxglove views a
-recording holds (:class:`~fleetmap.shared.io.recording.FoxgloveScene`: scans, laser scans, submaps,
+recording holds (:class:`~fleetmap.shared.io.foxglove_scene.FoxgloveScene`: scans, laser scans, submaps,
 the global map, robot paths, fleet events, one TF tree) to a sink, stamped with their receive
 time; :meth:`LiveView.tick` adds the occupancy grid of the largest component, which a recording
 writes only at its end, at most every ``grid_period`` seconds after a global map changed it. It
@@ -30,9 +30,9 @@ import foxglove
 from fleetmap.merger.listener import FleetListener
 from fleetmap.merger.recorder import LOGGED_MALFORMED, checked_message, presence_event
 from fleetmap.shared.io.bus import Bus
+from fleetmap.shared.io.foxglove_scene import TF_TOPIC, FoxgloveScene, FoxgloveView
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import GlobalMap
-from fleetmap.shared.io.recording import TF_TOPIC, FoxgloveScene, FoxgloveView
 from foxglove.websocket import ChannelView, Client, ServerListener, WebSocketServer
 
 log = logging.getLogger(__name__)

@@ -6,7 +6,9 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from fleetmap.shared.io.bus import Bus, BusError, InMemoryBus, ZenohBus
+from fleetmap.shared.io.bus import Bus, BusError
+from fleetmap.shared.io.memory_bus import InMemoryBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint, zenoh_config
 
 WAIT = 5.0

@@ -11,8 +11,8 @@ import pytest
 from fleetmap.shared.config import MergeParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.bus import InMemoryBus
 from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.memory_bus import InMemoryBus
 from fleetmap.shared.io.messages import LaserRanges, RobotPose, Scan
 from fleetmap.shared.io.occupancy import OccupancyGrid
 from fleetmap.shared.io.ros2_node import Ros2Node

@@ -22,7 +22,7 @@ Who may do what (``P`` is ``fleet/<fleet>``; anything not listed is denied):
   ``P``; query the merger's state and the recorder's statistics.
 
 Everyone may declare on ``fleetmap/barrier/**`` and query and reply there: :class:`ZenohBus`'s
-flush before closing (:mod:`fleetmap.shared.io.bus`). A client is known by its username (user and
+flush before closing (:mod:`fleetmap.shared.io.zenoh_bus`). A client is known by its username (user and
 password, ``transport.auth.usrpwd``) and, with TLS, also by its certificate's common name (mutual
 TLS); a subject needs both.
 
@@ -94,12 +94,36 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
     """
     check_fleet_roles(fleet, robots)
     p = FleetKeys(fleet).prefix
-    rules: list[dict[str, Any]] = [
+    rules = [*_everyone_rules(p), *_robots_rules(p), *_merger_rules(p), *_recorder_rules(p), *_viewer_rules(p)]
+    subjects = [_subject(role, tls) for role in [*robots, *SERVICES]]
+    policies = _role_policies(rules, robots, subjects)
+    for robot in robots:
+        own = _robot_own_rules(p, robot)
+        rules += own
+        policies.append({"id": f"robot-{robot}", "rules": [r["id"] for r in own], "subjects": [robot]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def _everyone_rules(p: str) -> list[dict[str, Any]]:
+    """What every client of the fleet may do (``p``: the fleet's key prefix)."""
+    return [
         # the flush barrier of every bus
         _rule("barrier-in", "ingress", ["declare_queryable", "query", "reply"], ["fleetmap/barrier/**"]),
         _rule("barrier-out", "egress", ["declare_queryable", "query", "reply"], ["fleetmap/barrier/**"]),
         # who subscribes and who is alive may be known to everyone of the fleet: declarations carry no data
         _rule("declarations-out", "egress", ALL_DECLARATIONS, [f"{p}/**"]),
+    ]
+
+
+def _robots_rules(p: str) -> list[dict[str, Any]]:
+    """What every robot may do beyond its own keys (:func:`_robot_own_rules`)."""
+    return [
         # robots read the merger's outputs and the fleet events, and ask its state (a starting agent
         # begins after the epochs the merger holds of its robot)
         _rule("robot-read-in", "ingress", ["declare_subscriber"], [f"{p}/merger/**", f"{p}/events"]),
@@ -108,7 +132,12 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         _rule("robot-state-out", "egress", ["reply"], [f"{p}/merger/state"]),
         # a robot's global pose is the merger's to say (an explicit deny outranks the robot's own keys)
         _rule("robot-no-pose", "ingress", ["put"], [f"{p}/robots/*/pose"], permission="deny"),
-        # the merger
+    ]
+
+
+def _merger_rules(p: str) -> list[dict[str, Any]]:
+    """What the merger may do."""
+    return [
         _rule(
             "merger-read-in",
             "ingress",
@@ -123,7 +152,12 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         # a restarted merger recalls the maps the recorder kept (robots that finished while it was down)
         _rule("merger-recall-in", "ingress", ["query"], [f"{p}/recorder/maps"]),
         _rule("merger-recall-out", "egress", ["reply"], [f"{p}/recorder/maps"]),
-        # the recorder
+    ]
+
+
+def _recorder_rules(p: str) -> list[dict[str, Any]]:
+    """What the recorder may do."""
+    return [
         _rule("recorder-read-in", "ingress", READ, [f"{p}/**"]),
         _rule("recorder-read-out", "egress", ["put"], [f"{p}/**"]),
         _rule(
@@ -134,14 +168,24 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         ),
         _rule("recorder-stats-out", "egress", ["query"], [f"{p}/recorder/stats", f"{p}/recorder/maps"]),
         _rule("recorder-token", "ingress", ["liveliness_token"], [f"{p}/services/recorder"]),
-        # viewers
+    ]
+
+
+def _viewer_rules(p: str) -> list[dict[str, Any]]:
+    """What a viewer may do."""
+    return [
         _rule("viewer-read-in", "ingress", READ, [f"{p}/**"]),
         _rule("viewer-read-out", "egress", ["put"], [f"{p}/**"]),
         _rule("viewer-query-in", "ingress", ["query"], [f"{p}/merger/state", f"{p}/recorder/stats"]),
         _rule("viewer-query-out", "egress", ["reply"], [f"{p}/merger/state", f"{p}/recorder/stats"]),
     ]
-    subjects = [_subject(role, tls) for role in [*robots, *SERVICES]]
-    policies: list[dict[str, Any]] = [
+
+
+def _role_policies(
+    rules: list[dict[str, Any]], robots: list[str], subjects: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Which subjects the shared rules apply to: everyone, every robot, and each service its own."""
+    return [
         {
             "id": "everyone",
             "rules": ["barrier-in", "barrier-out", "declarations-out"],
@@ -164,28 +208,23 @@ def access_control(fleet: str, robots: list[str], tls: bool = False) -> dict[str
         },
         {"id": "viewer", "rules": [r["id"] for r in rules if r["id"].startswith("viewer-")], "subjects": ["viewer"]},
     ]
-    for robot in robots:
+
+
+def _robot_own_rules(p: str, robot: str) -> list[dict[str, Any]]:
+    """What robot ``robot`` alone may do: put on its own keys, and hear its global pose."""
+    return [
         # a robot's own keys: its scans, local maps and events, and its presence
-        own = [f"{p}/robots/{robot}/{leaf}" for leaf in ("scan", "localmap", "events")]
-        rules.append(_rule(f"robot-{robot}-write", "ingress", ["put"], own))
-        rules.append(_rule(f"robot-{robot}-token", "ingress", ["liveliness_token"], [f"{p}/alive/{robot}"]))
+        _rule(
+            f"robot-{robot}-write",
+            "ingress",
+            ["put"],
+            [f"{p}/robots/{robot}/{leaf}" for leaf in ("scan", "localmap", "events")],
+        ),
+        _rule(f"robot-{robot}-token", "ingress", ["liveliness_token"], [f"{p}/alive/{robot}"]),
         # ... and where the merger puts it
-        rules.append(_rule(f"robot-{robot}-pose-in", "ingress", ["declare_subscriber"], [f"{p}/robots/{robot}/pose"]))
-        rules.append(_rule(f"robot-{robot}-pose-out", "egress", ["put"], [f"{p}/robots/{robot}/pose"]))
-        policies.append(
-            {
-                "id": f"robot-{robot}",
-                "rules": [f"robot-{robot}-{r}" for r in ("write", "token", "pose-in", "pose-out")],
-                "subjects": [robot],
-            }
-        )
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": rules,
-        "subjects": subjects,
-        "policies": policies,
-    }
+        _rule(f"robot-{robot}-pose-in", "ingress", ["declare_subscriber"], [f"{p}/robots/{robot}/pose"]),
+        _rule(f"robot-{robot}-pose-out", "egress", ["put"], [f"{p}/robots/{robot}/pose"]),
+    ]
 
 
 def _subject(role: str, tls: bool) -> dict[str, Any]:

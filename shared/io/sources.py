@@ -47,7 +47,7 @@ from fleetmap.shared.io.logs import (
     read_carmen_odometry,
     read_ranges_jsonl,
 )
-from fleetmap.shared.io.messages import MAX_STAMP
+from fleetmap.shared.io.wire_fields import MAX_STAMP
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Rosbag1ReaderError
 from rosbags.rosbag2 import ReaderError as Rosbag2ReaderError

@@ -181,67 +181,89 @@ def map_logs(
     merger = Merger(keys, config, executor, keep_key_scans=True, start_poses=start_poses)
     if merger.start is not None:
         merger.start.warn_unknown([p.robot for p in pieces], "the inputs")
-    log = SessionLog()
+    side = _MergerSide(merger, keys, on_step)
     # every scan of every piece on one fleet clock (each piece's starting at 0), in a fixed order
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))
-    total = len(timeline)
-    merger_seconds = 0.0
     processes = AgentProcesses.default_processes(len(pieces)) if tracking_processes is None else tracking_processes
     agents = AgentProcesses(pieces, [(n, i) for _, n, i in timeline], config, processes)
+    _track_and_merge(timeline, agents, side, progress)
+    by_index = merger.scan_poses()
+    poses = _with_stamps(by_index, pieces)
+    report = write_outputs(side.log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
+    seconds = time.perf_counter() - started
+    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, side.seconds)
+    _write_map_files(Path(out_dir), report, poses, pieces)
+    return MapResult(report, poses, by_index)
 
-    def step(final: bool = False) -> None:
-        nonlocal merger_seconds
+
+class _MergerSide:
+    """The merger's side of :func:`map_logs`: the agents' messages in, as bytes, a step when due,
+    and the session's log of both; its calls run in order on a :class:`_Behind` thread."""
+
+    def __init__(self, merger: Merger, keys: FleetKeys, on_step: Callable[[int, int, float], None] | None) -> None:
+        self.merger = merger
+        self.keys = keys
+        self.log = SessionLog()
+        self.seconds = 0.0
+        """The time the merger's steps took."""
+        self._on_step = on_step
+
+    def step(self, final: bool = False) -> None:
         t0 = time.perf_counter()
-        for o in merger.step(fuse=final):
-            log.add_payload(o.payload)
+        for o in self.merger.step(fuse=final):
+            self.log.add_payload(o.payload)
         took = time.perf_counter() - t0
-        merger_seconds += took
-        if on_step is not None:
-            on_step(len(merger.submaps), merger.stats.integrations, took)
+        self.seconds += took
+        if self._on_step is not None:
+            self._on_step(len(self.merger.submaps), self.merger.stats.integrations, took)
 
-    def send(messages: list[Message]) -> None:
+    def send(self, messages: list[Message]) -> None:
         for m in messages:
-            log.add(m)
+            self.log.add(m)
             if isinstance(m, LocalMap):
-                merger.receive(keys.localmap(m.robot), m.to_msgpack())
+                self.merger.receive(self.keys.localmap(m.robot), m.to_msgpack())
             elif isinstance(m, Scan):
-                merger.receive(keys.scan(m.robot), m.to_msgpack())
+                self.merger.receive(self.keys.scan(m.robot), m.to_msgpack())
 
-    def steps_due() -> None:
-        if merger.has_work:
-            step()
+    def steps_due(self) -> None:
+        if self.merger.has_work:
+            self.step()
 
-    def finish() -> None:
-        while merger.has_work:
-            step()
-        step(final=True)  # the global map's walls, fused once
+    def finish(self) -> None:
+        while self.merger.has_work:
+            self.step()
+        self.step(final=True)  # the global map's walls, fused once
 
+
+def _track_and_merge(
+    timeline: list[tuple[float, int, int]],
+    agents: AgentProcesses,
+    side: _MergerSide,
+    progress: Callable[[int, int], None] | None,
+) -> None:
+    """Every scan to its agent in the order of ``timeline`` (fleet seconds, piece, scan), what the
+    agents publish to the merger's side, a merger step every :data:`STEP_SECONDS` of fleet time,
+    and at the end the agents' last messages and the merger's last steps."""
+    total = len(timeline)
     behind = _Behind()
     try:
         due = STEP_SECONDS
         with agents:
             for done, ((t, _, _), (_, _, out)) in enumerate(zip(timeline, agents, strict=True), 1):
                 while t >= due:
-                    behind.call(steps_due)
+                    behind.call(side.steps_due)
                     due += STEP_SECONDS
                 if out:
-                    behind.call(functools.partial(send, out))
+                    behind.call(functools.partial(side.send, out))
                 if progress is not None and (done % 50 == 0 or done == total):
                     progress(done, total)
-        for n in range(len(pieces)):
-            behind.call(functools.partial(send, agents.finished[n].messages))
-        behind.call(finish)
+        for n in range(len(agents.pieces)):
+            behind.call(functools.partial(side.send, agents.finished[n].messages))
+        behind.call(side.finish)
     except BaseException:
         behind.finish(cancel=True)
         raise
     behind.finish()
-    by_index = merger.scan_poses()
-    poses = _with_stamps(by_index, pieces)
-    report = write_outputs(log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
-    seconds = time.perf_counter() - started
-    report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, merger_seconds)
-    _write_map_files(Path(out_dir), report, poses, pieces)
-    return MapResult(report, poses, by_index)
 
 
 def _check_odometry(pieces: list[Piece], config: FleetmapConfig) -> None:

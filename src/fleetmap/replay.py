@@ -13,6 +13,7 @@ crash is read up to its last complete chunk, with a warning saying how much was 
 
 from __future__ import annotations
 
+import functools
 import logging
 import tempfile
 import time
@@ -32,7 +33,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode
 from fleetmap.shared.io.outputs import output_folder
-from fleetmap.shared.io.recording import RecordedMessage, RecordingReader
+from fleetmap.shared.io.recording_reader import RecordedMessage, RecordingReader
 
 log = logging.getLogger(__name__)
 
@@ -102,25 +103,14 @@ def replay(
 ) -> ReplayResult:
     opts = options or ReplayOptions()
     source = str(path)
-    if not Path(path).exists():
-        raise BadInput(source, "no such file")
-    with RecordingReader(path) as reader:
-        meta = reader.metadata()
-        recorded = list(reader.messages(warn=False))
-        warning = reader.report.warning
+    meta, recorded, warning = _read(path)
     fleet = meta.get("fleetmap.session", {}).get("fleet", "default")
     keys = FleetKeys(fleet)
     config = opts.config or _metadata_config(meta)
     scenario = _metadata_scenario(meta)
     merger = Merger(keys, config)
     session = SessionLog()
-    t_first = recorded[0].log_time if recorded else 0
-    partial = opts.start is not None or opts.stop is not None or opts.robots is not None
-
-    def selected(m: RecordedMessage) -> bool:
-        t = (m.log_time - t_first) / 1e9
-        return (opts.start is None or t >= opts.start) and (opts.stop is None or t <= opts.stop)
-
+    chosen = _Selection(opts, recorded[0].log_time if recorded else 0)
     decoded = _decoded(recorded, keys, session)
     if not decoded:
         why = f" ({warning.removeprefix(source + ': ')})" if warning else ""
@@ -131,25 +121,9 @@ def replay(
         _check_robots(opts.robots, decoded, source)
     output_folder(out_dir, "--out")
     steps, live, compared, restarts = _steps_and_live_maps(decoded)
-    exact = bool(steps) and not partial
-
-    def wanted(msg: Any) -> bool:
-        robot = getattr(msg, "robot", None)
-        return opts.robots is None or robot is None or robot in opts.robots
-
-    # The robots' side of the session (scans, epochs, local maps) goes into the report as recorded.
-    for m, msg in decoded:
-        robot_side = isinstance(msg, (Scan, LocalMap)) or (isinstance(msg, FleetEvent) and msg.kind == "epoch")
-        if robot_side and wanted(msg) and (not partial or selected(m)):
-            session.add(msg)
-
-    def take(outgoing: list[Any]) -> None:
-        for o in outgoing:
-            try:
-                session.add(decode(o.payload))
-            except BadMessage:  # our own messages: cannot happen, but never fatal
-                session.malformed += 1
-
+    exact = bool(steps) and not chosen.partial
+    _add_robot_side(session, decoded, chosen)
+    take = functools.partial(_take, session)
     inputs: list[str] = []
     at_live: GlobalMap | None = None
     pace = _Pacer(opts.speed)
@@ -159,7 +133,9 @@ def replay(
             merger, steps, restarts, decoded, compared, pace, take, inputs, progress
         )
     else:
-        maps = [(m, msg) for m, msg in decoded if isinstance(msg, LocalMap) and wanted(msg) and selected(m)]
+        maps = [
+            (m, msg) for m, msg in decoded if isinstance(msg, LocalMap) and chosen.wanted(msg) and chosen.selected(m)
+        ]
         _feed_in_order(merger, maps, pace, take, inputs, progress)
     report = write_outputs(session, make_truth(scenario), out_dir, f"fleetmap replay: {Path(path).name}")
     stepped = stepped or merger.stats.steps
@@ -178,6 +154,55 @@ def replay(
 
     _write_json(Path(out_dir) / "report.json", report)
     return result
+
+
+def _read(path: str | Path) -> tuple[dict[str, dict[str, str]], list[RecordedMessage], str | None]:
+    """A recording's metadata, its raw messages and the warning of a file cut short (or None)."""
+    if not Path(path).exists():
+        raise BadInput(str(path), "no such file")
+    with RecordingReader(path) as reader:
+        meta = reader.metadata()
+        recorded = list(reader.messages(warn=False))
+        warning = reader.report.warning
+    return meta, recorded, warning
+
+
+@dataclass(frozen=True)
+class _Selection:
+    """What of a recording a replay takes: the time window and the robots its options name."""
+
+    opts: ReplayOptions
+    t_first: int
+    """The first message's log time (ns): the window's seconds count from it."""
+
+    @property
+    def partial(self) -> bool:
+        return self.opts.start is not None or self.opts.stop is not None or self.opts.robots is not None
+
+    def selected(self, m: RecordedMessage) -> bool:
+        t = (m.log_time - self.t_first) / 1e9
+        return (self.opts.start is None or t >= self.opts.start) and (self.opts.stop is None or t <= self.opts.stop)
+
+    def wanted(self, msg: Any) -> bool:
+        robot = getattr(msg, "robot", None)
+        return self.opts.robots is None or robot is None or robot in self.opts.robots
+
+
+def _add_robot_side(session: SessionLog, decoded: list[tuple[RecordedMessage, Any]], chosen: _Selection) -> None:
+    """The robots' side of the session (scans, epochs, local maps) into the report, as recorded."""
+    for m, msg in decoded:
+        robot_side = isinstance(msg, (Scan, LocalMap)) or (isinstance(msg, FleetEvent) and msg.kind == "epoch")
+        if robot_side and chosen.wanted(msg) and (not chosen.partial or chosen.selected(m)):
+            session.add(msg)
+
+
+def _take(session: SessionLog, outgoing: list[Any]) -> None:
+    """The replayed merger's outputs into the report."""
+    for o in outgoing:
+        try:
+            session.add(decode(o.payload))
+        except BadMessage:  # our own messages: cannot happen, but never fatal
+            session.malformed += 1
 
 
 def _decoded(

@@ -35,11 +35,11 @@ from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import FleetmapError
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, LocalMap, MergerStep, Scan, decode
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.security import write_fleet_security
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 log = logging.getLogger(__name__)

@@ -20,8 +20,8 @@ from fleetmap.agents.process import run_agent
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.io.bus import InMemoryBus
 from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.memory_bus import InMemoryBus
 from fleetmap.shared.io.messages import Component, FleetEvent, GlobalMap, LocalMap, Scan, decode
 from fleetmap.shared.io.sources import SourceScan
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint

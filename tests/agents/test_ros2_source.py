@@ -12,9 +12,9 @@ import pytest
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.ros2_node import Ros2Node
 from fleetmap.shared.io.sources import SourceScan
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 
 from tests.bus_helpers import WAIT, open_zenoh_pair
 

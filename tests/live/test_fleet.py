@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.messages import FleetEvent, GlobalMap, decode
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from tests.bus_helpers import Inbox

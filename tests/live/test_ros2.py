@@ -28,10 +28,10 @@ import numpy as np
 import pytest
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap, Scan, decode
 from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, SourceScan
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from tests.agents.test_sources import write_robot_bag

@@ -10,7 +10,7 @@ import pytest
 from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
 
 from fleetmap.runner import Session, SessionError
 

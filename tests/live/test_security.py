@@ -14,10 +14,11 @@ from pathlib import Path
 
 import msgpack
 import pytest
-from fleetmap.shared.io.bus import BusError, ZenohBus
+from fleetmap.shared.io.bus import BusError
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import FleetEvent, GlobalMap, decode
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from fleetmap.cli import main

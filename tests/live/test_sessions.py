@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 from fleetmap.scenarios import load_scenario, scenario_to_toml
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.io.recording import ROOT_FRAME, RecordingReader
+from fleetmap.shared.io.foxglove_scene import ROOT_FRAME
+from fleetmap.shared.io.recording_reader import RecordingReader
 from mcap.reader import make_reader
 
 from tests.protobuf_wire import Schema

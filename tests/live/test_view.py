@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fleetmap.shared.io.recording import ROOT_FRAME
+from fleetmap.shared.io.foxglove_scene import ROOT_FRAME
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol

@@ -12,8 +12,8 @@ from fleetmap.merger.engine import Merger
 from fleetmap.merger.follow import PoseFollower
 from fleetmap.merger.service import MergerService
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.io.bus import InMemoryBus
 from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.memory_bus import InMemoryBus
 from fleetmap.shared.io.messages import RobotPose, Scan
 
 from tests.helpers import true_local_map

@@ -37,7 +37,8 @@ from fleetmap.shared.io.messages import (
     Scan,
     decode,
 )
-from fleetmap.shared.io.recording import RecordingReader, RecordingWriter
+from fleetmap.shared.io.recording import RecordingWriter
+from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 from hypothesis import given, settings
 from hypothesis import strategies as st

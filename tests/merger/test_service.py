@@ -272,7 +272,7 @@ def test_a_stopping_merger_leaves_what_it_could_not_integrate_in_its_state(maps,
     import threading
 
     import fleetmap.merger.service as service
-    from fleetmap.shared.io.bus import InMemoryBus
+    from fleetmap.shared.io.memory_bus import InMemoryBus
 
     state = tmp_path / "merger.state"
     merger = Merger(KEYS)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 
 from fleetmap.merger.view import LiveView
-from fleetmap.shared.io.recording import FoxgloveView
+from fleetmap.shared.io.foxglove_scene import FoxgloveView
 from mcap.reader import make_reader
 
 from tests.merger.test_recorder import KEYS, MALFORMED, SECOND, fleet_traffic, record

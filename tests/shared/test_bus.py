@@ -19,8 +19,10 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import Bus, BusError, InMemoryBus, ZenohBus
+from fleetmap.shared.io.bus import Bus, BusError
 from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.memory_bus import InMemoryBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import (
     DEFAULT_ENDPOINT,
     ZenohOptions,
@@ -263,7 +265,7 @@ def test_a_listen_port_in_use_fails_to_open_with_bus_error():
 
 CHILD = """
 import sys
-from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.zenoh_config import ZenohOptions
 

@@ -15,10 +15,6 @@ from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys, map_key, parse_map_key
 from fleetmap.shared.io.messages import (
-    DECODED_BYTES_PER_BYTE,
-    DECODED_SLACK,
-    MAX_PAYLOAD_BYTES,
-    MAX_SEGMENTS,
     BadMessage,
     Component,
     EpochLink,
@@ -33,6 +29,8 @@ from fleetmap.shared.io.messages import (
     SubmapLink,
     decode,
 )
+from fleetmap.shared.io.wire_decoding import DECODED_BYTES_PER_BYTE, DECODED_SLACK, MAX_PAYLOAD_BYTES
+from fleetmap.shared.io.wire_fields import MAX_SEGMENTS
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

@@ -10,6 +10,15 @@ import pytest
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
+from fleetmap.shared.io.foxglove_scene import (
+    FRAME_TRANSFORM,
+    POSES_IN_FRAME,
+    ROOT_FRAME,
+    SCENE_UPDATE,
+    TF_TOPIC,
+    FoxgloveScene,
+    foxglove_views,
+)
 from fleetmap.shared.io.messages import (
     Component,
     FleetEvent,
@@ -20,18 +29,8 @@ from fleetmap.shared.io.messages import (
     RobotPose,
     Scan,
 )
-from fleetmap.shared.io.recording import (
-    FRAME_TRANSFORM,
-    POSES_IN_FRAME,
-    ROOT_FRAME,
-    SCENE_UPDATE,
-    TF_TOPIC,
-    FoxgloveScene,
-    RecordingReader,
-    RecordingWriter,
-    config_metadata,
-    foxglove_views,
-)
+from fleetmap.shared.io.recording import RecordingWriter, config_metadata
+from fleetmap.shared.io.recording_reader import RecordingReader
 from mcap.reader import make_reader
 
 from tests.protobuf_wire import Schema

@@ -16,10 +16,10 @@ from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.keys import check_name
 from fleetmap.shared.io.ros2_node import ros2_options
 from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, ScanSource
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

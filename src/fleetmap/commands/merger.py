@@ -15,10 +15,10 @@ from fleetmap.ros2_outputs import NODE_NAME, Ros2Outputs
 from fleetmap.shared.config import MergeParams
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
 from fleetmap.shared.io.ros2_node import Ros2Node, ros2_options
 from fleetmap.shared.io.startposes import read_start_poses
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import OPEN_FLEET, is_open, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 

@@ -23,9 +23,9 @@ from typing import Any
 
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.ros2_node import Ros2Node, Ros2Publisher, ros2_options
 from fleetmap.shared.io.sources import LASER_SCAN_SCHEMAS, ODOMETRY_SCHEMAS, TF_SCHEMAS, Ros2BagSource
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)

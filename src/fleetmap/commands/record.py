@@ -15,9 +15,9 @@ from fleetmap.merger.recorder import KEY_BURST, KEY_RATE, Recorder, RecorderServ
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import load_config
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import ZenohBus
 from fleetmap.shared.io.outputs import output_file
 from fleetmap.shared.io.recording import RecordingWriter, config_metadata
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import describe, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 

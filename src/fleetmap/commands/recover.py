@@ -7,7 +7,7 @@ from pathlib import Path
 
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.outputs import output_file
-from fleetmap.shared.io.recording import RecordingReader
+from fleetmap.shared.io.recording_reader import RecordingReader
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -6,7 +6,7 @@ import argparse
 import logging
 import sys
 
-from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import DEFAULT_ENDPOINT, OPEN_FLEET, describe, is_open, zenoh_config
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 

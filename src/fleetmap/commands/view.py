@@ -9,7 +9,7 @@ import time
 
 from fleetmap.merger.view import DEFAULT_PORT, GRID_PERIOD, FoxgloveServer, LiveView, ViewService
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import ZenohBus
+from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.zenoh_args import add_zenoh_arguments, stop_on_signals, zenoh_options_from_args
 
 log = logging.getLogger(__name__)
