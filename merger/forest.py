@@ -46,12 +46,16 @@ class RootedForest:
         self.root: dict[str, str] = {}
         self.at: dict[str, Transform2D] = {}
         """Each node's pose in its root's frame (along the tree's edges)."""
+        self.joins_above: dict[str, frozenset[tuple[str, str]]] = {}
+        """The keys of the integrations on each node's path from its root: a node is on the far
+        side of a join from its root exactly where the join is among them."""
         self._sums: dict[str, _Sums] = {}
         for start in keys:
             if start in self.depth:
                 continue
             self.parent[start], self.depth[start], self.root[start] = None, 0, start
             self.at[start], self._sums[start] = Transform2D.identity(), _ZERO
+            self.joins_above[start] = frozenset()
             queue, i = [start], 0
             while i < len(queue):
                 k = queue[i]
@@ -63,12 +67,14 @@ class RootedForest:
                     self.parent[u], self.depth[u], self.root[u] = e, self.depth[k] + 1, start
                     self.at[u] = self.at[k].compose(e.transform)
                     self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
+                    self.joins_above[u] = self.joins_above[k] if e.link else self.joins_above[k] | {e.key()}
                     queue.append(u)
 
     def add_root(self, key: str) -> None:
         """A new tree of one node."""
         self.parent[key], self.depth[key], self.root[key] = None, 0, key
         self.at[key], self._sums[key] = Transform2D.identity(), _ZERO
+        self.joins_above[key] = frozenset()
 
     def add_leaf(self, e: Edge, covariances: dict[tuple[str, str], Array]) -> None:
         """Hang ``e.b`` (a tree of one node) from ``e.a``: the forest as if rooted again, for the
@@ -77,6 +83,7 @@ class RootedForest:
         self.parent[u], self.depth[u], self.root[u] = e, self.depth[k] + 1, self.root[k]
         self.at[u] = self.at[k].compose(e.transform)
         self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
+        self.joins_above[u] = self.joins_above[k] if e.link else self.joins_above[k] | {e.key()}
 
     def lowest_common(self, a: str, b: str) -> str | None:
         """The lowest common ancestor of two nodes (None: in different trees)."""
@@ -181,3 +188,8 @@ class KeptForest:
     """Every submap's version when the forest was built."""
     components: dict[str, Component] = field(default_factory=dict)
     """The refined components, by their group's root."""
+    unlooked: set[str] = field(default_factory=set)
+    """The submaps new or with a new version whose pairs across their group's joins have not been
+    looked at since (:meth:`~fleetmap.merger.posegraph.PoseGraph._kept_joins_hold`)."""
+    looked: dict[str, int] = field(default_factory=dict)
+    """Each submap's version when its pairs across its group's joins were last looked at."""

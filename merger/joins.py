@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from fleetmap.merger.chains import _map_file, _tree_paths
 from fleetmap.merger.graph import Edge, _disagreement, _tree_path
-from fleetmap.merger.pairs import PairJudge
+from fleetmap.merger.pairs import PairJudge, Verdict
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.tracking import REACH_ROTATION
 from fleetmap.shared.core.validity import max_map_violation
@@ -45,6 +46,24 @@ class _Judged:
     holds: bool
     side_a: dict[str, tuple[int, Transform2D]]
     side_b: dict[str, tuple[int, Transform2D]]
+    tally: dict[tuple[str, str], Verdict]
+    """What each pair registered said (:meth:`JoinJudge._pair_verdict`), its translation information
+    turned into the join's own submap's frame on side a: the sums the verdict rests on."""
+    required: int
+    """The pairs that had to bear the join out (:meth:`JoinJudge._support_required`)."""
+
+
+def _judged_key(e: Edge) -> tuple[object, ...]:
+    """A join's key for its kept verdict (:class:`_Judged`): its submaps in order, versions and transform."""
+    t = e.transform
+    return (e.a, e.b, e.versions, round(t.x, 3), round(t.y, 3), round(t.theta, 4))
+
+
+def _turned(information: Array, angle: float) -> Array:
+    """A 2x2 translation information seen from a frame turned by ``-angle``."""
+    c, s = math.cos(angle), math.sin(angle)
+    turn = np.array([[c, -s], [s, c]])
+    return np.asarray(turn @ information @ turn.T)
 
 
 def _within(a: Transform2D, b: Transform2D, tol_t: float, tol_r: float) -> bool:
@@ -195,12 +214,12 @@ class JoinJudge(PairJudge):
             self._verdicts[key] = held
             return held
         pairs = self._join_pairs(e, group_a, group_b, rel, adjacency)
-        holds = self._weigh_join(e, pairs, group_a, group_b, rel)
+        holds, tally, required = self._weigh_join(e, pairs, group_a, group_b, rel)
         self._verdicts[key] = holds
         if len(self._judged) > RIVALS_KEPT:
             self._judged.clear()
-        self._judged[(e.a, e.b, e.versions, round(t.x, 3), round(t.y, 3), round(t.theta, 4))] = _Judged(
-            holds, self._seen(e.a, group_a, rel), self._seen(e.b, group_b, rel)
+        self._judged[_judged_key(e)] = _Judged(
+            holds, self._seen(e.a, group_a, rel), self._seen(e.b, group_b, rel), tally, required
         )
         return holds
 
@@ -261,8 +280,9 @@ class JoinJudge(PairJudge):
         group_a: list[str],
         group_b: list[str],
         rel: dict[str, Transform2D],
-    ) -> bool:
-        """Whether the pairs (:meth:`_join_pairs`) bear a join out (:meth:`_join_holds`).
+    ) -> tuple[bool, dict[tuple[str, str], Verdict], int]:
+        """Whether the pairs (:meth:`_join_pairs`) bear a join out (:meth:`_join_holds`), with what
+        each pair registered said and the pairs it took (kept: :meth:`holds_with`).
 
         The pairs that bear it out must also fix it in every direction (:meth:`_pinned`).
 
@@ -277,8 +297,9 @@ class JoinJudge(PairJudge):
         p = self.integration
         looks = [self._look(a, b, implied) for a, b, implied, _, _ in pairs]
         supports, value, against = 0, 0.0, 0.0
-        fixed = np.zeros((2, 2))  # the supporting walls' translation information, in a's root frame
+        fixed = np.zeros((2, 2))  # the supporting walls' translation information, in e.a's frame
         done: set[int] = set()
+        tally: dict[tuple[str, str], Verdict] = {}
 
         def register(i: int) -> None:
             nonlocal supports, value, against, fixed
@@ -288,9 +309,9 @@ class JoinJudge(PairJudge):
             value += supported
             against += contradicted
             if information is not None:
-                c, s = math.cos(rel[a].theta), math.sin(rel[a].theta)
-                turn = np.array([[c, -s], [s, c]])
-                fixed = fixed + turn @ information @ turn.T
+                information = _turned(information, rel[a].theta - rel[e.a].theta)  # in e.a's frame
+                fixed = fixed + information
+            tally[(a, b)] = (supported, contradicted, information)
             done.add(i)
 
         bearing = sorted(
@@ -331,7 +352,49 @@ class JoinJudge(PairJudge):
             limit,
             "kept" if holds else "rejected",
         )
-        return holds
+        return holds, tally, required
+
+    def holds_with(
+        self,
+        e: Edge,
+        pairs: list[tuple[str, str, Transform2D]],
+        at: dict[str, Transform2D],
+        drift: Callable[[str, str], tuple[int, float, float]],
+    ) -> bool | None:
+        """Whether a join that held still holds with new pairs across it weighed in: each pair
+        ``(a, b, implied)`` (a on e.a's side, ``implied`` b's pose in a's frame) registered
+        (:meth:`_pair_verdict`) and its verdict put in place of the one it had, the join's sums
+        (:class:`_Judged`) then judged as :meth:`_weigh_join` judges them. ``at``: every submap's
+        pose in one frame of the tree; ``drift``: a tree path's integrations and drift
+        (:meth:`~fleetmap.merger.forest.RootedForest.drift`). None where it cannot say: no verdict
+        kept, one that failed, or one whose groups could not grow (their pairs were all it had).
+
+        A kept step adds a submap or a version of one; judged again as a whole, a join would cost
+        what both its sides hold at every step that a new pair's look puts a little wall in free
+        space (aces given four times: every step of the last tenth), where only the new pairs are
+        new evidence."""
+        judged = self._judged.get(_judged_key(e))
+        if judged is None or not judged.holds or judged.required != self.merge.join_support:
+            return None
+        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        for a, b, implied in pairs:
+            joins, drift_t, drift_r = drift(a, b)
+            if drift_t > reach_t or drift_r > reach_r:
+                continue  # the chains' drift hides the pair from registration (:meth:`_join_pairs`)
+            base_t, base_r = self._tolerance(1 + joins)
+            supported, contradicted, information = self._pair_verdict(
+                a, b, implied, math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)
+            )
+            if information is not None:
+                information = _turned(information, at[a].theta - at[e.a].theta)
+            judged.tally[(a, b)] = (supported, contradicted, information)
+        verdicts = judged.tally.values()
+        supports = sum(v[0] > 0 for v in verdicts)
+        value = sum(v[0] for v in verdicts)
+        against = sum(v[1] for v in verdicts)
+        fixed = sum((v[2] for v in verdicts if v[2] is not None), np.zeros((2, 2)))
+        limit = max_map_violation(value, self.integration) * value
+        return supports >= judged.required and against <= limit and self._pinned(fixed)
 
     def _support_required(self, group_a: list[str], group_b: list[str], pairs: int, bearing: list[float]) -> int:
         """How many pairs must bear a join out (:meth:`_weigh_join`): ``join_support``, or every pair
@@ -385,8 +448,7 @@ class JoinJudge(PairJudge):
         failed only if one of them has ``valid_min_value`` of wall on wall to bear it out. Judged
         again at every step, each join would cost what the whole of both sides holds (issue 49:
         on aces given four times, half the merger's time)."""
-        t = e.transform
-        judged = self._judged.get((e.a, e.b, e.versions, round(t.x, 3), round(t.y, 3), round(t.theta, 4)))
+        judged = self._judged.get(_judged_key(e))
         if judged is None:
             return None
         now_a, now_b = self._seen(e.a, group_a, rel), self._seen(e.b, group_b, rel)

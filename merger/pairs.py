@@ -159,19 +159,27 @@ class PairJudge(ChainGraph):
     ) -> Array:
         """Which submaps of two groups, placed in one frame, can touch: the discs about their walls
         (:meth:`_disc`) meet; a boolean ``(len(group_a), len(group_b))`` array."""
-
-        def discs(group: list[str], at: dict[str, Transform2D]) -> tuple[Array, Array]:
-            centres = np.empty((len(group), 2))
-            radii = np.empty(len(group))
-            for n, k in enumerate(group):
-                centre, radii[n] = self._disc(k)
-                centres[n] = at[k].apply_points(centre[None, :])[0]
-            return centres, radii
-
-        ca, ra = discs(group_a, at_a)
-        cb, rb = discs(group_b, at_b)
+        ca, ra = self.discs_at(group_a, at_a)
+        cb, rb = self.discs_at(group_b, at_b)
         gap = np.hypot(ca[:, None, 0] - cb[None, :, 0], ca[:, None, 1] - cb[None, :, 1])
         return np.asarray(gap <= ra[:, None] + rb[None, :])
+
+    def discs_at(self, group: list[str], at: dict[str, Transform2D]) -> tuple[Array, Array]:
+        """The discs about the walls of ``group``'s submaps (:meth:`_disc`) placed at ``at``: their
+        centres ``(n, 2)`` and radii ``(n,)``."""
+        n = len(group)
+        local = np.empty((n, 2))
+        radii = np.empty(n)
+        poses = np.empty((n, 3))
+        for i, k in enumerate(group):
+            local[i], radii[i] = self._disc(k)
+            t = at[k]
+            poses[i] = t.x, t.y, t.theta
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        centres = np.column_stack(
+            (poses[:, 0] + c * local[:, 0] - s * local[:, 1], poses[:, 1] + s * local[:, 0] + c * local[:, 1])
+        )
+        return centres, radii
 
     def _disc(self, key: str) -> tuple[Array, float]:
         """The disc about a node's walls: their ends' centroid and the farthest end from it."""

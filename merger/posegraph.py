@@ -52,9 +52,11 @@ from fleetmap.merger.chains import _chain_of, _map_file
 from fleetmap.merger.forest import KeptForest
 from fleetmap.merger.graph import Component, Edge, MergeResult, _bfs_order, _unite
 from fleetmap.merger.joins import _within
+from fleetmap.merger.pairs import VERDICT_VERSIONS
 from fleetmap.merger.refinement import RefinedGraph
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.tracking import REACH_ROTATION
 from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
@@ -179,7 +181,7 @@ class PoseGraph(RefinedGraph):
         if any(root[e.a] == root[e.b] for e in kept.apart):
             return None  # a new submap's link put two submaps in one tree that an integration did not join
         touched.update(root[k] for k in grown)
-        if not self._kept_verdicts_stand(kept, touched):
+        if not self._kept_verdicts_stand(kept, touched, grown):
             return None
         for r in touched:
             if not self._kept_component(kept, r, r in refine):
@@ -234,12 +236,14 @@ class PoseGraph(RefinedGraph):
             refine.add(ra)
         return True
 
-    def _kept_verdicts_stand(self, kept: KeptForest, touched: set[str]) -> bool:
+    def _kept_verdicts_stand(self, kept: KeptForest, touched: set[str], grown: set[str]) -> bool:
         """Whether what the forest decided about the groups this step changed stands: the joins
-        it refused still fail, its joins still hold, and no culprit appears (each decided as
+        it refused still fail, its joins still hold (:meth:`_kept_joins_hold`, ``grown``: the
+        submaps new or with a new version), and no culprit appears (each decided as
         :meth:`_kruskal` and :meth:`_forest` decide it, the verdicts kept where nothing new bears
         on them: :meth:`_kept_verdict`)."""
         root, members, rel, adjacency = kept.root, kept.members, kept.rel, kept.adjacency
+        kept.unlooked.update(grown)
         for e in kept.apart:
             ra, rb = root[e.a], root[e.b]
             regrown = ra != rb and (ra in touched or rb in touched)
@@ -250,7 +254,7 @@ class PoseGraph(RefinedGraph):
             joins = [t for t in kept.tree if not t.link and t.a in group]
             if not joins:
                 continue
-            if self._failed_join(joins, adjacency, rel) is not None:
+            if not self._kept_joins_hold(kept, r, joins, grown):
                 return False
             # new loops only add support, and a new leaf is on no cycle: the vote can find a culprit
             # only where the last one had a candidate that its accusers' groups did not bear out
@@ -259,6 +263,69 @@ class PoseGraph(RefinedGraph):
                 loops = [e for e in kept.loops if e.a in group]
                 if self._culprit(joins, loops, accusers, adjacency, kept.forest) is not None:
                     return False
+        return True
+
+    def _kept_joins_hold(self, kept: KeptForest, r: str, joins: list[Edge], grown: set[str]) -> bool:
+        """Whether the joins of group ``r``'s tree still hold now that the ``grown`` submaps (new,
+        or with a new version) are in it. As a join's verdict is kept while its two groups stay
+        the same (:meth:`_join_holds`), the group's joins are looked at again when a new submap
+        joins it, and then only the pairs that its submaps new or grown since the last look make
+        across a join are new evidence. Each is looked at (:meth:`_look`) where the tree puts it;
+        a pair that puts ``valid_refute_violation`` of wall in the other's seen free space is
+        weighed in (:meth:`holds_with`), and where that cannot say, the join is judged again
+        whole (:meth:`_failed_join`). Which side of a join a submap is on is read off the rooted
+        forest (:attr:`~fleetmap.merger.forest.RootedForest.joins_above`), so a step costs what
+        its fresh submaps meet, not what the group holds."""
+        root, looked = kept.root, kept.looked
+        if not any(k not in kept.versions and root[k] == r for k in grown):
+            return True  # the same group: its joins' verdicts stand
+        # new submaps, and those grown by as many versions as a pair's verdict is kept for
+        # (:meth:`_pair_verdict`: what an active submap's walls bore out they still bear out)
+        fresh = [
+            k
+            for k in kept.unlooked
+            if root[k] == r and (k not in looked or self._nodes[k].version - looked[k] >= VERDICT_VERSIONS)
+        ]
+        for k in fresh:
+            looked[k] = self._nodes[k].version
+        kept.unlooked.difference_update(fresh)
+        forest, group = kept.forest, kept.members[r]
+        above, at = forest.joins_above, forest.at
+        centres, radii = self.discs_at(group, at)
+        index = {k: i for i, k in enumerate(group)}
+        rows = [index[k] for k in fresh]
+        gap = np.hypot(centres[rows, None, 0] - centres[None, :, 0], centres[rows, None, 1] - centres[None, :, 1])
+        meet = gap <= radii[rows, None] + radii[None, :]
+        pairs = {
+            (f, g) if f < g else (g, f)
+            for f, row in zip(fresh, meet, strict=True)
+            for g in (group[j] for j in np.flatnonzero(row).tolist())
+            if g != f
+        }
+        # a pair whose chains can have drifted farther than registration reaches says nothing
+        # either way (:meth:`_join_pairs`)
+        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        drifts = {(f, g): forest.drift(f, g) for f, g in pairs if above[f] != above[g]}  # across a join
+        pairs = {p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r}
+        refute = self.integration.validity.valid_refute_violation
+        for e in joins:
+            key = e.key()
+            a_far = key in above[e.a]  # whether e.a is on the far side of e from the root
+            suspicious = []
+            for f, g in pairs:
+                if (key in above[f]) == (key in above[g]):
+                    continue  # both on one side
+                a, b = (f, g) if (key in above[f]) == a_far else (g, f)
+                implied = at[a].inverse().compose(at[b])
+                if self._look(a, b, implied)[1] >= refute:
+                    suspicious.append((a, b, implied))
+            if not suspicious:
+                continue
+            holds = self.holds_with(e, suspicious, at, forest.drift)
+            if holds is None:
+                holds = self._failed_join([e], kept.adjacency, kept.rel) is None
+            if not holds:
+                return False
         return True
 
     def _kept_component(self, kept: KeptForest, r: str, cycles_changed: bool) -> bool:

@@ -210,9 +210,10 @@ class _MergerSide:
 
     def step(self, final: bool = False) -> None:
         t0 = time.perf_counter()
-        for o in self.merger.step(fuse=final):
+        out = self.merger.step(fuse=final)
+        took = time.perf_counter() - t0  # the merger's step, not the session log's reading of it
+        for o in out:
             self.log.add_payload(o.payload)
-        took = time.perf_counter() - t0
         self.seconds += took
         if self._on_step is not None:
             self._on_step(len(self.merger.submaps), self.merger.stats.integrations, took)
