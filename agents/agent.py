@@ -15,9 +15,7 @@ What :meth:`Agent.add_scan` returns with the tracking front end, in this order:
   ``final``, when it is full, or when its epoch ends);
 - on a new epoch, the FleetEvent ``epoch`` (its first scan and why);
 - the Scan: its segments, raw ranges, the submap that placed it and its pose there (none if the
-  scan did not fit), and the odometry reading; a scan the tracker holds while the odometry's sign
-  is undecided (:meth:`fleetmap.agents.tracker.Tracker.add`) goes out, placed, with the scan that
-  decides it, before that scan's own;
+  scan did not fit), and the odometry reading;
 - the active submaps that are due: a submap's first version at once, then every
   ``publish_every`` inserted scans; in an epoch after the first, after every inserted scan until
   the merger says it has placed the epoch (:meth:`Agent.relocalized`): the robot is lost until
@@ -32,7 +30,7 @@ import logging
 import numpy as np
 from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
-from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker, TrackStep
+from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths
@@ -141,8 +139,6 @@ class TrackingFrontEnd:
         self._local_maps = 0
         self._stamp = 0.0
         self._first_epoch = 0
-        self._pending: list[tuple[int, float, Array, LaserRanges, Transform2D | None]] = []
-        """Scans the tracker holds (index, stamp, segments, ranges, odometry), their Scan messages not yet out."""
 
     def start_at(self, epoch: int) -> None:
         self.tracker.first_epoch = self._first_epoch = epoch
@@ -178,11 +174,10 @@ class TrackingFrontEnd:
                 out.append(FleetEvent("epoch", self.robot, stamp, json.dumps(detail)))
             self._placed += step.pose is not None
         out += self._finals(stamp)
+        last = steps[-1]
         ranges = LaserRanges.from_range_scan(scan)
         kept = odometry if odometry is not None and np.isfinite(odometry.as_array()).all() else None
-        self._pending.append((index, stamp, segments, ranges, kept))
-        if steps[-1].status != "held":
-            out += self._scan_messages(steps)
+        out.append(Scan(self.robot, last.epoch, index, stamp, _wire(segments), ranges, last.submap, last.pose, kept))
         out += self._due(stamp)
         return out
 
@@ -190,10 +185,7 @@ class TrackingFrontEnd:
         self._found.add(epoch)
 
     def finish(self) -> list[Message]:
-        steps = self.tracker.finish()
-        self._placed += sum(step.pose is not None for step in steps)
-        out = self._scan_messages(steps) if steps else []
-        out += self._finals(self._stamp)
+        out = self._finals(self._stamp)
         for submap in self.tracker.submaps():
             submap.finished = True
             out += self._message(submap, self._stamp, final=True)
@@ -203,19 +195,6 @@ class TrackingFrontEnd:
         return list(self._latest.values())
 
     # -- internals ---------------------------------------------------------------------------
-    def _scan_messages(self, steps: list[TrackStep]) -> list[Message]:
-        """The Scan messages of the scans held so far and this one, placed as ``steps`` say (a
-        scan's last step is where it ended up)."""
-        last = {step.index: step for step in steps}
-        out: list[Message] = []
-        for index, stamp, segments, ranges, odometry in self._pending:
-            step = last.get(index, steps[-1])
-            out.append(
-                Scan(self.robot, step.epoch, index, stamp, _wire(segments), ranges, step.submap, step.pose, odometry)
-            )
-        self._pending = []
-        return out
-
     def _finals(self, stamp: float) -> list[Message]:
         out: list[Message] = []
         for submap in self.tracker.take_finished():

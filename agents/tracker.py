@@ -40,7 +40,6 @@ The tracker is pure: scans and odometry in, poses and submaps out; no clock, no 
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 from collections import deque
@@ -53,7 +52,6 @@ from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import scan_viewpoint
 from fleetmap.shared.core.motion import (
-    CHI2_1DOF_99,
     CHI2_3DOF_99,
     Prediction,
     ScanClock,
@@ -80,10 +78,6 @@ from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
-
-SIGN_ERROR = 0.01
-"""The odometry-sign test's error rates (both kinds: :meth:`Tracker._judge_lag`), the 99 % level of
-the tracker's chi-square gates."""
 
 KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
@@ -171,8 +165,7 @@ class TrackStep:
 
     status: str
     """"first" (an epoch's first scan), "tracked", "reacquired" (by pose-free integration),
-    "unplaced" (the fit failed), "held" (the odometry's sign undecided after a stop: placed once it
-    is decided, :meth:`Tracker.add`), or "empty" (no segment: nothing to track)."""
+    "unplaced" (the fit failed), or "empty" (no segment: nothing to track)."""
     epoch: int
     """The epoch the scan is in."""
     submap: int | None
@@ -184,8 +177,6 @@ class TrackStep:
     ``first_scan`` and its placed scans are in its submaps."""
     first_scan: int | None = None
     registration: Registration | None = None
-    index: int | None = None
-    """The scan's index."""
 
 
 @dataclass
@@ -246,17 +237,6 @@ class Tracker:
         """The last scan's odometry prediction as the wheels gave it (:meth:`_judge_odometry_sign`)."""
         self.reversed_odometry = 0.0
         """The belief that the odometry's translation has lost its sign (:meth:`_judge_odometry_sign`)."""
-        self._sign_distances: tuple[float, float] | None = None
-        """The last placed scan's motion against the odometry's increment signed and negated
-        (squared Mahalanobis distances; None: no odometry step, or the robot stood still)."""
-        self._hypothesis = False
-        """Whether this tracker holds the odometry's sign fixed (one hypothesis of a lag, :meth:`add`)."""
-        self._rival: Tracker | None = None
-        """While the odometry's sign is undecided after a stop, the other sign's tracker (:meth:`add`)."""
-        self._lag: list[list[TrackStep]] = []
-        """This sign's steps of the scans held since the stop."""
-        self._lag_evidence = 0.0
-        """The log likelihood ratio of the lag's steps, the negated sign against the signed one."""
         self.bad_odometry = 0
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
 
@@ -267,31 +247,19 @@ class Tracker:
 
     @property
     def pose(self) -> Transform2D | None:
-        """The robot's pose in the matching submap's frame after the last scan; None if lost. While
-        the odometry's sign is in doubt (:meth:`add`), the likelier sign's."""
-        t = self._likelier
-        if t._pose is None or t._held or not t.active:
+        """The robot's pose in the matching submap's frame after the last scan; None if lost."""
+        if self._pose is None or self._held or not self.active:
             return None
-        return t.active[0].origin.inverse().compose(t._pose)
+        return self.active[0].origin.inverse().compose(self._pose)
 
     @property
     def epoch_pose(self) -> Transform2D | None:
-        """The robot's pose in its epoch's frame after the last scan; None if that scan was not
-        placed. While the odometry's sign is in doubt (:meth:`add`), the likelier sign's."""
-        t = self._likelier
-        if t._pose is None or t._held:
+        """The robot's pose in its epoch's frame after the last scan; None if that scan was not placed."""
+        if self._pose is None or self._held:
             return None
-        return t._pose
-
-    @property
-    def _likelier(self) -> Tracker:
-        """This tracker, or during a lag the likelier sign's (:meth:`_judge_lag`)."""
-        return self._rival if self._rival is not None and self._lag_evidence > 0 else self
+        return self._pose
 
     def take_finished(self) -> list[Submap]:
-        """The submaps finished since the last call (none while scans are held: :meth:`add`)."""
-        if self._rival is not None:
-            return []
         out, self.finished = self.finished, []
         return out
 
@@ -300,118 +268,13 @@ class Tracker:
         self, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None = None
     ) -> list[TrackStep]:
         """Track one scan; the steps it caused (more than one when it starts an epoch: then the
-        scans held since the robot lost its place are tracked into it too, in order).
-
-        A robot that stood still may drive off either way, and on odometry that can lose its sign
-        (:meth:`_judge_odometry_sign`) the first steps after a stop may not tell which: then both
-        signs track the scans, each its own copy of the tracker, and the scans are held ("held"
-        steps) until a sequential probability ratio test decides between them
-        (:meth:`_judge_lag`); the decided sign's steps for the held scans come with the scan that
-        decided it."""
-        if self._rival is None and self._sign_open(odometry):
-            # the two hypotheses' trackers share the configuration, nothing else
-            self._lag, self._lag_evidence, self._hypothesis = [], 0.0, True
-            self._rival = copy.deepcopy(self, {id(self.config): self.config})
-            self.reversed_odometry, self._rival.reversed_odometry = 0.0, 1.0
-        rival = self._rival
-        if rival is None:
-            return self._step(index, stamp, scan, segments, odometry)
-        finished = len(self.finished), len(rival.finished)
-        self._lag.append(self._step(index, stamp, scan, segments, odometry))
-        rival._lag.append(rival._step(index, stamp, scan, segments, odometry))
-        judged = self._judge_lag(len(self.finished) > finished[0] or len(rival.finished) > finished[1])
-        if judged is None:
-            return [TrackStep("held", max(self.epoch, self.first_epoch), None, None, index=index)]
-        return self._settle(*judged)
-
-    def finish(self) -> list[TrackStep]:
-        """Decide the odometry's sign for the scans still held (the end of the robot's scans): the
-        likelier sign's steps for them, or none."""
-        if self._rival is None:
-            return []
-        return self._settle(self._lag_evidence > 0, False)
-
-    def _step(
-        self, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None
-    ) -> list[TrackStep]:
-        self._sign_distances = None
+        scans held since the robot lost its place are tracked into it too, in order)."""
         previous = self.clock.previous
         self.clock.tick(stamp)
         if previous is not None and self.clock.distrusted_at == self.clock.scans:
             said = "repeats" if stamp == previous else f"is {previous - stamp:.4f} s before"
             self._say_clock(f"scan {index}'s stamp {said} the previous scan's")
         return self._track(self.clock.scans, index, stamp, scan, segments, odometry)
-
-    def _sign_open(self, odometry: Transform2D | None) -> bool:
-        """Whether the scan is the robot's first move after a stop on odometry whose sign is in
-        doubt (the belief at one half, :meth:`_judge_odometry_sign`)."""
-        if not self.use_odometry or odometry is None or self._odometry is None or self._pose is None:
-            return False
-        if self.reversed_odometry != 0.5:
-            return False
-        moved = self._odometry.inverse().compose(odometry)
-        distance = math.hypot(moved.x, moved.y)
-        return math.isfinite(distance) and distance >= self.params.odometry_translation_sigma
-
-    def _judge_lag(self, finished: bool) -> tuple[bool, bool] | None:
-        """After a scan of the lag: whether the negated sign places the lag's scans, and whether the
-        test decided it; None while the lag goes on.
-
-        Wald's sequential probability ratio test (Wald 1945, *Sequential tests of statistical
-        hypotheses*): each hypothesis's tracker placed the scan from its own prediction, and the
-        step's likelihood under it is its odometry prediction's (Gaussian, the odometry's own
-        uncertainty) of the motion it placed; where the walls leave the motion free, each follows
-        its own prediction and the ratio stays near one. The test decides once the summed log
-        ratio leaves Wald's bounds for error rates ``SIGN_ERROR`` of both kinds; a hypothesis that
-        lost its place (a new epoch) while the other did not is refuted. The lag ends undecided
-        when the robot stands still again, both lost their place, or a submap finished (a fixed
-        lag of at most half a submap's path): the likelier sign places its scans, and the sign
-        stays in doubt (the robot's next move opens another lag)."""
-        rival = self._rival
-        if rival is None:
-            return None
-        ours, theirs = self._sign_distances, rival._sign_distances
-        if ours is not None and theirs is not None:
-            signed, negated = ours[0], theirs[1]
-            if min(signed, negated) <= CHI2_3DOF_99:  # a step neither explains says nothing of the sign
-                self._lag_evidence += 0.5 * (signed - negated)
-        bound = math.log((1.0 - SIGN_ERROR) / SIGN_ERROR)
-        lost = [any(step.new_epoch for step in tracker._lag[-1]) for tracker in (self, rival)]
-        evidence = self._lag_evidence
-        if abs(evidence) >= bound:
-            why, negated, decided = "decided", evidence > 0, True
-        elif lost[0] != lost[1]:
-            why, negated, decided = "the other lost its place", lost[0], True
-        elif any(lost):
-            why, negated, decided = "both lost their place", evidence > 0, False
-        elif self.reversed_odometry == 0.5 or rival.reversed_odometry == 0.5:
-            why, negated, decided = "stood still", evidence > 0, False
-        elif finished:
-            why, negated, decided = "a submap finished", evidence > 0, False
-        else:
-            return None
-        log.debug(
-            "odometry's sign %s after %d scans (%s; log likelihood ratio %.3g)",
-            "negated" if negated else "kept",
-            len(self._lag),
-            why,
-            evidence,
-        )
-        return negated, decided
-
-    def _settle(self, negated: bool, decided: bool) -> list[TrackStep]:
-        """End the lag: the tracker of the sign that places the lag's scans goes on as this one,
-        its steps for them returned. Its belief is that sign where the test decided it, else one
-        half (:meth:`_judge_lag`)."""
-        rival = self._rival
-        if rival is None:
-            return []
-        if negated:
-            vars(self).update(vars(rival))
-        steps = [step for lagged in self._lag for step in lagged]
-        self.reversed_odometry = (1.0 if negated else 0.0) if decided else 0.5
-        self._rival, self._lag, self._lag_evidence, self._hypothesis = None, [], 0.0, False
-        return steps
 
     # -- internals ---------------------------------------------------------------------------
     def _track(
@@ -420,7 +283,7 @@ class Tracker:
         samples = sample_segments(segments, self.params.sample_spacing)
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
-            return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None, index=index)]
+            return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None)]
         if self.epoch < 0:
             return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
         predictions = self._predictions(seq, stamp, odometry)
@@ -431,7 +294,7 @@ class Tracker:
             before = self._pose
             step = self._place(seq, index, stamp, scan, segments, samples, odometry, fit, status)
             if before is not None and self._pose is not None:
-                self._judge_odometry_sign(before, self._pose, fit.registration)
+                self._judge_odometry_sign(before.inverse().compose(self._pose))
             return [step]
         self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
         self._pose = self._pose_in_epoch(predictions[0])
@@ -439,7 +302,7 @@ class Tracker:
         self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
         if len(self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
-            return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration, index=index)]
+            return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
 
     def _typical_floor(self) -> float:
@@ -504,7 +367,7 @@ class Tracker:
             out = [fused(velocity, out[0]), velocity, out[0]]
         return out
 
-    def _judge_odometry_sign(self, before: Transform2D, after: Transform2D, reg: Registration) -> None:
+    def _judge_odometry_sign(self, moved: Transform2D) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
         scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),
         filtered forward (Rabiner 1989, the forward algorithm). Each state predicts the increment
@@ -518,18 +381,12 @@ class Tracker:
         decides; while the robot moves, the belief holds unless a step only the other state explains
         turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
         validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
-        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md).
-
-        ``before`` and ``after`` are the robot's poses (epoch frame) before the step and where
-        ``reg`` placed it; a lag's hypothesis records the step's distances from both states'
-        predictions for the test (:meth:`_judge_lag`), where the walls tell the two apart."""
+        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
         step = self._odometry_step
         if step is None:
             return
-        moved = before.inverse().compose(after)
         signed = step.increment
-        length = math.hypot(signed.x, signed.y)
-        if length < self.params.odometry_translation_sigma:
+        if math.hypot(signed.x, signed.y) < self.params.odometry_translation_sigma:
             self.reversed_odometry = 0.5  # standing still: either way next
             return
         unsigned = Transform2D(-signed.x, -signed.y, signed.theta)
@@ -541,16 +398,6 @@ class Tracker:
             return float(off @ information @ off)
 
         d_signed, d_unsigned = distance(signed), distance(unsigned)
-        if self._hypothesis:
-            # the two states' predictions lie twice the step apart along the direction of travel;
-            # where the walls do not fix that direction (at the 99 % level) the placed motion
-            # follows the prediction it started from, and the step says nothing of the sign
-            c, s = math.cos(before.theta), math.sin(before.theta)
-            ux, uy = (c * signed.x - s * signed.y) / length, (s * signed.x + c * signed.y) / length
-            sigma = _sigma_along(reg.scan_information, after.theta - reg.pose.theta, ux, uy)
-            if (2.0 * length) ** 2 > CHI2_1DOF_99 * sigma * sigma:
-                self._sign_distances = (d_signed, d_unsigned)
-            return  # a lag's hypothesis keeps its sign; the test judges it (:meth:`_judge_lag`)
         low = min(d_signed, d_unsigned)  # likelihoods relative to the likelier state's
         if low > CHI2_3DOF_99:
             return  # neither state explains the step (the validation gate): the odometry is off otherwise
@@ -743,7 +590,7 @@ class Tracker:
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self._due(stamp, pose):
             self._insert(index, stamp, scan, segments, samples, pose, reg)
-        return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg, index=index)
+        return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
 
     def _check_clock(self, index: int, stamp: float, pose: Transform2D, reg: Registration) -> None:
         """Judge the stamps by the motion since the last placed scan (:meth:`ScanClock.check`),
@@ -870,7 +717,7 @@ class Tracker:
         self._start_submap(index, Transform2D(), scan, segments, samples, None)
         self._inserted_at = (stamp, Transform2D())
         self.active[0].placed.append(PlacedScan(index, stamp, Transform2D()))
-        return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index, index=index)
+        return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
 
     def _lost(self) -> list[TrackStep]:
         """``kidnap_after`` scans in a row did not fit: a new epoch from the first of them."""

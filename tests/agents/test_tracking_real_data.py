@@ -9,12 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fleetmap.agents.agent import LOST_SCANS, Agent, TrackingFrontEnd
+from fleetmap.agents.agent import Agent
 from fleetmap.scenarios.clocks import break_clock
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
-from fleetmap.shared.io.messages import Scan
 from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.mapping import Piece, map_logs, read_inputs
@@ -128,23 +127,3 @@ def test_a_robot_reversing_down_a_corridor_on_odometry_without_its_sign_is_place
     assert moved.x < -2.0  # backwards, in the robot's own frame
     error = moved.inverse().compose(poses[1372].inverse().compose(poses[1395]))
     assert math.hypot(error.x, error.y) < 0.2, f"{math.hypot(error.x, error.y):.2f} m off"
-
-
-def test_scans_held_while_the_odometrys_sign_is_in_doubt_go_out_once_each_in_order_and_placed(
-    datasets: Path,
-) -> None:
-    # aces cut in 4, robot 3 (from scan 3688): it stops and drives off again dozens of times, and
-    # after each stop its scans are held until the odometry's sign is judged (tracked in about 3 s)
-    front = TrackingFrontEnd("aces-3", FleetmapConfig(), True, LOST_SCANS)
-    out = []
-    held = 0
-    for s in CarmenSource(datasets / "aces" / "aces.clf.gz", 3688, 4215):
-        messages = front.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        held += not any(isinstance(m, Scan) for m in messages)
-        out += messages
-    out += front.finish()
-    assert held >= 10, "no scan was held"
-    scans = [m for m in out if isinstance(m, Scan)]
-    assert [m.index for m in scans] == list(range(3688, 4215))
-    assert all(m.pose is not None for m in scans)
-    assert front.counts.placed == len(scans)
