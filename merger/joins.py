@@ -361,18 +361,12 @@ class JoinJudge(PairJudge):
         at: dict[str, Transform2D],
         drift: Callable[[str, str], tuple[int, float, float]],
     ) -> bool | None:
-        """Whether a join that held still holds with new pairs across it weighed in: each pair
-        ``(a, b, implied)`` (a on e.a's side, ``implied`` b's pose in a's frame) registered
-        (:meth:`_pair_verdict`) and its verdict put in place of the one it had, the join's sums
-        (:class:`_Judged`) then judged as :meth:`_weigh_join` judges them. ``at``: every submap's
-        pose in one frame of the tree; ``drift``: a tree path's integrations and drift
-        (:meth:`~fleetmap.merger.forest.RootedForest.drift`). None where it cannot say: no verdict
-        kept, one that failed, or one whose groups could not grow (their pairs were all it had).
-
-        A kept step adds a submap or a version of one; judged again as a whole, a join would cost
-        what both its sides hold at every step that a new pair's look puts a little wall in free
-        space (aces given four times: every step of the last tenth), where only the new pairs are
-        new evidence."""
+        """Whether a join that held still holds with new pairs ``(a, b, implied)`` across it (a on
+        e.a's side, ``implied`` b's pose in a's frame) registered (:meth:`_pair_verdict`), each
+        verdict in place of the pair's last, and the join's kept sums (:class:`_Judged`) judged as
+        :meth:`_weigh_join` judges them: only the new pairs are new evidence. ``at``: the submaps'
+        poses in one frame of the tree; ``drift``: a tree path's integrations and drift. None where
+        it cannot say (no verdict kept, one that failed, or groups that could not grow)."""
         judged = self._judged.get(_judged_key(e))
         if judged is None or not judged.holds or judged.required != self.merge.join_support:
             return None
@@ -436,18 +430,13 @@ class JoinJudge(PairJudge):
     def _kept_verdict(
         self, e: Edge, group_a: list[str], group_b: list[str], rel: dict[str, Transform2D]
     ) -> bool | None:
-        """A join's last verdict, where nothing new can change it (None: judge it again).
-
-        A verdict rests on the pairs of the two sides' submaps that met across the join. Since it
-        was given, either side may have grown (a robot's next submaps, another group joined to
-        it), a submap may have a new version, or the tree may have moved one within its side (by
-        more than a third of the base tolerance, as a pair's verdict is kept: :meth:`_pair_verdict`).
-        Only the pairs such a submap makes are new evidence, so only they are looked at (the cheap
-        look, :meth:`_look`): a join that held is judged again only if one of them puts
-        ``valid_refute_violation`` of wall where the other side saw free space, and one that
-        failed only if one of them has ``valid_min_value`` of wall on wall to bear it out. Judged
-        again at every step, each join would cost what the whole of both sides holds (issue 49:
-        on aces given four times, half the merger's time)."""
+        """A join's last verdict, where nothing new can change it (None: judge it again). Since it
+        was given, a side may have grown, a submap may have a new version, or the tree may have
+        moved one within its side (by a third of the base tolerance: :meth:`_pair_verdict`). Only
+        the pairs such a submap makes are new evidence, so only they are looked at (:meth:`_look`):
+        a join that held is judged again only if one puts ``valid_refute_violation`` of wall in the
+        other's seen free space, one that failed only if one has ``valid_min_value`` of wall on
+        wall (issue 49: judged again whole at every step, half the merger's time on aces x4)."""
         judged = self._judged.get(_judged_key(e))
         if judged is None:
             return None

@@ -28,8 +28,6 @@ BEING_SPLIT = frozenset(
         # being split (issue 51)
         "agents/tracker.py",
         "agents/tracker.py::Tracker",
-        "merger/engine.py",
-        "merger/engine.py::Merger",
         "shared/config.py",
         "shared/core/integration.py",
         "shared/core/tracking.py::register",
