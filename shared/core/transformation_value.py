@@ -429,8 +429,9 @@ def _tree_pairs(prep: PreparedPairs, mid2: Array, d_max: float) -> tuple[IntArra
     hits = kd.query_ball_point(mid2, prep.half2 + 0.5 * PIECE + d_max)
     k = np.repeat(np.arange(len(mid2)), [len(h) for h in hits])
     i = owner[np.concatenate(hits).astype(np.int64)] if len(k) else np.zeros(0, np.int64)
-    pairs = np.unique(np.column_stack([i, k]), axis=0) if len(k) else np.zeros((0, 2), np.int64)
-    return pairs[:, 0], pairs[:, 1]
+    # each pair once, by S1 then S2 index: one integer key per pair sorts far faster than rows
+    pairs = np.unique(i * len(mid2) + k)
+    return pairs // len(mid2), pairs % len(mid2)
 
 
 def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams, refuse: bool = True) -> float:
