@@ -375,7 +375,7 @@ class MergeParams:
     (docs/decisions/012-the-other-papers.md)."""
     max_submap_segments: int = ours(5000)
     """The merger refuses a submap of more segments than this (dropped, logged and counted)."""
-    max_integration_work: int = ours(64_000_000)
+    max_integration_work: int = ours(80_000_000)
     """One integration of two submaps stops past this many units of work (grid lookups and segment
     pairs compared: fleetmap.shared.core.work) and is not valid (logged and counted; 0: no limit):
     its cost is bounded whatever the submaps hold, and a replay stops where the live merger
