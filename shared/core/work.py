@@ -12,7 +12,8 @@ about the time of one grid lookup (measured on two maps of 5,000 random segments
 
 - a sample point looked up in another map's grid (the grid score of the large-map path), a pair
   of segments tested for crossing under a candidate (Algorithm 4, steps 6-8), a pair of
-  segments taken from the pairs sorted by rotation: one unit;
+  segments taken from the pairs sorted by rotation, a sample point of a registration near a
+  prediction in each of its iterations (charged for the most iterations): one unit;
 - a pair of a map's own long segments tested for crossing (once per map pair):
   :data:`SELF_CROSSING` units;
 - a pair of segments whose matching value is computed for many candidates (Algorithm 4, steps
