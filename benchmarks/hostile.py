@@ -42,7 +42,7 @@ from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import EpochLink, LocalMap, Scan
+from fleetmap.shared.io.messages import EpochLink, LocalMap, Scan, SubmapLink
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions
@@ -125,6 +125,29 @@ def flood(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threadi
     held.close()
 
 
+LINK_COVARIANCE = (0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.001)
+"""A submap link's covariance as a robot's tracking might give it (m^2, rad^2)."""
+
+
+def large_submaps(session: HostileSession, bus: ZenohBus, keys: FleetKeys, stop: threading.Event) -> None:
+    """A robot r9 holding its token sends six final submaps of 5,000 segments each (the most the
+    merger takes), strewn over 40 m by 40 m, one epoch's chain: each is integrated with the real
+    robots' submaps most like it (one integration of two such maps took 12.6 s; six raised the real
+    robots' merge latency median from 0.05 s to 11.3 s)."""
+    held = bus.declare_liveliness(keys.alive("r9"))
+    rng = np.random.default_rng(9)
+    for n in range(6):
+        start = rng.uniform(-20.0, 20.0, (5000, 2))
+        heading, length = rng.uniform(0.0, 2 * np.pi, 5000), rng.uniform(0.2, 3.0, 5000)
+        walls = np.column_stack([start, start + length[:, None] * np.column_stack([np.cos(heading), np.sin(heading)])])
+        link = SubmapLink(n - 1, Transform2D(5.0, 0.0, 0.0), LINK_COVARIANCE) if n else None
+        m = LocalMap("r9", 0, 0, time.time(), walls, 50, final=True, submap=n, link=link)
+        bus.publish(keys.localmap("r9"), m.to_msgpack())
+    bus.flush()
+    stop.wait()
+    held.close()
+
+
 def _second_r2(session: HostileSession, kill_first: bool, stop: threading.Event) -> None:
     """Another ``fleetmap agent --robot r2`` on the same path, 3 s into the session; the first one
     SIGKILLed before (a reboot) or left running (two live r2)."""
@@ -170,6 +193,7 @@ ATTACKS: dict[str, Attack] = {
     "reboot": reboot,
     "twin": twin,
     "flood": flood,
+    "large-submaps": large_submaps,
 }
 
 
@@ -282,7 +306,8 @@ def _poses_of(recording: Path, key: str) -> int:
 def _counted(log: str) -> str:
     """The merger's own words on what it dropped, refused or ignored (first of each kind)."""
     said = []
-    for pattern in (r"ignored the liveliness token", r"dropped a malformed", r"refused [^:\n]*", r"dropped a \S+"):
+    patterns = (r"ignored the liveliness token", r"dropped a malformed", r"refused [^:\n]*", r"dropped a \S+")
+    for pattern in (*patterns, r"stopped at the work budget"):
         found = re.search(pattern, log)
         if found:
             said.append(found.group(0))

@@ -262,6 +262,16 @@ class Merger(Intake):
                 self.stats.failed += 1
                 log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
                 continue
+            if result.integration.exhausted:
+                self.stats.exhausted += 1
+                log.warning(
+                    "%s and %s: the integration stopped at the work budget (merge.max_integration_work %d), not "
+                    "valid (%d stopped so far)",
+                    job.a,
+                    job.b,
+                    job.merge.max_integration_work,
+                    self.stats.exhausted,
+                )
             new_edges.append(self.graph.take(job, result))
         return new_edges, taken
 

@@ -33,7 +33,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -44,6 +44,7 @@ from fleetmap.shared.core.refine import fit_information, refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import ReferenceMap, sample_segments
 from fleetmap.shared.core.transformation_value import prepare
+from fleetmap.shared.core.work import Work, WorkExhausted
 from fleetmap.shared.errors import BadInput
 
 log = logging.getLogger(__name__)
@@ -140,11 +141,14 @@ def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
 def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     """Integrate one pair (pure but for ``indexes``, a cache): near the prediction by registration
     (:func:`~fleetmap.shared.core.integration.align_near`), else by the paper's INTEGRATE, the large-map
-    path where a map is large; a valid result fitted on the full maps (:func:`fitted`)."""
+    path where a map is large; a valid result fitted on the full maps (:func:`fitted`). The whole
+    of it within ``merge.max_integration_work`` (:mod:`fleetmap.shared.core.work`): past it, the
+    result is not valid and ``exhausted``."""
     cache = _WORKER_INDEXES if indexes is None else indexes
     a, b, (va, vb) = job.a, job.b, job.versions
     p = job.integration
     built: dict[str, Any] = {}
+    work = Work(job.merge.max_integration_work)
 
     def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
         value = job.given.get(name)
@@ -165,6 +169,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking), job.map_a),
             need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a),
             need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b),
+            work,
         )
     else:
         large = takes_large_path(job.work_a, job.work_b, p)
@@ -174,14 +179,18 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             p,
             index1=need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a) if large else None,
             index2=need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b) if large else None,
+            work=work,
         )
     if not r.valid:
         return PairResult(r, r.transform, None, built)
-    transform, information = fitted(job, r.transform)
-    return PairResult(r, transform, information, built)
+    try:
+        transform, information = fitted(job, r.transform, work)
+    except WorkExhausted:
+        return PairResult(replace(r, valid=False, work=work.spent, exhausted=True), r.transform, None, built)
+    return PairResult(replace(r, work=work.spent), transform, information, built)
 
 
-def fitted(job: PairJob, t: Transform2D) -> tuple[Transform2D, tuple[float, ...] | None]:
+def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Transform2D, tuple[float, ...] | None]:
     """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
     where either was integrated simplified, ``t`` fitted again by least squares
     (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
@@ -190,7 +199,7 @@ def fitted(job: PairJob, t: Transform2D) -> tuple[Transform2D, tuple[float, ...]
     polish = merge.polish_edges and not (job.work_a is job.map_a and job.work_b is job.map_b)
     if not (polish or merge.edge_information):
         return t, None
-    prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p)
+    prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p, work=work)
     if polish:
         candidate = refine_transform(prep, t, p, iterations=merge.polish_iterations)
         dt, dr = candidate.distance(t)

@@ -33,6 +33,8 @@ class MergerStats:
     """... and pose-free tries for robots apart from the global map, taken when nothing else was due."""
     join_pairs: int = 0
     """Near registrations queued between the groups of submaps a join put in one frame."""
+    exhausted: int = 0
+    """Integrations stopped at ``merge.max_integration_work`` (not valid; logged)."""
     failed: int = 0
     """Integrations that failed where they ran (a worker that died more often than it is retried,
     a Ray task's error): logged and dropped, the merger goes on."""
@@ -59,6 +61,7 @@ class MergerStats:
             "near": self.near,
             "idle": self.idle,
             "join_pairs": self.join_pairs,
+            "exhausted": self.exhausted,
             "failed": self.failed,
             "poses_dropped": self.poses_dropped,
             "key_scans": self.key_scans,

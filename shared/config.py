@@ -375,6 +375,11 @@ class MergeParams:
     (docs/decisions/012-the-other-papers.md)."""
     max_submap_segments: int = ours(5000)
     """The merger refuses a submap of more segments than this (dropped, logged and counted)."""
+    max_integration_work: int = ours(80_000_000)
+    """One integration of two submaps stops past this many units of work (grid lookups and segment
+    pairs compared: fleetmap.shared.core.work) and is not valid (logged and counted; 0: no limit):
+    its cost is bounded whatever the submaps hold, and a replay stops where the live merger
+    stopped. The real logs' submaps need at most 50 M (docs/decisions/013-input-that-looks-legitimate.md)."""
     max_robots: int = ours(256, basic=True)
     """The merger keeps track of at most this many robots; messages of more are dropped and counted."""
     max_queued_pairs: int = ours(20000)

@@ -37,6 +37,7 @@ from fleetmap.shared.core.validity import (
     unrefuted,
 )
 from fleetmap.shared.core.visibility import FreeSpace
+from fleetmap.shared.core.work import Work, WorkExhausted
 from fleetmap.shared.errors import BadInput
 
 AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
@@ -76,6 +77,11 @@ class Integration:
     """The best few transformations clearly different from ``transform`` (as for ``runner_up``),
     with their scores, best first: where a repetitive world puts S2 too. Between two partial
     maps, only those the seen free space does not refute (:func:`~fleetmap.shared.core.validity.unrefuted`)."""
+    work: int = 0
+    """Units of work done (:mod:`fleetmap.shared.core.work`)."""
+    exhausted: bool = False
+    """The integration stopped at its work budget before it could judge an alignment: not valid,
+    the identity with no value."""
 
     def to_json_dict(self) -> dict[str, float | bool]:
         return {
@@ -217,6 +223,7 @@ def integrate(
     index1: MapIndex | None = None,
     index2: MapIndex | None = None,
     window: Window | None = None,
+    work: Work | None = None,
 ) -> Integration:
     """Integrate S2 on S1 (Algorithm 1, steps 1-2): the best transformation, its value and validity
     (with ``aligner`` ransac, the transformation is Ballesta et al.'s instead: :func:`_integrate_ransac`).
@@ -229,7 +236,9 @@ def integrate(
     Large maps (more than ``max_search_segments`` segments) take fleetmap's large-map path (see
     :func:`_integrate_large`); ``index1``/``index2`` are their :func:`index_for` indexes when the
     caller keeps them (built here otherwise). With a ``window``, only the candidates inside it are
-    valued (the best and its rivals alike).
+    valued (the best and its rivals alike). With ``work``, the integration stops once it has done
+    ``work.limit`` units of work (:mod:`fleetmap.shared.core.work`) and is then ``exhausted``: not
+    valid, whatever it had found.
     """
     p = params or IntegrationParams()
     h = heuristic or p.heuristic
@@ -237,17 +246,52 @@ def integrate(
         raise BadInput("heuristic", f"unknown heuristic {h!r} (known: {', '.join(HEURISTICS)})")
     check_map(m1, "S1")
     check_map(m2, "S2")
-    if p.aligner == "ransac":
-        return _integrate_ransac(m1, m2, p, index1, index2, window)
+    work = Work() if work is None else work
+    start = time.perf_counter()
+    try:
+        if p.aligner == "ransac":
+            return _integrate_ransac(m1, m2, p, index1, index2, window, work)
+        return _integrate_paper(m1, m2, h, p, index1, index2, window, work)
+    except WorkExhausted:
+        return exhausted(start, work)
+
+
+def exhausted(start: float, work: Work) -> Integration:
+    """What an integration that stopped at its work budget gives: nothing judged, not valid."""
+    return Integration(
+        transform=Transform2D.identity(),
+        value=0.0,
+        valid=False,
+        seconds=time.perf_counter() - start,
+        candidates=0,
+        heuristic="",
+        work=work.spent,
+        exhausted=True,
+    )
+
+
+def _integrate_paper(
+    m1: SegmentMap,
+    m2: SegmentMap,
+    h: str,
+    p: IntegrationParams,
+    index1: MapIndex | None,
+    index2: MapIndex | None,
+    window: Window | None,
+    work: Work,
+) -> Integration:
+    """The paper's INTEGRATE (:func:`integrate`), the small-map or the large-map path."""
     start = time.perf_counter()
     large = takes_large_path(m1, m2, p)
     solid: float | None = None
     if large:
         # Large partial maps are searched on their longest segments; the choice is made on the full maps.
         search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
-        best, rivals, count, prep, solid = _integrate_large(m1, m2, search1, search2, h, p, index1, index2, window)
+        best, rivals, count, prep, solid = _integrate_large(
+            m1, m2, search1, search2, h, p, index1, index2, window, work
+        )
     else:
-        best, rivals, count, prep = _integrate_small(m1, m2, h, p, window)
+        best, rivals, count, prep = _integrate_small(m1, m2, h, p, window, work)
     runner_up = max((score for _, score in rivals), default=0.0)
     matches = _matches(prep, best.transform, p) if best.value > 0 else (np.zeros(0, np.int64), np.zeros(0, np.int64))
     seconds = time.perf_counter() - start
@@ -265,6 +309,7 @@ def integrate(
         runner_up=max(runner_up, 0.0),
         matches=matches,
         rivals=tuple(rivals),
+        work=work.spent,
     )
 
 
@@ -275,21 +320,23 @@ def _integrate_ransac(
     index1: MapIndex | None,
     index2: MapIndex | None,
     window: Window | None,
+    work: Work,
 ) -> Integration:
     """S2 on S1 by Ballesta et al.'s RANSAC over landmark correspondences
     (:mod:`fleetmap.shared.core.ransac`), its transformation refined on the walls and valued and
     judged as :func:`integrate` values and judges its own: the paper's transformation value, the wall
     put in the other map's seen free space, the validity rule, whose rivals are RANSAC's next
-    hypotheses clearly different from the best. An independent search, the same verdict."""
+    hypotheses clearly different from the best. An independent search, the same verdict. Its
+    work is counted from the valuing on (RANSAC's own draws are bounded by ``ransac_iterations``)."""
     start = time.perf_counter()
     found = ransac_align(m1.segments, m2.segments, p, None if window is None else window.contains)
     large = takes_large_path(m1, m2, p)
-    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, p, m1.ordered, m2.ordered)
+    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, p, m1.ordered, m2.ordered, work)
     free: FreeSpace | GridFreeSpace
     if large:
         i1 = index1 if index1 is not None else index_for(m1, p)
         i2 = index2 if index2 is not None else index_for(m2, p)
-        free = GridFreeSpace(i1, i2)
+        free = GridFreeSpace(i1, i2, work)
     else:
         free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
     refuse = not (large and free.active)
@@ -333,6 +380,7 @@ def _integrate_ransac(
         runner_up=runner_up,
         matches=matches,
         rivals=tuple(rivals),
+        work=work.spent,
     )
 
 
@@ -344,11 +392,11 @@ def takes_large_path(m1: SegmentMap, m2: SegmentMap, p: IntegrationParams) -> bo
 
 
 def _integrate_small(
-    m1: SegmentMap, m2: SegmentMap, h: str, p: IntegrationParams, window: Window | None = None
+    m1: SegmentMap, m2: SegmentMap, h: str, p: IntegrationParams, window: Window | None, work: Work
 ) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs]:
     """Scans and small maps: every candidate valued by Algorithm 4 (with the early stop)."""
     oriented = m1.oriented and m2.oriented
-    prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered)
+    prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered, work)
     free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
     raw, labels = gather_candidates(m1, m2, h, p)
     cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
@@ -402,7 +450,8 @@ def _integrate_large(
     p: IntegrationParams,
     index1: MapIndex | None,
     index2: MapIndex | None,
-    window: Window | None = None,
+    window: Window | None,
+    work: Work,
 ) -> tuple[_Choice, list[tuple[Transform2D, float]], int, PreparedPairs, float | None]:
     """Large partial maps (fleetmap): the paper's candidates ranked by the grid score, the best
     few valued exactly (Algorithm 4) and refined.
@@ -416,18 +465,21 @@ def _integrate_large(
     free space judges crossings, and SEGMENTLENGTHREFUSE (steps 6-8), which one crossing pair
     among thousands would trip, is not applied.
     """
-    oriented = m1.oriented and m2.oriented
-    prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered)
     i1 = index1 if index1 is not None else index_for(m1, p)
     i2 = index2 if index2 is not None else index_for(m2, p)
-    free = GridFreeSpace(i1, i2)
+    free = GridFreeSpace(i1, i2, work)
     raw, labels = gather_candidates(search1, search2, h, p)
     cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
+    first, fine = np.zeros(0, np.int64), np.zeros(0)
+    if len(cand):
+        # ranked before the full maps' pairs are prepared: the costliest stage between large maps,
+        # so a budget it would pass stops the integration before any of it
+        first = np.argsort(-_ranked(i1, i2, cand, False, work), kind="stable")[:GRID_FINE]
+        fine = _ranked(i1, i2, cand[first], True, work)
+    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, p, m1.ordered, m2.ordered, work)
     best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
     rivals: list[tuple[Transform2D, float]] = []
     if len(cand):
-        first = np.argsort(-ranking_scores(i1, i2, cand), kind="stable")[:GRID_FINE]
-        fine = ranking_scores(i1, i2, cand[first], fine=True)
         order = np.argsort(-fine, kind="stable")
         ranked = first[order]
         shortlist = ranked[: p.shortlist]
@@ -563,11 +615,19 @@ def _refined(
     return _Choice(t, v, score, c.label) if score >= c.score else c
 
 
+def _ranked(i1: MapIndex, i2: MapIndex, t: Array, fine: bool, work: Work) -> Array:
+    """:func:`~fleetmap.shared.core.mapgrid.ranking_scores`, its lookups charged to ``work`` first."""
+    samples = (i1.fine, i2.fine) if fine else (i1.coarse, i2.coarse)
+    work.charge(len(t) * sum(len(s.points) for s in samples))
+    return ranking_scores(i1, i2, t, fine=fine)
+
+
 class GridFreeSpace:
     """The free-space check of the large-map path: wall length of each map in the other's free grid."""
 
-    def __init__(self, index1: MapIndex, index2: MapIndex) -> None:
+    def __init__(self, index1: MapIndex, index2: MapIndex, work: Work | None = None) -> None:
         self.index1, self.index2 = index1, index2
+        self.work = Work() if work is None else work
 
     @property
     def active(self) -> bool:
@@ -577,6 +637,7 @@ class GridFreeSpace:
         """Wall length of each map in the other's free grid (if ``solid``, only what the validity
         rule limits: solid walls, clear of the other map's walls)."""
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+        self.work.charge(len(t) * (len(self.index1.fine.points) + len(self.index2.fine.points)))
         return grid_scores(self.index1, self.index2, t, fine=True, solid=solid)[1]
 
 
@@ -616,6 +677,7 @@ def align_near(
     reference1: ReferenceMap,
     index1: MapIndex | None = None,
     index2: MapIndex | None = None,
+    work: Work | None = None,
 ) -> Integration:
     """S2 on S1 where it is expected to be (fleetmap): the walls of S2 registered on S1's from
     ``predicted`` (robust point-to-line ICP, :func:`fleetmap.shared.core.tracking.register`), then valued
@@ -626,19 +688,41 @@ def align_near(
     This is the constraint search of production back ends (Cartographer's constraint builder)
     for a robot the fleet has placed: its tracking says where its new submap lies among the others,
     so the pose-free search, a hundred times the cost, is needed only for robots nobody has placed.
-    ``reference1`` is S1's registration grid (:class:`fleetmap.shared.core.tracking.ReferenceMap`)."""
+    ``reference1`` is S1's registration grid (:class:`fleetmap.shared.core.tracking.ReferenceMap`);
+    ``work`` bounds the cost as for :func:`integrate` (the registration is charged its most
+    iterations, each a lookup per sample point)."""
     check_map(m1, "S1")
     check_map(m2, "S2")
+    work = Work() if work is None else work
     start = time.perf_counter()
+    try:
+        return _align_near(m1, m2, predicted, params, tracking, reference1, index1, index2, work, start)
+    except WorkExhausted:
+        return exhausted(start, work)
+
+
+def _align_near(
+    m1: SegmentMap,
+    m2: SegmentMap,
+    predicted: Transform2D,
+    params: IntegrationParams,
+    tracking: TrackingParams,
+    reference1: ReferenceMap,
+    index1: MapIndex | None,
+    index2: MapIndex | None,
+    work: Work,
+    start: float,
+) -> Integration:
     samples = sample_segments(m2.segments, tracking.sample_spacing)
     near_t, near_r = params.near_prior_translation, params.near_prior_rotation
     loose = np.diag([1.0 / near_t**2, 1.0 / near_t**2, 1.0 / near_r**2])
+    work.charge(len(samples) * tracking.max_iterations)
     reg = register(samples, reference1, predicted, predicted, loose, tracking)
     t = reg.pose
-    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered)
+    prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered, work)
     i1 = index1 if index1 is not None else index_for(m1, params)
     i2 = index2 if index2 is not None else index_for(m2, params)
-    free = GridFreeSpace(i1, i2)
+    free = GridFreeSpace(i1, i2, work)
     choice = _evaluated(prep, free, t, 0, params)
     violation = choice.value - choice.score
     solid = float(free.violation(t.as_array(), solid=True)[0]) if free.active and choice.value > 0 else violation
@@ -654,4 +738,5 @@ def align_near(
         violation=violation,
         solid_violation=solid,
         matches=matches,
+        work=work.spent,
     )

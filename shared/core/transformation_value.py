@@ -30,6 +30,7 @@ import numpy as np
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.candidates import IntArray, ragged_ranges
 from fleetmap.shared.core.geometry import Array, lengths, matching_value, orientations
+from fleetmap.shared.core.work import PAIR_FOUND, PAIR_VALUED, SELF_CROSSING, Work
 from scipy.spatial import cKDTree
 
 CHUNK_ENTRIES = 1_500_000
@@ -63,6 +64,9 @@ class PreparedPairs:
     """Built on first use: the pair table for many candidates (per block of S1, longest segments
     first: sorted pair rotations tripled for wrap-around, the pair behind each, and the pairs' S1
     and S2 indices, with the length of S1 left after each block) and S1's k-d tree."""
+    work: Work = field(default_factory=Work, compare=False, repr=False)
+    """The integration's work so far, charged by every stage that compares pairs
+    (:mod:`fleetmap.shared.core.work`)."""
 
     @property
     def blocks(self) -> list[tuple[IntArray, Array, IntArray, IntArray]]:
@@ -74,14 +78,23 @@ class PreparedPairs:
 
 
 def prepare(
-    s1: Array, s2: Array, oriented: bool, params: IntegrationParams, scan1: bool = False, scan2: bool = False
+    s1: Array,
+    s2: Array,
+    oriented: bool,
+    params: IntegrationParams,
+    scan1: bool = False,
+    scan2: bool = False,
+    work: Work | None = None,
 ) -> PreparedPairs:
     """The pairs of S1 x S2 prepared for many candidates; ``scan1``/``scan2``: the map is a scan
-    seen from its frame's origin (its far walls are fixed less well: :func:`refused`)."""
+    seen from its frame's origin (its far walls are fixed less well: :func:`refused`); ``work``:
+    the integration's budget, charged here and by every evaluation on these pairs."""
+    work = Work() if work is None else work
     period = 2 * math.pi if oriented else math.pi
     len1, len2 = lengths(s1), lengths(s2)
     refuse = params.segment_length_refuse
     long1, long2 = np.flatnonzero(len1 > refuse), np.flatnonzero(len2 > refuse)
+    work.charge(SELF_CROSSING * ((0 if scan1 else len(long1) ** 2) + (0 if scan2 else len(long2) ** 2)))
     # a map whose own long walls cross (walls fused from many views meeting at a junction) breaks
     # the premise of steps 6-8 for those walls: crossing them says nothing of a transformation
     if not scan1:
@@ -103,6 +116,7 @@ def prepare(
         reach2=_crossing_margins(s2[long2], scan2, params),
         phi1=orientations(s1),
         phi2=orientations(s2),
+        work=work,
     )
 
 
@@ -112,6 +126,7 @@ def _blocks(prep: PreparedPairs) -> tuple[list[tuple[IntArray, Array, IntArray, 
     if cached is not None:
         return cached  # type: ignore[return-value]
     s1, s2, period = prep.s1, prep.s2, prep.period
+    prep.work.charge(len(s1) * len(s2))
     len1, phi1, phi2 = prep.len1, prep.phi1, prep.phi2
     order1 = np.argsort(-len1, kind="stable")
     cum = np.cumsum(len1[order1])
@@ -211,6 +226,7 @@ def refused(prep: PreparedPairs, t: Array, params: IntegrationParams) -> Array:
         return out
     a = prep.s1[prep.long1]
     b = prep.s2[prep.long2]
+    prep.work.charge(len(t) * len(a) * len(b))
     margin = (0.5 * (prep.reach1[:, None] + prep.reach2[None, :]))[None]  # (1, na, nb)
     na, ca = _lines(a)
     ca = ca[None, :, None]
@@ -262,6 +278,7 @@ def _block_values(
         # As many candidates as fit in one chunk of entries.
         csum = np.cumsum(counts[c0:])
         c1 = c0 + max(1, int(np.searchsorted(csum, CHUNK_ENTRIES, side="right")))
+        prep.work.charge(PAIR_VALUED * int(csum[c1 - c0 - 1]))
         owner, pos = ragged_ranges(lo[c0:c1], hi[c0:c1])
         pair = order[pos]
         i = pi[pair]
@@ -354,6 +371,7 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
     if len(prep.s1) * len(prep.s2) <= DENSE_PAIRS:
+        prep.work.charge(len(prep.s1) * len(prep.s2))
         i, k = _dense_parallel(prep, theta, params.pair_angle_limit)
     else:
         i, k = _tree_pairs(prep, mid2, d_max)
@@ -427,10 +445,13 @@ def _tree_pairs(prep: PreparedPairs, mid2: Array, d_max: float) -> tuple[IntArra
     kd: cKDTree
     kd, owner = tree  # type: ignore[misc]
     hits = kd.query_ball_point(mid2, prep.half2 + 0.5 * PIECE + d_max)
-    k = np.repeat(np.arange(len(mid2)), [len(h) for h in hits])
+    near = [len(h) for h in hits]
+    prep.work.charge(PAIR_FOUND * (len(mid2) + sum(near)))
+    k = np.repeat(np.arange(len(mid2)), near)
     i = owner[np.concatenate(hits).astype(np.int64)] if len(k) else np.zeros(0, np.int64)
-    pairs = np.unique(np.column_stack([i, k]), axis=0) if len(k) else np.zeros((0, 2), np.int64)
-    return pairs[:, 0], pairs[:, 1]
+    # each pair once, by S1 then S2 index: one integer key per pair sorts far faster than rows
+    pairs = np.unique(i * len(mid2) + k)
+    return pairs // len(mid2), pairs % len(mid2)
 
 
 def transformation_value(prep: PreparedPairs, t: Array, params: IntegrationParams, refuse: bool = True) -> float:

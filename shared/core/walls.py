@@ -26,6 +26,11 @@ _GROW = 64
 GRID_FROM = 512
 """With more walls than this, a segment is tested only against the walls of the grid cells it touches."""
 
+GRID_BATCH = 16
+"""... taken this many segments at a time: the walls tested are those near any of them, so a
+batch of segments spread over the whole map (a submap of thousands of walls) is not tested
+against every wall at once (the cost and memory of segments times walls)."""
+
 
 class WallMap:
     """Walls as fitted lines with extents; :meth:`add` segments, :attr:`segments` to read."""
@@ -127,13 +132,20 @@ class WallMap:
     # -- internals ---------------------------------------------------------------------------
     def _walls_for(self, seg: Array, length: Array) -> list[Array]:
         """For each segment, the walls it lies on, the longest first."""
-        if self._n > GRID_FROM:
+        if self._n <= GRID_FROM:
+            return self._walls_among(seg, length, np.flatnonzero(self._alive[: self._n]))
+        out: list[Array] = []
+        for b in range(0, len(seg), GRID_BATCH):
+            part = seg[b : b + GRID_BATCH]
             near: set[int] = set()
-            for cell in self._cells_of(seg, self.tolerance):
+            for cell in self._cells_of(part, self.tolerance):
                 near |= self._grid.get(cell, set())
-            alive = np.array(sorted(near), dtype=np.int64)
-        else:
-            alive = np.flatnonzero(self._alive[: self._n])
+            out += self._walls_among(part, length[b : b + GRID_BATCH], np.array(sorted(near), dtype=np.int64))
+        return out
+
+    def _walls_among(self, seg: Array, length: Array, alive: Array) -> list[Array]:
+        """For each segment, the walls among ``alive`` (ascending) it lies on, the longest first
+        (ties in ``alive``'s order: the same for any ``alive`` that holds them)."""
         if len(alive) == 0:
             return [alive] * len(seg)
         cx, cy, ux, uy = (self._line[alive, j] for j in range(4))

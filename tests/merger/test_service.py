@@ -226,6 +226,19 @@ def test_limits_refuse_oversized_submaps_extra_robots_and_queue_overflow_and_cou
     assert {k.split("/")[0] for c in merger.global_map.components for k in c.members} == {"r1", "r2", "r3"}
 
 
+def test_an_integration_past_the_work_budget_is_said_counted_and_joins_nothing(maps, caplog) -> None:  # type: ignore[no-untyped-def]
+    # (well under a second: the one integration stops at its first stage) The two robots' maps
+    # merge within the default budget (test_three_robots_are_merged_and_placed); within 1,000 units
+    # their integration stops, is said and counted, and its edge is not valid: two components
+    merger = Merger(KEYS, FleetmapConfig(merge=MergeParams(max_integration_work=1000)))
+    with caplog.at_level("WARNING"):
+        out = _feed(merger, [maps["r1"][0], maps["r2"][0]])
+    edges = [m for m in out if isinstance(m, MergeEdge)]
+    assert len(edges) == 1 and not edges[0].valid and merger.stats.exhausted == 1
+    assert "r1/0/0 and r2/0/0: the integration stopped at the work budget" in caplog.text
+    assert len(next(m for m in out if isinstance(m, GlobalMap)).components) == 2
+
+
 def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     first, _ = true_local_map("department", "r1", 0, 6, version=0)

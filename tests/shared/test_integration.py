@@ -16,6 +16,7 @@ from fleetmap.shared.core.mapgrid import with_viewpoints
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.transformation_value import matched_pairs, prepare, refused, transformation_values
 from fleetmap.shared.core.validity import is_valid
+from fleetmap.shared.core.work import Work
 from fleetmap.shared.errors import BadInput
 
 from tests.helpers import OMNI, ROOM, pose_pair, scan_map
@@ -316,3 +317,29 @@ def test_a_map_whose_own_walls_cross_integrates_with_itself_at_the_identity() ->
     found = integrate(m, m)
     assert found.valid and found.value > 0.9 * float(lengths(room).sum())
     assert math.hypot(found.transform.x, found.transform.y) < 0.01 and abs(found.transform.theta) < 1e-3
+
+
+def test_an_integration_within_its_work_budget_is_the_same_and_one_unit_short_is_exhausted_not_valid() -> None:
+    # (about 0.6 s: one room pair integrated three times)
+    a, b, _ = PAIRS[0]
+    free = integrate(a, b)
+    assert free.valid and free.work > 0 and not free.exhausted
+    enough = integrate(a, b, work=Work(free.work))
+    assert (enough.transform, enough.value, enough.valid, enough.work) == (free.transform, free.value, True, free.work)
+    short = integrate(a, b, work=Work(free.work - 1))
+    assert short.exhausted and not short.valid and short.value == 0.0 and short.work < free.work
+    assert short.transform == Transform2D.identity()
+
+
+def test_two_large_strewn_maps_stop_at_the_budget_before_their_costly_stages() -> None:
+    # Two submaps of 5,000 segments strewn over 40 m (what a robot may send the merger): about
+    # 20 s to integrate whole on one core; within a budget of 20 M units they stop at it (a few ms)
+    rng = np.random.default_rng(9)
+
+    def strewn() -> SegmentMap:
+        start, heading = rng.uniform(-20.0, 20.0, (5000, 2)), rng.uniform(0.0, 2 * math.pi, 5000)
+        end = start + rng.uniform(0.2, 3.0, 5000)[:, None] * np.column_stack([np.cos(heading), np.sin(heading)])
+        return SegmentMap(np.column_stack([start, end]), ordered=False)
+
+    found = integrate(strewn(), strewn(), work=Work(20_000_000))
+    assert found.exhausted and not found.valid and found.work <= 20_000_000
