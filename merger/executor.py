@@ -39,7 +39,8 @@ from typing import Any, Protocol
 import numpy as np
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.integration import Integration, align_near, index_for, integrate, takes_large_path
+from fleetmap.shared.core.integration import Integration, index_for, integrate, takes_large_path
+from fleetmap.shared.core.near import align_near
 from fleetmap.shared.core.refine import fit_information, refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import ReferenceMap, sample_segments
@@ -140,7 +141,7 @@ def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
 
 def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     """Integrate one pair (pure but for ``indexes``, a cache): near the prediction by registration
-    (:func:`~fleetmap.shared.core.integration.align_near`), else by the paper's INTEGRATE, the large-map
+    (:func:`~fleetmap.shared.core.near.align_near`), else by the paper's INTEGRATE, the large-map
     path where a map is large; a valid result fitted on the full maps (:func:`fitted`). The whole
     of it within ``merge.max_integration_work`` (:mod:`fleetmap.shared.core.work`): past it, the
     result is not valid and ``exhausted``."""

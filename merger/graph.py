@@ -332,7 +332,7 @@ class MapGraph:
 
     def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
         """b's walls registered on a's near ``predicted`` (b's frame in a's) and valued as an
-        integration (:func:`~fleetmap.shared.core.integration.align_near`); the edge replaces any known."""
+        integration (:func:`~fleetmap.shared.core.near.align_near`); the edge replaces any known."""
         job = self.pair_job(a, b, predicted)
         return self.take(job, run_pair(job, self.indexes))
 

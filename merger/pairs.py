@@ -6,7 +6,7 @@ then meet (:meth:`PairJudge.meeting`: the discs about their walls touch). Each p
 at cheaply (:meth:`PairJudge._look`: its grid score, wall on wall and wall in the other's seen free
 space, :func:`~fleetmap.shared.core.mapgrid.grid_scores`), and registered only where the look does
 not decide (:meth:`PairJudge._pair_verdict`: near the implied pose, as
-:func:`~fleetmap.shared.core.integration.align_near` registers a placed submap). Both are kept by
+:func:`~fleetmap.shared.core.near.align_near` registers a placed submap). Both are kept by
 the two submaps' versions, so a step judges again only what it changed.
 """
 
@@ -20,8 +20,9 @@ from fleetmap.merger.chains import ChainGraph
 from fleetmap.merger.graph import _disagreement
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.geometry import Array, Transform2D
-from fleetmap.shared.core.integration import GridFreeSpace, align_near
+from fleetmap.shared.core.integration import GridFreeSpace
 from fleetmap.shared.core.mapgrid import grid_scores
+from fleetmap.shared.core.near import align_near
 from fleetmap.shared.core.refine import fit_information
 from fleetmap.shared.core.transformation_value import PreparedPairs, prepare, transformation_value
 from fleetmap.shared.core.validity import max_map_violation

@@ -7,7 +7,7 @@ Nodes are submaps (``<robot>/<epoch>/<submap>``). Edges are of two kinds:
 - **integrations**: the paper's pose-free integration (Algorithms 1-4) between submaps of
   different robots, or non-consecutive submaps of one robot (a loop), or, for a submap the fleet
   has placed, its walls registered near where the graph predicts them
-  (:func:`~fleetmap.shared.core.integration.align_near`); each with its transformation value, validity
+  (:func:`~fleetmap.shared.core.near.align_near`); each with its transformation value, validity
   and how firmly its walls fix it.
 
 The merge order nobody gave is read off the graph: a maximum spanning forest (links first, then

@@ -29,7 +29,6 @@ BEING_SPLIT = frozenset(
         "agents/tracker.py",
         "agents/tracker.py::Tracker",
         "shared/config.py",
-        "shared/core/integration.py",
         "shared/core/tracking.py::register",
     }
 )
