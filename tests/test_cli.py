@@ -18,7 +18,7 @@ import msgpack
 import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
-from fleetmap.shared.config import load_config
+from fleetmap.shared.config_files import load_config
 from fleetmap.shared.io.messages import FleetEvent
 from fleetmap.shared.io.recording import RecordingWriter
 from mcap.writer import CompressionType

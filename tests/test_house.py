@@ -28,7 +28,6 @@ BEING_SPLIT = frozenset(
         # being split (issue 51)
         "agents/tracker.py",
         "agents/tracker.py::Tracker",
-        "shared/config.py",
         "shared/core/tracking.py::register",
     }
 )

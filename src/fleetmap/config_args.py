@@ -14,7 +14,8 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from fleetmap.shared.config import SECTIONS, FleetmapConfig, apply_overrides, load_config
+from fleetmap.shared.config import SECTIONS, FleetmapConfig
+from fleetmap.shared.config_files import apply_overrides, load_config
 
 HELP_ALL = "--help-all"
 BASIC_CONFIG = Path(__file__).resolve().parent / "examples" / "basic.toml"

@@ -28,7 +28,8 @@ from fleetmap.merger.engine import Merger
 from fleetmap.report import SessionLog, make_truth, write_outputs
 from fleetmap.scenarios import Scenario
 from fleetmap.scenarios.loader import read_scenario
-from fleetmap.shared.config import FleetmapConfig, apply_overrides
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.config_files import apply_overrides
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import BadMessage, FleetEvent, GlobalMap, LocalMap, MergerStep, Scan, decode

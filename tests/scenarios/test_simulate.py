@@ -11,7 +11,7 @@ import pytest
 from fleetmap.scenarios.fleet import plan
 from fleetmap.scenarios.loader import load_scenario, read_scenario
 from fleetmap.scenarios.metrics import map_error
-from fleetmap.shared.config import load_config
+from fleetmap.shared.config_files import load_config
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_ranges_jsonl
 

@@ -11,11 +11,10 @@ from fleetmap.shared.config import (
     SECTIONS,
     FleetmapConfig,
     IntegrationParams,
-    apply_overrides,
-    load_config,
     parameters,
     tuned,
 )
+from fleetmap.shared.config_files import apply_overrides, load_config
 from fleetmap.shared.errors import BadInput
 
 from fleetmap.cli import build_parser

@@ -13,7 +13,7 @@ from pathlib import Path
 from fleetmap import __version__
 from fleetmap.merger.recorder import KEY_BURST, KEY_RATE, Recorder, RecorderService
 from fleetmap.scenarios import load_scenario
-from fleetmap.shared.config import load_config
+from fleetmap.shared.config_files import load_config
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.outputs import output_file
 from fleetmap.shared.io.recording import RecordingWriter, config_metadata
