@@ -378,7 +378,8 @@ class MergeParams:
     """One integration of two submaps stops past this many units of work (grid lookups and segment
     pairs compared: fleetmap.shared.core.work) and is not valid (logged and counted; 0: no limit):
     its cost is bounded whatever the submaps hold, and a replay stops where the live merger
-    stopped. The real logs' submaps need at most 50 M (docs/decisions/013-input-that-looks-legitimate.md)."""
+    stopped. The real logs' submaps need at most 50 M (docs/decisions/013-input-that-looks-legitimate.md).
+    ``fleetmap map`` and ``fleetmap merge`` set none unless asked: a user's own data is no attacker's."""
     max_robots: int = ours(256, basic=True)
     """The merger keeps track of at most this many robots; messages of more are dropped and counted."""
     max_queued_pairs: int = ours(20000)

@@ -14,7 +14,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from fleetmap.shared.config import SECTIONS, FleetmapConfig
+from fleetmap.shared.config import SECTIONS, FleetmapConfig, MergeParams, tuned
 from fleetmap.shared.config_files import apply_overrides, load_config
 
 HELP_ALL = "--help-all"
@@ -104,3 +104,17 @@ def config_from_args(args: argparse.Namespace) -> FleetmapConfig:
             _, section, name = key.split("__", 2)
             overrides.setdefault(section, {})[name] = value
     return apply_overrides(config, overrides, "command line") if overrides else config
+
+
+def offline(config: FleetmapConfig, args: argparse.Namespace) -> FleetmapConfig:
+    """``config`` for a command that maps or merges a user's own data (``fleetmap map``, ``fleetmap
+    merge``): no budget of work per integration unless one was asked for, on the command line or
+    in the config file. The budget bounds what a robot's submaps can cost a live merger, and its
+    replay repeats it (:mod:`fleetmap.shared.core.work`); a user's own logs and maps are no
+    attacker's, and two halves of one building mapped apart need more than a live fleet's submaps
+    (mit-csail's: tests/test_map.py)."""
+    named = getattr(args, "config", None)
+    asked = getattr(args, "cfg__merge__max_integration_work", None) is not None or (
+        named is not None and load_config(named).merge.max_integration_work != MergeParams().max_integration_work
+    )
+    return config if asked else tuned(config, max_integration_work=0)

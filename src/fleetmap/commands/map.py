@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetmap.commands import add_no_return_reading
-from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.config_args import add_config_arguments, config_from_args, offline
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.startposes import read_start_poses
@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from fleetmap.mapping import map_logs, read_inputs
 
-    config = config_from_args(args)
+    config = offline(config_from_args(args), args)
     start_poses = read_start_poses(args.start_poses) if args.start_poses else None
     out = Path(args.out)
     if out.exists() and not out.is_dir():

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from fleetmap.config_args import add_config_arguments, config_from_args
+from fleetmap.config_args import add_config_arguments, config_from_args, offline
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.sequence import pivot, sequential, tree
 from fleetmap.shared.core.geometry import Array, Transform2D
@@ -47,7 +47,7 @@ def _pose(t: Transform2D | None) -> dict[str, float] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = config_from_args(args)
+    config = offline(config_from_args(args), args)
     for path, flag in ((args.out, "--out"), (args.plot, "--plot")):
         if path:
             output_file(path, flag)
