@@ -55,6 +55,7 @@ from fleetmap.merger.joins import _within
 from fleetmap.merger.pairs import VERDICT_VERSIONS
 from fleetmap.merger.refinement import RefinedGraph
 from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.kalman_fusion import offset_information
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import REACH_ROTATION
 from fleetmap.shared.core.walls import WallMap
@@ -115,7 +116,8 @@ class PoseGraph(RefinedGraph):
             self.kept_solves += 1
             components, tree, loops, rejected = kept
         if fuse_maps:  # the walls of the final round's components only
-            components = [self._fused(c) for c in components]
+            edges = _edges_by_component(components, [*tree, *loops])
+            components = [self._fused(c, edges[i]) for i, c in enumerate(components)]
         poses: dict[str, Transform2D | None] = {k: None for k in self.keys}
         for c in components:
             if len(c.members) > 1:
@@ -416,30 +418,57 @@ class PoseGraph(RefinedGraph):
 
         return sorted(components, key=key)
 
-    def _fused(self, c: Component) -> Component:
-        """A component with its walls (:meth:`_walls`): the last solve's same object where neither
-        its submaps and poses nor its walls changed."""
-        walls = self._walls(list(c.members), c.poses)
+    def _fused(self, c: Component, edges: list[Edge]) -> Component:
+        """A component with its walls (:meth:`_walls`; ``edges``: its tree and loops): the last
+        solve's same object where neither its submaps and poses nor its walls changed."""
+        walls = self._walls(c, edges)
         held = self._with_walls.get(id(c))
         if held is None or held[0] is not c or held[1].segments is not walls:
             held = (c, replace(c, segments=walls))
         self._with_walls_now[id(c)] = held
         return held[1]
 
-    def _walls(self, order: list[str], poses: dict[str, Transform2D]) -> Array:
+    def _walls(self, c: Component, edges: list[Edge]) -> Array:
         """The component's walls: every member's at its pose, one segment per stretch of wall; the
         last solve's where the component is the same (the same maps in the same order at poses
-        equal to the bit: a component no step touched)."""
+        equal to the bit: a component no step touched).
+
+        ``wall_fusion`` weighted: where several submaps see one wall, each copy weighs by the
+        information on its offset (Ballesta et al. 2009, Section 4, eqs. 6-8, as
+        :func:`~fleetmap.shared.core.kalman_fusion.offset_information` gives it to the wall's line
+        fit): from its submap's pose covariance in the solved graph (:meth:`pose_covariances`) and
+        its segment's fit, a submap's segment carrying none of its own: ``residual_sigma`` off the
+        wall every ``sample_spacing`` along it, as the tracking registers scans on it."""
+        order, poses = list(c.members), c.poses
         maps = tuple(self._nodes[k].map for k in order)
         key = tuple((k, id(m), poses[k].x, poses[k].y, poses[k].theta) for k, m in zip(order, maps, strict=True))
         held = self._last_walls.get(key)
         if held is None or not all(a is b for a, b in zip(held[0], maps, strict=True)):
             walls = WallMap(self.integration.simplify_tolerance)
+            weighted = self.merge.wall_fusion == "weighted" and len(order) > 1
+            covariances = self.pose_covariances(c.anchor, poses, edges) if weighted else None
+            sigma, spacing = self.tracking.residual_sigma, self.tracking.sample_spacing
             for k, m in zip(order, maps, strict=True):
-                walls.add(poses[k].apply(m.segments))
+                weights = (
+                    None
+                    if covariances is None
+                    else offset_information(m.segments, poses[k], covariances[k], sigma, spacing)
+                )
+                walls.add(poses[k].apply(m.segments), weights)
             held = (maps, walls.segments)
         self._walls_now[key] = held
         return held[1]
+
+
+def _edges_by_component(components: list[Component], edges: list[Edge]) -> list[list[Edge]]:
+    """The edges within each component, in the components' order."""
+    where = {k: i for i, c in enumerate(components) for k in c.members}
+    out: list[list[Edge]] = [[] for _ in components]
+    for e in edges:
+        i = where.get(e.a)
+        if i is not None and where.get(e.b) == i:
+            out[i].append(e)
+    return out
 
 
 def _robot_of(key: str) -> str:

@@ -6,18 +6,24 @@ of their value in every direction) through a Cauchy loss, the component's anchor
 last solve left each submap if it hangs from the same anchor by the same integrations
 (:meth:`RefinedGraph._initial_poses`), and a component whose submaps and edges are as the last
 solve had them keeps its poses. An integration the refined poses disagree with by more than one
-integration's base tolerance is handed back, for the solve to leave out.
+integration's base tolerance is handed back, for the solve to leave out. The same graph at the
+refined poses gives each submap's pose covariance (:meth:`RefinedGraph.pose_covariances`), with
+which the global map's walls may be fused (Ballesta et al. 2009, Section 4).
 """
 
 from __future__ import annotations
 
+import logging
+import math
 from typing import Any
 
 import gtsam
 import numpy as np
 from fleetmap.merger.graph import Component, Edge, _bfs_order, _disagreement
 from fleetmap.merger.spanning import ForestBuilder
-from fleetmap.shared.core.geometry import Transform2D, pose_information_in_own_frame
+from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
+
+log = logging.getLogger(__name__)
 
 
 def _pose2(t: Transform2D) -> gtsam.Pose2:
@@ -170,17 +176,55 @@ class RefinedGraph(ForestBuilder):
         (an integration the others outvote weighs little). Started at the spanning tree's poses
         with the robust loss at once, a loop that corrects a long chain's drift starts far off,
         weighs next to nothing, and is never taken (docs/decisions/002-pose-graph.md)."""
-        ids = {k: i for i, k in enumerate(poses)}
-        values = gtsam.Values()
-        for k, pose in poses.items():
-            values.insert(ids[k], _pose2(pose))
+        ids, values = _ids_and_values(poses)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(100)
         params.setRelativeErrorTol(1e-6)
         for robust in (False, True):
-            graph = gtsam.NonlinearFactorGraph()
-            graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
-            for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
-                graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self.edge_noise(e, robust)))
+            graph = self._factor_graph(anchor, poses, ids, edges, robust)
             values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         return {k: _transform(values.atPose2(i)) for k, i in ids.items()}
+
+    def _factor_graph(
+        self, anchor: str, poses: dict[str, Transform2D], ids: dict[str, int], edges: list[Edge], robust: bool
+    ) -> gtsam.NonlinearFactorGraph:
+        """The component's factors: the anchor fixed, every edge a between factor weighed by
+        :meth:`edge_noise`."""
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.NonlinearEqualityPose2(ids[anchor], _pose2(poses[anchor])))
+        for e in edges:  # each as measured (a's frame to b's): the forest keeps them so
+            graph.add(gtsam.BetweenFactorPose2(ids[e.a], ids[e.b], _pose2(e.transform), self.edge_noise(e, robust)))
+        return graph
+
+    def pose_covariances(
+        self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]
+    ) -> dict[str, Array] | None:
+        """Each submap's pose covariance ``(3, 3)`` on (x, y, theta) in the anchor's frame: the
+        marginals of the component's graph at its poses, its edges weighed as the refinement's
+        last, robust round weighs them (an integration the others outvote counts little). For a
+        component solved as a tree (no cycles, every edge at zero residual) that is its edges'
+        covariances composed along the tree from the anchor. None where the graph does not
+        determine them."""
+        ids, values = _ids_and_values(poses)
+        graph = self._factor_graph(anchor, poses, ids, edges, robust=True)
+        try:
+            marginals = gtsam.Marginals(graph, values)
+        except RuntimeError as err:  # an indeterminant system: no weights for this component
+            log.warning("no pose covariances for the component of %s: %s", anchor, err)
+            return None
+        out: dict[str, Array] = {}
+        for k, i in ids.items():
+            # gtsam gives it in the pose's own frame (its tangent space): turned into the anchor's
+            c, s = math.cos(poses[k].theta), math.sin(poses[k].theta)
+            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            out[k] = turn @ marginals.marginalCovariance(i) @ turn.T
+        return out
+
+
+def _ids_and_values(poses: dict[str, Transform2D]) -> tuple[dict[str, int], gtsam.Values]:
+    """The poses as gtsam's numbered values."""
+    ids = {k: i for i, k in enumerate(poses)}
+    values = gtsam.Values()
+    for k, pose in poses.items():
+        values.insert(ids[k], _pose2(pose))
+    return ids, values

@@ -39,6 +39,7 @@ Aligner = Literal["paper", "ransac"]
 FrontEnd = Literal["tracking", "pivot"]
 Residual = Literal["point_to_line", "point_to_curve"]
 Odometry = Literal["auto", "on", "off"]
+WallFusion = Literal["unweighted", "weighted"]
 
 log = logging.getLogger(__name__)
 
@@ -365,6 +366,10 @@ class MergeParams:
     """... and the most (m) it may move it ..."""
     scan_min_matched_share: float = ours(0.5)
     """... and the fit must match at least this share of the scan's walls."""
+    wall_fusion: WallFusion = ours("unweighted")
+    """How the copies of a wall that several submaps see make the global map's wall: unweighted, by
+    their length (the paper's Algorithm 5); weighted, each also by its submap's pose covariance in the
+    solved graph and its segment fit (Ballesta et al. 2009, Section 4; docs/decisions/012-the-other-papers.md)."""
     start_pose_sigma_translation: float = ours(1.0)
     """A robot's known start pose (``--start-poses``; Dugarjav & Lee 2015, Section III) is off by
     this (m, each axis, one standard deviation) ..."""

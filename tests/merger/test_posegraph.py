@@ -415,3 +415,25 @@ def test_a_graph_grown_submap_by_submap_carries_its_forest_on_and_ends_where_a_w
         grown.solve()
     assert grown.kept_solves >= len(source.keys) // 2, f"{grown.kept_solves} of {len(source.keys)} solves carried on"
     _solves_as_a_whole(source, grown.solve())
+
+
+def test_a_wall_two_submaps_see_lies_where_the_firmly_placed_one_saw_it_when_fused_weighted() -> None:
+    # Ballesta et al.'s fusion (docs/decisions/012): a room seen by the anchor's submap and by the
+    # next one, whose link (loose: 5 cm, half a degree) puts it 3 cm off across the room. The paper's
+    # unweighted fusion splits the difference; weighted by the submaps' pose covariances in the
+    # solved graph, the room's long walls stay where the anchor saw them. (Milliseconds.)
+    room = np.array([[0.0, -2.0, 6.0, -2.0], [6.0, -2.0, 6.0, 2.0], [6.0, 2.0, 0.0, 2.0], [0.0, 2.0, 0.0, -2.0]])
+    second = Transform2D(1.0, 0.0, 0.0)  # the second submap's true frame in the anchor's
+    off = {}
+    for fusion in ("unweighted", "weighted"):
+        graph = PoseGraph(merge=replace(FleetmapConfig().merge, wall_fusion=fusion))
+        graph.put_map("r1/0/0", SegmentMap(room, ordered=False, oriented=True), 1)
+        graph.put_map("r1/0/1", SegmentMap(second.inverse().apply(room), ordered=False, oriented=True), 1)
+        loose = np.diag([0.05**2, 0.05**2, math.radians(0.5) ** 2])
+        graph.put_link("r1/0/0", "r1/0/1", Transform2D(1.0, 0.03, 0.0), loose)
+        (c,) = graph.solve().components
+        assert c.anchor == "r1/0/0" and len(c.segments) == 4, "the two copies of each wall are one wall"
+        along_x = c.segments[np.abs(c.segments[:, 1] - c.segments[:, 3]) < 0.1]
+        off[fusion] = float(np.max(np.abs(np.abs(along_x[:, [1, 3]]) - 2.0)))
+    assert off["unweighted"] > 0.01, off
+    assert off["weighted"] < 0.002, off
