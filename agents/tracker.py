@@ -52,6 +52,7 @@ from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import scan_viewpoint
 from fleetmap.shared.core.motion import (
+    CHI2_1DOF_99,
     CHI2_3DOF_99,
     Prediction,
     ScanClock,
@@ -79,7 +80,10 @@ from fleetmap.shared.core.walls import WallMap
 log = logging.getLogger(__name__)
 
 
-KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
+KIDNAP_REASON = (
+    "{n} scans whose beams pass through the submap's walls fit neither the submap nor, by pose-free "
+    "integration, anywhere near it"
+)
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
 
 
@@ -165,7 +169,9 @@ class TrackStep:
 
     status: str
     """"first" (an epoch's first scan), "tracked", "reacquired" (by pose-free integration),
-    "unplaced" (the fit failed), or "empty" (no segment: nothing to track)."""
+    "unplaced" (the fit failed, and the walls contradict every start: held towards a kidnap),
+    "carried" (the fit failed, but the walls say nothing against the prediction: the robot is
+    carried by its motion model), or "empty" (no segment: nothing to track)."""
     epoch: int
     """The epoch the scan is in."""
     submap: int | None
@@ -190,6 +196,7 @@ class _Held:
     segments: Array
     samples: ScanSamples
     odometry: Transform2D | None
+    contradicted: bool
 
 
 @dataclass(frozen=True)
@@ -197,6 +204,10 @@ class _Fit:
     registration: Registration
     good: bool
     why: str
+    contradicted: bool = False
+    """The scan's beams pass through the submap's walls at this fit's pose (:meth:`_judge`): the
+    walls say the scan was taken elsewhere. A fit refused only for the little wall it matched says
+    nothing of where the scan was taken."""
 
 
 class Tracker:
@@ -230,6 +241,15 @@ class Tracker:
         self.clock = ScanClock(self.config.integration.motion.max_speed)
         """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
         self._held: list[_Held] = []
+        self._drift = (0.0, 0.0)
+        """The motion model's variances (m^2, rad^2) added up over the steps since the last scan the
+        walls placed: the prediction's uncertainty grows with every step they did not check
+        (:meth:`_predictions`)."""
+        self._step_variance = (0.0, 0.0)
+        """The last prediction's own variances, before :attr:`_drift`."""
+        self._track_drift = (0.0, 0.0)
+        """:attr:`_drift` as of the last carried scan: the uncertainty of the track the robot is
+        on (the scans held since are what is being tested, :meth:`_contradicts`)."""
         self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
         self._inserted_at: tuple[float, Transform2D] | None = None
@@ -296,10 +316,32 @@ class Tracker:
             if before is not None and self._pose is not None:
                 self._judge_odometry_sign(before.inverse().compose(self._pose))
             return [step]
-        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
+        if not fit.contradicted:
+            # No evidence either way (open space, a few metres of wall, a person in front of the
+            # laser): the walls neither place the scan nor say it was taken elsewhere. The robot
+            # is where its motion model takes it (a fit the walls refused may have slid).
+            log.debug("scan %d carried by its motion model (%s)", index, fit.why)
+            predicted = self.active[0].origin.inverse().compose(self._pose_in_epoch(predictions[0]))
+            # placed as the prediction, as sure as its motion model (the walls fixed nothing)
+            prior = replace(
+                fit.registration,
+                pose=predicted,
+                information=predictions[0].information(),
+                scan_information=np.zeros((3, 3)),
+            )
+            carried = replace(fit, registration=prior)
+            self._held.clear()  # a kidnap is scans contradicted in a row
+            drift = self._drift
+            step = self._place(seq, index, stamp, scan, segments, samples, odometry, carried, "carried")
+            self._drift = drift
+            self._carry()  # the walls did not check this step: its uncertainty adds to the next ones'
+            self._track_drift = self._drift
+            return [step]
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
         self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
+        self._carry()
+        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, fit.contradicted))
         if len(self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
@@ -321,6 +363,7 @@ class Tracker:
             self._pose = self._pose_in_epoch(self._predictions(seq, stamp, odometry)[0])
             self._stamp, self._seq = stamp, seq
             self._odometry = odometry
+            self._drift = (self._drift[0] + self._step_variance[0], self._drift[1] + self._step_variance[1])
 
     def _predictions(self, seq: int, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
         """Where the scan should be: by odometry when the robot has it, then by constant velocity
@@ -365,7 +408,24 @@ class Tracker:
             # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
             # does not drift but is off scan by scan; each is also a start of its own
             out = [fused(velocity, out[0]), velocity, out[0]]
+        self._step_variance = (out[0].sigma_translation ** 2, out[0].sigma_rotation ** 2)
+        if self._drift != (0.0, 0.0):
+            # the steps since the last placed scan were not checked by the walls: their
+            # uncertainty adds up (the covariance of a chain of motions, a random walk)
+            t, r = self._drift
+            out = [
+                replace(
+                    q,
+                    sigma_translation=math.sqrt(q.sigma_translation**2 + t),
+                    sigma_rotation=math.sqrt(q.sigma_rotation**2 + r),
+                )
+                for q in out
+            ]
         return out
+
+    def _carry(self) -> None:
+        """The scan just predicted was not placed: its step's uncertainty adds to the next ones'."""
+        self._drift = (self._drift[0] + self._step_variance[0], self._drift[1] + self._step_variance[1])
 
     def _judge_odometry_sign(self, moved: Transform2D) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
@@ -453,8 +513,8 @@ class Tracker:
                 continue
             tried.append(predicted)
             reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
-            why = self._judge(reg, scan, submap)
-            fits.append(_Fit(reg, why == "", why))
+            why, contradicted = self._judge(reg, scan, segments, submap)
+            fits.append(_Fit(reg, why == "", why, contradicted))
         best = None
         for n, fit in enumerate(fits):
             # the two motion models' fits weigh alike by score, unless they turn alike and lie
@@ -483,20 +543,59 @@ class Tracker:
         if best is not None:
             self._scores.append(best.registration.score)
             return best
-        return fits[0]
+        # contrary evidence only where the walls contradict every start tried
+        return replace(fits[0], contradicted=all(f.contradicted for f in fits))
 
-    def _judge(self, reg: Registration, scan: RangeScan, submap: Submap) -> str:
-        """Why the fit is not good ("" when it is): the walls' evidence alone. How far the robot can
-        have driven does not judge a registration started near the prediction (the clock may be
-        wrong; the walls are not): it bounds only where the pose-free search looks
-        (:meth:`_reacquire`)."""
+    def _judge(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> tuple[str, bool]:
+        """Why the fit is not good ("" when it is), and whether the walls contradict it: the walls'
+        evidence alone. How far the robot can have driven does not judge a registration started
+        near the prediction (the clock may be wrong; the walls are not): it bounds only where the
+        pose-free search looks (:meth:`_reacquire`).
+
+        Too little of the scan on the submap's walls says only that the walls cannot place it:
+        open space, a few metres of wall, new walls, a person in front of the laser. What says the
+        scan was not taken there is the two disagreeing on space both saw (a beam model's reading:
+        a return short of a wall is something in between, none at all a failure, one beyond it a
+        wrong pose; Thrun, Burgard & Fox 2005, 6.3). The fit is *contradicted* when the scan's beams
+        pass through more than ``max_see_through`` of the submap's wall they could have seen, or
+        its walls stand where the submap's scans saw through more than they saw (the rule that
+        judges a submap's own walls, :func:`wall_evidence`) and outweigh those it matched; in
+        either case at least as much wall as it takes to place a scan (``min_matched_length``)."""
         p = self.params
-        if reg.matched_length < p.min_matched_length or reg.matched_share < p.min_matched_share:
-            return f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
-        through, visible = see_through(submap.reference, scan, reg.pose, p, self.config.extraction.max_range)
-        if visible > 0 and through > p.max_see_through * visible:
-            return f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
-        return ""
+        max_range = self.config.extraction.max_range
+        through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
+        seen_through = visible > 0 and through > p.max_see_through * visible
+        if reg.matched_length >= p.min_matched_length and reg.matched_share >= p.min_matched_share:
+            if seen_through:
+                why = f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
+                return why, self._contradicts(reg, scan, segments, submap)
+            return "", False
+        why = f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
+        return why, self._contradicts(reg, scan, segments, submap)
+
+    def _contradicts(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> bool:
+        """Whether the scan and the submap disagree on space both saw, at the fit's pose (:meth:`_judge`),
+        beyond what the steps the walls did not check since the last placed scan explain: the beam
+        test's margin grows by their uncertainty along the beam (99 %, one degree of freedom)."""
+        p = self.params
+        max_range = self.config.extraction.max_range
+        if self._track_drift != (0.0, 0.0):
+            z = math.sqrt(CHI2_1DOF_99)
+            p = replace(
+                p,
+                see_through_margin=p.see_through_margin + z * math.sqrt(self._track_drift[0]),
+                see_through_slope=p.see_through_slope + z * math.sqrt(self._track_drift[1]),
+            )
+        through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
+        if visible > 0 and through > p.max_see_through * visible and through >= p.min_matched_length:
+            return True
+        if not submap.scans_in:
+            return False
+        walls = reg.pose.apply(segments)
+        seen, passed = wall_evidence(walls, submap.scans_in, p, max_range)
+        length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+        in_free_space = float(length[passed > seen].sum())
+        return in_free_space >= p.min_matched_length and in_free_space > reg.matched_length
 
     def _reachable(self, pose: Transform2D, seq: int, stamp: float) -> bool:
         """Whether the robot can have driven to ``pose`` (epoch frame) since its last placed scan:
@@ -551,7 +650,8 @@ class Tracker:
         # the prior is the integration's pose, loosely: the walls decide
         loose = np.diag([1.0 / 0.25**2, 1.0 / 0.25**2, 1.0 / 0.1**2])
         reg = register(samples, submap.reference, start, start, loose, self.params)
-        if self._judge(reg, scan, submap) != "" or not self._reachable(submap.origin.compose(reg.pose), seq, stamp):
+        why, _ = self._judge(reg, scan, segments, submap)
+        if why != "" or not self._reachable(submap.origin.compose(reg.pose), seq, stamp):
             return None
         return _Fit(reg, True, "reacquired")
 
@@ -583,6 +683,7 @@ class Tracker:
             seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
             self._velocity, self._velocity_known = velocity_between(self._good[1], pose, seconds), True
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
+        self._drift = self._track_drift = (0.0, 0.0)
         # a scan without odometry breaks its chain: the next increment is measured from the next
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
         # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
@@ -709,6 +810,7 @@ class Tracker:
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._submaps = 0
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
+        self._drift = self._track_drift = (0.0, 0.0)
         self._odometry = odometry
         self._velocity, self._velocity_known = np.zeros(3), False
         self._inserted_at = None

@@ -453,7 +453,7 @@ def beam_test(
     candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
     measured = ranges[np.clip(beam, 0, beams - 1)]
     with np.errstate(invalid="ignore"):
-        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max)
+        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max) & (measured <= max_range)
     visible = candidate & returned
     cos_i = np.clip(cos_incidence, 1e-3, 1.0)
     tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
