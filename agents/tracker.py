@@ -69,6 +69,7 @@ from fleetmap.shared.core.tracking import (
     ReferenceMap,
     Registration,
     ScanSamples,
+    beam_evidence,
     drift_covariance,
     register,
     sample_segments,
@@ -205,9 +206,14 @@ class _Fit:
     good: bool
     why: str
     contradicted: bool = False
-    """The scan's beams pass through the submap's walls at this fit's pose (:meth:`_judge`): the
-    walls say the scan was taken elsewhere. A fit refused only for the little wall it matched says
+    """The scan and the submap disagree on space both saw at this fit's pose (:meth:`_judge`): the
+    walls say the scan was not taken there. A fit refused only for the little wall it matched says
     nothing of where the scan was taken."""
+    disputed: bool = False
+    """The scan and the submap disagree at this pose on at least as much wall as it takes to place a
+    scan, whatever they agree on."""
+    everywhere: bool = False
+    """(A refused scan's first fit) the walls dispute every start tried, not only this one."""
 
 
 class Tracker:
@@ -248,8 +254,9 @@ class Tracker:
         self._step_variance = (0.0, 0.0)
         """The last prediction's own variances, before :attr:`_drift`."""
         self._track_drift = (0.0, 0.0)
-        """:attr:`_drift` as of the last carried scan: the uncertainty of the track the robot is
-        on (the scans held since are what is being tested, :meth:`_contradicts`)."""
+        """:attr:`_drift` as of the last carried scan: the uncertainty of the track the robot is on,
+        which the beam test excuses (:meth:`_contradicts`). The scans held since add nothing: they
+        are what is being tested, from that track."""
         self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
         self._inserted_at: tuple[float, Transform2D] | None = None
@@ -308,6 +315,12 @@ class Tracker:
             return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
         predictions = self._predictions(seq, stamp, odometry)
         fit = self._fit(scan, samples, segments, predictions, seq, stamp)
+        if fit.good and self._held and not self._within_gate(fit.registration.pose, predictions[0]):
+            # after the walls contradicted the prediction, a fit the motion model cannot explain is
+            # the scan fitting elsewhere: more contrary evidence, not the robot found again
+            fit = replace(
+                fit, good=False, why="a fit beyond the motion model's 99 % gate", contradicted=True, everywhere=True
+            )
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
@@ -341,8 +354,8 @@ class Tracker:
         self._stamp, self._seq = stamp, seq
         self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
         self._carry()
-        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, fit.contradicted))
-        if len(self._held) < self.params.kidnap_after:
+        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, fit.everywhere))
+        if sum(h.contradicted for h in self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
@@ -363,7 +376,9 @@ class Tracker:
             self._pose = self._pose_in_epoch(self._predictions(seq, stamp, odometry)[0])
             self._stamp, self._seq = stamp, seq
             self._odometry = odometry
-            self._drift = (self._drift[0] + self._step_variance[0], self._drift[1] + self._step_variance[1])
+            self._carry()
+            if not self._held:
+                self._track_drift = self._drift
 
     def _predictions(self, seq: int, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
         """Where the scan should be: by odometry when the robot has it, then by constant velocity
@@ -423,8 +438,18 @@ class Tracker:
             ]
         return out
 
+    def _within_gate(self, pose: Transform2D, prediction: Prediction) -> bool:
+        """Whether a fit's pose (the matching submap's frame) lies within the prediction's 99 %
+        validation gate: its squared Mahalanobis distance under the motion model's uncertainty
+        within the chi-square bound of three degrees of freedom."""
+        placed = self.active[0].origin.compose(pose)
+        off = self._pose_in_epoch(prediction).inverse().compose(placed).as_array()
+        off[2] = float(wrap_angle(off[2]))
+        return float(off @ prediction.information() @ off) <= CHI2_3DOF_99
+
     def _carry(self) -> None:
-        """The scan just predicted was not placed: its step's uncertainty adds to the next ones'."""
+        """The scan just predicted was not placed by the walls: its step's uncertainty adds to the
+        next ones'."""
         self._drift = (self._drift[0] + self._step_variance[0], self._drift[1] + self._step_variance[1])
 
     def _judge_odometry_sign(self, moved: Transform2D) -> None:
@@ -513,8 +538,8 @@ class Tracker:
                 continue
             tried.append(predicted)
             reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
-            why, contradicted = self._judge(reg, scan, segments, submap)
-            fits.append(_Fit(reg, why == "", why, contradicted))
+            why, (contradicted, disputed) = self._judge(reg, scan, segments, submap)
+            fits.append(_Fit(reg, why == "", why, contradicted, disputed))
         best = None
         for n, fit in enumerate(fits):
             # the two motion models' fits weigh alike by score, unless they turn alike and lie
@@ -543,10 +568,11 @@ class Tracker:
         if best is not None:
             self._scores.append(best.registration.score)
             return best
-        # contrary evidence only where the walls contradict every start tried
-        return replace(fits[0], contradicted=all(f.contradicted for f in fits))
+        return replace(fits[0], everywhere=all(f.disputed for f in fits))
 
-    def _judge(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> tuple[str, bool]:
+    def _judge(
+        self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap
+    ) -> tuple[str, tuple[bool, bool]]:
         """Why the fit is not good ("" when it is), and whether the walls contradict it: the walls'
         evidence alone. How far the robot can have driven does not judge a registration started
         near the prediction (the clock may be wrong; the walls are not): it bounds only where the
@@ -569,11 +595,11 @@ class Tracker:
             if seen_through:
                 why = f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
                 return why, self._contradicts(reg, scan, segments, submap)
-            return "", False
+            return "", (False, False)
         why = f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
         return why, self._contradicts(reg, scan, segments, submap)
 
-    def _contradicts(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> bool:
+    def _contradicts(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> tuple[bool, bool]:
         """Whether the scan and the submap disagree on space both saw, at the fit's pose (:meth:`_judge`),
         beyond what the steps the walls did not check since the last placed scan explain: the beam
         test's margin grows by their uncertainty along the beam (99 %, one degree of freedom)."""
@@ -586,16 +612,18 @@ class Tracker:
                 see_through_margin=p.see_through_margin + z * math.sqrt(self._track_drift[0]),
                 see_through_slope=p.see_through_slope + z * math.sqrt(self._track_drift[1]),
             )
-        through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
-        if visible > 0 and through > p.max_see_through * visible and through >= p.min_matched_length:
-            return True
-        if not submap.scans_in:
-            return False
-        walls = reg.pose.apply(segments)
-        seen, passed = wall_evidence(walls, submap.scans_in, p, max_range)
-        length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
-        in_free_space = float(length[passed > seen].sum())
-        return in_free_space >= p.min_matched_length and in_free_space > reg.matched_length
+        through, hit = beam_evidence(submap.reference, scan, reg.pose, p, max_range)
+        in_free_space = 0.0
+        if submap.scans_in:
+            walls = reg.pose.apply(segments)
+            seen, passed = wall_evidence(walls, submap.scans_in, p, max_range)
+            length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+            in_free_space = float(length[passed > seen].sum())
+        enough = p.min_matched_length
+        contradicted = (through >= enough and through > hit) or (
+            in_free_space >= enough and in_free_space > reg.matched_length
+        )
+        return contradicted, through >= enough or in_free_space >= enough
 
     def _reachable(self, pose: Transform2D, seq: int, stamp: float) -> bool:
         """Whether the robot can have driven to ``pose`` (epoch frame) since its last placed scan:

@@ -417,6 +417,20 @@ def see_through(
     return float(weights[through].sum()), float(weights[visible].sum())
 
 
+def beam_evidence(
+    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+) -> tuple[float, float]:
+    """What the scan's beams say of the submap's walls at ``pose``: ``(through, hit)``, the wall
+    length (m) they pass through and the length they return from (:func:`beam_test`). A beam that
+    returns short of a wall (something in between) or returns nothing says neither: the beam
+    model's short and max readings (Thrun, Burgard & Fox 2005, 6.3)."""
+    if len(reference) == 0:
+        return 0.0, 0.0
+    _, through, hit = beam_test(reference.points, reference.normals, reference.support, scan, pose, params, max_range)
+    weights = reference.weights
+    return float(weights[through].sum()), float(weights[hit].sum())
+
+
 def see_through_masks(
     reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
 ) -> tuple[Array, Array]:
