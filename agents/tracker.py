@@ -16,10 +16,16 @@ For each scan (:meth:`Tracker.add`):
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
    moved ``insert_distance`` or turned ``insert_rotation`` since the last inserted one (or
    ``insert_interval`` has passed).
-6. A scan that neither fits nor re-acquires is left unplaced (its pose predicted, for the next
-   scan); after ``kidnap_after`` of them in a row the robot has lost its place: a new **epoch**
-   begins at the first of them, whose place nobody knows until the merger finds it, and the
-   others are tracked into it.
+6. A scan that neither fits nor re-acquires is weighed as evidence (a kidnap is a conclusion,
+   not a count of poor fits; docs/decisions/009-clocks-evidence-over-stamps.md). Where the walls
+   say nothing against its prediction (open space, a few metres of wall, new walls) the robot is
+   **carried** by its motion model: the scan is placed at the prediction, and the prediction's
+   uncertainty grows until the walls place a scan again. Where they contradict the prediction
+   (beams through the submap's walls, walls in its seen free space) the scan is left unplaced;
+   after ``kidnap_after`` such scans with no placed one between, each contradicted from every
+   start tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place:
+   a new **epoch** begins at the first of them, whose place nobody knows until the merger finds
+   it, and the others are tracked into it.
 
 **Submaps** (Cartographer's scheme): two are active at a time, and every inserted scan goes into
 both. A scan is registered on, and placed by, the older one, which holds more. A submap is
@@ -82,7 +88,7 @@ log = logging.getLogger(__name__)
 
 
 KIDNAP_REASON = (
-    "{n} scans whose beams pass through the submap's walls fit neither the submap nor, by pose-free "
+    "{n} scans that the submap's walls contradict fit neither the submap nor, by pose-free "
     "integration, anywhere near it"
 )
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
@@ -170,9 +176,9 @@ class TrackStep:
 
     status: str
     """"first" (an epoch's first scan), "tracked", "reacquired" (by pose-free integration),
-    "unplaced" (the fit failed, and the walls contradict every start: held towards a kidnap),
-    "carried" (the fit failed, but the walls say nothing against the prediction: the robot is
-    carried by its motion model), or "empty" (no segment: nothing to track)."""
+    "unplaced" (the fit failed, and the walls contradict the prediction: held towards a kidnap),
+    "carried" (the fit failed, but the walls say nothing against the prediction: placed there by
+    the motion model), or "empty" (no segment: nothing to track)."""
     epoch: int
     """The epoch the scan is in."""
     submap: int | None
@@ -197,7 +203,9 @@ class _Held:
     segments: Array
     samples: ScanSamples
     odometry: Transform2D | None
-    contradicted: bool
+    counts: bool
+    """It counts towards a kidnap: the walls dispute every start tried, or it fits beyond the
+    motion model's gate (:meth:`Tracker._track`)."""
 
 
 @dataclass(frozen=True)
@@ -329,10 +337,12 @@ class Tracker:
             if before is not None and self._pose is not None:
                 self._judge_odometry_sign(before.inverse().compose(self._pose))
             return [step]
-        if not fit.contradicted:
+        if not fit.contradicted and "odometry" in predictions[0].source:
             # No evidence either way (open space, a few metres of wall, a person in front of the
             # laser): the walls neither place the scan nor say it was taken elsewhere. The robot
-            # is where its motion model takes it (a fit the walls refused may have slid).
+            # is where its odometry takes it (a fit the walls refused may have slid). Constant
+            # velocity does not carry it: it measures nothing, and over a second between scans
+            # (a sparse log) it is a guess 1.5 m wide; such a scan is held as before.
             log.debug("scan %d carried by its motion model (%s)", index, fit.why)
             predicted = self.active[0].origin.inverse().compose(self._pose_in_epoch(predictions[0]))
             # placed as the prediction, as sure as its motion model (the walls fixed nothing)
@@ -354,8 +364,9 @@ class Tracker:
         self._stamp, self._seq = stamp, seq
         self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
         self._carry()
-        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, fit.everywhere))
-        if sum(h.contradicted for h in self._held) < self.params.kidnap_after:
+        counts = fit.everywhere or not fit.contradicted  # (not carried: no odometry)
+        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, counts))
+        if sum(h.counts for h in self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
@@ -578,15 +589,9 @@ class Tracker:
         near the prediction (the clock may be wrong; the walls are not): it bounds only where the
         pose-free search looks (:meth:`_reacquire`).
 
-        Too little of the scan on the submap's walls says only that the walls cannot place it:
-        open space, a few metres of wall, new walls, a person in front of the laser. What says the
-        scan was not taken there is the two disagreeing on space both saw (a beam model's reading:
-        a return short of a wall is something in between, none at all a failure, one beyond it a
-        wrong pose; Thrun, Burgard & Fox 2005, 6.3). The fit is *contradicted* when the scan's beams
-        pass through more than ``max_see_through`` of the submap's wall they could have seen, or
-        its walls stand where the submap's scans saw through more than they saw (the rule that
-        judges a submap's own walls, :func:`wall_evidence`) and outweigh those it matched; in
-        either case at least as much wall as it takes to place a scan (``min_matched_length``)."""
+        For a refused fit, also what the walls say against it (:meth:`_contradicts`): too little of
+        the scan on the submap's walls says only that they cannot place it (open space, a few
+        metres of wall, new walls, a person in front of the laser)."""
         p = self.params
         max_range = self.config.extraction.max_range
         through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
@@ -600,9 +605,16 @@ class Tracker:
         return why, self._contradicts(reg, scan, segments, submap)
 
     def _contradicts(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> tuple[bool, bool]:
-        """Whether the scan and the submap disagree on space both saw, at the fit's pose (:meth:`_judge`),
-        beyond what the steps the walls did not check since the last placed scan explain: the beam
-        test's margin grows by their uncertainty along the beam (99 %, one degree of freedom)."""
+        """Whether the scan and the submap disagree on space both saw at the fit's pose: *contradicted*
+        (more wall in dispute than agreed on) and *disputed* (at least as much wall in dispute as it
+        takes to place a scan, ``min_matched_length``, whatever is agreed on). In dispute are the
+        submap's walls the scan's beams pass through (against those they return from: a return
+        short of a wall is something in between, none at all a failure, one beyond it a wrong pose;
+        the beam model, Thrun, Burgard & Fox 2005, 6.3), and the scan's walls where the submap's
+        own scans saw through more than they saw (the rule that judges a submap's walls,
+        :func:`wall_evidence`; against the scan's wall matched). The beam test's margin grows by
+        the uncertainty of the track the robot is carried on (99 %, one degree of freedom along
+        the beam): a carried pose a metre off sees through walls it did not pass."""
         p = self.params
         max_range = self.config.extraction.max_range
         if self._track_drift != (0.0, 0.0):
@@ -850,7 +862,7 @@ class Tracker:
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
 
     def _lost(self) -> list[TrackStep]:
-        """``kidnap_after`` scans in a row did not fit: a new epoch from the first of them."""
+        """``kidnap_after`` scans the walls contradict, with none placed between: a new epoch from the first of them."""
         held, self._held = self._held, []
         first = held[0]
         log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))
