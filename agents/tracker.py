@@ -628,7 +628,7 @@ class Tracker:
         in_free_space = 0.0
         if submap.scans_in:
             walls = reg.pose.apply(segments)
-            seen, passed = wall_evidence(walls, submap.scans_in, p, max_range)
+            seen, passed = wall_evidence(walls, submap.scans_in, p, max_range, max_range)
             length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
             in_free_space = float(length[passed > seen].sum())
         enough = p.min_matched_length
