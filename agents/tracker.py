@@ -323,9 +323,16 @@ class Tracker:
             return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
         predictions = self._predictions(seq, stamp, odometry)
         fit = self._fit(scan, samples, segments, predictions, seq, stamp)
-        if fit.good and self._held and not self._within_gate(fit.registration.pose, predictions[0]):
-            # after the walls contradicted the prediction, a fit the motion model cannot explain is
-            # the scan fitting elsewhere: more contrary evidence, not the robot found again
+        odometry_predicts = "odometry" in predictions[0].source
+        if (
+            fit.good
+            and self._held
+            and odometry_predicts
+            and not self._within_gate(fit.registration.pose, predictions[0])
+        ):
+            # after the walls contradicted the prediction, a fit the odometry cannot explain is the
+            # scan fitting elsewhere: more contrary evidence, not the robot found again (constant
+            # velocity measures nothing: it neither carries the robot nor gates a fit)
             fit = replace(
                 fit, good=False, why="a fit beyond the motion model's 99 % gate", contradicted=True, everywhere=True
             )
@@ -337,7 +344,7 @@ class Tracker:
             if before is not None and self._pose is not None:
                 self._judge_odometry_sign(before.inverse().compose(self._pose))
             return [step]
-        if not fit.contradicted and "odometry" in predictions[0].source:
+        if not fit.contradicted and odometry_predicts:
             # No evidence either way (open space, a few metres of wall, a person in front of the
             # laser): the walls neither place the scan nor say it was taken elsewhere. The robot
             # is where its odometry takes it (a fit the walls refused may have slid). Constant
