@@ -261,6 +261,8 @@ class Tracker:
         (:meth:`_predictions`)."""
         self._step_variance = (0.0, 0.0)
         """The last prediction's own variances, before :attr:`_drift`."""
+        self._standing = Prediction(Transform2D(), 0.0, 0.0, "still")
+        """The last scan's start from where the robot was last placed (:meth:`_predictions`)."""
         self._track_drift = (0.0, 0.0)
         """:attr:`_drift` as of the last carried scan: the uncertainty of the track the robot is on,
         which the beam test excuses (:meth:`_contradicts`). The scans held since add nothing: they
@@ -442,6 +444,17 @@ class Tracker:
             # does not drift but is off scan by scan; each is also a start of its own
             out = [fused(velocity, out[0]), velocity, out[0]]
         self._step_variance = (out[0].sigma_translation ** 2, out[0].sigma_rotation ** 2)
+        # The robot standing still where it was last placed is a motion model of its own (as in a
+        # multiple-model estimator; Bar-Shalom, Li & Kirubarajan 2001, ch. 11): its uncertainty is that
+        # pose's (a carried track's drift) and one step's, not the moving models' predictions
+        # chained over the held scans, which a robot that stopped never drove
+        t, r = self._track_drift
+        self._standing = Prediction(
+            Transform2D(),
+            math.sqrt(out[-1].sigma_translation ** 2 + t),
+            math.sqrt(out[-1].sigma_rotation ** 2 + r),
+            "still",
+        )
         if self._drift != (0.0, 0.0):
             # the steps since the last placed scan were not checked by the walls: their
             # uncertainty adds up (the covariance of a chain of motions, a random walk)
@@ -536,7 +549,7 @@ class Tracker:
         tried: list[Transform2D] = []
         fits: list[_Fit] = []
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
-        standing = Prediction(Transform2D(), predictions[-1].sigma_translation, predictions[-1].sigma_rotation, "still")
+        standing = self._standing
         # Two motion models that disagree on the heading by more than the first one's uncertainty:
         # one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one fast
         # turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
