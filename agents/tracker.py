@@ -16,10 +16,16 @@ For each scan (:meth:`Tracker.add`):
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
    moved ``insert_distance`` or turned ``insert_rotation`` since the last inserted one (or
    ``insert_interval`` has passed).
-6. A scan that neither fits nor re-acquires is left unplaced (its pose predicted, for the next
-   scan); after ``kidnap_after`` of them in a row the robot has lost its place: a new **epoch**
-   begins at the first of them, whose place nobody knows until the merger finds it, and the
-   others are tracked into it.
+6. A scan that neither fits nor re-acquires is weighed as evidence (a kidnap is a conclusion,
+   not a count of poor fits; docs/decisions/009-clocks-evidence-over-stamps.md). Where the walls
+   say nothing against its prediction (open space, a few metres of wall, new walls) the robot is
+   **carried** by its motion model: the scan is placed at the prediction, and the prediction's
+   uncertainty grows until the walls place a scan again. Where they contradict the prediction
+   (beams through the submap's walls, walls in its seen free space) the scan is left unplaced;
+   after ``kidnap_after`` such scans with no placed one between, each contradicted from every
+   start tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place:
+   a new **epoch** begins at the first of them, whose place nobody knows until the merger finds
+   it, and the others are tracked into it.
 
 **Submaps** (Cartographer's scheme): two are active at a time, and every inserted scan goes into
 both. A scan is registered on, and placed by, the older one, which holds more. A submap is
@@ -52,6 +58,7 @@ from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.mapgrid import scan_viewpoint
 from fleetmap.shared.core.motion import (
+    CHI2_1DOF_99,
     CHI2_3DOF_99,
     Prediction,
     ScanClock,
@@ -68,6 +75,7 @@ from fleetmap.shared.core.tracking import (
     ReferenceMap,
     Registration,
     ScanSamples,
+    beam_evidence,
     drift_covariance,
     register,
     sample_segments,
@@ -79,7 +87,10 @@ from fleetmap.shared.core.walls import WallMap
 log = logging.getLogger(__name__)
 
 
-KIDNAP_REASON = "{n} scans in a row fit neither the submap nor, by pose-free integration, anywhere near it"
+KIDNAP_REASON = (
+    "{n} scans that the submap's walls contradict fit neither the submap nor, by pose-free "
+    "integration, anywhere near it"
+)
 """The reason of an epoch started by lost tracking (EpochLink.reason and the event's detail)."""
 
 
@@ -165,7 +176,9 @@ class TrackStep:
 
     status: str
     """"first" (an epoch's first scan), "tracked", "reacquired" (by pose-free integration),
-    "unplaced" (the fit failed), or "empty" (no segment: nothing to track)."""
+    "unplaced" (the fit failed, and the walls contradict the prediction: held towards a kidnap),
+    "carried" (the fit failed, but the walls say nothing against the prediction: placed there by
+    the motion model), or "empty" (no segment: nothing to track)."""
     epoch: int
     """The epoch the scan is in."""
     submap: int | None
@@ -190,6 +203,9 @@ class _Held:
     segments: Array
     samples: ScanSamples
     odometry: Transform2D | None
+    counts: bool
+    """It counts towards a kidnap: the walls dispute every start tried, or it fits beyond the
+    motion model's gate (:meth:`Tracker._track`)."""
 
 
 @dataclass(frozen=True)
@@ -197,6 +213,15 @@ class _Fit:
     registration: Registration
     good: bool
     why: str
+    contradicted: bool = False
+    """The scan and the submap disagree on space both saw at this fit's pose (:meth:`_judge`): the
+    walls say the scan was not taken there. A fit refused only for the little wall it matched says
+    nothing of where the scan was taken."""
+    disputed: bool = False
+    """The scan and the submap disagree at this pose on at least as much wall as it takes to place a
+    scan, whatever they agree on."""
+    everywhere: bool = False
+    """(A refused scan's first fit) the walls dispute every start tried, not only this one."""
 
 
 class Tracker:
@@ -230,6 +255,18 @@ class Tracker:
         self.clock = ScanClock(self.config.integration.motion.max_speed)
         """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
         self._held: list[_Held] = []
+        self._drift = (0.0, 0.0)
+        """The motion model's variances (m^2, rad^2) added up over the steps since the last scan the
+        walls placed: the prediction's uncertainty grows with every step they did not check
+        (:meth:`_predictions`)."""
+        self._step_variance = (0.0, 0.0)
+        """The last prediction's own variances, before :attr:`_drift`."""
+        self._standing = Prediction(Transform2D(), 0.0, 0.0, "still")
+        """The last scan's start from where the robot was last placed (:meth:`_predictions`)."""
+        self._track_drift = (0.0, 0.0)
+        """:attr:`_drift` as of the last carried scan: the uncertainty of the track the robot is on,
+        which the beam test excuses (:meth:`_contradicts`). The scans held since add nothing: they
+        are what is being tested, from that track."""
         self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
         self._inserted_at: tuple[float, Transform2D] | None = None
@@ -288,6 +325,19 @@ class Tracker:
             return [self._start_epoch(seq, index, stamp, scan, segments, samples, odometry, new=False)]
         predictions = self._predictions(seq, stamp, odometry)
         fit = self._fit(scan, samples, segments, predictions, seq, stamp)
+        odometry_predicts = "odometry" in predictions[0].source
+        if (
+            fit.good
+            and self._held
+            and odometry_predicts
+            and not self._within_gate(fit.registration.pose, predictions[0])
+        ):
+            # after the walls contradicted the prediction, a fit the odometry cannot explain is the
+            # scan fitting elsewhere: more contrary evidence, not the robot found again (constant
+            # velocity measures nothing: it neither carries the robot nor gates a fit)
+            fit = replace(
+                fit, good=False, why="a fit beyond the motion model's 99 % gate", contradicted=True, everywhere=True
+            )
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
@@ -296,11 +346,36 @@ class Tracker:
             if before is not None and self._pose is not None:
                 self._judge_odometry_sign(before.inverse().compose(self._pose))
             return [step]
-        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry))
+        if not fit.contradicted and odometry_predicts:
+            # No evidence either way (open space, a few metres of wall, a person in front of the
+            # laser): the walls neither place the scan nor say it was taken elsewhere. The robot
+            # is where its odometry takes it (a fit the walls refused may have slid). Constant
+            # velocity does not carry it: it measures nothing, and over a second between scans
+            # (a sparse log) it is a guess 1.5 m wide; such a scan is held as before.
+            log.debug("scan %d carried by its motion model (%s)", index, fit.why)
+            predicted = self.active[0].origin.inverse().compose(self._pose_in_epoch(predictions[0]))
+            # placed as the prediction, as sure as its motion model (the walls fixed nothing)
+            prior = replace(
+                fit.registration,
+                pose=predicted,
+                information=predictions[0].information(),
+                scan_information=np.zeros((3, 3)),
+            )
+            carried = replace(fit, registration=prior)
+            self._held.clear()  # a kidnap is scans contradicted in a row
+            drift = self._drift
+            step = self._place(seq, index, stamp, scan, segments, samples, odometry, carried, "carried")
+            self._drift = drift
+            self._carry()  # the walls did not check this step: its uncertainty adds to the next ones'
+            self._track_drift = self._drift
+            return [step]
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
         self._odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
-        if len(self._held) < self.params.kidnap_after:
+        self._carry()
+        counts = fit.everywhere or not fit.contradicted  # (not carried: no odometry)
+        self._held.append(_Held(seq, index, stamp, scan, segments, samples, odometry, counts))
+        if sum(h.counts for h in self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
@@ -321,6 +396,9 @@ class Tracker:
             self._pose = self._pose_in_epoch(self._predictions(seq, stamp, odometry)[0])
             self._stamp, self._seq = stamp, seq
             self._odometry = odometry
+            self._carry()
+            if not self._held:
+                self._track_drift = self._drift
 
     def _predictions(self, seq: int, stamp: float, odometry: Transform2D | None) -> list[Prediction]:
         """Where the scan should be: by odometry when the robot has it, then by constant velocity
@@ -365,7 +443,45 @@ class Tracker:
             # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
             # does not drift but is off scan by scan; each is also a start of its own
             out = [fused(velocity, out[0]), velocity, out[0]]
+        self._step_variance = (out[0].sigma_translation ** 2, out[0].sigma_rotation ** 2)
+        # The robot standing still where it was last placed is a motion model of its own (as in a
+        # multiple-model estimator; Bar-Shalom, Li & Kirubarajan 2001, ch. 11): its uncertainty is that
+        # pose's (a carried track's drift) and one step's, not the moving models' predictions
+        # chained over the held scans, which a robot that stopped never drove
+        t, r = self._track_drift
+        self._standing = Prediction(
+            Transform2D(),
+            math.sqrt(out[-1].sigma_translation ** 2 + t),
+            math.sqrt(out[-1].sigma_rotation ** 2 + r),
+            "still",
+        )
+        if self._drift != (0.0, 0.0):
+            # the steps since the last placed scan were not checked by the walls: their
+            # uncertainty adds up (the covariance of a chain of motions, a random walk)
+            t, r = self._drift
+            out = [
+                replace(
+                    q,
+                    sigma_translation=math.sqrt(q.sigma_translation**2 + t),
+                    sigma_rotation=math.sqrt(q.sigma_rotation**2 + r),
+                )
+                for q in out
+            ]
         return out
+
+    def _within_gate(self, pose: Transform2D, prediction: Prediction) -> bool:
+        """Whether a fit's pose (the matching submap's frame) lies within the prediction's 99 %
+        validation gate: its squared Mahalanobis distance under the motion model's uncertainty
+        within the chi-square bound of three degrees of freedom."""
+        placed = self.active[0].origin.compose(pose)
+        off = self._pose_in_epoch(prediction).inverse().compose(placed).as_array()
+        off[2] = float(wrap_angle(off[2]))
+        return float(off @ prediction.information() @ off) <= CHI2_3DOF_99
+
+    def _carry(self) -> None:
+        """The scan just predicted was not placed by the walls: its step's uncertainty adds to the
+        next ones'."""
+        self._drift = (self._drift[0] + self._step_variance[0], self._drift[1] + self._step_variance[1])
 
     def _judge_odometry_sign(self, moved: Transform2D) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
@@ -433,7 +549,7 @@ class Tracker:
         tried: list[Transform2D] = []
         fits: list[_Fit] = []
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
-        standing = Prediction(Transform2D(), predictions[-1].sigma_translation, predictions[-1].sigma_rotation, "still")
+        standing = self._standing
         # Two motion models that disagree on the heading by more than the first one's uncertainty:
         # one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one fast
         # turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
@@ -453,8 +569,8 @@ class Tracker:
                 continue
             tried.append(predicted)
             reg = register(samples, submap.reference, predicted, predicted, prediction.information(), self.params)
-            why = self._judge(reg, scan, submap)
-            fits.append(_Fit(reg, why == "", why))
+            why, (contradicted, disputed) = self._judge(reg, scan, segments, submap)
+            fits.append(_Fit(reg, why == "", why, contradicted, disputed))
         best = None
         for n, fit in enumerate(fits):
             # the two motion models' fits weigh alike by score, unless they turn alike and lie
@@ -483,20 +599,63 @@ class Tracker:
         if best is not None:
             self._scores.append(best.registration.score)
             return best
-        return fits[0]
+        return replace(fits[0], everywhere=all(f.disputed for f in fits))
 
-    def _judge(self, reg: Registration, scan: RangeScan, submap: Submap) -> str:
-        """Why the fit is not good ("" when it is): the walls' evidence alone. How far the robot can
-        have driven does not judge a registration started near the prediction (the clock may be
-        wrong; the walls are not): it bounds only where the pose-free search looks
-        (:meth:`_reacquire`)."""
+    def _judge(
+        self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap
+    ) -> tuple[str, tuple[bool, bool]]:
+        """Why the fit is not good ("" when it is), and whether the walls contradict it: the walls'
+        evidence alone. How far the robot can have driven does not judge a registration started
+        near the prediction (the clock may be wrong; the walls are not): it bounds only where the
+        pose-free search looks (:meth:`_reacquire`).
+
+        For a refused fit, also what the walls say against it (:meth:`_contradicts`): too little of
+        the scan on the submap's walls says only that they cannot place it (open space, a few
+        metres of wall, new walls, a person in front of the laser)."""
         p = self.params
-        if reg.matched_length < p.min_matched_length or reg.matched_share < p.min_matched_share:
-            return f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
-        through, visible = see_through(submap.reference, scan, reg.pose, p, self.config.extraction.max_range)
-        if visible > 0 and through > p.max_see_through * visible:
-            return f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
-        return ""
+        max_range = self.config.extraction.max_range
+        through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
+        seen_through = visible > 0 and through > p.max_see_through * visible
+        if reg.matched_length >= p.min_matched_length and reg.matched_share >= p.min_matched_share:
+            if seen_through:
+                why = f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
+                return why, self._contradicts(reg, scan, segments, submap)
+            return "", (False, False)
+        why = f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
+        return why, self._contradicts(reg, scan, segments, submap)
+
+    def _contradicts(self, reg: Registration, scan: RangeScan, segments: Array, submap: Submap) -> tuple[bool, bool]:
+        """Whether the scan and the submap disagree on space both saw at the fit's pose: *contradicted*
+        (more wall in dispute than agreed on) and *disputed* (at least as much wall in dispute as it
+        takes to place a scan, ``min_matched_length``, whatever is agreed on). In dispute are the
+        submap's walls the scan's beams pass through (against those they return from: a return
+        short of a wall is something in between, none at all a failure, one beyond it a wrong pose;
+        the beam model, Thrun, Burgard & Fox 2005, 6.3), and the scan's walls where the submap's
+        own scans saw through more than they saw (the rule that judges a submap's walls,
+        :func:`wall_evidence`; against the scan's wall matched). The beam test's margin grows by
+        the uncertainty of the track the robot is carried on (99 %, one degree of freedom along
+        the beam): a carried pose a metre off sees through walls it did not pass."""
+        p = self.params
+        max_range = self.config.extraction.max_range
+        if self._track_drift != (0.0, 0.0):
+            z = math.sqrt(CHI2_1DOF_99)
+            p = replace(
+                p,
+                see_through_margin=p.see_through_margin + z * math.sqrt(self._track_drift[0]),
+                see_through_slope=p.see_through_slope + z * math.sqrt(self._track_drift[1]),
+            )
+        through, hit = beam_evidence(submap.reference, scan, reg.pose, p, max_range)
+        in_free_space = 0.0
+        if submap.scans_in:
+            walls = reg.pose.apply(segments)
+            seen, passed = wall_evidence(walls, submap.scans_in, p, max_range, max_range)
+            length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+            in_free_space = float(length[passed > seen].sum())
+        enough = p.min_matched_length
+        contradicted = (through >= enough and through > hit) or (
+            in_free_space >= enough and in_free_space > reg.matched_length
+        )
+        return contradicted, through >= enough or in_free_space >= enough
 
     def _reachable(self, pose: Transform2D, seq: int, stamp: float) -> bool:
         """Whether the robot can have driven to ``pose`` (epoch frame) since its last placed scan:
@@ -551,7 +710,8 @@ class Tracker:
         # the prior is the integration's pose, loosely: the walls decide
         loose = np.diag([1.0 / 0.25**2, 1.0 / 0.25**2, 1.0 / 0.1**2])
         reg = register(samples, submap.reference, start, start, loose, self.params)
-        if self._judge(reg, scan, submap) != "" or not self._reachable(submap.origin.compose(reg.pose), seq, stamp):
+        why, _ = self._judge(reg, scan, segments, submap)
+        if why != "" or not self._reachable(submap.origin.compose(reg.pose), seq, stamp):
             return None
         return _Fit(reg, True, "reacquired")
 
@@ -583,6 +743,7 @@ class Tracker:
             seconds = self.clock.elapsed(stamp - self._good[0], seq - self._good[2])
             self._velocity, self._velocity_known = velocity_between(self._good[1], pose, seconds), True
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
+        self._drift = self._track_drift = (0.0, 0.0)
         # a scan without odometry breaks its chain: the next increment is measured from the next
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
         # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
@@ -709,6 +870,7 @@ class Tracker:
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._submaps = 0
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
+        self._drift = self._track_drift = (0.0, 0.0)
         self._odometry = odometry
         self._velocity, self._velocity_known = np.zeros(3), False
         self._inserted_at = None
@@ -720,7 +882,7 @@ class Tracker:
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
 
     def _lost(self) -> list[TrackStep]:
-        """``kidnap_after`` scans in a row did not fit: a new epoch from the first of them."""
+        """``kidnap_after`` scans the walls contradict, with none placed between: a new epoch from the first of them."""
         held, self._held = self._held, []
         first = held[0]
         log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))

@@ -417,6 +417,24 @@ def see_through(
     return float(weights[through].sum()), float(weights[visible].sum())
 
 
+def beam_evidence(
+    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+) -> tuple[float, float]:
+    """What the scan's beams say of the submap's walls at ``pose``: ``(through, hit)``, the wall
+    length (m) they pass through and the length they return from (:func:`beam_test`). A beam that
+    returns short of a wall (something in between) or returns nothing says neither: the beam
+    model's short and max readings (Thrun, Burgard & Fox 2005, 6.3). Nor does one beyond
+    ``max_range``, as extraction reads it: a log's no-return reading (81.91 m) is written as a
+    range, and read as one it passes through every wall. (A fit is still refused by
+    :func:`see_through`, which counts those: refusing costs a scan, concluding a kidnap an epoch.)"""
+    if len(reference) == 0:
+        return 0.0, 0.0
+    points, normals, support = reference.points, reference.normals, reference.support
+    _, through, hit = beam_test(points, normals, support, scan, pose, params, max_range, max_range)
+    weights = reference.weights
+    return float(weights[through].sum()), float(weights[hit].sum())
+
+
 def see_through_masks(
     reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
 ) -> tuple[Array, Array]:
@@ -435,10 +453,12 @@ def beam_test(
     pose: Transform2D,
     params: TrackingParams,
     max_range: float,
+    no_return_beyond: float = math.inf,
 ) -> tuple[Array, Array, Array]:
     """The test of :func:`see_through` on wall points (their normals, and the length of the wall
     each lies on): which are visible to the scan at ``pose``, which of those its beams pass
-    through, and which of those its beams return from (within the same margin)."""
+    through, and which of those its beams return from (within the same margin). A reading beyond
+    ``no_return_beyond`` counts as no return."""
     ranges = np.asarray(scan.ranges, dtype=np.float64)
     beams = len(ranges)
     local = (points - (pose.x, pose.y)) @ _rotation(-pose.theta)
@@ -453,7 +473,7 @@ def beam_test(
     candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
     measured = ranges[np.clip(beam, 0, beams - 1)]
     with np.errstate(invalid="ignore"):
-        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max)
+        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max) & (measured <= no_return_beyond)
     visible = candidate & returned
     cos_i = np.clip(cos_incidence, 1e-3, 1.0)
     tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
@@ -464,7 +484,11 @@ def beam_test(
 
 
 def wall_evidence(
-    segments: Array, scans: list[tuple[RangeScan, Transform2D]], params: TrackingParams, max_range: float
+    segments: Array,
+    scans: list[tuple[RangeScan, Transform2D]],
+    params: TrackingParams,
+    max_range: float,
+    no_return_beyond: float = math.inf,
 ) -> tuple[Array, Array]:
     """For each wall of a submap, what its own scans (each with its pose in the submap) say of it:
     ``(seen, through)``, the wall length (m, summed over the scans) their beams returned from, and
@@ -481,7 +505,9 @@ def wall_evidence(
     if owner is None or support is None:  # pragma: no cover - sample_segments gives both
         raise RuntimeError("the wall samples do not say which wall each lies on")
     for scan, pose in scans:
-        _, passed, hit = beam_test(samples.points, samples.normals, support, scan, pose, params, max_range)
+        _, passed, hit = beam_test(
+            samples.points, samples.normals, support, scan, pose, params, max_range, no_return_beyond
+        )
         seen += np.bincount(owner[hit], weights=samples.weights[hit], minlength=len(seg))
         through += np.bincount(owner[passed], weights=samples.weights[passed], minlength=len(seg))
     return seen, through
