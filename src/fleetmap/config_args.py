@@ -113,8 +113,9 @@ def offline(config: FleetmapConfig, args: argparse.Namespace) -> FleetmapConfig:
     replay repeats it (:mod:`fleetmap.shared.core.work`); a user's own logs and maps are no
     attacker's, and two halves of one building mapped apart need more than a live fleet's submaps
     (mit-csail's: tests/test_map.py)."""
-    named = getattr(args, "config", None)
+    # without it on the command line, the value is the config file's (or the default)
     asked = getattr(args, "cfg__merge__max_integration_work", None) is not None or (
-        named is not None and load_config(named).merge.max_integration_work != MergeParams().max_integration_work
+        getattr(args, "config", None) is not None
+        and config.merge.max_integration_work != MergeParams().max_integration_work
     )
     return config if asked else tuned(config, max_integration_work=0)
