@@ -31,7 +31,7 @@ from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import FleetEvent, LocalMap, Message, decode
+from fleetmap.shared.io.messages import FleetEvent, Message, decode
 from results import markdown_table, write_section
 
 from fleetmap.config_args import add_config_arguments, config_from_args
@@ -106,8 +106,7 @@ def run_merger(
             take_step()
             due += step
         log.add(m)
-        key = keys.localmap(m.robot) if isinstance(m, LocalMap) else keys.prefix
-        merger.receive(key, m.to_msgpack())
+        merger.take(m)
     take_step()
     while merger.has_work:  # what a live merger does after the robots stop
         take_step()
