@@ -135,8 +135,27 @@ def write_result(
     }
     path = root / FOLDER / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    path.write_text(dump_result(result), encoding="utf-8")
     return path
+
+
+def dump_result(result: dict[str, Any]) -> str:
+    """A result as JSON text, one field a line and one figure row a line (so a diff shows a row)."""
+
+    def dumps(value: Any) -> str:
+        return json.dumps(value, ensure_ascii=False)
+
+    def table(t: dict[str, Any]) -> str:
+        rows = "".join(f"\n   {dumps(r)}," for r in t["rows"]).rstrip(",")
+        return f'  {{"columns": {dumps(t["columns"])}, "rows": [{rows}\n  ]}}'
+
+    fields = []
+    for key, value in result.items():
+        text = dumps(value)
+        if key == "figures" and value:
+            text = "[\n" + ",\n".join(table(t) for t in value) + "\n ]"
+        fields.append(f" {dumps(key)}: {text}")
+    return "{\n" + ",\n".join(fields) + "\n}\n"
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
@@ -165,22 +184,52 @@ def _number(cell: str) -> tuple[float | int, str] | None:
     return value, m.group(2) or ""
 
 
+PAREN = re.compile(r"^(.*\S)\s*\((.+)\)$")
+"""``time (share of log)``, ``42 s (0.03)``: a name or value with a second one in brackets."""
+
+
+def _readings(header: str, cell: str) -> list[tuple[list[str], list[str], bool]]:
+    """The ways to read a cell as several named values, most literal first: as it is; numbers
+    with distinct units (``0.036 m, 0.31 deg``); a value and another in brackets (``42 s (0.03)``
+    under ``time (share of log)``); values split as the header splits (``2 / 6 ms`` under ``first /
+    last``, ``11.5 / 46.9`` under ``ms per scan (median / p95)``, ``CPU s: agents / merger``, the
+    last value's unit for all). Each: the names, the values, whether the last unit is for all."""
+    out = [([header], [cell], False)]
+    commas = cell.split(", ")
+    if len(commas) > 1 and all(n is not None and n[1] for n in map(_number, commas)):  # each with its unit
+        out.append(([header] * len(commas), commas, False))
+    h, c = PAREN.match(header), PAREN.match(cell)
+    if h and c:
+        out.append(([h[1], h[2]], [c[1], c[2]], False))
+    slashes = cell.split(" / ")
+    if len(slashes) > 1:
+        if h and len(h[2].split(" / ")) == len(slashes):
+            out.append(([f"{h[1]} {part}" for part in h[2].split(" / ")], slashes, True))
+        names = header.split(" / ")
+        if len(names) == len(slashes):
+            prefix = names[0].split(": ")[0] + " " if ": " in names[0] else ""
+            out.append(([names[0], *(prefix + n for n in names[1:])], slashes, True))
+    return out
+
+
 def _cell(header: str, cell: str) -> dict[str, Any]:
-    """One cell as named values: a number keyed with its unit, numbers with distinct units each
-    under their own key (``0.036 m, 0.31 deg``), ``-`` as None, anything else as its text."""
-    name = _key(header)
-    if cell.strip() in ("-", ""):
-        return {name: None}
-    parts = [_number(p) for p in cell.split(", ")]
-    numbers = [p for p in parts if p is not None]
-    units = [u for _, u in numbers]
-    if len(numbers) == len(parts) and (len(parts) == 1 or (len(set(units)) == len(units) and all(units))):
+    """One cell as named values: each number keyed by its column and its unit, by the first of
+    the cell's readings that gives only numbers under distinct keys; ``-`` as None; else its text."""
+    cell = cell.strip()
+    if cell in ("-", ""):
+        return {_key(header): None}
+    for names, parts, share in _readings(header, cell):
+        numbers = [n for n in (_number(p) for p in parts) if n is not None]
+        if len(numbers) < len(parts):
+            continue
+        shared = numbers[-1][1] if share else ""
         out: dict[str, Any] = {}
-        for value, unit in numbers:
-            unit_key = _key(unit) if unit else ""
-            out[name if not unit_key or name.endswith("_" + unit_key) else f"{name}_{unit_key}"] = value
-        return out
-    return {name: cell.strip()}
+        for name, (value, unit) in zip(names, numbers, strict=True):
+            key, unit_key = _key(name), _key(unit or shared) if (unit or shared) else ""
+            out[key if not unit_key or key.endswith("_" + unit_key) else f"{key}_{unit_key}"] = value
+        if len(out) == len(parts):
+            return out
+    return {_key(header): cell}
 
 
 def _row(header: list[str], cells: list[str]) -> dict[str, Any]:
