@@ -328,7 +328,7 @@ def render(root: Path = CHECKOUT) -> Path:
     results = load_results(folder)
     if not results:
         raise BadResult(f"{folder}: no results (run a benchmark with --write-results)")
-    dirty = [f"{folder / r['section']}.json ({_short(r['commit'])}+)" for r in results if r["dirty"]]
+    dirty = [f"{FOLDER}/{r['section']}.json ({_short(r['commit'])}+)" for r in results if r["dirty"]]
     if dirty:
         raise BadResult(
             "results from a checkout with uncommitted changes: "
