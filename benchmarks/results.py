@@ -8,10 +8,13 @@ markdown body that shows them. The figures are read back from the body's own tab
 the numbers the section shows, built in one place for every benchmark.
 
 ``python benchmarks/results.py render`` writes RESULTS.md from those files. It refuses (exit 2) a
-checkout with uncommitted changes and any result that came from one, so every figure in RESULTS.md
-comes from a commit. To regenerate, on a clean checkout of one commit (an idle machine for the
-timings): run each benchmark with ``--write-results``, then ``render``, and commit
-``benchmarks/results/`` with RESULTS.md.
+checkout with uncommitted changes (the results and RESULTS.md aside) and any result that came from
+one, so every figure in RESULTS.md comes from a commit. A result converted from an older RESULTS.md
+has its config hash and varied parameters null: they were not recorded.
+
+To regenerate, on a clean checkout of one commit (an idle machine for the timings): run each
+benchmark with ``--write-results``, then ``render``, and commit ``benchmarks/results/`` with
+RESULTS.md.
 """
 
 from __future__ import annotations
