@@ -8,12 +8,12 @@ For each scan (:meth:`Tracker.add`):
 2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
    (:func:`fleetmap.shared.core.tracking.register`).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
-   submap's (``min_matched_share``, ``min_matched_length``), the scan's beams through little of
-   the submap's walls (``max_see_through``: a laser does not see through walls), and a pose the
-   robot can have driven to since its last good scan (``max_speed``,
-   :meth:`~fleetmap.agents.prediction.Predictor.reachable`).
+   submap's (``min_matched_share``, ``min_matched_length``) and the scan's beams through little
+   of the submap's walls (``max_see_through``: a laser does not see through walls). The clock
+   bounds no registration (docs/decisions/009-clocks-evidence-over-stamps.md).
 4. A failed fit is **re-acquired** with the paper's pose-free integration of the scan on the
-   submap (Algorithms 1-4), within the reach of the robot, then registered and checked again.
+   submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
+   :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
    moved ``insert_distance`` or turned ``insert_rotation`` since the last inserted one (or
    ``insert_interval`` has passed) (:mod:`fleetmap.agents.submap`). The motion between placed
