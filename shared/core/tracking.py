@@ -127,6 +127,7 @@ class ReferenceMap:
         self._weight = np.zeros(0)
         self._count = np.zeros(0)
         self._support = np.zeros(0)
+        self._square_sum = np.zeros((0, 3))
         self._tree: cKDTree | None = None
         self._points = np.zeros((0, 2))
         self._normals = np.zeros((0, 2))
@@ -158,7 +159,10 @@ class ReferenceMap:
             self._weight = np.concatenate([self._weight, np.zeros(grow)])
             self._count = np.concatenate([self._count, np.zeros(grow)])
             self._support = np.concatenate([self._support, np.zeros(grow)])
+            self._square_sum = np.vstack([self._square_sum, np.zeros((grow, 3))])
         w = samples.weights
+        x, y = samples.points[:, 0], samples.points[:, 1]
+        np.add.at(self._square_sum, slots, np.column_stack([x * x, x * y, y * y]) * w[:, None])
         np.add.at(self._sum, slots, samples.points * w[:, None])
         np.add.at(self._normal_sum, slots, samples.normals * w[:, None])
         np.add.at(self._weight, slots, w)
@@ -179,15 +183,18 @@ class ReferenceMap:
         self._curves = None
 
     def curves(self, radius: float, cos_normals: float) -> Array:
-        """``(n, 2)``: for each cell, the coefficients ``(a, b)`` of the curve through the cells
-        within ``radius`` facing its way, ``h = a s + b s^2`` in the cell's frame (``s`` along its
-        tangent ``(n_y, -n_x)``, ``h`` along its normal ``n``): Armesto et al.'s continuous curve
-        through the reference points, to second order. ``(0, 0)`` (the tangent line) where fewer
-        than three neighbours span it. Computed once per change of the map."""
+        """``(n, 3)``: for each cell, the coefficients ``(a, b, c)`` of the curve through the cells
+        within ``radius`` facing its way, ``h = c + a s + b s^2`` in the cell's frame (``s`` along
+        its tangent ``(n_y, -n_x)``, ``h`` along its normal ``n``): Armesto et al.'s continuous
+        curve through the reference points, to second order. A cell's mean is the curve's average
+        over the samples in it, which lies off a bent wall by ``b var(s)`` (the samples' spread
+        along the tangent): ``c = -b var(s)`` puts the curve on the wall. ``(0, 0, 0)`` (the
+        tangent line) where fewer than three neighbours span it. Computed once per change of the
+        map."""
         self._refresh()
         if self._curves is not None:
             return self._curves
-        out = np.zeros((len(self._weight), 2))
+        out = np.zeros((len(self._weight), 3))
         if len(out) == 0 or self._tree is None:
             self._curves = out
             return out
@@ -210,6 +217,14 @@ class ReferenceMap:
         safe_det = np.where(fit, det, 1.0)
         out[:, 0] = np.where(fit, (sh * s4 - s2h * s3) / safe_det, 0.0)
         out[:, 1] = np.where(fit, (s2 * s2h - s3 * sh) / safe_det, 0.0)
+        m = self._points
+        square = self._square_sum / self._weight[:, None]
+        spread = (
+            t[:, 0] ** 2 * (square[:, 0] - m[:, 0] ** 2)
+            + 2.0 * t[:, 0] * t[:, 1] * (square[:, 1] - m[:, 0] * m[:, 1])
+            + t[:, 1] ** 2 * (square[:, 2] - m[:, 1] ** 2)
+        )
+        out[:, 2] = -out[:, 1] * np.maximum(spread, 0.0)
         self._curves = out
         return out
 
@@ -321,13 +336,13 @@ def _linearize(
     p = moved[rows]
     residuals = ((p - q) * n).sum(axis=1)
     if curves is not None:
-        # The curve h = a s + b s^2 at the matched cell: the residual is the point's height
+        # The curve h = c + a s + b s^2 at the matched cell: the residual is the point's height
         # above it, its gradient the curve's normal under the point.
-        ab = curves[index[found][facing]]
+        abc = curves[index[found][facing]]
         tangent = np.column_stack([n[:, 1], -n[:, 0]])
         s = ((p - q) * tangent).sum(axis=1)
-        residuals = residuals - (ab[:, 0] + ab[:, 1] * s) * s
-        n = n - (ab[:, 0] + 2.0 * ab[:, 1] * s)[:, None] * tangent
+        residuals = residuals - abc[:, 2] - (abc[:, 0] + abc[:, 1] * s) * s
+        n = n - (abc[:, 0] + 2.0 * abc[:, 1] * s)[:, None] * tangent
     # Cauchy loss: weight 1 / (1 + (r / c)^2), times the wall length the point stands for
     w = scan.weights[rows] / (1.0 + (residuals / scale) ** 2)
     arm = p - x[:2]

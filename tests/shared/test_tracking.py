@@ -190,3 +190,25 @@ def test_point_to_curve_fits_the_curve_through_a_round_walls_cells_and_registers
     reg = register(scan, reference, start, start, LOOSE, curve)
     dt, dr = reg.pose.distance(truth)
     assert reg.converged and dt < 0.005 and dr < math.radians(0.1)
+
+
+def test_both_residuals_register_walls_bent_to_a_30_cm_radius_without_bias():
+    # Two arcs of 0.3 m radius about different centres (cheap: well under a second). A cell's mean
+    # lies 0.4 mm inside such a wall; point-to-line cancels that (the scan's points lie as far
+    # inside their cell's tangent), the curve through the means only with its offset c = -b var(s).
+    def arc(cx, cy, a0, a1):
+        a = np.linspace(a0, a1, 200)
+        pts = np.column_stack([cx + 0.3 * np.cos(a), cy + 0.3 * np.sin(a)])
+        return np.hstack([pts[:-1], pts[1:]])
+
+    world = np.vstack([arc(0.0, 3.0, -0.2 * math.pi, -0.8 * math.pi), arc(3.0, 0.0, 0.8 * math.pi, 1.2 * math.pi)])
+    reference = ReferenceMap(PARAMS.voxel_size)
+    reference.insert(sample_segments(world, 0.01))
+    truth = Transform2D(0.05, -0.04, 0.03)
+    scan = sample_segments(truth.inverse().apply(world), PARAMS.sample_spacing)
+    start = truth.compose(Transform2D(0.1, -0.1, 0.05))
+    tight = replace(PARAMS, convergence_translation=1e-7, convergence_rotation=1e-7, max_iterations=60)
+    for registration in ("point_to_line", "point_to_curve"):
+        reg = register(scan, reference, start, start, np.zeros((3, 3)), replace(tight, registration=registration))
+        dt, dr = reg.pose.distance(truth)
+        assert reg.converged and dt < 1e-4 and dr < math.radians(0.005), (registration, dt, math.degrees(dr))
