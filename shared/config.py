@@ -37,7 +37,6 @@ Heuristic = Literal["all", "consecutive", "random", "histogram", "auto"]
 HEURISTICS: tuple[str, ...] = get_args(Heuristic)
 Aligner = Literal["paper", "ransac"]
 FrontEnd = Literal["tracking", "pivot"]
-Residual = Literal["point_to_line", "point_to_curve"]
 Odometry = Literal["auto", "on", "off"]
 WallFusion = Literal["unweighted", "weighted"]
 
@@ -403,9 +402,6 @@ class TrackingParams:
     """auto: use the source's odometry when it has some; on: require it; off: constant velocity only."""
     sample_spacing: float = ours(0.10)
     """Metres between the points sampled along a scan's segments for registration."""
-    registration: Residual = ours("point_to_line")
-    """point_to_line: a scan point's residual is its distance from the submap wall's tangent line;
-    point_to_curve: from the curve through the submap's points near it (Armesto et al.'s eICP)."""
     voxel_size: float = ours(0.05)
     """Cell size (m) of a submap's registration grid (the mean point and normal of each cell)."""
     residual_sigma: float = ours(0.03)

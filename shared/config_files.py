@@ -65,6 +65,7 @@ def _coerce(section: str, name: str, kind: Any, value: Any, source: str) -> Any:
 
 RETIRED: dict[str, frozenset[str]] = {
     "merge": frozenset({"carried_max_ambiguity", "histogram_bins", "bridge_min_value"}),
+    "tracking": frozenset({"registration"}),
 }
 """Parameters the code does not read: a config file or a recording's config that names one still
 loads (it is ignored, said at INFO)."""

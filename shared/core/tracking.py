@@ -14,7 +14,8 @@ Armesto et al. register a scan's points to the continuous curve of the other sca
   tracked poses, averaged per cell of a ``voxel_size`` grid, each with the mean normal of its
   cell. A scan point is matched to the nearest such point whose normal faces the same way (a thin
   wall's two sides are two different walls), and its residual is the distance from that point's
-  line (point-to-line: Censi's PLICP; Armesto et al.'s point-to-curve).
+  line (point-to-line: Censi's PLICP). Armesto et al.'s curve through the reference points is its
+  second-order case; on cell means it gains nothing (docs/decisions/012-the-other-papers.md).
 - **The fit** minimises the robust (Cauchy) sum of squared residuals plus the prior, by
   Gauss-Newton, with the correspondence radius and the loss's scale annealed from coarse to fine
   (:func:`correspondence_schedule`): a prediction a few tens of centimetres or ten degrees off still
@@ -44,13 +45,6 @@ from scipy.spatial import cKDTree
 
 _KEY_STRIDE = 1 << 32
 """Packs a voxel's two cell indices into one int64 key."""
-
-CURVE_NEIGHBOURS = 12
-"""Point-to-curve: the curve at a cell is fitted through at most this many nearest cells ..."""
-
-CURVE_CELLS = 3
-"""... within ``min_correspondence`` or this many cells, whichever is farther (a second-order fit
-needs neighbours on both sides)."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +125,6 @@ class ReferenceMap:
         self._points = np.zeros((0, 2))
         self._normals = np.zeros((0, 2))
         self._valid = np.zeros(0, dtype=bool)
-        self._curves: Array | None = None
 
     def __len__(self) -> int:
         return len(self._weight)
@@ -176,42 +169,6 @@ class ReferenceMap:
         self._valid = norm > 0.5 * self._weight
         self._normals = self._normal_sum / np.maximum(norm, 1e-12)[:, None]
         self._tree = cKDTree(self._points)
-        self._curves = None
-
-    def curves(self, radius: float, cos_normals: float) -> Array:
-        """``(n, 2)``: for each cell, the coefficients ``(a, b)`` of the curve through the cells
-        within ``radius`` facing its way, ``h = a s + b s^2`` in the cell's frame (``s`` along its
-        tangent ``(n_y, -n_x)``, ``h`` along its normal ``n``): Armesto et al.'s continuous curve
-        through the reference points, to second order. ``(0, 0)`` (the tangent line) where fewer
-        than three neighbours span it. Computed once per change of the map."""
-        self._refresh()
-        if self._curves is not None:
-            return self._curves
-        out = np.zeros((len(self._weight), 2))
-        if len(out) == 0 or self._tree is None:
-            self._curves = out
-            return out
-        k = min(CURVE_NEIGHBOURS, len(out))
-        distance, index = self._tree.query(self._points, k=k, distance_upper_bound=radius)
-        index = np.asarray(index).reshape(len(out), k)
-        found = np.isfinite(np.asarray(distance).reshape(len(out), k))
-        safe = np.where(found, index, 0)
-        n = self._normals
-        t = np.column_stack([n[:, 1], -n[:, 0]])
-        rel = self._points[safe] - self._points[:, None, :]
-        s = np.einsum("ikj,ij->ik", rel, t)
-        h = np.einsum("ikj,ij->ik", rel, n)
-        use = found & (np.einsum("ikj,ij->ik", n[safe], n) >= cos_normals) & self._valid[safe]
-        s, h = np.where(use, s, 0.0), np.where(use, h, 0.0)
-        s2, s3, s4 = (s**2).sum(axis=1), (s**3).sum(axis=1), (s**4).sum(axis=1)
-        sh, s2h = (s * h).sum(axis=1), (s**2 * h).sum(axis=1)
-        det = s2 * s4 - s3 * s3
-        fit = (use.sum(axis=1) >= 4) & (det > 1e-12 * np.maximum(s2 * s4, 1e-30)) & self._valid
-        safe_det = np.where(fit, det, 1.0)
-        out[:, 0] = np.where(fit, (sh * s4 - s2h * s3) / safe_det, 0.0)
-        out[:, 1] = np.where(fit, (s2 * s2h - s3 * sh) / safe_det, 0.0)
-        self._curves = out
-        return out
 
     @property
     def points(self) -> Array:
@@ -304,11 +261,10 @@ def _linearize(
     scale: float,
     sigma2: float,
     cos_normals: float,
-    curves: Array | None,
 ) -> tuple[Array, Array, Array, Array, Array]:
     """One Gauss-Newton linearisation of :func:`register`'s residuals at the pose ``x``: the scan's
-    points matched within ``radius`` (their rows), their point-to-line (or point-to-curve)
-    residuals, their Cauchy weights at ``scale``, and the residuals' Jacobian, plain and weighted."""
+    points matched within ``radius`` (their rows), their point-to-line residuals, their Cauchy
+    weights at ``scale``, and the residuals' Jacobian, plain and weighted."""
     rot = _rotation(x[2])
     moved = scan.points @ rot + x[:2]
     index, _ = reference.nearest(moved, radius)
@@ -320,14 +276,6 @@ def _linearize(
     q, n = q[facing], n[facing]
     p = moved[rows]
     residuals = ((p - q) * n).sum(axis=1)
-    if curves is not None:
-        # The curve h = a s + b s^2 at the matched cell: the residual is the point's height
-        # above it, its gradient the curve's normal under the point.
-        ab = curves[index[found][facing]]
-        tangent = np.column_stack([n[:, 1], -n[:, 0]])
-        s = ((p - q) * tangent).sum(axis=1)
-        residuals = residuals - (ab[:, 0] + ab[:, 1] * s) * s
-        n = n - (ab[:, 0] + 2.0 * ab[:, 1] * s)[:, None] * tangent
     # Cauchy loss: weight 1 / (1 + (r / c)^2), times the wall length the point stands for
     w = scan.weights[rows] / (1.0 + (residuals / scale) ** 2)
     arm = p - x[:2]
@@ -345,10 +293,7 @@ def register(
     params: TrackingParams,
 ) -> Registration:
     """The scan's pose on the submap: robust point-to-line ICP from ``initial``, pulled towards
-    ``prior`` with ``prior_information`` (3x3, on x, y, theta in the submap's frame). With
-    ``registration`` point_to_curve, a point's residual is its distance from the curve through the
-    submap's cells near its match (:meth:`ReferenceMap.curves`):
-    Armesto et al.'s eICP, whose first-order case is the point-to-line residual."""
+    ``prior`` with ``prior_information`` (3x3, on x, y, theta in the submap's frame)."""
     x = initial.as_array()
     mu = prior.as_array()
     schedule = correspondence_schedule(params)
@@ -357,11 +302,6 @@ def register(
     since = 0
     sigma2 = params.residual_sigma**2
     cos_normals = math.cos(params.max_normal_angle)
-    curves = (
-        reference.curves(max(params.min_correspondence, CURVE_CELLS * reference.voxel_size), cos_normals)
-        if params.registration == "point_to_curve"
-        else None
-    )
     h_scan = np.zeros((3, 3))
     h = prior_information.copy()
     matched = np.zeros(len(scan), dtype=bool)
@@ -370,7 +310,7 @@ def register(
     converged = False
     iterations = 0
     for iterations in range(1, params.max_iterations + 1):
-        rows, residuals, w, jac, jw = _linearize(scan, reference, x, radius, scale, sigma2, cos_normals, curves)
+        rows, residuals, w, jac, jw = _linearize(scan, reference, x, radius, scale, sigma2, cos_normals)
         h_scan = jw.T @ jac
         h = h_scan + prior_information
         error = x - mu

@@ -26,6 +26,7 @@ BASIC = Path(__file__).resolve().parents[2] / "src" / "fleetmap" / "examples" / 
 def test_a_retired_parameter_in_an_old_config_is_ignored_and_an_unknown_one_refused() -> None:
     # a recording made before a parameter was retired still replays with its own config
     old = {"merge": {"carried_max_ambiguity": 0.25, "histogram_bins": 36, "bridge_min_value": 10.0, "join_support": 3}}
+    old["tracking"] = {"registration": "point_to_curve"}
     config = apply_overrides(FleetmapConfig(), old, "the recording's config")
     assert config.merge.join_support == 3
     with pytest.raises(BadInput, match=r"\[merge\] no_such_thing: unknown parameter"):
