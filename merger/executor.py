@@ -52,6 +52,13 @@ log = logging.getLogger(__name__)
 
 EXECUTORS: tuple[str, ...] = ("inline", "local", "ray")
 
+POLISH_ITERATIONS = 30
+"""A polished edge's Gauss-Newton steps, at most (``polish_edges``)."""
+EDGE_INFORMATION = True
+"""An edge weighs as firmly as its walls fix each direction of its transform (the normal matrix of its
+least-squares fit), not by its value alone in every direction (orebro's pieces 0-3 of 8: maps 0.26 and
+0.22 m off by value alone, all within 0.2 m with it; docs/decisions/008-pivot-local-maps.md)."""
+
 
 MAX_ATTEMPTS = 3
 """How often a local job runs when its worker dies under it (a job that kills every worker it
@@ -194,19 +201,19 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
 def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Transform2D, tuple[float, ...] | None]:
     """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
     where either was integrated simplified, ``t`` fitted again by least squares
-    (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
+    (``polish_edges``), unless the fit moves it farther than the witness
     tolerances."""
     p, merge = job.integration, job.merge
     polish = merge.polish_edges and not (job.work_a is job.map_a and job.work_b is job.map_b)
-    if not (polish or merge.edge_information):
+    if not (polish or EDGE_INFORMATION):
         return t, None
     prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p, work=work)
     if polish:
-        candidate = refine_transform(prep, t, p, iterations=merge.polish_iterations)
+        candidate = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
         dt, dr = candidate.distance(t)
         if dt <= p.pivot.witness_translation and dr <= p.pivot.witness_rotation:
             t = candidate
-    h = fit_information(prep, t, p) if merge.edge_information else None
+    h = fit_information(prep, t, p) if EDGE_INFORMATION else None
     return t, None if h is None else tuple(np.asarray(h).ravel().tolist())
 
 

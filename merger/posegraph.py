@@ -51,16 +51,21 @@ import numpy as np
 from fleetmap.merger.chains import _chain_of, _map_file
 from fleetmap.merger.forest import KeptForest
 from fleetmap.merger.graph import Component, Edge, MergeResult, _bfs_order, _unite
-from fleetmap.merger.joins import _within
+from fleetmap.merger.joins import JOIN_HYPOTHESES, _within
 from fleetmap.merger.pairs import VERDICT_VERSIONS
 from fleetmap.merger.refinement import RefinedGraph
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.kalman_fusion import offset_information
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION
 from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
+
+MAX_REJECTION_ROUNDS = 5
+"""The refined poses are solved again, without the integrations they disagree with, at most this many
+times (one round instead: the warehouse's error 0.010 -> 0.014 m; docs/decisions/002-pose-graph.md)."""
 
 
 class PoseGraph(RefinedGraph):
@@ -231,7 +236,7 @@ class PoseGraph(RefinedGraph):
             kept.loops.append(e)
             refine.add(ra)
             return True
-        hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+        hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: JOIN_HYPOTHESES - 1])]
         agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
         if len(agreeing) == 1:
             kept.loops.append(replace(agreeing[0], valid=True))
@@ -273,7 +278,7 @@ class PoseGraph(RefinedGraph):
         the same (:meth:`_join_holds`), the group's joins are looked at again when a new submap
         joins it, and then only the pairs that its submaps new or grown since the last look make
         across a join are new evidence. Each is looked at (:meth:`_look`) where the tree puts it;
-        a pair that puts ``valid_refute_violation`` of wall in the other's seen free space is
+        a pair that puts ``VALID_REFUTE_VIOLATION`` of wall in the other's seen free space is
         weighed in (:meth:`holds_with`), and where that cannot say, the join is judged again
         whole (:meth:`_failed_join`). Which side of a join a submap is on is read off the rooted
         forest (:attr:`~fleetmap.merger.forest.RootedForest.joins_above`), so a step costs what
@@ -309,7 +314,7 @@ class PoseGraph(RefinedGraph):
         reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
         drifts = {(f, g): forest.drift(f, g) for f, g in pairs if above[f] != above[g]}  # across a join
         pairs = {p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r}
-        refute = self.integration.validity.valid_refute_violation
+        refute = VALID_REFUTE_VIOLATION
         for e in joins:
             key = e.key()
             a_far = key in above[e.a]  # whether e.a is on the far side of e from the root
@@ -376,7 +381,7 @@ class PoseGraph(RefinedGraph):
         valid = sorted(valid, key=lambda e: (-e.value, order[e.a], order[e.b]))
         disagreeing: set[tuple[str, str]] = set()
         self._begin_refinement()
-        for _ in range(self.merge.max_rejection_rounds):
+        for _ in range(MAX_REJECTION_ROUNDS):
             built = self._forest(links, [e for e in valid if e.key() not in disagreeing], priors)
             components, off = self._refined_components(built.tree, built.loops)
             components = self._global_first(components)

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from fleetmap.parameters_doc import COMMAND, render
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
@@ -37,3 +39,8 @@ def test_the_link_check_finds_a_link_out_of_the_repository(tmp_path: Path) -> No
     outside = tmp_path / "x.md"
     outside.write_text("[formats](docs/formats.md) and [contracts](../shared/CONTRACTS.md)")
     assert broken_links(outside) == ["docs/formats.md", "../shared/CONTRACTS.md"]
+
+
+def test_the_parameter_reference_is_the_one_the_config_generates() -> None:
+    # (under a second) a parameter added, retired or redocumented shows in docs/parameters.md
+    assert (ROOT / "docs" / "parameters.md").read_text(encoding="utf-8") == render(), f"out of date: run {COMMAND}"

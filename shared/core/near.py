@@ -29,6 +29,12 @@ from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.core.validity import is_valid
 from fleetmap.shared.core.work import Work, WorkExhausted
 
+NEAR_PRIOR_TRANSLATION = 1.0
+"""How far (m) registration near a prediction lets the prediction pull: loosely, so that the walls
+decide ..."""
+NEAR_PRIOR_ROTATION = 0.35
+"""... and how far it turns (rad, 20 degrees)."""
+
 
 def align_near(
     m1: SegmentMap,
@@ -76,7 +82,7 @@ def _align_near(
     start: float,
 ) -> Integration:
     samples = sample_segments(m2.segments, tracking.sample_spacing)
-    near_t, near_r = params.near_prior_translation, params.near_prior_rotation
+    near_t, near_r = NEAR_PRIOR_TRANSLATION, NEAR_PRIOR_ROTATION
     loose = np.diag([1.0 / near_t**2, 1.0 / near_t**2, 1.0 / near_r**2])
     work.charge(len(samples) * tracking.max_iterations)
     reg = register(samples, reference1, predicted, predicted, loose, tracking)

@@ -21,7 +21,18 @@ from fleetmap.shared.core.refine import refine_transform, refinement_kept
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.simplify import simplify
 from fleetmap.shared.core.transformation_value import prepare, transformation_value
+from fleetmap.shared.core.validity import VALID_MAX_AMBIGUITY
 from fleetmap.shared.errors import BadInput
+
+LOCAL_MAP_RADIUS = 20.0
+"""A scan that integrates with no previous scan is integrated with the built map within this (m) of
+the last placed pose: about a laser's reach (the default ``max_range``)."""
+CORNER_TURN = math.pi / 4
+"""A step that turned more than this (rad, 45 degrees) took a corner: the motion prior then drives on
+straight ahead in the new heading (docs/decisions/008-pivot-local-maps.md)."""
+SIMPLIFY_FROM = 200
+"""The built map is simplified once it holds more segments than this (and half again each time): a
+bound on the cost of integrating with it."""
 
 
 @dataclass(frozen=True)
@@ -42,7 +53,7 @@ class PivotMapBuilder:
 
     - **Map fallback** (``use_map``): a map that does not integrate validly with the previous one
       is integrated with the map built so far, near the last placed pose (within
-      ``local_map_radius``), which has more context (the previous scan may have been blocked by a
+      the :data:`LOCAL_MAP_RADIUS`), which has more context (the previous scan may have been blocked by a
       person, or turned away). A map that integrates with neither is not fused and gets no pose;
       the next map is integrated with the last placed one. (An agent takes failures as the sign of
       a kidnap and starts a new builder: a new epoch.)
@@ -55,7 +66,7 @@ class PivotMapBuilder:
       ahead in the new heading), because it is ambiguous (a hallway matches one door further as
       well, or turned round) or matches best elsewhere, the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
-      scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
+      scores at least ``VALID_MAX_AMBIGUITY`` of the best match anywhere. Motion picks between
       near-equal matches; against a clearly better one it needs two valid matches where it says
       (below). Against the motion (farther than ``motion_prior_radius`` from the prediction), a
       map is placed only where two valid integrations agree, and not there if one of them also
@@ -107,7 +118,7 @@ class PivotMapBuilder:
         placed map to the last, scaled to the time since the last, continued from the last. None
         until two maps with increasing stamps are placed.
 
-        After a corner (a step turned more than ``corner_turn``), the robot drives on straight
+        After a corner (a step turned more than :data:`CORNER_TURN`), the robot drives on straight
         ahead in its new heading, as far as that step took it in the same time (the chord across
         the corner, a little short of the way driven): continuing the
         turn would put it facing back the way it came (a robot that turned 90 degrees in one step
@@ -122,7 +133,7 @@ class PivotMapBuilder:
             return None
         ratio = (stamp - t1) / (t1 - t0)
         step = self._before[1].inverse().compose(self._last_pose)
-        if abs(step.theta) > self.params.pivot.corner_turn:
+        if abs(step.theta) > CORNER_TURN:
             return self._last_pose.compose(Transform2D(math.hypot(step.x, step.y) * ratio, 0.0, 0.0))
         return self._last_pose.compose(Transform2D(step.x * ratio, step.y * ratio, step.theta * ratio))
 
@@ -188,7 +199,7 @@ class PivotMapBuilder:
             self._map = fuse(self._map, m, pose, self.params)
         self._viewpoints.append(moved_viewpoints(viewpoints_of(m), pose))
         tol = self.params.simplify_tolerance
-        if tol > 0 and len(self._map) > max(self.params.pivot.simplify_from, 1.5 * self._simplified_size):
+        if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
             self._map = simplify(self._map, tol)
             self._simplified_size = len(self._map)
         self._before = (last, self._last_pose)
@@ -238,7 +249,7 @@ class PivotMapBuilder:
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         near_pose = pose.compose(near.transform)
-        if near.valid and near.value - near.violation >= p.validity.valid_max_ambiguity * (r.value - r.violation):
+        if near.valid and near.value - near.violation >= VALID_MAX_AMBIGUITY * (r.value - r.violation):
             return _Witness(near_pose, near, at_prediction=predicted is not None)
         if predicted is None or near.value <= 0:
             return _Witness(pose.compose(r.transform), r)
@@ -309,8 +320,8 @@ class PivotMapBuilder:
         return w if w.integration.valid and motion.possible(w.pose) else None
 
     def _near(self, pose: Transform2D) -> SegmentMap:
-        """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
-        radius = self.params.pivot.local_map_radius
+        """The built map within :data:`LOCAL_MAP_RADIUS` of ``pose`` (all of it if the radius is 0)."""
+        radius = LOCAL_MAP_RADIUS
         seg, vp = self._map.segments, self._all_viewpoints()
         near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
             axis=1
