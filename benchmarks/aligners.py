@@ -15,7 +15,7 @@ the share that are right, and the same among those RANSAC also calls valid withi
 of it (and how many of the paper's valid pairs that keeps).
 
     python benchmarks/aligners.py
-    python benchmarks/aligners.py --write-results     # and update benchmarks/RESULTS.md
+    python benchmarks/aligners.py --write-results     # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from fleetmap.shared.core.integration import Integration, integrate
 from fleetmap.shared.core.segmap import SegmentMap
 from integration import load_pairs
 from merge import load_pieces, scan_maps
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -128,7 +128,7 @@ def main() -> int:
     ap.add_argument("--sample", type=int, default=300, help="relations per log (0: all)")
     ap.add_argument("--max-scans", type=int, default=200, help="scans per corrected log")
     ap.add_argument("--workers", type=int, default=1, help="processes (timings are per pair either way)")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -150,7 +150,13 @@ def main() -> int:
     body = markdown_table(HEADER, rows)
     print(body)
     if args.write_results:
-        write_section("aligners", TITLE, EXPLAINED + "\n\n" + body)
+        write_result(
+            "aligners",
+            TITLE,
+            EXPLAINED + "\n\n" + body,
+            config=config,
+            varied=[f"integration.aligner={','.join(ALIGNERS)}"],
+        )
     return 0
 
 

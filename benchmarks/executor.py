@@ -21,7 +21,7 @@ from collections import deque
 from pathlib import Path
 
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob, PairResult, make_executor
-from results import write_section
+from results import write_result
 from tracking import data_folder
 
 from fleetmap.config_args import preset
@@ -80,7 +80,7 @@ def main() -> int:
     ap.add_argument("--log", default="mit-csail", choices=sorted(LOGS))
     ap.add_argument("--split", type=int, default=8)
     ap.add_argument("--no-ray", action="store_true", help="skip the Ray cluster (Ray not installed)")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
     path, range_max = LOGS[args.log]
     pieces = read_inputs([str(data_folder() / path)], args.split, None, range_max, None)
@@ -135,7 +135,7 @@ def main() -> int:
     print()
     print(body)
     if args.write_results:
-        write_section("executor", "Integration workers (`benchmarks/executor.py`)", body)
+        write_result("executor", "Integration workers (`benchmarks/executor.py`)", body, config=config)
     return 0
 
 

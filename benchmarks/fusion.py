@@ -39,7 +39,7 @@ from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array
 from offline import run_agents, run_merger
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 from start_poses import score
 
 from fleetmap import cli
@@ -209,7 +209,7 @@ def main() -> int:
     ap.add_argument("scenarios", nargs="*", help=f"bundled names (default: all of {', '.join(list_scenarios())})")
     ap.add_argument("--logs", default="", help="comma-separated logs under $FLEETMAP_DATA (aces,fr079,mit-csail)")
     ap.add_argument("--no-scenarios", action="store_true", help="the real logs only")
-    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
     config = FleetmapConfig()
     text = EXPLAINED
@@ -222,7 +222,13 @@ def main() -> int:
         text += "\n\n" + LOGS_EXPLAINED + "\n\n" + markdown_table(LOG_HEADER, rows)
     print(text)
     if args.write_results:
-        write_section("fusion", "Uncertainty-weighted wall fusion (`benchmarks/fusion.py`)", text)
+        write_result(
+            "fusion",
+            "Uncertainty-weighted wall fusion (`benchmarks/fusion.py`)",
+            text,
+            config=config,
+            varied=[f"merge.wall_fusion={','.join(FUSIONS)}"],
+        )
     return 0
 
 

@@ -27,7 +27,7 @@ from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from results import write_section
+from results import write_result
 from tracking import LOGS, data_folder
 
 
@@ -96,7 +96,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--log", default="aces", choices=sorted(LOGS), help="the full-rate log (default aces)")
     ap.add_argument("--copies", default="1,4", help="tours to map, comma-separated (default 1,4)")
-    ap.add_argument("--write-results", action="store_true", help="update benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
     runs = []
     for n in sorted({int(c) for c in args.copies.split(",") if c}):
@@ -108,7 +108,9 @@ def main() -> int:
     )
     print(body)
     if args.write_results:
-        write_section("growth", "The merger's cost as the map grows (`benchmarks/growth.py`)", body)
+        write_result(
+            "growth", "The merger's cost as the map grows (`benchmarks/growth.py`)", body, config=preset("offline")
+        )
     return 0
 
 

@@ -46,7 +46,7 @@ from fleetmap.shared.io.messages import EpochLink, LocalMap, Scan, SubmapLink
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.report import merge_latencies
 from fleetmap.runner import Session, SessionError
@@ -363,7 +363,7 @@ def main() -> None:
     parser.add_argument("--attacks", default=",".join(ATTACKS), help=f"comma-separated, of {', '.join(ATTACKS)}")
     parser.add_argument("--speed", type=float, default=4.0, help="scenario seconds per wall second (default 4)")
     parser.add_argument("--secure", action="store_true", help="a logged-in fleet; the attacker is robot r2")
-    parser.add_argument("--write-results", action="store_true", help="write the table into RESULTS.md")
+    parser.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     parser.add_argument("--out", help="keep each session's folder (logs, recording) here")
     args = parser.parse_args()
     names = [a.strip() for a in args.attacks.split(",") if a.strip()]
@@ -389,7 +389,7 @@ def main() -> None:
         )
         section = "hostile-secure" if args.secure else "hostile"
         title = "A fleet under attack" + (", secured" if args.secure else "") + " (`benchmarks/hostile.py`)"
-        write_section(section, title, body)
+        write_result(section, title, body, config=FleetmapConfig())
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ on the largest pair.
 
     python benchmarks/integration.py                      # 300 relations per dataset, all heuristics
     python benchmarks/integration.py --sample 0 --heuristics auto   # every relation, auto only
-    python benchmarks/integration.py --write-results      # and update benchmarks/RESULTS.md
+    python benchmarks/integration.py --write-results      # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -185,7 +185,7 @@ def main() -> int:
     ap.add_argument("--sample-seed", type=int, default=1)
     ap.add_argument("--workers", type=int, default=1, help="processes (timings are per pair either way)")
     ap.add_argument("--json", metavar="FILE", help="write every result row here")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -230,7 +230,14 @@ def main() -> int:
     for line in lines:
         print(line)
     if args.write_results:
-        write_section("integration", TITLE, "\n\n".join([EXPLAINED, text, *lines]))
+        heuristics = [*args.heuristics.split(","), *(("all", "auto") if lines else ())]
+        write_result(
+            "integration",
+            TITLE,
+            "\n\n".join([EXPLAINED, text, *lines]),
+            config=config,
+            varied=[f"integration.heuristic={','.join(dict.fromkeys(heuristics))}"],
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(all_rows))
     return 0

@@ -15,12 +15,13 @@ import statistics
 import time
 
 import numpy as np
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
-from results import write_section
+from results import write_result
 from tracking import data_folder
 
 
@@ -61,7 +62,12 @@ def main() -> int:
         print(lines[-1], flush=True)
     body = "\n".join(lines)
     if args.write_results:
-        write_section("integration-size", "One integration against map size (`benchmarks/integration_size.py`)", body)
+        write_result(
+            "integration-size",
+            "One integration against map size (`benchmarks/integration_size.py`)",
+            body,
+            config=FleetmapConfig(),
+        )
     return 0
 
 

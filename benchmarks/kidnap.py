@@ -8,7 +8,7 @@ relocalized within (0.1 m, 2 deg) in at most 10 scans after the overlap, none fa
 warehouse.
 
     python benchmarks/kidnap.py [--scenarios department-events,office-events,warehouse-events] [--runs 5]
-    python benchmarks/kidnap.py --write-results    # and update benchmarks/RESULTS.md
+    python benchmarks/kidnap.py --write-results    # and write its result (benchmarks/results/)
 
 A live run depends on how the machine shares its cores between the agents and the merger: with
 ``--runs N`` each scenario runs N times and the median and range of the scans are printed too.
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from fleetmap.scenarios import load_scenario
 from fleetmap.shared.config import FleetmapConfig
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.runner import Session
 
@@ -77,7 +77,7 @@ def main() -> int:
     ap.add_argument("--scenarios", default="department-events,office-events,warehouse-events")
     ap.add_argument("--speed", type=float, default=3.0)
     ap.add_argument("--runs", type=int, default=1, help="live sessions per scenario")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,7 +97,12 @@ def main() -> int:
         for line in lines:
             print(line)
     if args.write_results:
-        write_section("kidnap", "Kidnapped robots (`benchmarks/kidnap.py`)", "\n\n".join([EXPLAINED, text, *lines]))
+        write_result(
+            "kidnap",
+            "Kidnapped robots (`benchmarks/kidnap.py`)",
+            "\n\n".join([EXPLAINED, text, *lines]),
+            config=FleetmapConfig(),
+        )
     return 0
 
 

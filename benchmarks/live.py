@@ -53,7 +53,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.sources import Ros2BagSource
-from results import write_section
+from results import write_result
 
 from fleetmap.report import merge_latencies
 from fleetmap.ros2_robots import write_robot_bag
@@ -314,7 +314,7 @@ def main() -> int:
     ap.add_argument("--ros2", action="store_true", help="also with the robots on ROS 2 topics (play -> agent --ros2)")
     ap.add_argument("--executor", default="local", help="the merger's executors to compare (comma-separated)")
     ap.add_argument("--runs", type=int, default=1, help="sessions of each kind (a live merger's steps vary)")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     ap.add_argument("--out", metavar="DIR", help="keep each session's folder (logs, recording) under DIR")
     args = ap.parse_args()
     modes = list(MODES) if args.secure else ["open"]
@@ -387,11 +387,21 @@ def main() -> int:
     print(body)
     if args.write_results:
         if args.ros2:
-            write_section("live-ros2", "The live fleet on ROS 2 topics (`benchmarks/live.py --ros2`)", body)
+            write_result(
+                "live-ros2",
+                "The live fleet on ROS 2 topics (`benchmarks/live.py --ros2`)",
+                body,
+                config=FleetmapConfig(),
+            )
         elif args.secure:
-            write_section("live-secure", "The live fleet with logins and TLS (`benchmarks/live.py --secure`)", body)
+            write_result(
+                "live-secure",
+                "The live fleet with logins and TLS (`benchmarks/live.py --secure`)",
+                body,
+                config=FleetmapConfig(),
+            )
         else:
-            write_section("live", "The live fleet (`benchmarks/live.py`)", body)
+            write_result("live", "The live fleet (`benchmarks/live.py`)", body, config=FleetmapConfig())
     return 0
 
 

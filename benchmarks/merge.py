@@ -29,7 +29,7 @@ corrected poses put its content (:func:`content_frame`), not its first scan's.
 
     python benchmarks/merge.py                         # every dataset, K = 4 and 8
     python benchmarks/merge.py --datasets aces,csail --k 8
-    python benchmarks/merge.py --write-results         # and update benchmarks/RESULTS.md
+    python benchmarks/merge.py --write-results         # and write its result (benchmarks/results/)
     python benchmarks/merge.py --stamps index          # a scan a second, for logs without usable times
     python benchmarks/merge.py --local-maps truth      # the merge alone: each piece's one map fused
                                                        # from its scans at their corrected poses
@@ -68,7 +68,7 @@ from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -407,14 +407,14 @@ def totals(rows: list[dict]) -> list[str]:
     ]
 
 
-def report(rows: list[dict], write: bool) -> None:
-    """Print the table and the totals; with ``write``, into RESULTS.md's section ``merge`` too."""
+def report(rows: list[dict], write: bool, config: FleetmapConfig) -> None:
+    """Print the table and the totals; with ``write``, into section ``merge``'s result (run with ``config``) too."""
     print()
     print(table(rows))
     print("\n" + "\n".join(totals(rows)))
     if write:
         body = "\n\n".join([EXPLAINED, table(rows), *totals(rows)])
-        write_section("merge", "Merging local maps of the corrected logs (`benchmarks/merge.py`)", body)
+        write_result("merge", "Merging local maps of the corrected logs (`benchmarks/merge.py`)", body, config=config)
 
 
 def main() -> int:
@@ -449,7 +449,7 @@ def main() -> int:
         help=f"also every Nth scan of the full-rate log between two corrected ones ({', '.join(FULL_RATE)}; see above)",
     )
     ap.add_argument("--edges-json", metavar="FILE", help="write every integrated pair, with its error, here")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
     args = ap.parse_args()
     if args.full_rate < 0:
@@ -475,7 +475,7 @@ def main() -> int:
                 )
     if args.edges_json:
         Path(args.edges_json).write_text(json.dumps(args.edges_rows))
-    report(rows, args.write_results)
+    report(rows, args.write_results, config)
     return 0
 
 

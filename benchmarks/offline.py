@@ -12,7 +12,7 @@ than 0.3 m or 3 degrees from where the truth puts them in their epoch (a wrong l
 
     python benchmarks/offline.py                       # every bundled scenario
     python benchmarks/offline.py office-events --step 0.5
-    python benchmarks/offline.py --write-results       # and update benchmarks/RESULTS.md
+    python benchmarks/offline.py --write-results       # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.keys import FleetKeys
-from fleetmap.shared.io.messages import FleetEvent, LocalMap, Message, decode
-from results import markdown_table, write_section
+from fleetmap.shared.io.messages import FleetEvent, Message, decode
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.report import SessionLog, build_report, make_truth, summary_table
@@ -106,8 +106,7 @@ def run_merger(
             take_step()
             due += step
         log.add(m)
-        key = keys.localmap(m.robot) if isinstance(m, LocalMap) else keys.prefix
-        merger.receive(key, m.to_msgpack())
+        merger.take(m)
     take_step()
     while merger.has_work:  # what a live merger does after the robots stop
         take_step()
@@ -209,13 +208,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenarios", nargs="*", help=f"bundled names (default: all of {', '.join(list_scenarios())})")
     ap.add_argument("--step", type=float, default=1.0, help="scenario seconds between merger steps")
-    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration", "merge", "tracking"])
     args = ap.parse_args()
     config = config_from_args(args)
     runs = [(name, *run(name, config, args.step)) for name in args.scenarios or list_scenarios()]
     if args.write_results:
-        write_section("offline", "Scenarios without processes or a bus (`benchmarks/offline.py`)", tables(runs))
+        write_result(
+            "offline", "Scenarios without processes or a bus (`benchmarks/offline.py`)", tables(runs), config=config
+        )
     return 0
 
 

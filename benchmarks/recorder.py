@@ -13,7 +13,7 @@ Prints messages/s and MB/s of payload, with and without the Foxglove views.
 
     python benchmarks/recorder.py                          # 300-segment maps, 2000 of them
     python benchmarks/recorder.py --segments 100 1000 --messages 500
-    python benchmarks/recorder.py --write-results          # and update benchmarks/RESULTS.md
+    python benchmarks/recorder.py --write-results          # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from fleetmap.shared.io.recording import RecordingWriter
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 KEYS = FleetKeys("bench")
 ROBOTS = 4
@@ -163,7 +163,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--segments", type=int, nargs="+", default=[300], help="segments per local map")
     parser.add_argument("--messages", type=int, default=2000, help="local maps per run")
-    parser.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    parser.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = parser.parse_args()
     rows: list[Row] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -186,7 +186,12 @@ def main() -> int:
         print(aligned(cells(row, args.messages)))
     if args.write_results:
         table = markdown_table(HEADER, [cells(row, args.messages) for row in rows])
-        write_section("recorder", "The recorder's throughput (`benchmarks/recorder.py`)", EXPLAINED + "\n\n" + table)
+        write_result(
+            "recorder",
+            "The recorder's throughput (`benchmarks/recorder.py`)",
+            EXPLAINED + "\n\n" + table,
+            config=None,
+        )
     return 0
 
 

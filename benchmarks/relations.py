@@ -53,7 +53,7 @@ from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from relation_frame import measure
-from results import write_section
+from results import write_result
 from tracking import CORRECTED, LOGS, data_folder
 
 WITHIN_M, WITHIN_DEG = 0.10, 2.0
@@ -260,7 +260,7 @@ def main() -> int:
     )
     ap.add_argument("--splits", default="1,2,4,8", help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
-    ap.add_argument("--write-results", action="store_true", help="update benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args, extra = ap.parse_known_args()
     names = [
         m
@@ -302,7 +302,7 @@ def main() -> int:
     )
     print(body)
     if args.write_results:
-        write_section("relations", "Mapping real logs (`benchmarks/relations.py`)", body)
+        write_result("relations", "Mapping real logs (`benchmarks/relations.py`)", body, config=preset("offline"))
     return 0
 
 

@@ -28,7 +28,7 @@ apart. Along a corridor the value is nearly flat along the way, and on these log
 lies mostly short of the step.
 
     python benchmarks/scan_pairs.py
-    python benchmarks/scan_pairs.py --write-results    # and update benchmarks/RESULTS.md
+    python benchmarks/scan_pairs.py --write-results    # and write its result (benchmarks/results/)
     python benchmarks/scan_pairs.py --datasets edmonton --kappa-noise-factor 0 -v
 """
 
@@ -47,7 +47,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, integrate
 from fleetmap.shared.core.validity import VALID_MAX_AMBIGUITY, VALID_MAX_VIOLATION, VALID_MIN_FRACTION
 from merge import DATASETS, load_pieces, scan_maps
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -172,7 +172,7 @@ def main() -> int:
     ap.add_argument("--max-scans", type=int, default=200, help="scans used per dataset (after subsampling)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("-v", "--verbose", action="store_true", help="list the pairs that are not right and valid")
-    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -185,7 +185,7 @@ def main() -> int:
     body = tables(results)
     print(body)
     if args.write_results:
-        write_section("scan-pairs", TITLE, EXPLAINED + "\n\n" + body)
+        write_result("scan-pairs", TITLE, EXPLAINED + "\n\n" + body, config=config)
     if args.verbose:
         for name, counts, rows, _, _ in results:
             print(f"\n{name}: " + ", ".join(f"{k} {n}" for k, n in sorted(counts.items())))

@@ -12,7 +12,7 @@
     python benchmarks/scenarios.py                          # everything
     python benchmarks/scenarios.py --scenarios department   # one scenario
     python benchmarks/scenarios.py --no-merge --heuristic consecutive
-    python benchmarks/scenarios.py --write-results          # and update benchmarks/RESULTS.md
+    python benchmarks/scenarios.py --write-results          # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from fleetmap.shared.config import FleetmapConfig, IntegrationParams
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.segmap import SegmentMap
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -265,7 +265,7 @@ def main() -> int:
     ap.add_argument("--scenarios", default=",".join(list_scenarios()), help="comma-separated (default: all bundled)")
     ap.add_argument("--laser-repeats", type=int, default=20, help="timing repeats per pose (0: skip the laser)")
     ap.add_argument("--no-merge", action="store_true", help="skip the merge section")
-    ap.add_argument("--write-results", action="store_true", help="write the tables into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration", "merge"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -289,7 +289,7 @@ def main() -> int:
     print()
     print(text)
     if args.write_results:
-        write_section("scenarios", TITLE, "\n\n".join(t for t in (laser, text) if t))
+        write_result("scenarios", TITLE, "\n\n".join(t for t in (laser, text) if t), config=config)
     return 0
 
 

@@ -18,7 +18,7 @@ scenario second of the first global map that holds every robot's first epoch.
 
     python benchmarks/start_poses.py                      # every bundled scenario
     python benchmarks/start_poses.py office department
-    python benchmarks/start_poses.py --write-results      # and update benchmarks/RESULTS.md
+    python benchmarks/start_poses.py --write-results      # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.messages import LocalMap, Message
 from offline import run_agents, run_merger
-from results import markdown_table, write_section
+from results import markdown_table, write_result
 
 from fleetmap.report import SessionLog, Truth, build_report, make_truth, true_frame
 
@@ -139,14 +139,20 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenarios", nargs="*", help=f"bundled names (default: all of {', '.join(list_scenarios())})")
     ap.add_argument("--step", type=float, default=1.0, help="scenario seconds between merger steps")
-    ap.add_argument("--write-results", action="store_true", help="write the table into benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
     config = FleetmapConfig()
     rows = [row for name in args.scenarios or list_scenarios() for row in run(name, config, args.step)]
     table = markdown_table(HEADER, rows)
     print(table)
     if args.write_results:
-        write_section("start_poses", "Known start poses (`benchmarks/start_poses.py`)", EXPLAINED + "\n\n" + table)
+        write_result(
+            "start_poses",
+            "Known start poses (`benchmarks/start_poses.py`)",
+            EXPLAINED + "\n\n" + table,
+            config=config,
+            varied=[f"merge.start_pose_sigma_translation={config.merge.start_pose_sigma_translation:g},{TIGHT_M:g}"],
+        )
     return 0
 
 

@@ -23,7 +23,7 @@ relative to their epoch's first scan (mean and 95th percentile).
     python benchmarks/tracking.py                      # everything
     python benchmarks/tracking.py --logs mit-csail --no-scenarios
     python benchmarks/tracking.py --clock true,burst,jitter,drop,skew,repeat --no-scenarios
-    python benchmarks/tracking.py --write-results      # and update benchmarks/RESULTS.md
+    python benchmarks/tracking.py --write-results      # and write its result (benchmarks/results/)
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
 from fleetmap.shared.io.sources import CarmenSource
-from results import write_section
+from results import write_result
 
 from fleetmap.config_args import add_config_arguments, config_from_args
 
@@ -298,7 +298,7 @@ def main() -> int:
     )
     ap.add_argument("--no-scenarios", action="store_true", help="skip the bundled scenarios")
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
-    ap.add_argument("--write-results", action="store_true", help="update benchmarks/RESULTS.md")
+    ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     add_config_arguments(ap, ["extraction", "integration", "tracking"])
     args = ap.parse_args()
     config = config_from_args(args)
@@ -344,7 +344,7 @@ def main() -> int:
         body += "their epoch's first scan.\n\n" + scenario_table(scenario_results)
     print(body)
     if args.write_results:
-        write_section("tracking", "Tracking front end (`benchmarks/tracking.py`)", body)
+        write_result("tracking", "Tracking front end (`benchmarks/tracking.py`)", body, config=config)
     return 0
 
 

@@ -95,6 +95,27 @@ class Intake:
             if self.stats.malformed <= 20 or self.stats.malformed % 1000 == 0:
                 log.warning("dropped a malformed message on %s: %s (%d so far)", key, exc, self.stats.malformed)
             return []
+        return self._take(key, message, now, recalled)
+
+    def take(self, message: Message, now: float | None = None, recalled: bool = False) -> list[Outgoing]:
+        """Take one typed message from an in-process caller (``fleetmap map``, replays,
+        benchmarks), as :meth:`receive` takes it off the bus: on its robot's own key, with the
+        same checks (a message is validated when it is made, so nothing is decoded here). A
+        robot's event counts on its robot's events key; a message the merger does not take
+        (another service's output) is counted as ignored."""
+        robot = getattr(message, "robot", None)
+        if isinstance(message, LocalMap):
+            key = self.keys.localmap(message.robot)
+        elif isinstance(message, Scan):
+            key = self.keys.scan(message.robot)
+        elif isinstance(message, FleetEvent) and robot is not None:
+            key = self.keys.robot_events(robot)
+        else:
+            key = self.keys.events
+        return self._take(key, message, now, recalled)
+
+    def _take(self, key: str, message: Message, now: float | None, recalled: bool) -> list[Outgoing]:
+        """What :meth:`receive` and :meth:`take` share: a valid message's checks and intake."""
         self.stats.received[message.SCHEMA] += 1
         robot = getattr(message, "robot", None)
         if not self._robots_own(key, message) or not self._admitted(robot, recalled) or not self._room_for(robot):

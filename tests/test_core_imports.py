@@ -31,6 +31,10 @@ CORE = sorted(f"fleetmap.shared.core.{m.name}" for m in pkgutil.iter_modules(fle
 LOGIC = [
     "fleetmap.shared.io.messages",
     "fleetmap.agents.tracker",
+    "fleetmap.agents.submap",
+    "fleetmap.agents.prediction",
+    "fleetmap.agents.fitcheck",
+    "fleetmap.agents.clock_evidence",
     "fleetmap.agents.agent",
     "fleetmap.agents.pivot",
     "fleetmap.merger.graph",

@@ -3,9 +3,8 @@ over 80 (issue 51).
 
 Lengths are counted as the code reads: a module's lines, and a class's or function's from its
 ``def``/``class`` line to its last line (``end_lineno - lineno + 1``, decorators not counted);
-a method is measured on its own as well as inside its class. The known breaches still being split
-are listed in :data:`BEING_SPLIT`; an entry that no longer breaches a limit fails the test too, so
-the list can only shrink. The whole check parses the package's sources once: well under a second.
+a method is measured on its own as well as inside its class. The whole check parses the package's
+sources once: well under a second.
 """
 
 from __future__ import annotations
@@ -22,17 +21,6 @@ FOLDERS = ("agents", "merger", "scenarios", "shared", "src")
 MODULE_LINES = 600
 CLASS_LINES = 400
 FUNCTION_LINES = 80
-
-BEING_SPLIT = frozenset(
-    {
-        # being split (issue 51)
-        "agents/tracker.py",
-        "agents/tracker.py::Tracker",
-        "shared/core/tracking.py::register",
-    }
-)
-"""Breaches known and being split: ``path`` for a module, ``path::Qualified.name`` for a class or
-function."""
 
 
 def breaches(path: str, source: str) -> dict[str, int]:
@@ -66,12 +54,11 @@ def package_breaches() -> dict[str, int]:
     return found
 
 
-def test_no_module_class_or_function_is_over_its_limit_but_those_being_split() -> None:
+def test_no_module_class_or_function_is_over_its_limit() -> None:
     found = package_breaches()
-    new = {name: length for name, length in found.items() if name not in BEING_SPLIT}
-    assert not new, f"over the limits (module {MODULE_LINES}, class {CLASS_LINES}, function {FUNCTION_LINES}): {new}"
-    done = sorted(BEING_SPLIT - set(found))
-    assert not done, f"within the limits now, or gone: take them off BEING_SPLIT: {done}"
+    assert not found, (
+        f"over the limits (module {MODULE_LINES}, class {CLASS_LINES}, function {FUNCTION_LINES}): {found}"
+    )
 
 
 def _function(lines: int) -> str:

@@ -296,6 +296,46 @@ def correspondence_schedule(params: TrackingParams) -> list[tuple[float, float]]
     return [(r, r * params.loss_scale) for r in stages]
 
 
+def _linearize(
+    scan: ScanSamples,
+    reference: ReferenceMap,
+    x: Array,
+    radius: float,
+    scale: float,
+    sigma2: float,
+    cos_normals: float,
+    curves: Array | None,
+) -> tuple[Array, Array, Array, Array, Array]:
+    """One Gauss-Newton linearisation of :func:`register`'s residuals at the pose ``x``: the scan's
+    points matched within ``radius`` (their rows), their point-to-line (or point-to-curve)
+    residuals, their Cauchy weights at ``scale``, and the residuals' Jacobian, plain and weighted."""
+    rot = _rotation(x[2])
+    moved = scan.points @ rot + x[:2]
+    index, _ = reference.nearest(moved, radius)
+    found = index >= 0
+    q = reference.points[index[found]]
+    n = reference.normals[index[found]]
+    facing = ((scan.normals[found] @ rot) * n).sum(axis=1) >= cos_normals
+    rows = np.flatnonzero(found)[facing]
+    q, n = q[facing], n[facing]
+    p = moved[rows]
+    residuals = ((p - q) * n).sum(axis=1)
+    if curves is not None:
+        # The curve h = a s + b s^2 at the matched cell: the residual is the point's height
+        # above it, its gradient the curve's normal under the point.
+        ab = curves[index[found][facing]]
+        tangent = np.column_stack([n[:, 1], -n[:, 0]])
+        s = ((p - q) * tangent).sum(axis=1)
+        residuals = residuals - (ab[:, 0] + ab[:, 1] * s) * s
+        n = n - (ab[:, 0] + 2.0 * ab[:, 1] * s)[:, None] * tangent
+    # Cauchy loss: weight 1 / (1 + (r / c)^2), times the wall length the point stands for
+    w = scan.weights[rows] / (1.0 + (residuals / scale) ** 2)
+    arm = p - x[:2]
+    jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]])
+    jw = jac * (w / sigma2)[:, None]
+    return rows, residuals, w, jac, jw
+
+
 def register(
     scan: ScanSamples,
     reference: ReferenceMap,
@@ -330,30 +370,7 @@ def register(
     converged = False
     iterations = 0
     for iterations in range(1, params.max_iterations + 1):
-        rot = _rotation(x[2])
-        moved = scan.points @ rot + x[:2]
-        index, _ = reference.nearest(moved, radius)
-        found = index >= 0
-        q = reference.points[index[found]]
-        n = reference.normals[index[found]]
-        facing = ((scan.normals[found] @ rot) * n).sum(axis=1) >= cos_normals
-        rows = np.flatnonzero(found)[facing]
-        q, n = q[facing], n[facing]
-        p = moved[rows]
-        residuals = ((p - q) * n).sum(axis=1)
-        if curves is not None:
-            # The curve h = a s + b s^2 at the matched cell: the residual is the point's height
-            # above it, its gradient the curve's normal under the point.
-            ab = curves[index[found][facing]]
-            tangent = np.column_stack([n[:, 1], -n[:, 0]])
-            s = ((p - q) * tangent).sum(axis=1)
-            residuals = residuals - (ab[:, 0] + ab[:, 1] * s) * s
-            n = n - (ab[:, 0] + 2.0 * ab[:, 1] * s)[:, None] * tangent
-        # Cauchy loss: weight 1 / (1 + (r / c)^2), times the wall length the point stands for
-        w = scan.weights[rows] / (1.0 + (residuals / scale) ** 2)
-        arm = p - x[:2]
-        jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]])
-        jw = jac * (w / sigma2)[:, None]
+        rows, residuals, w, jac, jw = _linearize(scan, reference, x, radius, scale, sigma2, cos_normals, curves)
         h_scan = jw.T @ jac
         h = h_scan + prior_information
         error = x - mu

@@ -218,10 +218,8 @@ class _MergerSide:
     def send(self, messages: list[Message]) -> None:
         for m in messages:
             self.log.add(m)
-            if isinstance(m, LocalMap):
-                self.merger.receive(self.keys.localmap(m.robot), m.to_msgpack())
-            elif isinstance(m, Scan):
-                self.merger.receive(self.keys.scan(m.robot), m.to_msgpack())
+            if isinstance(m, (LocalMap, Scan)):
+                self.merger.take(m)
 
     def steps_due(self) -> None:
         if self.merger.has_work:

@@ -294,7 +294,6 @@ def _follow_steps(
     recording that ends before the live merger caught up; restarted where the live one was
     (``restarts``, :func:`_restart`). The merger at the end, the global map after the step that
     published ``compared`` (None if none did), and the steps taken."""
-    keys = merger.keys
     at_live: GlobalMap | None = None
     stepped = 0
     by_version = {(msg.submap_key, msg.version): (m, msg) for m, msg in decoded if isinstance(msg, LocalMap)}
@@ -310,8 +309,7 @@ def _follow_steps(
                 log.warning("local map %s version %d is not in the recording", key, version)
                 continue
             pace.wait(found[0].log_time)
-            robot = found[1].robot
-            merger.receive(keys.localmap(robot), found[0].payload)
+            merger.take(found[1])
             inputs.append(f"{key}@{version}")
         take(merger.step(limit=step.integrations))
         if compared is not None and step.seq == compared.seq:
@@ -334,7 +332,7 @@ def _feed_in_order(
     """A partial replay: each selected local map version in recording order, a step after each."""
     for n, (m, msg) in enumerate(maps):
         pace.wait(m.log_time)
-        merger.receive(merger.keys.localmap(msg.robot), m.payload)
+        merger.take(msg)
         inputs.append(f"{msg.submap_key}@{msg.version}")
         take(merger.step())
         if progress:

@@ -61,17 +61,10 @@ def _kill_one(find: Callable[[], list[int]], done: threading.Event, killed: list
     return thread
 
 
-@pytest.mark.slow  # maps 360 real scans three times (about 40 s)
+@pytest.mark.slow  # maps 360 real scans on a pool (about 15 s; an undisturbed pool: tests/test_map.py)
 def test_a_process_pool_merges_to_the_inline_poses_even_when_a_worker_dies(
     pieces: list[Piece], inline_poses: Poses, tmp_path: Path
 ) -> None:
-    with_pool = LocalExecutor(2)
-    try:
-        assert _merge(pieces, with_pool, tmp_path / "pool") == inline_poses
-    finally:
-        with_pool.close()
-    assert with_pool.restarts == 0 and with_pool.submitted > 10
-
     killed: list[int] = []
     done = threading.Event()
     doomed = LocalExecutor(2)
@@ -102,7 +95,7 @@ def _ray_workers_running_a_job() -> list[int]:
     return out
 
 
-@pytest.mark.slow  # starts a local Ray cluster of 2 CPUs and maps 360 real scans twice on it (about 60 s)
+@pytest.mark.slow  # starts a local Ray cluster of 2 CPUs and maps 360 real scans on it (about 35 s)
 def test_a_local_ray_cluster_merges_to_the_inline_poses_even_when_a_worker_dies(
     pieces: list[Piece], inline_poses: Poses, tmp_path: Path
 ) -> None:
@@ -110,7 +103,6 @@ def test_a_local_ray_cluster_merges_to_the_inline_poses_even_when_a_worker_dies(
     on_ray = make_executor("ray", workers=2)
     try:
         assert on_ray.capacity == 2  # one job in flight per CPU
-        assert _merge(pieces, on_ray, tmp_path / "ray") == inline_poses
         killed: list[int] = []
         done = threading.Event()
         thread = _kill_one(_ray_workers_running_a_job, done, killed)

@@ -58,10 +58,13 @@ def fleet() -> Fleet:
     return Fleet([m for _, _, m in finals], truth)
 
 
-def _merged(messages: list[LocalMap], wrong: Edge | None = None) -> Merger:
+def _merged(messages: list[LocalMap], wrong: Edge | None = None, typed: bool = False) -> Merger:
     merger = Merger(KEYS)
     for m in messages:
-        merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+        if typed:
+            merger.take(m)
+        else:
+            merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
         merger.step()
     if wrong is not None:
         merger.graph.add_edge(wrong)
@@ -136,6 +139,20 @@ def test_one_wrong_integration_moves_no_map(fleet: Fleet) -> None:
 
 
 @pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_submaps_taken_typed_in_process_merge_as_the_same_submaps_off_the_bus(fleet: Fleet) -> None:
+    first = fleet.finals[:8]
+    off_the_bus, typed = _merged(first), _merged(first, typed=True)
+    assert off_the_bus.result is not None and typed.result is not None
+    assert typed.stats.received == off_the_bus.stats.received
+    for one, other in zip(off_the_bus.result.components, typed.result.components, strict=True):
+        assert one.members == other.members
+        assert all(one.poses[k].distance(other.poses[k]) == (0.0, 0.0) for k in one.members)
+    # what the merger does not take (another service's output) is counted, not taken
+    ignored = typed.stats.ignored
+    typed.take(RobotPose(stamp=1.0, robot="r1", epoch=0, pose=Transform2D(0.0, 0.0, 0.0), component=0))
+    assert typed.stats.ignored == ignored + 1
+
+
 def test_the_same_submaps_in_another_order_give_the_same_map(fleet: Fleet) -> None:
     forward = _merged(fleet.finals)
     backward = _merged(fleet.finals[::-1])

@@ -1,0 +1,246 @@
+"""Where a robot's next scan should be, and how far it can be from there: the tracker's motion
+models (:mod:`fleetmap.agents.tracker`, step 1 of its walk-through, and the reach that bounds
+steps 3 and 4).
+
+The odometry's increment when the robot has odometry, else constant velocity
+(:mod:`fleetmap.shared.core.motion`), each with its uncertainty; the robot standing still where it
+was last placed as a model of its own. The uncertainty of the steps the walls did not check adds
+up until they place a scan again (the *drift*). The odometry's sign is judged from the motion the
+scans were placed with (:meth:`Predictor.judge_odometry_sign`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+
+import numpy as np
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D, wrap_angle
+from fleetmap.shared.core.motion import (
+    CHI2_3DOF_99,
+    Prediction,
+    ScanClock,
+    from_odometry,
+    from_velocity,
+    fused,
+    odometry_increment,
+    velocity_between,
+)
+
+log = logging.getLogger(__name__)
+
+Placed = tuple[float, Transform2D, int]
+"""Stamp, epoch-frame pose and sequence number of a robot's last placed scan."""
+
+
+class Predictor:
+    """One robot's motion models between its placed scans."""
+
+    def __init__(self, config: FleetmapConfig, odometry: bool = True) -> None:
+        self.config = config
+        self.params = config.tracking
+        self.use_odometry = odometry
+        self.clock = ScanClock(config.integration.motion.max_speed)
+        """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
+        self.odometry: Transform2D | None = None
+        """The odometry reading of the last scan, which the next increment starts from."""
+        self.velocity = np.zeros(3)
+        """Per second of :attr:`clock` time, in the laser's frame."""
+        self.velocity_known = False
+        """Whether two placed scans of the epoch gave the velocity."""
+        self.drift = (0.0, 0.0)
+        """The motion model's variances (m^2, rad^2) added up over the steps since the last scan the
+        walls placed: the prediction's uncertainty grows with every step they did not check
+        (:meth:`predictions`)."""
+        self.step_variance = (0.0, 0.0)
+        """The last prediction's own variances, before :attr:`drift`."""
+        self.standing = Prediction(Transform2D(), 0.0, 0.0, "still")
+        """The last scan's start from where the robot was last placed (:meth:`predictions`)."""
+        self.track_drift = (0.0, 0.0)
+        """:attr:`drift` as of the last carried scan: the uncertainty of the track the robot is on,
+        which the beam test excuses (:func:`fleetmap.agents.fitcheck.contradicts`). The scans held
+        since add nothing: they are what is being tested, from that track."""
+        self.odometry_step: Prediction | None = None
+        """The last scan's odometry prediction as the wheels gave it (:meth:`judge_odometry_sign`)."""
+        self.reversed_odometry = 0.0
+        """The belief that the odometry's translation has lost its sign (:meth:`judge_odometry_sign`)."""
+        self.bad_odometry = 0
+        """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
+
+    def restart(self, odometry: Transform2D | None) -> None:
+        """An epoch begins at a scan with this odometry reading: nothing is known of the motion."""
+        self.drift = self.track_drift = (0.0, 0.0)
+        self.odometry = odometry
+        self.velocity, self.velocity_known = np.zeros(3), False
+
+    def moved(self, last: Placed, pose: Transform2D, seq: int, stamp: float) -> None:
+        """The walls placed a scan at ``pose`` (epoch frame) after the last placed scan: the velocity
+        between the two."""
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        self.velocity, self.velocity_known = velocity_between(last[1], pose, seconds), True
+
+    def carry(self) -> None:
+        """The scan just predicted was not placed by the walls: its step's uncertainty adds to the
+        next ones'."""
+        self.drift = (self.drift[0] + self.step_variance[0], self.drift[1] + self.step_variance[1])
+
+    def predictions(
+        self, seq: int, stamp: float, odometry: Transform2D | None, last_stamp: float | None, last_seq: int
+    ) -> list[Prediction]:
+        """Where the scan should be, from the last scan (``last_stamp``, ``last_seq``): by odometry
+        when the robot has it, then by constant velocity (each a motion model that can be wrong: a
+        real robot's odometry is off by ten degrees or more on some fast turns, and a robot brakes
+        or turns where constant velocity goes on). The time since the last scan is the clock's
+        (:class:`ScanClock`): the stamps while they agree with the motion, else the scans' sequence.
+        Odometry read at a stamp the clock does not trust is as wrong as the stamp: its uncertainty
+        then grows by the motion over the stamp's error, and the first start is the two models
+        fused by their information."""
+        integration = self.config.integration
+        seconds = stamp - last_stamp if last_stamp is not None else 0.0
+        elapsed = self.clock.elapsed(seconds, seq - last_seq)
+        velocity = from_velocity(self.velocity, elapsed, self.params, integration.motion.max_acceleration)
+        out = []
+        self.odometry_step = None
+        if self.use_odometry and odometry is not None:
+            odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed)
+            if odometry_prediction is not None:
+                out.append(odometry_prediction)
+        if self.clock.trusted or not out:
+            out.append(velocity)
+        else:
+            # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
+            # does not drift but is off scan by scan; each is also a start of its own
+            out = [fused(velocity, out[0]), velocity, out[0]]
+        self.step_variance = (out[0].sigma_translation ** 2, out[0].sigma_rotation ** 2)
+        # The robot standing still where it was last placed is a motion model of its own (as in a
+        # multiple-model estimator; Bar-Shalom, Li & Kirubarajan 2001, ch. 11): its uncertainty is that
+        # pose's (a carried track's drift) and one step's, not the moving models' predictions
+        # chained over the held scans, which a robot that stopped never drove
+        t, r = self.track_drift
+        self.standing = Prediction(
+            Transform2D(),
+            math.sqrt(out[-1].sigma_translation ** 2 + t),
+            math.sqrt(out[-1].sigma_rotation ** 2 + r),
+            "still",
+        )
+        if self.drift != (0.0, 0.0):
+            # the steps since the last placed scan were not checked by the walls: their
+            # uncertainty adds up (the covariance of a chain of motions, a random walk)
+            t, r = self.drift
+            out = [
+                replace(
+                    q,
+                    sigma_translation=math.sqrt(q.sigma_translation**2 + t),
+                    sigma_rotation=math.sqrt(q.sigma_rotation**2 + r),
+                )
+                for q in out
+            ]
+        return out
+
+    def _by_odometry(self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float) -> Prediction | None:
+        """The odometry's prediction (its sign as believed, :meth:`judge_odometry_sign`); None, with
+        a warning, for a reading that is not finite or jumps farther than the robot can drive."""
+        integration = self.config.integration
+        increment, why = odometry_increment(self.odometry, odometry, elapsed, integration.motion.max_speed)
+        if increment is None:
+            if self.odometry is not None:
+                self.bad_odometry += 1
+                if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
+                    log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
+            return None
+        prediction = self.odometry_step = from_odometry(increment, self.params)
+        if self.reversed_odometry > 0.5:
+            prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
+        if not self.clock.trusted:
+            # read at a wrong stamp, the odometry is off by the robot's motion over the
+            # stamp's error: the stamps' interval less the sequence's, a period at least
+            error = max(self.clock.period, abs(seconds - elapsed))
+            step = self.velocity * error
+            prediction = replace(
+                prediction,
+                sigma_translation=prediction.sigma_translation + math.hypot(step[0], step[1]),
+                sigma_rotation=prediction.sigma_rotation + abs(float(step[2])),
+            )
+        return prediction
+
+    def reach(self, last: Placed | None, seq: int, stamp: float) -> float:
+        """How far (m) the robot can have driven since its ``last`` placed scan."""
+        integration = self.config.integration
+        if last is None or integration.motion.max_speed <= 0:
+            return self.config.extraction.max_range
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        return integration.motion.max_speed * seconds + integration.pivot.witness_translation
+
+    def reachable(self, last: Placed | None, pose: Transform2D, seq: int, stamp: float) -> bool:
+        """Whether the robot can have driven to ``pose`` (epoch frame) since its ``last`` placed scan:
+        no farther than ``max_speed`` allows, and, once its velocity is known, no farther from where
+        that velocity takes it than ``max_acceleration`` allows (plus ``witness_translation`` for the
+        fits' own error). Physics, not a pose: a look-alike corridor matches well, but a robot
+        driving at 1.5 m/s is not 1.4 m on 0.4 s later."""
+        integration = self.config.integration
+        if last is None:
+            return True
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        margin = integration.pivot.witness_translation
+        if integration.motion.max_speed > 0 and math.hypot(pose.x - last[1].x, pose.y - last[1].y) > (
+            integration.motion.max_speed * seconds + margin
+        ):
+            return False
+        if integration.motion.max_acceleration > 0 and self.velocity_known:
+            v = self.velocity * seconds
+            expected = last[1].compose(Transform2D(float(v[0]), float(v[1]), float(v[2])))
+            off = math.hypot(pose.x - expected.x, pose.y - expected.y)
+            return off <= 0.5 * integration.motion.max_acceleration * seconds * seconds + margin
+        return True
+
+    def judge_odometry_sign(self, moved: Transform2D) -> None:
+        """Update the belief that the odometry's translation has lost its sign, from the motion the
+        scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),
+        filtered forward (Rabiner 1989, the forward algorithm). Each state predicts the increment
+        (the odometry's, or its translation negated, its turn kept), with the odometry's own
+        uncertainty. Some logs' odometry adds up the wheels' speed without its sign, so reversing it
+        drives forward (fr079's, and the corrected log made from it, which carries no speed to
+        tell: 103 of its 4,790 steps); along a corridor the walls cannot say which way the robot
+        went, and the odometry's prior decides. A robot changes its direction of travel only
+        through standing still: after a step the odometry cannot tell from standing still (within
+        ``odometry_translation_sigma``) either state is as likely, and the next steps' evidence
+        decides; while the robot moves, the belief holds unless a step only the other state explains
+        turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
+        validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
+        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
+        step = self.odometry_step
+        if step is None:
+            return
+        signed = step.increment
+        if math.hypot(signed.x, signed.y) < self.params.odometry_translation_sigma:
+            self.reversed_odometry = 0.5  # standing still: either way next
+            return
+        unsigned = Transform2D(-signed.x, -signed.y, signed.theta)
+        information = step.information()
+
+        def distance(predicted: Transform2D) -> float:
+            off = predicted.inverse().compose(moved).as_array()
+            off[2] = float(wrap_angle(off[2]))
+            return float(off @ information @ off)
+
+        d_signed, d_unsigned = distance(signed), distance(unsigned)
+        low = min(d_signed, d_unsigned)  # likelihoods relative to the likelier state's
+        if low > CHI2_3DOF_99:
+            return  # neither state explains the step (the validation gate): the odometry is off otherwise
+        l_signed, l_unsigned = math.exp(-0.5 * (d_signed - low)), math.exp(-0.5 * (d_unsigned - low))
+        # a belief held while moving is never quite certain: a step that only the other state
+        # explains, by a likelihood ratio over 1e9, still turns it (a sparse log's robot can stop
+        # and reverse between two scans)
+        b = min(max(self.reversed_odometry, 1e-9), 1.0 - 1e-9)
+        self.reversed_odometry = b * l_unsigned / (b * l_unsigned + (1.0 - b) * l_signed)
+
+
+def within_gate(placed: Transform2D, predicted: Transform2D, prediction: Prediction) -> bool:
+    """Whether a fit's pose ``placed`` lies within the 99 % validation gate of a ``prediction`` that
+    put the scan at ``predicted`` (both in one frame): its squared Mahalanobis distance under the
+    motion model's uncertainty within the chi-square bound of three degrees of freedom."""
+    off = predicted.inverse().compose(placed).as_array()
+    off[2] = float(wrap_angle(off[2]))
+    return float(off @ prediction.information() @ off) <= CHI2_3DOF_99
