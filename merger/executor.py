@@ -41,9 +41,10 @@ from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParam
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, index_for, integrate, takes_large_path
 from fleetmap.shared.core.near import align_near
+from fleetmap.shared.core.pivotmap import WITNESS_ROTATION, WITNESS_TRANSLATION
 from fleetmap.shared.core.refine import fit_information, refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import ReferenceMap, sample_segments
+from fleetmap.shared.core.tracking import VOXEL_SIZE, ReferenceMap, sample_segments
 from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.core.work import Work, WorkExhausted
 from fleetmap.shared.errors import BadInput
@@ -139,10 +140,10 @@ def fingerprint(m: SegmentMap) -> bytes:
     return h.digest()
 
 
-def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
+def reference_of(m: SegmentMap) -> ReferenceMap:
     """The registration grid of a map's walls."""
-    reference = ReferenceMap(t.voxel_size)
-    reference.insert(sample_segments(m.segments, t.voxel_size))
+    reference = ReferenceMap(VOXEL_SIZE)
+    reference.insert(sample_segments(m.segments, VOXEL_SIZE))
     return reference
 
 
@@ -161,7 +162,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
         value = job.given.get(name)
         if value is None:
-            params = job.tracking.voxel_size if kind == "reference" else p
+            params = VOXEL_SIZE if kind == "reference" else p
             value = cache.get(key, version, kind, build, (fingerprint(m), params) if indexes is None else None)
             if indexes is None:
                 built[name] = value  # a worker's: the caller keeps it
@@ -174,7 +175,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.predicted,
             p,
             job.tracking,
-            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking), job.map_a),
+            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a), job.map_a),
             need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a),
             need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b),
             work,
@@ -211,7 +212,7 @@ def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Tran
     if polish:
         candidate = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
         dt, dr = candidate.distance(t)
-        if dt <= p.pivot.witness_translation and dr <= p.pivot.witness_rotation:
+        if dt <= WITNESS_TRANSLATION and dr <= WITNESS_ROTATION:
             t = candidate
     h = fit_information(prep, t, p) if EDGE_INFORMATION else None
     return t, None if h is None else tuple(np.asarray(h).ravel().tolist())

@@ -29,7 +29,7 @@ from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.integration import index_for
 from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.simplify import simplify
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE, simplify
 from fleetmap.shared.core.tracking import ReferenceMap
 from fleetmap.shared.core.validity import seen_from_enough_places
 from fleetmap.shared.errors import BadInput
@@ -295,7 +295,7 @@ class MapGraph:
 
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         del key
-        tol = self.integration.simplify_tolerance
+        tol = SIMPLIFY_TOLERANCE
         return simplify(m, tol) if tol > 0 and not m.ordered else m
 
     def _index(self, key: str) -> MapIndex:
@@ -359,7 +359,7 @@ class MapGraph:
         node = self._nodes[key]
         held = self._references.get(key)
         if held is None or held[0] != node.version:
-            held = self._references[key] = (node.version, reference_of(node.map, self.tracking))
+            held = self._references[key] = (node.version, reference_of(node.map))
         return held[1]
 
     def take(self, job: PairJob, result: PairResult) -> Edge:

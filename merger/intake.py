@@ -24,7 +24,7 @@ from fleetmap.merger.scangraph import SCAN_CONSTRAINTS, KeyScan, is_key
 from fleetmap.merger.schedule import FAR_BUDGET, PairSchedule
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.tracking import sample_segments
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, sample_segments
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_map_key, parse_submap_key
 from fleetmap.shared.io.messages import (
@@ -313,7 +313,7 @@ class Intake:
             return  # a scan again, or out of order
         if not is_key(held[-1].pose if held else None, scan.pose):
             return
-        samples = sample_segments(np.asarray(scan.segments), self.config.tracking.sample_spacing)
+        samples = sample_segments(np.asarray(scan.segments), SAMPLE_SPACING)
         held.append(KeyScan(scan.robot, scan.epoch, scan.index, key, scan.pose, samples))
         self.stats.key_scans += 1
 

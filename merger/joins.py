@@ -25,7 +25,7 @@ from fleetmap.merger.chains import _map_file, _tree_paths
 from fleetmap.merger.graph import CYCLE_TRANSLATION_TOLERANCE, EDGE_SIGMA_TRANSLATION, Edge, _disagreement, _tree_path
 from fleetmap.merger.pairs import PairJudge, Verdict
 from fleetmap.shared.core.geometry import Array, Transform2D
-from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
 from fleetmap.shared.core.validity import VALID_MIN_MAP_VALUE, VALID_REFUTE_VIOLATION, max_map_violation
 
 log = logging.getLogger(__name__)
@@ -256,7 +256,7 @@ class JoinJudge(PairJudge):
         # c p_i and c |p_i|^2, so a pair costs a few operations, not a walk along its path
         side_a = self._path_sums(_tree_paths(adjacency, e.a), {k: rel[k] for k in group_a}, toward_start=True)
         side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
         meeting = self.meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
         for i, a in enumerate(group_a):
@@ -376,7 +376,7 @@ class JoinJudge(PairJudge):
         judged = self._judged.get(_judged_key(e))
         if judged is None or not judged.holds or judged.required != JOIN_SUPPORT:
             return None
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         for a, b, implied in pairs:
             joins, drift_t, drift_r = drift(a, b)
             if drift_t > reach_t or drift_r > reach_r:

@@ -57,7 +57,8 @@ from fleetmap.merger.refinement import RefinedGraph
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.kalman_fusion import offset_information
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION, RESIDUAL_SIGMA, SAMPLE_SPACING
 from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION
 from fleetmap.shared.core.walls import WallMap
 
@@ -311,7 +312,7 @@ class PoseGraph(RefinedGraph):
         }
         # a pair whose chains can have drifted farther than registration reaches says nothing
         # either way (:meth:`_join_pairs`)
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         drifts = {(f, g): forest.drift(f, g) for f, g in pairs if above[f] != above[g]}  # across a join
         pairs = {p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r}
         refute = VALID_REFUTE_VIOLATION
@@ -442,17 +443,17 @@ class PoseGraph(RefinedGraph):
         information on its offset (Ballesta et al. 2009, Section 4, eqs. 6-8, as
         :func:`~fleetmap.shared.core.kalman_fusion.offset_information` gives it to the wall's line
         fit): from its submap's pose covariance in the solved graph (:meth:`pose_covariances`) and
-        its segment's fit, a submap's segment carrying none of its own: ``residual_sigma`` off the
-        wall every ``sample_spacing`` along it, as the tracking registers scans on it."""
+        its segment's fit, a submap's segment carrying none of its own: ``RESIDUAL_SIGMA`` off the
+        wall every ``SAMPLE_SPACING`` along it, as the tracking registers scans on it."""
         order, poses = list(c.members), c.poses
         maps = tuple(self._nodes[k].map for k in order)
         key = tuple((k, id(m), poses[k].x, poses[k].y, poses[k].theta) for k, m in zip(order, maps, strict=True))
         held = self._last_walls.get(key)
         if held is None or not all(a is b for a, b in zip(held[0], maps, strict=True)):
-            walls = WallMap(self.integration.simplify_tolerance)
+            walls = WallMap(SIMPLIFY_TOLERANCE)
             weighted = self.merge.wall_fusion == "weighted" and len(order) > 1
             covariances = self.pose_covariances(c.anchor, poses, edges) if weighted else None
-            sigma, spacing = self.tracking.residual_sigma, self.tracking.sample_spacing
+            sigma, spacing = RESIDUAL_SIGMA, SAMPLE_SPACING
             for k, m in zip(order, maps, strict=True):
                 weights = (
                     None

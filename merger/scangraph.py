@@ -43,7 +43,15 @@ import numpy as np
 from fleetmap.merger.refinement import ROBUST_SCALE
 from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
-from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, drift_covariance, register, sample_segments
+from fleetmap.shared.core.tracking import (
+    SAMPLE_SPACING,
+    VOXEL_SIZE,
+    ReferenceMap,
+    ScanSamples,
+    drift_covariance,
+    register,
+    sample_segments,
+)
 from fleetmap.shared.io.keys import parse_submap_key
 from scipy.spatial import cKDTree
 
@@ -172,7 +180,7 @@ def refine_key_scans(
         if between is None:
             continue
         length = max(math.hypot(between.x, between.y), MIN_STRETCH)
-        chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(tracking, length))
+        chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(length))
         graph.add(i, i + 1, between, chain, chain)
 
     out = ScanRefinement({})
@@ -234,8 +242,8 @@ def _scan_to_submap_edges(
             if reference is None and submap not in walls:
                 continue
             if reference is None:
-                reference = references[submap] = ReferenceMap(tracking.voxel_size)
-                reference.insert(sample_segments(walls[submap], tracking.sample_spacing))
+                reference = references[submap] = ReferenceMap(VOXEL_SIZE)
+                reference.insert(sample_segments(walls[submap], SAMPLE_SPACING))
             initial = submap_poses[submap].inverse().compose(start[i])
             fit = register(k.samples, reference, initial, initial, prior, tracking)
             out.registrations += 1

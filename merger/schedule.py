@@ -44,7 +44,7 @@ from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.descriptor import similarity
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
 from fleetmap.shared.io.keys import parse_submap_key
 from fleetmap.shared.io.messages import LocalMap
 
@@ -385,7 +385,7 @@ class PairSchedule:
         drift = self.graph.chain_drift(a, b)
         if drift is None:
             return p.tied(a, b)
-        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
+        return drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
 
     def _radius(self, key: str) -> float:
         """How far a submap's walls reach from its frame (m)."""

@@ -110,10 +110,6 @@ class PivotParams:
 
     pivot_witnesses: bool = ours(True)
     """A scan is placed only when two integrations agree on its pose (one wrong one cannot place it)."""
-    witness_translation: float = ours(0.30)
-    """Two integrations agree when they put the new scan within this (m) ..."""
-    witness_rotation: float = ours(0.0524)
-    """... and this (rad, 3 degrees) of each other."""
     pivot_refine: bool = ours(True)
     """A placed scan's pose is refined by least squares on the built map near it (scan-to-map)."""
     pivot_refine_slack: float = ours(0.01)
@@ -154,9 +150,6 @@ class IntegrationParams:
     heuristic: Heuristic = ours("auto")
     """Which transformations to try: all, consecutive, random, histogram (the paper's), or auto (the
     best of them)."""
-    simplify_tolerance: float = ours(0.05)
-    """Partial maps: segments within this (m) of one line become one segment per covered stretch
-    (0: never simplify; :mod:`fleetmap.shared.core.simplify`)."""
     aligner: Aligner = ours("paper", basic=True)
     """paper: the paper's integration (Algorithms 1-4); ransac: RANSAC over corner and wall-end
     landmarks matched by their descriptors (Ballesta et al. 2009), valued and judged alike."""
@@ -189,12 +182,12 @@ class MergeParams:
     its cost is bounded whatever the submaps hold, and a replay stops where the live merger
     stopped. The real logs' submaps need at most 50 M (docs/decisions/013-input-that-looks-legitimate.md).
     The offline preset (``fleetmap map``, ``fleetmap merge``) sets none: a user's own data is no attacker's."""
+    max_robots: int = ours(256, basic=True)
+    """The merger keeps track of at most this many robots; messages of more are dropped and counted."""
     step_seconds: float = ours(0.25)
     """Seconds of one merger step: live, the time budget of the integrations of a step that takes new
     submaps in (0: every pending one); offline, the fleet time between two steps (0: one a scan). The
     presets set it per mode (fleetmap/examples/live.toml, offline.toml; docs/decisions/004)."""
-    max_robots: int = ours(256, basic=True)
-    """The merger keeps track of at most this many robots; messages of more are dropped and counted."""
 
 
 @dataclass(frozen=True)
@@ -207,83 +200,12 @@ class TrackingParams:
     (IV-C, Algorithm 6), one local map per epoch, each scan placed by pose-free integration."""
     odometry: Odometry = ours("auto", basic=True)
     """auto: use the source's odometry when it has some; on: require it; off: constant velocity only."""
-    sample_spacing: float = ours(0.10)
-    """Metres between the points sampled along a scan's segments for registration."""
     registration: Residual = ours("point_to_line")
     """point_to_line: a scan point's residual is its distance from the submap wall's tangent line;
     point_to_curve: from the curve through the submap's points near it (Armesto et al.'s eICP)."""
-    voxel_size: float = ours(0.05)
-    """Cell size (m) of a submap's registration grid (the mean point and normal of each cell)."""
-    residual_sigma: float = ours(0.03)
-    """Standard deviation (m) of a matched point's distance from the submap's wall: weighs the walls
-    against the prior."""
-    max_correspondence: float = ours(1.0)
-    """Registration's first stage matches a scan point to submap walls up to this far (m), each
-    later stage half as far ..."""
-    min_correspondence: float = ours(0.25)
-    """... down to this (m)."""
-    loss_scale: float = ours(0.2)
-    """The robust (Cauchy) loss's scale, as a share of the stage's correspondence radius."""
-    iterations_per_stage: int = ours(8)
-    """Gauss-Newton steps per registration stage, at most ..."""
-    max_iterations: int = ours(30)
-    """... and in all."""
-    convergence_translation: float = ours(0.001)
-    """A Gauss-Newton step shorter than this (m) ..."""
-    convergence_rotation: float = ours(0.001)
-    """... and turned less than this (rad) has converged."""
-    max_normal_angle: float = ours(1.0472)
-    """A scan point matches a submap wall only if their normals are within this (rad, 60 degrees)."""
-    odometry_translation_sigma: float = ours(0.05)
-    """Odometry's uncertainty per scan step: this (m) ..."""
-    odometry_translation_rate: float = ours(0.1)
-    """... plus this share of the distance driven ..."""
-    odometry_rotation_sigma: float = ours(0.087)
-    """... and this (rad, 5 degrees; real robots' odometry is off by 10-25 degrees on fast turns) ..."""
-    odometry_rotation_rate: float = ours(0.5)
-    """... plus this share of the turn."""
-    velocity_translation_sigma: float = ours(0.05)
-    """Constant velocity's uncertainty per scan step: this (m) plus ``max_acceleration`` dt^2 / 2 ..."""
-    velocity_rotation_sigma: float = ours(0.087)
-    """... and this (rad) plus ``max_angular_acceleration`` dt^2 / 2."""
-    max_angular_acceleration: float = ours(6.0)
-    """The hardest a robot starts or stops turning (rad/s^2)."""
-    insert_distance: float = ours(0.10)
-    """A tracked scan is inserted into the submaps when the robot has moved this far (m) ..."""
-    insert_rotation: float = ours(0.035)
-    """... or turned this much (rad, 2 degrees) since the last inserted scan ..."""
-    insert_interval: float = ours(5.0)
-    """... or this much time (s) has passed (a robot standing still refreshes its view)."""
     submap_length: float = ours(10.0, basic=True)
-    """A submap covers this much of the robot's path (m) ..."""
-    submap_scans: int = ours(100)
-    """... or this many inserted scans; the next starts halfway, so consecutive submaps overlap by half."""
-    typical_score_share: float = ours(0.5)
-    """A fit scoring below this share of the robot's recent fits' median is checked against the
-    other motion models and pose-free integration, and the best taken."""
-    recent_fits: int = ours(20)
-    """The recent fits that median is taken over."""
-    min_matched_share: float = ours(0.3)
-    """A fit is good only if at least this share of the scan's wall length lies on the submap's walls ..."""
-    min_matched_length: float = ours(1.0)
-    """... and at least this much of it (m) ..."""
-    max_see_through: float = ours(0.5)
-    """... and the scan's beams pass through at most this share of the submap wall they could have seen."""
-    see_through_margin: float = ours(0.3)
-    """A beam passes through a submap wall when its return lies this much (m) beyond it ..."""
-    see_through_slope: float = ours(0.02)
-    """... plus the range change a heading error of this much (rad) makes on that wall ..."""
-    see_through_beams: float = ours(5.0)
-    """... and only walls spanning this many beams at their range count."""
-    drift_translation: float = ours(0.02)
-    """A submap link's uncertainty grows with the way between the two frames: m per square root of
-    the metres driven ..."""
-    drift_rotation: float = ours(0.004)
-    """... and rad per square root of the metres driven."""
-    link_min_sigma_translation: float = ours(0.01)
-    """A submap link's standard deviation is at least this (m) ..."""
-    link_min_sigma_rotation: float = ours(0.005)
-    """... and this (rad)."""
+    """A submap covers this much of the robot's path (m), or a hundred inserted scans; the next starts
+    halfway, so consecutive submaps overlap by half."""
     kidnap_after: int = ours(5)
     """After this many scans in a row that neither fit nor re-acquire the submap, the robot has lost
     its place: a new epoch."""

@@ -24,7 +24,7 @@ from fleetmap.shared.core.integration import (
 )
 from fleetmap.shared.core.mapgrid import MapIndex
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments
+from fleetmap.shared.core.tracking import MAX_ITERATIONS, SAMPLE_SPACING, ReferenceMap, register, sample_segments
 from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.core.validity import is_valid
 from fleetmap.shared.core.work import Work, WorkExhausted
@@ -81,10 +81,10 @@ def _align_near(
     work: Work,
     start: float,
 ) -> Integration:
-    samples = sample_segments(m2.segments, tracking.sample_spacing)
+    samples = sample_segments(m2.segments, SAMPLE_SPACING)
     near_t, near_r = NEAR_PRIOR_TRANSLATION, NEAR_PRIOR_ROTATION
     loose = np.diag([1.0 / near_t**2, 1.0 / near_t**2, 1.0 / near_r**2])
-    work.charge(len(samples) * tracking.max_iterations)
+    work.charge(len(samples) * MAX_ITERATIONS)
     reg = register(samples, reference1, predicted, predicted, loose, tracking)
     t = reg.pose
     prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered, work)

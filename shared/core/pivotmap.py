@@ -19,11 +19,16 @@ from fleetmap.shared.core.integration import Integration, Window, integrate
 from fleetmap.shared.core.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
 from fleetmap.shared.core.refine import refine_transform, refinement_kept
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.simplify import simplify
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE, simplify
 from fleetmap.shared.core.transformation_value import prepare, transformation_value
 from fleetmap.shared.core.validity import VALID_MAX_AMBIGUITY
 from fleetmap.shared.errors import BadInput
 
+WITNESS_TRANSLATION = 0.30
+"""Two integrations agree on a scan's pose when they put it within this (m) ..."""
+WITNESS_ROTATION = 0.0524
+"""... and this (rad, 3 degrees) of each other: one wrong integration cannot place a scan
+(docs/decisions/008-pivot-local-maps.md); a refinement or a polish moves a pose no farther."""
 LOCAL_MAP_RADIUS = 20.0
 """A scan that integrates with no previous scan is integrated with the built map within this (m) of
 the last placed pose: about a laser's reach (the default ``max_range``)."""
@@ -85,7 +90,7 @@ class PivotMapBuilder:
       scan-to-scan integrations do not add up along a hallway; never farther than the witness
       tolerances from the pose its integrations placed it at.
     - **Simplification**: whenever the map has grown by half since, it is simplified
-      (:func:`fleetmap.shared.core.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
+      (:func:`fleetmap.shared.core.simplify.simplify`, ``SIMPLIFY_TOLERANCE``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
     """
 
@@ -140,7 +145,7 @@ class PivotMapBuilder:
     def add(self, m: SegmentMap, stamp: float | None = None) -> PivotStep:
         """Integrate and fuse one map. With its ``stamp`` (seconds; a robot agent's scans), the
         robot's motion counts: an integration that puts the map farther from the last placed one
-        than ``max_speed`` times the time since (plus ``witness_translation``), or farther along
+        than ``max_speed`` times the time since (plus :data:`WITNESS_TRANSLATION`), or farther along
         the way from the prediction than ``max_acceleration`` allows, does not count (the motion
         bounds), and ambiguous integrations are settled by the motion prior (see the class
         docstring)."""
@@ -198,7 +203,7 @@ class PivotMapBuilder:
             # Fig. 13b, steps 5-6: fuse S_i itself, placed by t_{1,i}.
             self._map = fuse(self._map, m, pose, self.params)
         self._viewpoints.append(moved_viewpoints(viewpoints_of(m), pose))
-        tol = self.params.simplify_tolerance
+        tol = SIMPLIFY_TOLERANCE
         if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
             self._map = simplify(self._map, tol)
             self._simplified_size = len(self._map)
@@ -214,11 +219,11 @@ class PivotMapBuilder:
             # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
             return _Motion(self._last_pose, p.motion.motion_prior_rotation)
         dt = stamp - self._stamps[-1]
-        max_motion = p.motion.max_speed * dt + p.pivot.witness_translation if p.motion.max_speed > 0 else None
+        max_motion = p.motion.max_speed * dt + WITNESS_TRANSLATION if p.motion.max_speed > 0 else None
         predicted = self.predict(stamp)
         slack = None
         if predicted is not None and p.motion.max_acceleration > 0:
-            slack = 0.5 * p.motion.max_acceleration * dt * dt + p.pivot.witness_translation
+            slack = 0.5 * p.motion.max_acceleration * dt * dt + WITNESS_TRANSLATION
         return _Motion(self._last_pose, p.motion.motion_prior_rotation, max_motion, predicted, slack)
 
     def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, motion: _Motion) -> _Witness:
@@ -264,7 +269,7 @@ class PivotMapBuilder:
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
-        if not _close(t, pose, self.params.pivot.witness_translation, self.params.pivot.witness_rotation):
+        if not _close(t, pose, WITNESS_TRANSLATION, WITNESS_ROTATION):
             return pose  # not a refinement: the integrations that placed it agree within these
         after = transformation_value(prep, t.as_array(), self.params, refuse=False)
         return t if refinement_kept(pose, t, before, after, self.params) else pose
@@ -280,7 +285,7 @@ class PivotMapBuilder:
         off with confidence, while the scan between them matches where the robot drove). Where the
         motion says, the agreeing witness may be invalid, and may agree by its best match inside
         the motion prior's window. Failing all that, :meth:`_with_motion`."""
-        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
+        tt, tr = WITNESS_TRANSLATION, WITNESS_ROTATION
         window = None
         if motion.predicted is not None and self.params.motion.motion_prior_radius > 0:
             window = Window(motion.predicted, self.params.motion.motion_prior_radius, math.pi)
@@ -305,7 +310,7 @@ class PivotMapBuilder:
         Where a better match lies elsewhere, geometry alone is ambiguous and motion decides: a
         forward-looking laser in racks that repeat sees more of the known map one rack back than
         where the robot drove, since the part of its view beyond the map matches nothing yet."""
-        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
+        tt, tr = WITNESS_TRANSLATION, WITNESS_ROTATION
         at = [w for w in witnesses if w.at_prediction]
         for w in at:
             pose = w.motion_pose

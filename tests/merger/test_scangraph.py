@@ -20,7 +20,7 @@ from fleetmap.merger.scangraph import (
 )
 from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.tracking import sample_segments
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, sample_segments
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import Scan
 
@@ -41,7 +41,7 @@ def seen_from(pose: Transform2D) -> np.ndarray:
 
 def key(robot: str, index: int, submap: str, frame: Transform2D, truth: Transform2D) -> KeyScan:
     """A key scan taken at ``truth`` (world), placed by tracking exactly in its submap at ``frame``."""
-    samples = sample_segments(seen_from(truth), TRACKING.sample_spacing)
+    samples = sample_segments(seen_from(truth), SAMPLE_SPACING)
     return KeyScan(robot, 0, index, submap, frame.inverse().compose(truth), samples)
 
 

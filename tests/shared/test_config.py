@@ -96,7 +96,7 @@ def test_every_retired_parameter_is_fixed_at_the_value_of_the_constant_that_repl
 
 def test_at_most_40_public_parameters_and_help_all_lists_them_all(capsys: pytest.CaptureFixture[str]) -> None:
     # (about a second) issue 51: a config a person can read
-    assert len(parameters()) <= 77  # TODO(config40): 40 once [tracking] is done
+    assert len(parameters()) <= 40
     with pytest.raises(SystemExit):
         build_parser("map").parse_args(["map", "--help-all"])
     groups = re.split(r"^(\S.*):$", capsys.readouterr().out, flags=re.M)
@@ -155,4 +155,6 @@ def test_help_shows_the_basic_parameters_and_help_all_every_one(capsys: pytest.C
     assert "--point-distance-tolerance" not in short and "--map-free-space-clearance" not in short
     assert "--point-distance-tolerance" in full and "[integration.validity]" in full
     assert "[paper] POINTDISTANCETOLERANCE" in full
-    assert len(short.splitlines()) < len(full.splitlines()) / 3
+    for _, f in parameters():
+        option = re.compile(rf"^  --{f.name.replace('_', '-')} ", re.M)
+        assert bool(option.search(short)) == f.metadata["basic"] and option.search(full), f.name
