@@ -4,10 +4,14 @@ Amigoni, Gasparini & Gini (2006) name their parameters in capitals (POINTDISTANC
 here they are snake_case fields with the same meaning and the paper's defaults, in metres and
 radians. Every run writes the resolved configuration next to its outputs (``to_dict``/``to_toml``).
 
-One section per stage, in data-flow order (:data:`SECTIONS`); each field is tagged ``paper`` (the
-paper's parameter, with its default) or ``fleetmap`` (added here; the decision records in
-``docs/decisions/`` say what each was measured on), and ``basic`` marks the few a user may touch
-(``fleetmap/examples/basic.toml``). A config file is TOML with one table per section::
+At most 40 parameters, one section per stage, in data-flow order (:data:`SECTIONS`): the paper's,
+those a user sets for their robots, and the few choices with a decision record behind them
+(docs/decisions/005-parameters-beyond-the-paper.md); every other value is a constant in the module
+that reads it, with its reason. Each field is tagged ``paper`` (the paper's parameter, with its
+default) or ``fleetmap`` (added here), and ``basic`` marks those a user sets for their robots
+(``fleetmap/examples/basic.toml``). The defaults are a live fleet's; ``fleetmap/examples/live.toml``
+and ``offline.toml`` hold the values where the modes differ. A config file is TOML with one table
+per section::
 
     [extraction]
     max_range = 8.0
@@ -16,7 +20,7 @@ paper's parameter, with its default) or ``fleetmap`` (added here; the decision r
     point_distance_tolerance = 0.010
 
     [integration.validity]
-    valid_min_map_value = 10.0
+    map_free_space_clearance = 0.2
 
 Command-line overrides use the field names with dashes (``--point-distance-tolerance 0.01``). Reading
 a file or overrides, each value checked: :mod:`fleetmap.shared.config_files`.

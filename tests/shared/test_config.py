@@ -84,7 +84,8 @@ def test_the_basic_example_holds_exactly_the_basic_parameters_at_their_defaults(
 
 
 def test_every_retired_parameter_is_fixed_at_the_value_of_the_constant_that_replaced_it() -> None:
-    # (milliseconds) a config at the old default loads quietly only if the constant kept that value
+    # (a few seconds, importing the modules) a config at the old default loads quietly only if the
+    # constant kept that value
     for table, entries in RETIRED.items():
         assert table not in SECTIONS or not set(entries) & {f.name for f in fields(SECTIONS[table])}, table
         for name, retired in entries.items():
