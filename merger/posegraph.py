@@ -191,7 +191,7 @@ class PoseGraph(RefinedGraph):
         touched.update(root[k] for k in grown)
         if not self._kept_verdicts_stand(kept, touched, grown):
             return None
-        for r in touched:
+        for r in sorted(touched):  # in a fixed order: a refinement warm-starts the next solve
             if not self._kept_component(kept, r, r in refine):
                 return None
         kept.edges.update((e.key(), e) for e in new)
@@ -257,7 +257,7 @@ class PoseGraph(RefinedGraph):
             regrown = ra != rb and (ra in touched or rb in touched)
             if regrown and e.valid and not e.link and self._join_holds(e, members[ra], members[rb], rel, adjacency):
                 return False
-        for r in touched:
+        for r in sorted(touched):
             group = set(members[r])
             joins = [t for t in kept.tree if not t.link and t.a in group]
             if not joins:
@@ -291,7 +291,7 @@ class PoseGraph(RefinedGraph):
         # (:meth:`_pair_verdict`: what an active submap's walls bore out they still bear out)
         fresh = [
             k
-            for k in kept.unlooked
+            for k in sorted(kept.unlooked)
             if root[k] == r and (k not in looked or self._nodes[k].version - looked[k] >= VERDICT_VERSIONS)
         ]
         for k in fresh:
@@ -313,14 +313,14 @@ class PoseGraph(RefinedGraph):
         # a pair whose chains can have drifted farther than registration reaches says nothing
         # either way (:meth:`_join_pairs`)
         reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
-        drifts = {(f, g): forest.drift(f, g) for f, g in pairs if above[f] != above[g]}  # across a join
-        pairs = {p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r}
+        drifts = {(f, g): forest.drift(f, g) for f, g in sorted(pairs) if above[f] != above[g]}  # across a join
+        within = [p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r]
         refute = VALID_REFUTE_VIOLATION
         for e in joins:
             key = e.key()
             a_far = key in above[e.a]  # whether e.a is on the far side of e from the root
             suspicious = []
-            for f, g in pairs:
+            for f, g in within:
                 if (key in above[f]) == (key in above[g]):
                     continue  # both on one side
                 a, b = (f, g) if (key in above[f]) == a_far else (g, f)

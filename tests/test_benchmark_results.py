@@ -7,6 +7,7 @@ import hashlib
 import importlib.util
 import json
 import subprocess
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -114,3 +115,46 @@ def test_a_malformed_result_is_named(checkout: Path, capsys: pytest.CaptureFixtu
     path.write_text(json.dumps(result))
     assert results.main(["render", "--checkout", str(checkout)]) == 2
     assert f"{path}: field 'commit' missing or not a str" in capsys.readouterr().err
+
+
+TINY = """import sys
+from results import write_result
+
+if __name__ == "__main__":
+    write_result("tiny", "Tiny (`benchmarks/tiny.py`)", "| n |\\n|---|\\n| 7 |", config=None)
+"""
+
+
+def test_regenerate_reruns_every_section_at_the_checkout_s_commit_and_renders(tmp_path: Path) -> None:
+    bench = tmp_path / "benchmarks"
+    bench.mkdir()
+    for script in ("results.py", "regenerate.py"):
+        (bench / script).write_text((RESULTS_PY.parent / script).read_text())
+    (bench / "tiny.py").write_text(TINY)
+    git(tmp_path, "init", "-q")
+    git(tmp_path, "add", ".")
+    git(tmp_path, "commit", "-q", "-m", "tiny")
+    # a result from an older, changed checkout: what regenerating replaces
+    old = results.write_result(
+        "tiny", "Tiny", "| n |\n|---|\n| 6 |", config=None, root=tmp_path, argv=[str(bench / "tiny.py")]
+    )
+    stale = json.loads(old.read_text())
+    old.write_text(json.dumps({**stale, "commit": "0" * 40, "dirty": True}))
+    git(tmp_path, "add", ".")
+    git(tmp_path, "commit", "-q", "-m", "an old result")
+    head = git(tmp_path, "rev-parse", "HEAD")
+
+    done = subprocess.run(
+        [sys.executable, str(bench / "regenerate.py")], cwd=tmp_path, capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    result = json.loads(old.read_text())
+    assert (result["commit"], result["dirty"], result["figures"][0]["rows"]) == (head, False, [{"n": 7}])
+    assert f"Every section from commit {head[:7]}." in (bench / "RESULTS.md").read_text()
+
+    # a checkout with uncommitted changes is refused before anything runs
+    (bench / "tiny.py").write_text(TINY + "\n")
+    done = subprocess.run(
+        [sys.executable, str(bench / "regenerate.py")], cwd=tmp_path, capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 2 and "uncommitted changes in benchmarks/tiny.py" in done.stderr

@@ -364,3 +364,16 @@ def test_a_logs_no_return_reading_is_named_apart_from_max_range_and_its_old_name
     assert math.isinf(parser.parse_args([command, *args]).no_return_reading)
     shown = _help(command)
     assert "--no-return-reading" in shown and "--range-max" not in shown
+
+
+def test_the_example_config_every_help_names_is_installed_and_loads(capsys: pytest.CaptureFixture[str]) -> None:
+    # CI installs the package (not editable): the path the help names is the installed copy's
+    with pytest.raises(SystemExit):
+        main(["map", "--help"])
+    # the help wraps at hyphens (a path's site-packages, a worktree's name): join them again
+    named = re.search(r"(\S+basic\.toml)", re.sub(r"-\s+", "-", " ".join(capsys.readouterr().out.split())))
+    assert named is not None
+    path = Path(named.group(1))
+    assert path.is_file(), f"the help names {path}, which is not installed"
+    assert Path(config_args.__file__).parent in path.parents
+    assert load_config(path).extraction.max_range == tomllib.loads(path.read_text())["extraction"]["max_range"]

@@ -280,3 +280,21 @@ def test_the_merger_side_runs_in_order_and_its_first_error_reaches_the_caller() 
         failing.call(lambda: seen.append(2))  # after the error: never run
         failing.finish()
     assert seen == [1]
+
+
+def test_the_summary_says_whether_the_tracking_used_each_robot_s_odometry() -> None:
+    from fleetmap.commands.map import table
+
+    robot = {"scans": 10, "scans_placed": 10, "epochs": 1, "components": [0]}
+    summary = {
+        "robots": [
+            {**robot, "robot": "wheels", "odometry": True, "odometry_used": True},
+            {**robot, "robot": "ignored", "odometry": True, "odometry_used": False},
+            {**robot, "robot": "laser-only", "odometry": False, "odometry_used": False},
+        ],
+        "time_share": 0.1, "session_s": 10.0, "duration_s": 10.0, "submaps": 3, "components": 1,
+        "largest_component_submaps": 3, "integrations": 2, "integrations_near": 1, "integrations_idle": 0,
+        "seconds": 1.0,
+    }  # fmt: skip
+    said = {line.split()[0]: line.split(None, 5)[5].strip() for line in table(summary).splitlines()[1:4]}
+    assert said == {"wheels": "used", "ignored": "not used", "laser-only": "none"}

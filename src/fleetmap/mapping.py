@@ -327,6 +327,7 @@ def _summary(
                 "first_stamp": p.scans[0].stamp,
                 "last_stamp": p.scans[-1].stamp,
                 "odometry": p.has_odometry,
+                "odometry_used": p.has_odometry and merger.config.tracking.odometry != "off",
                 "epochs": finished[n].epochs,
                 "scans_placed": placed.get(p.robot, 0),
                 "components": sorted(components.get(p.robot, set())),

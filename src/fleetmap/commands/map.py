@@ -99,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
 
 def table(summary: dict[str, Any]) -> str:
     """One line per robot, then the totals. A robot's maps are named as poses.csv names them
-    (``#0`` is the largest merged map); ``-`` where none of its scans got a pose."""
+    (``#0`` is the largest merged map); ``-`` where none of its scans got a pose. The odometry
+    column says whether the tracking used the input's odometry: ``used``, ``not used``
+    (``--odometry off``) or ``none`` (the input has none)."""
     rows = [("robot", "scans", "placed", "epochs", "in map", "odometry")]
     for r in summary["robots"]:
         comps = ",".join(f"#{c}" for c in r["components"]) or "-"
@@ -110,7 +112,7 @@ def table(summary: dict[str, Any]) -> str:
                 str(r["scans_placed"]),
                 str(r["epochs"]),
                 comps,
-                "yes" if r["odometry"] else "no",
+                "used" if r.get("odometry_used", r["odometry"]) else "not used" if r["odometry"] else "none",
             )
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
