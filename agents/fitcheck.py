@@ -2,9 +2,9 @@
 the tracker's fit check and its evidence of a kidnap (:mod:`fleetmap.agents.tracker`, steps 3 and
 6 of its walk-through).
 
-A fit is good when enough of the scan's walls lie on the submap's (``min_matched_share``,
-``min_matched_length``) and the scan's beams pass through little of the submap's walls
-(``max_see_through``: a laser does not see through walls). A refused fit is *contradicted* when
+A fit is good when enough of the scan's walls lie on the submap's (:data:`MIN_MATCHED_SHARE`,
+:data:`MIN_MATCHED_LENGTH`) and the scan's beams pass through little of the submap's walls
+(:data:`MAX_SEE_THROUGH`: a laser does not see through walls). A refused fit is *contradicted* when
 the scan and the submap disagree on space both saw at its pose (:func:`contradicts`): the walls say
 the scan was not taken there. A fit refused only for the little wall it matched says nothing of
 where the scan was taken: the tracker carries the robot by its motion model instead. Contradicted
@@ -15,22 +15,35 @@ scans are held until one fits again or ``kidnap_after`` of them make a new epoch
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from fleetmap.agents.submap import Submap
-from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import CHI2_1DOF_99
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
+    MAX_CORRESPONDENCE,
     REACH_ROTATION,
+    SEE_THROUGH,
     Registration,
     beam_evidence,
     see_through,
     wall_evidence,
 )
+
+MIN_MATCHED_SHARE = 0.3
+"""A fit is good only if at least this share of the scan's wall length lies on the submap's walls ..."""
+MIN_MATCHED_LENGTH = 1.0
+"""... and at least this much of it (m; also how much wall in dispute refuses a fit) ..."""
+MAX_SEE_THROUGH = 0.5
+"""... and the scan's beams pass through at most this share of the submap wall they could have seen:
+a laser cannot see through a wall (docs/decisions/009-clocks-evidence-over-stamps.md)."""
+TYPICAL_SCORE_SHARE = 0.5
+"""A fit scoring below this share of the robot's recent fits' median is checked against the other
+motion models and pose-free integration, and the best taken; a later start's fit must score over
+its inverse times as much to replace the first's."""
 
 KIDNAP_REASON = (
     "{n} scans that the submap's walls contradict fit neither the submap nor, by pose-free "
@@ -62,7 +75,6 @@ def judge(
     scan: RangeScan,
     segments: Array,
     submap: Submap,
-    p: TrackingParams,
     max_range: float,
     track_drift: tuple[float, float],
 ) -> tuple[str, tuple[bool, bool]]:
@@ -74,15 +86,15 @@ def judge(
     For a refused fit, also what the walls say against it (:func:`contradicts`): too little of
     the scan on the submap's walls says only that they cannot place it (open space, a few
     metres of wall, new walls, a person in front of the laser)."""
-    through, visible = see_through(submap.reference, scan, reg.pose, p, max_range)
-    seen_through = visible > 0 and through > p.max_see_through * visible
-    if reg.matched_length >= p.min_matched_length and reg.matched_share >= p.min_matched_share:
+    through, visible = see_through(submap.reference, scan, reg.pose, max_range)
+    seen_through = visible > 0 and through > MAX_SEE_THROUGH * visible
+    if reg.matched_length >= MIN_MATCHED_LENGTH and reg.matched_share >= MIN_MATCHED_SHARE:
         if seen_through:
             why = f"its beams pass through {through:.1f} of {visible:.1f} m of the submap's walls"
-            return why, contradicts(reg, scan, segments, submap, p, max_range, track_drift)
+            return why, contradicts(reg, scan, segments, submap, max_range, track_drift)
         return "", (False, False)
     why = f"{reg.matched_length:.1f} m ({100 * reg.matched_share:.0f} %) of the scan on the submap's walls"
-    return why, contradicts(reg, scan, segments, submap, p, max_range, track_drift)
+    return why, contradicts(reg, scan, segments, submap, max_range, track_drift)
 
 
 def contradicts(
@@ -90,13 +102,12 @@ def contradicts(
     scan: RangeScan,
     segments: Array,
     submap: Submap,
-    p: TrackingParams,
     max_range: float,
     track_drift: tuple[float, float],
 ) -> tuple[bool, bool]:
     """Whether the scan and the submap disagree on space both saw at the fit's pose: *contradicted*
     (more wall in dispute than agreed on) and *disputed* (at least as much wall in dispute as it
-    takes to place a scan, ``min_matched_length``, whatever is agreed on). In dispute are the
+    takes to place a scan, :data:`MIN_MATCHED_LENGTH`, whatever is agreed on). In dispute are the
     submap's walls the scan's beams pass through (against those they return from: a return
     short of a wall is something in between, none at all a failure, one beyond it a wrong pose;
     the beam model, Thrun, Burgard & Fox 2005, 6.3), and the scan's walls where the submap's
@@ -104,30 +115,27 @@ def contradicts(
     :func:`wall_evidence`; against the scan's wall matched). The beam test's margin grows by
     the uncertainty of the track the robot is carried on (``track_drift``, 99 %, one degree of
     freedom along the beam): a carried pose a metre off sees through walls it did not pass."""
+    margin = SEE_THROUGH
     if track_drift != (0.0, 0.0):
         z = math.sqrt(CHI2_1DOF_99)
-        p = replace(
-            p,
-            see_through_margin=p.see_through_margin + z * math.sqrt(track_drift[0]),
-            see_through_slope=p.see_through_slope + z * math.sqrt(track_drift[1]),
-        )
-    through, hit = beam_evidence(submap.reference, scan, reg.pose, p, max_range)
+        margin = (SEE_THROUGH[0] + z * math.sqrt(track_drift[0]), SEE_THROUGH[1] + z * math.sqrt(track_drift[1]))
+    through, hit = beam_evidence(submap.reference, scan, reg.pose, max_range, margin)
     in_free_space = 0.0
     if submap.scans_in:
         walls = reg.pose.apply(segments)
-        seen, passed = wall_evidence(walls, submap.scans_in, p, max_range, max_range)
+        seen, passed = wall_evidence(walls, submap.scans_in, max_range, max_range, margin)
         length = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
         in_free_space = float(length[passed > seen].sum())
-    enough = p.min_matched_length
+    enough = MIN_MATCHED_LENGTH
     contradicted = (through >= enough and through > hit) or (
         in_free_space >= enough and in_free_space > reg.matched_length
     )
     return contradicted, through >= enough or in_free_space >= enough
 
 
-def best_fit(fits: list[Fit], apart: bool, p: TrackingParams) -> Fit | None:
+def best_fit(fits: list[Fit], apart: bool) -> Fit | None:
     """The best good fit of one scan from several starts (the first prediction's first): a later
-    fit replaces an earlier one only if it scores over ``1 / typical_score_share`` times as much,
+    fit replaces an earlier one only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much,
     except that the two motion models' fits (``apart``: they disagree on the heading) weigh alike
     by score."""
     best = None
@@ -138,26 +146,26 @@ def best_fit(fits: list[Fit], apart: bool, p: TrackingParams) -> Fit | None:
         # prediction's stands as any other's does (down a corridor logged a scan a metre, the
         # better-scoring of two such fits lay 1.3-1.5 m along it: aces-corrected scans 26, 49,
         # 318; two fits within reach are one minimum found better, mit-csail's fast turns)
-        settled = apart and n == 1 and not minima_along(fit.registration.pose, fits[0].registration.pose, p)
-        margin = 1.0 if settled else p.typical_score_share
+        settled = apart and n == 1 and not minima_along(fit.registration.pose, fits[0].registration.pose)
+        margin = 1.0 if settled else TYPICAL_SCORE_SHARE
         if fit.good and (best is None or fit.registration.score * margin >= best.registration.score):
             best = fit
     return best
 
 
-def minima_along(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
+def minima_along(a: Transform2D, b: Transform2D) -> bool:
     """Whether two fits of one scan are two minima of one heading: they turn alike (within
     :data:`REACH_ROTATION`) and lie beyond registration's reach of each other (:func:`same_start`)."""
-    return a.distance(b)[1] <= REACH_ROTATION and not same_start(a, b, p)
+    return a.distance(b)[1] <= REACH_ROTATION and not same_start(a, b)
 
 
-def same_start(a: Transform2D, b: Transform2D, p: TrackingParams) -> bool:
+def same_start(a: Transform2D, b: Transform2D) -> bool:
     """Whether registering from ``a`` only repeats registering from ``b``: they lie within
-    registration's reach of each other (``max_correspondence``, :data:`REACH_ROTATION`). Not the
+    registration's reach of each other (``MAX_CORRESPONDENCE``, :data:`REACH_ROTATION`). Not the
     motion model's uncertainty: on a fast turn the odometry's is 20 degrees, and a velocity
     prediction 14 degrees from it starts a registration the odometry's could not (mit-csail)."""
     d, r = a.distance(b)
-    return d <= p.max_correspondence and r <= REACH_ROTATION
+    return d <= MAX_CORRESPONDENCE and r <= REACH_ROTATION
 
 
 def near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:

@@ -20,6 +20,7 @@ from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D, wrap_angle
 from fleetmap.shared.core.motion import (
     CHI2_3DOF_99,
+    ODOMETRY_TRANSLATION_SIGMA,
     Prediction,
     ScanClock,
     from_odometry,
@@ -28,6 +29,7 @@ from fleetmap.shared.core.motion import (
     odometry_increment,
     velocity_between,
 )
+from fleetmap.shared.core.pivotmap import WITNESS_TRANSLATION
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +42,6 @@ class Predictor:
 
     def __init__(self, config: FleetmapConfig, odometry: bool = True) -> None:
         self.config = config
-        self.params = config.tracking
         self.use_odometry = odometry
         self.clock = ScanClock(config.integration.motion.max_speed)
         """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
@@ -100,7 +101,7 @@ class Predictor:
         integration = self.config.integration
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
         elapsed = self.clock.elapsed(seconds, seq - last_seq)
-        velocity = from_velocity(self.velocity, elapsed, self.params, integration.motion.max_acceleration)
+        velocity = from_velocity(self.velocity, elapsed, integration.motion.max_acceleration)
         out = []
         self.odometry_step = None
         if self.use_odometry and odometry is not None:
@@ -150,7 +151,7 @@ class Predictor:
                 if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
                     log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
             return None
-        prediction = self.odometry_step = from_odometry(increment, self.params)
+        prediction = self.odometry_step = from_odometry(increment)
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
         if not self.clock.trusted:
@@ -171,19 +172,19 @@ class Predictor:
         if last is None or integration.motion.max_speed <= 0:
             return self.config.extraction.max_range
         seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
-        return integration.motion.max_speed * seconds + integration.pivot.witness_translation
+        return integration.motion.max_speed * seconds + WITNESS_TRANSLATION
 
     def reachable(self, last: Placed | None, pose: Transform2D, seq: int, stamp: float) -> bool:
         """Whether the robot can have driven to ``pose`` (epoch frame) since its ``last`` placed scan:
         no farther than ``max_speed`` allows, and, once its velocity is known, no farther from where
-        that velocity takes it than ``max_acceleration`` allows (plus ``witness_translation`` for the
+        that velocity takes it than ``max_acceleration`` allows (plus ``WITNESS_TRANSLATION`` for the
         fits' own error). Physics, not a pose: a look-alike corridor matches well, but a robot
         driving at 1.5 m/s is not 1.4 m on 0.4 s later."""
         integration = self.config.integration
         if last is None:
             return True
         seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
-        margin = integration.pivot.witness_translation
+        margin = WITNESS_TRANSLATION
         if integration.motion.max_speed > 0 and math.hypot(pose.x - last[1].x, pose.y - last[1].y) > (
             integration.motion.max_speed * seconds + margin
         ):
@@ -205,7 +206,7 @@ class Predictor:
         tell: 103 of its 4,790 steps); along a corridor the walls cannot say which way the robot
         went, and the odometry's prior decides. A robot changes its direction of travel only
         through standing still: after a step the odometry cannot tell from standing still (within
-        ``odometry_translation_sigma``) either state is as likely, and the next steps' evidence
+        ``ODOMETRY_TRANSLATION_SIGMA``) either state is as likely, and the next steps' evidence
         decides; while the robot moves, the belief holds unless a step only the other state explains
         turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
         validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
@@ -214,7 +215,7 @@ class Predictor:
         if step is None:
             return
         signed = step.increment
-        if math.hypot(signed.x, signed.y) < self.params.odometry_translation_sigma:
+        if math.hypot(signed.x, signed.y) < ODOMETRY_TRANSLATION_SIGMA:
             self.reversed_odometry = 0.5  # standing still: either way next
             return
         unsigned = Transform2D(-signed.x, -signed.y, signed.theta)

@@ -3,9 +3,9 @@ next started (:mod:`fleetmap.agents.tracker`, step 5 of its walk-through).
 
 **Submaps** (Cartographer's scheme): two are active at a time, and every inserted scan goes into
 both. A scan is registered on, and placed by, the older one, which holds more. A placed scan is
-inserted when the robot has moved ``insert_distance`` or turned ``insert_rotation`` since the last
-inserted one (or ``insert_interval`` has passed). A submap is finished when it covers
-``submap_length`` metres of the robot's path or ``submap_scans`` inserted scans; the next one starts
+inserted when the robot has moved :data:`INSERT_DISTANCE` or turned :data:`INSERT_ROTATION` since the last
+inserted one (or :data:`INSERT_INTERVAL` has passed). A submap is finished when it covers
+``submap_length`` metres of the robot's path or :data:`SUBMAP_SCANS` inserted scans; the next one starts
 halfway through, at an inserted scan, whose pose is the new submap's frame. So consecutive submaps
 overlap by half, and each is chained to the previous one by the *link*: its frame in the previous
 submap's frame, with the uncertainty of the registration that placed it. A finished submap never
@@ -24,12 +24,14 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from fleetmap.shared.config import FleetmapConfig, TrackingParams
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.mapgrid import scan_viewpoint
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE
 from fleetmap.shared.core.tracking import (
+    VOXEL_SIZE,
     ReferenceMap,
     Registration,
     ScanSamples,
@@ -37,6 +39,21 @@ from fleetmap.shared.core.tracking import (
     wall_evidence,
 )
 from fleetmap.shared.core.walls import WallMap
+
+INSERT_DISTANCE = 0.10
+"""A tracked scan is inserted into the submaps when the robot has moved this far (m) ..."""
+INSERT_ROTATION = 0.035
+"""... or turned this much (rad, 2 degrees) since the last inserted scan ..."""
+INSERT_INTERVAL = 5.0
+"""... or this much time (s) has passed (a robot standing still refreshes its view)."""
+SUBMAP_SCANS = 100
+"""A submap holds at most this many inserted scans (or ``submap_length`` of the path); the next starts
+halfway, so consecutive submaps overlap by half (docs/decisions/001-tracking-front-end.md)."""
+LINK_MIN_SIGMA_TRANSLATION = 0.01
+"""A submap link's standard deviation is at least this (m) ..."""
+LINK_MIN_SIGMA_ROTATION = 0.005
+"""... and this (rad, 0.3 degrees): the registration's covariance, no tighter than these
+(docs/decisions/001-tracking-front-end.md)."""
 
 
 @dataclass(frozen=True)
@@ -65,8 +82,6 @@ class Submap:
     link_covariance: Array | None
     reference: ReferenceMap
     walls: WallMap
-    params: TrackingParams
-    """The tracking's see-through test, which judges the walls (:meth:`segment_map`)."""
     max_range: float
     """How far the robot's extraction reads a beam (m)."""
     viewpoints_in: list[Array] = field(default_factory=list)
@@ -104,7 +119,7 @@ class Submap:
         robots' submaps (docs/decisions/002-pose-graph.md)."""
         if self._built is None or self._built[0] != self.inserted:
             walls = self.walls.segments
-            seen, through = wall_evidence(walls, self.scans_in, self.params, self.max_range)
+            seen, through = wall_evidence(walls, self.scans_in, self.max_range)
             walls = walls[through <= seen]
             self._built = (self.inserted, SegmentMap(walls, ordered=False, oriented=True))
         if self.finished:
@@ -138,13 +153,12 @@ class SubmapChain:
     def due(self, stamp: float, pose: Transform2D) -> bool:
         """Whether a scan placed at ``pose`` (epoch frame) is inserted: the robot has moved or turned
         enough since the last inserted scan, or enough time has passed."""
-        p = self.params
         if self.inserted_at is None:
             return True
         when, where = self.inserted_at
         moved = math.hypot(pose.x - where.x, pose.y - where.y)
         turned = abs(float(wrap_angle(pose.theta - where.theta)))
-        return moved >= p.insert_distance or turned >= p.insert_rotation or stamp - when >= p.insert_interval
+        return moved >= INSERT_DISTANCE or turned >= INSERT_ROTATION or stamp - when >= INSERT_INTERVAL
 
     def insert(
         self,
@@ -164,15 +178,15 @@ class SubmapChain:
         for submap in self.active:
             submap.insert(scan, samples, segments, submap.origin.inverse().compose(pose))
         newest = self.active[-1]
-        half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1)
+        half = newest.path_length >= p.submap_length / 2 or newest.inserted >= max(SUBMAP_SCANS // 2, 1)
         if half and len(self.active) == 1:
             self.start(epoch, index, pose, scan, segments, samples, reg)
         oldest = self.active[0]
-        if len(self.active) > 1 and (oldest.path_length >= p.submap_length or oldest.inserted >= p.submap_scans):
+        if len(self.active) > 1 and (oldest.path_length >= p.submap_length or oldest.inserted >= SUBMAP_SCANS):
             oldest.finished = True
             self.finished.append(self.active.pop(0))
             newest = self.active[-1]
-            if newest.path_length >= p.submap_length / 2 or newest.inserted >= max(p.submap_scans // 2, 1):
+            if newest.path_length >= p.submap_length / 2 or newest.inserted >= max(SUBMAP_SCANS // 2, 1):
                 self.start(epoch, index, pose, scan, segments, samples, reg)
 
     def start(
@@ -191,8 +205,8 @@ class SubmapChain:
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
-            covariance = link_covariance(reg, self.params) + drift_covariance(self.params, previous.path_length)
-        walls = WallMap(self.config.integration.simplify_tolerance)
+            covariance = link_covariance(reg) + drift_covariance(previous.path_length)
+        walls = WallMap(SIMPLIFY_TOLERANCE)
         submap = Submap(
             epoch,
             self.count,
@@ -200,9 +214,8 @@ class SubmapChain:
             pose,
             link,
             covariance,
-            ReferenceMap(self.params.voxel_size),
+            ReferenceMap(VOXEL_SIZE),
             walls,
-            self.params,
             self.config.extraction.max_range,
         )
         self.count += 1
@@ -224,10 +237,10 @@ class SubmapChain:
         self.active[0].placed.append(PlacedScan(index, stamp, Transform2D()))
 
 
-def link_covariance(reg: Registration | None, p: TrackingParams) -> Array:
+def link_covariance(reg: Registration | None) -> Array:
     """The covariance of a submap link from the registration that placed the new submap's frame,
-    no tighter than ``link_min_sigma_translation`` and ``link_min_sigma_rotation``."""
-    st, sr = p.link_min_sigma_translation, p.link_min_sigma_rotation
+    no tighter than :data:`LINK_MIN_SIGMA_TRANSLATION` and :data:`LINK_MIN_SIGMA_ROTATION`."""
+    st, sr = LINK_MIN_SIGMA_TRANSLATION, LINK_MIN_SIGMA_ROTATION
     floor = np.diag([st**2, st**2, sr**2])
     if reg is None:
         return floor

@@ -8,15 +8,15 @@ For each scan (:meth:`Tracker.add`):
 2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
    (:func:`fleetmap.shared.core.tracking.register`).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
-   submap's (``min_matched_share``, ``min_matched_length``) and the scan's beams through little
-   of the submap's walls (``max_see_through``: a laser does not see through walls). The clock
+   submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
+   of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
    bounds no registration (docs/decisions/009-clocks-evidence-over-stamps.md).
 4. A failed fit is **re-acquired** with the paper's pose-free integration of the scan on the
    submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
    :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
-   moved ``insert_distance`` or turned ``insert_rotation`` since the last inserted one (or
-   ``insert_interval`` has passed) (:mod:`fleetmap.agents.submap`). The motion between placed
+   moved ``INSERT_DISTANCE`` or turned ``INSERT_ROTATION`` since the last inserted one (or
+   ``INSERT_INTERVAL`` has passed) (:mod:`fleetmap.agents.submap`). The motion between placed
    scans also judges the stamps (:mod:`fleetmap.agents.clock_evidence`).
 6. A scan that neither fits nor re-acquires is weighed as evidence (a kidnap is a conclusion,
    not a count of poor fits; docs/decisions/009-clocks-evidence-over-stamps.md;
@@ -49,7 +49,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from fleetmap.agents.clock_evidence import check_motion, check_order
-from fleetmap.agents.fitcheck import KIDNAP_REASON, Fit, best_fit, judge, near, same_start
+from fleetmap.agents.fitcheck import KIDNAP_REASON, TYPICAL_SCORE_SHARE, Fit, best_fit, judge, near, same_start
 from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
@@ -58,11 +58,15 @@ from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.motion import Prediction
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import Registration, ScanSamples, register, sample_segments
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, Registration, ScanSamples, register, sample_segments
 
 __all__ = ["KIDNAP_REASON", "PlacedScan", "Submap", "TrackStep", "Tracker"]
 
 log = logging.getLogger(__name__)
+
+RECENT_FITS = 20
+"""The robot's recent fits whose median a typical fit is measured against (``TYPICAL_SCORE_SHARE``):
+a few seconds of scans, so a new room's walls soon set the norm."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,7 @@ class Tracker:
         self._good: tuple[float, Transform2D, int] | None = None
         """Stamp, epoch-frame pose and sequence number of the last placed scan."""
         self._held: list[_Held] = []
-        self._scores: deque[float] = deque(maxlen=self.params.recent_fits)
+        self._scores: deque[float] = deque(maxlen=RECENT_FITS)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
 
     # -- queries -----------------------------------------------------------------------------
@@ -179,7 +183,7 @@ class Tracker:
     def _track(
         self, seq: int, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None
     ) -> list[TrackStep]:
-        samples = sample_segments(segments, self.params.sample_spacing)
+        samples = sample_segments(segments, SAMPLE_SPACING)
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
             return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None)]
@@ -254,7 +258,7 @@ class Tracker:
         """The score below which a fit is not typical of the robot's recent ones (:meth:`_fit`)."""
         if len(self._scores) < 3:
             return 0.0
-        return self.params.typical_score_share * float(np.median(self._scores))
+        return TYPICAL_SCORE_SHARE * float(np.median(self._scores))
 
     def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
         base = self._pose if self._pose is not None else Transform2D()
@@ -274,15 +278,15 @@ class Tracker:
         """The scan's fit on the matching submap.
 
         The first prediction's fit is taken when it is good and typical: its score at least
-        ``typical_score_share`` of the median of the robot's recent fits (a fit that suddenly
+        ``TYPICAL_SCORE_SHARE`` of the median of the robot's recent fits (a fit that suddenly
         supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
         the other predictions, and the robot standing still, are tried too, and the pose-free
         integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
-        only if it scores over ``1 / typical_score_share`` times as much (where the walls leave a
+        only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (where the walls leave a
         direction free, as along a corridor, the fits score alike and the first prediction's
         stands: :func:`~fleetmap.agents.fitcheck.best_fit`). Failing all, the first fit, not good."""
         submap = self.chain.active[0]
-        share = self.params.typical_score_share
+        share = TYPICAL_SCORE_SHARE
         floor = self._typical_floor()
         tried: list[Transform2D] = []
         fits: list[Fit] = []
@@ -303,13 +307,13 @@ class Tracker:
             # the robot standing still where it was last placed; the models from its last pose
             base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
             predicted = submap.origin.inverse().compose(base)
-            if any(same_start(predicted, other, self.params) for other in tried):
+            if any(same_start(predicted, other) for other in tried):
                 continue
             tried.append(predicted)
             reg = register(taken.samples, submap.reference, predicted, predicted, prediction.information(), self.params)
             why, (contradicted, disputed) = self._judge(reg, taken, submap)
             fits.append(Fit(reg, why == "", why, contradicted, disputed))
-        best = best_fit(fits, apart, self.params)
+        best = best_fit(fits, apart)
         if best is None or best.registration.score < floor:
             # a scan re-acquired by pose-free integration must fit as well as the robot's scans
             # usually do: one that explains a fraction of what they did matched a look-alike (a
@@ -330,7 +334,7 @@ class Tracker:
         """The fit check (:func:`~fleetmap.agents.fitcheck.judge`), its beam test excusing the
         uncertainty of the track the robot is carried on."""
         max_range = self.config.extraction.max_range
-        return judge(reg, taken.scan, taken.segments, submap, self.params, max_range, self.motion.track_drift)
+        return judge(reg, taken.scan, taken.segments, submap, max_range, self.motion.track_drift)
 
     def _reacquire(self, taken: _ScanIn, submap: Submap) -> Fit | None:
         """The paper's pose-free integration of the scan on the submap, within the robot's reach of

@@ -21,10 +21,10 @@ from collections import deque
 from pathlib import Path
 
 from fleetmap.merger.executor import Executor, InlineExecutor, PairJob, PairResult, make_executor
-from fleetmap.shared.config import FleetmapConfig
 from results import write_result
 from tracking import data_folder
 
+from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
 
 LOGS = {"aces": ("aces/aces.clf.gz", 50.0), "fr079": ("fr079/fr079.clf.gz", 81.91)}
@@ -84,7 +84,7 @@ def main() -> int:
     args = ap.parse_args()
     path, range_max = LOGS[args.log]
     pieces = read_inputs([str(data_folder() / path)], args.split, None, range_max, None)
-    config = FleetmapConfig()
+    config = preset("offline")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         kept = Keeping()

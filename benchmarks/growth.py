@@ -22,8 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fleetmap.merger.executor import make_executor
-from fleetmap.shared.config import FleetmapConfig
 
+from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -57,7 +57,7 @@ def run(log: str, copies: int) -> Growth:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             result = map_logs(
-                pieces, Path(tmp), FleetmapConfig(), executor=executor, on_step=lambda *s: steps.append(s)
+                pieces, Path(tmp), preset("offline"), executor=executor, on_step=lambda *s: steps.append(s)
             )
     finally:
         executor.close()
@@ -109,7 +109,7 @@ def main() -> int:
     print(body)
     if args.write_results:
         write_result(
-            "growth", "The merger's cost as the map grows (`benchmarks/growth.py`)", body, config=FleetmapConfig()
+            "growth", "The merger's cost as the map grows (`benchmarks/growth.py`)", body, config=preset("offline")
         )
     return 0
 

@@ -43,12 +43,12 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.merger.executor import make_executor
-from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
 from scipy.spatial import cKDTree
 
+from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -199,7 +199,7 @@ def run_corrected(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
     executor = make_executor("local")
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            result = map_logs(pieces, Path(tmp) / "out", FleetmapConfig(), executor=executor)
+            result = map_logs(pieces, Path(tmp) / "out", preset("offline"), executor=executor)
     finally:
         executor.close()
     all_, cross = score_by_index(result.by_index, corrected_relations(path))
@@ -302,7 +302,7 @@ def main() -> int:
     )
     print(body)
     if args.write_results:
-        write_result("relations", "Mapping real logs (`benchmarks/relations.py`)", body, config=FleetmapConfig())
+        write_result("relations", "Mapping real logs (`benchmarks/relations.py`)", body, config=preset("offline"))
     return 0
 
 

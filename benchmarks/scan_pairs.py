@@ -6,9 +6,9 @@ first ``--max-scans`` scans with no prior (INTEGRATE, as the agent's first witne
 the pairs by outcome: right (within 0.3 m and 3 deg of the corrected poses) or wrong, valid or
 not, and for the invalid ones the parts of the validity rule they fail:
 
-- ``low``: value under ``valid_min_value`` or ``valid_min_fraction`` of the smaller scan;
-- ``viol``: more than ``valid_max_violation`` of the value in the other scan's seen free space;
-- ``amb``: a clearly different transformation scores more than ``valid_max_ambiguity`` of it.
+- ``low``: value under ``valid_min_value`` or ``VALID_MIN_FRACTION`` of the smaller scan;
+- ``viol``: more than ``VALID_MAX_VIOLATION`` of the value in the other scan's seen free space;
+- ``amb``: a clearly different transformation scores more than ``VALID_MAX_AMBIGUITY`` of it.
 
 A right but ambiguous pair is what a motion prior can settle; a wrong valid one is what breaks a
 local map. The last column is the median, over the pairs that turn more than 10 degrees and are
@@ -29,7 +29,7 @@ lies mostly short of the step.
 
     python benchmarks/scan_pairs.py
     python benchmarks/scan_pairs.py --write-results    # and write its result (benchmarks/results/)
-    python benchmarks/scan_pairs.py --datasets edmonton --refuse-range-slope 0 -v
+    python benchmarks/scan_pairs.py --datasets edmonton --kappa-noise-factor 0 -v
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from collections.abc import Callable
 from fleetmap.shared.config import FleetmapConfig, IntegrationParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, integrate
+from fleetmap.shared.core.validity import VALID_MAX_AMBIGUITY, VALID_MAX_VIOLATION, VALID_MIN_FRACTION
 from merge import DATASETS, load_pieces, scan_maps
 from results import markdown_table, write_result
 
@@ -78,11 +79,11 @@ def alias_kind(alias: Transform2D, truth: Transform2D) -> str:
 def failed_parts(r: Integration, smaller: float, p: IntegrationParams) -> str:
     """The parts of the scan-pair validity rule (``is_valid``) that ``r`` fails."""
     parts = []
-    if r.value < p.validity.valid_min_value or r.value < p.validity.valid_min_fraction * smaller:
+    if r.value < p.validity.valid_min_value or r.value < VALID_MIN_FRACTION * smaller:
         parts.append("low")
-    if r.violation > p.validity.valid_max_violation * r.value:
+    if r.violation > VALID_MAX_VIOLATION * r.value:
         parts.append("viol")
-    if r.runner_up > p.validity.valid_max_ambiguity * (r.value - r.violation):
+    if r.runner_up > VALID_MAX_AMBIGUITY * (r.value - r.violation):
         parts.append("amb")
     return "+".join(parts)
 

@@ -41,9 +41,10 @@ from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParam
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, index_for, integrate, takes_large_path
 from fleetmap.shared.core.near import align_near
+from fleetmap.shared.core.pivotmap import WITNESS_ROTATION, WITNESS_TRANSLATION
 from fleetmap.shared.core.refine import fit_information, refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import ReferenceMap, sample_segments
+from fleetmap.shared.core.tracking import VOXEL_SIZE, ReferenceMap, sample_segments
 from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.core.work import Work, WorkExhausted
 from fleetmap.shared.errors import BadInput
@@ -51,6 +52,13 @@ from fleetmap.shared.errors import BadInput
 log = logging.getLogger(__name__)
 
 EXECUTORS: tuple[str, ...] = ("inline", "local", "ray")
+
+POLISH_ITERATIONS = 30
+"""A polished edge's Gauss-Newton steps, at most (``polish_edges``)."""
+EDGE_INFORMATION = True
+"""An edge weighs as firmly as its walls fix each direction of its transform (the normal matrix of its
+least-squares fit), not by its value alone in every direction (orebro's pieces 0-3 of 8: maps 0.26 and
+0.22 m off by value alone, all within 0.2 m with it; docs/decisions/008-pivot-local-maps.md)."""
 
 
 MAX_ATTEMPTS = 3
@@ -132,10 +140,10 @@ def fingerprint(m: SegmentMap) -> bytes:
     return h.digest()
 
 
-def reference_of(m: SegmentMap, t: TrackingParams) -> ReferenceMap:
+def reference_of(m: SegmentMap) -> ReferenceMap:
     """The registration grid of a map's walls."""
-    reference = ReferenceMap(t.voxel_size)
-    reference.insert(sample_segments(m.segments, t.voxel_size))
+    reference = ReferenceMap(VOXEL_SIZE)
+    reference.insert(sample_segments(m.segments, VOXEL_SIZE))
     return reference
 
 
@@ -154,7 +162,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
         value = job.given.get(name)
         if value is None:
-            params = job.tracking.voxel_size if kind == "reference" else p
+            params = VOXEL_SIZE if kind == "reference" else p
             value = cache.get(key, version, kind, build, (fingerprint(m), params) if indexes is None else None)
             if indexes is None:
                 built[name] = value  # a worker's: the caller keeps it
@@ -167,7 +175,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             job.predicted,
             p,
             job.tracking,
-            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a, job.tracking), job.map_a),
+            need("reference_a", a, va, "reference", lambda: reference_of(job.map_a), job.map_a),
             need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a),
             need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b),
             work,
@@ -194,19 +202,19 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
 def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Transform2D, tuple[float, ...] | None]:
     """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
     where either was integrated simplified, ``t`` fitted again by least squares
-    (``MergeParams.polish_edges``), unless the fit moves it farther than the witness
+    (``polish_edges``), unless the fit moves it farther than the witness
     tolerances."""
     p, merge = job.integration, job.merge
     polish = merge.polish_edges and not (job.work_a is job.map_a and job.work_b is job.map_b)
-    if not (polish or merge.edge_information):
+    if not (polish or EDGE_INFORMATION):
         return t, None
     prep = prepare(job.map_a.segments, job.map_b.segments, job.map_a.oriented and job.map_b.oriented, p, work=work)
     if polish:
-        candidate = refine_transform(prep, t, p, iterations=merge.polish_iterations)
+        candidate = refine_transform(prep, t, p, iterations=POLISH_ITERATIONS)
         dt, dr = candidate.distance(t)
-        if dt <= p.pivot.witness_translation and dr <= p.pivot.witness_rotation:
+        if dt <= WITNESS_TRANSLATION and dr <= WITNESS_ROTATION:
             t = candidate
-    h = fit_information(prep, t, p) if merge.edge_information else None
+    h = fit_information(prep, t, p) if EDGE_INFORMATION else None
     return t, None if h is None else tuple(np.asarray(h).ravel().tolist())
 
 

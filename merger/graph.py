@@ -29,12 +29,32 @@ from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.integration import index_for
 from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.simplify import simplify
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE, simplify
 from fleetmap.shared.core.tracking import ReferenceMap
 from fleetmap.shared.core.validity import seen_from_enough_places
 from fleetmap.shared.errors import BadInput
 
 log = logging.getLogger(__name__)
+
+CYCLE_TRANSLATION_TOLERANCE = 0.30
+"""A non-tree edge that disagrees with its tree path by more than this (m) ..."""
+CYCLE_ROTATION_TOLERANCE = 0.087
+"""... or this (rad, 5 degrees), times the square root of the path's hops, is rejected
+(docs/decisions/002-pose-graph.md)."""
+EDGE_SIGMA_TRANSLATION = 0.05
+"""How far (m) a wall of one map may lie from the same wall of another when their poses are refined
+together: the scale of an edge's information (002) ..."""
+EDGE_SIGMA_ROTATION = 0.01
+"""... and an edge weighed by its value alone: its rotation's standard deviation at unit weight (rad)."""
+DESCRIPTOR_STEP = 0.5
+"""The cheap descriptor that ranks far candidates bins how far two walls lie apart in steps of this
+(m) ..."""
+DESCRIPTOR_REACH = 12.0
+"""... up to this (m), about a submap's extent: it tells a corridor from a hall (aces cut in 8: first
+overlapping candidate in the top 3 for 70 % of submaps, against 23 % by wall directions; 002)."""
+MAX_CANDIDATES = 0
+"""``fleetmap merge``: a new map is integrated with at most this many existing maps, most similar
+first (0: all; a user's few map files each meet every other)."""
 
 
 @dataclass(frozen=True)
@@ -57,9 +77,9 @@ class Edge:
     """How firmly the two maps' walls fix ``transform`` (row-major 3x3,
     :func:`~fleetmap.shared.core.refine.fit_information`; found for an edge integrated valid): along a
     corridor the walls leave the translation free, and the poses refined together take it from
-    the other edges. None: not known (an edge integrated invalid, ``MergeParams.edge_information``
-    off, fewer than two parallel pairs matched, or an edge given without it); such an edge weighs
-    by value alone, the same in every direction."""
+    the other edges. None: not known (an edge integrated invalid,
+    ``EDGE_INFORMATION`` off, fewer than two parallel pairs matched, or an
+    edge given without it); such an edge weighs by value alone, the same in every direction."""
     link: bool = False
     """A robot's own link between consecutive submaps (its tracking), not an integration: its
     information is the inverse of the link's covariance, and no cycle check rejects it."""
@@ -219,17 +239,15 @@ class MapGraph:
         histogram, :func:`~fleetmap.shared.core.descriptor.pairwise_histogram`), for its version."""
         node = self._nodes[key]
         if node.descriptor is None:
-            node.descriptor = pairwise_histogram(
-                node.map.segments, self.merge.descriptor_step, self.merge.descriptor_reach
-            )
+            node.descriptor = pairwise_histogram(node.map.segments, DESCRIPTOR_STEP, DESCRIPTOR_REACH)
         return node.descriptor
 
     def candidates_for(self, key: str) -> list[str]:
-        """Existing maps to integrate ``key`` with, most similar first (at most max_candidates)."""
+        """Existing maps to integrate ``key`` with, most similar first (at most :data:`MAX_CANDIDATES`; 0: all)."""
         h = self.descriptor(key)
         others = [k for k in self.keys if k != key]
         ranked = sorted(others, key=lambda k: (-similarity(self.descriptor(k), h), self._nodes[k].order))
-        limit = self.merge.max_candidates
+        limit = MAX_CANDIDATES
         return ranked[:limit] if limit > 0 else ranked
 
     def put_map(self, key: str, segment_map: SegmentMap, version: int = 0, keep_edges: bool = False) -> bool:
@@ -277,7 +295,7 @@ class MapGraph:
 
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         del key
-        tol = self.integration.simplify_tolerance
+        tol = SIMPLIFY_TOLERANCE
         return simplify(m, tol) if tol > 0 and not m.ordered else m
 
     def _index(self, key: str) -> MapIndex:
@@ -341,7 +359,7 @@ class MapGraph:
         node = self._nodes[key]
         held = self._references.get(key)
         if held is None or held[0] != node.version:
-            held = self._references[key] = (node.version, reference_of(node.map, self.tracking))
+            held = self._references[key] = (node.version, reference_of(node.map))
         return held[1]
 
     def take(self, job: PairJob, result: PairResult) -> Edge:
@@ -420,7 +438,7 @@ class MapGraph:
 
     def _too_few_places(self, a: SegmentMap, b: SegmentMap) -> bool:
         """Whether two partial maps cannot merge whatever their geometry: one was seen from fewer
-        than ``valid_min_map_scans`` places (fleetmap.shared.core.integration's rule). Such a pair is
+        than ``VALID_MIN_MAP_SCANS`` places (fleetmap.shared.core.integration's rule). Such a pair is
         not integrated (a new epoch's first versions, a robot that saw its map from one place)."""
         return not (a.ordered or b.ordered or seen_from_enough_places(a, b, self.integration))
 
@@ -434,7 +452,7 @@ class MapGraph:
     # -- solving (the forest's pieces; PoseGraph.solve) ------------------------------------
     def _tolerance(self, hops: int) -> tuple[float, float]:
         s = math.sqrt(max(hops, 1))
-        return self.merge.cycle_translation_tolerance * s, self.merge.cycle_rotation_tolerance * s
+        return CYCLE_TRANSLATION_TOLERANCE * s, CYCLE_ROTATION_TOLERANCE * s
 
     def _pick_anchor(self, group: list[str]) -> str:
         if self.anchor == "first":

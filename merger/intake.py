@@ -20,11 +20,11 @@ from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.clocks import from_the_future
 from fleetmap.merger.outputs import Outgoing, Placement, Robot
 from fleetmap.merger.posegraph import PoseGraph
-from fleetmap.merger.scangraph import KeyScan, is_key
-from fleetmap.merger.schedule import PairSchedule
+from fleetmap.merger.scangraph import SCAN_CONSTRAINTS, KeyScan, is_key
+from fleetmap.merger.schedule import FAR_BUDGET, PairSchedule
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.tracking import sample_segments
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, sample_segments
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import ROBOT_KINDS, FleetKeys, parse_map_key, parse_submap_key
 from fleetmap.shared.io.messages import (
@@ -37,6 +37,11 @@ from fleetmap.shared.io.messages import (
 )
 
 log = logging.getLogger(__name__)
+
+MAX_SUBMAP_SEGMENTS = 5000
+"""The merger refuses a submap of more segments than this (dropped, logged and counted): one
+integration's time grows with its segments, an agent's submaps hold tens to hundreds
+(docs/decisions/003-a-fleet-that-lets-in-only-its-own.md)."""
 
 _NO_ROBOT = Robot()
 """Who a robot the merger does not know is (refused nothing)."""
@@ -187,7 +192,9 @@ class Intake:
             counted = len(self._robots)
         if counted < self.config.merge.max_robots:
             return True
-        self._refuse("max_robots", f"a message of robot {robot!r}, {counted} robots counted")
+        self._refuse(
+            "max_robots", self.config.merge.max_robots, f"a message of robot {robot!r}, {counted} robots counted"
+        )
         return False
 
     def _drop(self, reason: str, what: str) -> None:
@@ -197,14 +204,12 @@ class Intake:
         if n <= 10 or n % 1000 == 0:
             log.warning("dropped %s (%s: %d so far)", what, reason.replace("_", " "), n)
 
-    def _refuse(self, limit: str, what: str) -> None:
-        """Count (and log, the first times) something a limit of ``merge`` refused."""
+    def _refuse(self, limit: str, value: int, what: str) -> None:
+        """Count (and log, the first times) something the merger's ``limit`` (at ``value``) refused."""
         self.stats.refused[limit] += 1
         n = self.stats.refused[limit]
         if n <= 10 or n % 1000 == 0:
-            flag = "--" + limit.replace("_", "-")
-            value = getattr(self.config.merge, limit)
-            log.warning("refused %s: more than %s %s allows (%d refused so far)", what, flag, value, n)
+            log.warning("refused %s: more than %s %s allows (%d refused so far)", what, limit, value, n)
 
     def _robot(self, name: str) -> Robot:
         return self._robots.setdefault(name, Robot())
@@ -224,8 +229,8 @@ class Intake:
         if len(m.segments) == 0:
             self.stats.ignored += 1
             return []
-        if len(m.segments) > self.config.merge.max_submap_segments:
-            self._refuse("max_submap_segments", f"submap {key} of {len(m.segments)} segments")
+        if len(m.segments) > MAX_SUBMAP_SEGMENTS:
+            self._refuse("max_submap_segments", MAX_SUBMAP_SEGMENTS, f"submap {key} of {len(m.segments)} segments")
             return []
         r = self._robot(m.robot)  # known from its first map (max_robots counts it)
         r.live = True
@@ -296,7 +301,7 @@ class Intake:
     def _take_scan(self, scan: Scan) -> None:
         """Keep a placed scan that is a key scan of its submap (:func:`fleetmap.merger.scangraph.is_key`)."""
         if (
-            not (self.keep_key_scans and self.config.merge.scan_constraints)
+            not (self.keep_key_scans and SCAN_CONSTRAINTS)
             or scan.submap is None
             or scan.pose is None
             or not len(scan.segments)
@@ -306,9 +311,9 @@ class Intake:
         held = self._key_scans.setdefault(key, [])
         if held and scan.index <= held[-1].index:
             return  # a scan again, or out of order
-        if not is_key(held[-1].pose if held else None, scan.pose, self.config.merge):
+        if not is_key(held[-1].pose if held else None, scan.pose):
             return
-        samples = sample_segments(np.asarray(scan.segments), self.config.tracking.sample_spacing)
+        samples = sample_segments(np.asarray(scan.segments), SAMPLE_SPACING)
         held.append(KeyScan(scan.robot, scan.epoch, scan.index, key, scan.pose, samples))
         self.stats.key_scans += 1
 
@@ -354,7 +359,7 @@ class Intake:
             return key.split("/", 1)[0] == robot
 
         s = self.schedule
-        budget = self.config.merge.far_budget
+        budget = FAR_BUDGET
         return (
             any(mine(k) for k in self._pending)
             or robot in self._held

@@ -22,15 +22,21 @@ from typing import Any
 
 import numpy as np
 from fleetmap.merger.chains import _map_file, _tree_paths
-from fleetmap.merger.graph import Edge, _disagreement, _tree_path
+from fleetmap.merger.graph import CYCLE_TRANSLATION_TOLERANCE, EDGE_SIGMA_TRANSLATION, Edge, _disagreement, _tree_path
 from fleetmap.merger.pairs import PairJudge, Verdict
 from fleetmap.shared.core.geometry import Array, Transform2D
-from fleetmap.shared.core.tracking import REACH_ROTATION
-from fleetmap.shared.core.validity import max_map_violation
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
+from fleetmap.shared.core.validity import VALID_MIN_MAP_VALUE, VALID_REFUTE_VIOLATION, max_map_violation
 
 log = logging.getLogger(__name__)
 
 
+JOIN_SUPPORT = 2
+"""An integration joins two groups of submaps only if at least this many pairs of their submaps,
+itself included, bear it out and none contradicts it (docs/decisions/002-pose-graph.md)."""
+JOIN_HYPOTHESES = 3
+"""An ambiguous integration proposes to a cycle its alignment and its next best rivals, this many in
+all (it joins no two groups); 1 instead: aces cut in 4 within 87.5 -> 76.1 % (002)."""
 RIVALS_KEPT = 10_000
 """Rival verdicts kept (:meth:`JoinJudge._rival_join`) before they are forgotten all at once."""
 RIVAL_JOINS = 3
@@ -104,7 +110,7 @@ class JoinJudge(PairJudge):
         groups are not joined while two clearly different alignments of them both hold.
 
         The alignments looked at are the other integrations between the groups, their best and
-        their rivals (``join_hypotheses`` of them), most valuable first, at most ``RIVAL_JOINS``
+        their rivals (:data:`JOIN_HYPOTHESES` of them), most valuable first, at most ``RIVAL_JOINS``
         clearly different ones. One counts only if the two groups as wholes hold it valid, by a
         cheap look at every pair that then meets (:meth:`_group_look`: the wall in seen free space
         within what the validity rule allows the wall on wall): a rival can put a metre of wall in
@@ -124,7 +130,7 @@ class JoinJudge(PairJudge):
                     continue
                 g = f if f.a in in_a else f.reversed()
                 scored.append((g.value, g))
-                scored += [(g.runner_up, replace(g, transform=t)) for t in g.rivals[: self.merge.join_hypotheses - 1]]
+                scored += [(g.runner_up, replace(g, transform=t)) for t in g.rivals[: JOIN_HYPOTHESES - 1]]
         scored.sort(key=lambda s: (-s[0], s[1].a, s[1].b))
         hypotheses = [h for _, h in scored]
         # kept for the two groups and the alignments between them: every round of a solve asks again
@@ -183,12 +189,12 @@ class JoinJudge(PairJudge):
         """Whether an integration may join two groups of submaps: the paper's validity rule on the
         two groups as wholes. Where it puts them, the pairs of their submaps that then overlap are
         looked at: a pair that registers validly near there (within the cycle tolerance) bears the
-        join out (its value counts for it); a pair that puts ``valid_refute_violation`` m of wall
+        join out (its value counts for it); a pair that puts ``VALID_REFUTE_VIOLATION`` m of wall
         or more where the other saw free space, more than the validity rule allows it, contradicts
         it (that wall counts against). The wall is measured as the validity rule measures it: solid
-        walls clear of the other's (``map_free_space_min_length``, ``map_free_space_clearance``),
+        walls clear of the other's (``MAP_FREE_SPACE_MIN_LENGTH``, ``map_free_space_clearance``),
         not the clutter of chairs and people that moved between two visits. The join holds if at
-        least ``join_support`` pairs bear it out, itself included (every pair there is, up to that,
+        least :data:`JOIN_SUPPORT` pairs bear it out, itself included (every pair there is, up to that,
         where a group can never grow), and the wall against is within what the validity rule allows
         their value (``max_map_violation``).
         A repetitive building (racks, a corridor that looks the same turned round) matches one pair
@@ -250,7 +256,7 @@ class JoinJudge(PairJudge):
         # c p_i and c |p_i|^2, so a pair costs a few operations, not a walk along its path
         side_a = self._path_sums(_tree_paths(adjacency, e.a), {k: rel[k] for k in group_a}, toward_start=True)
         side_b = self._path_sums(_tree_paths(adjacency, e.b), placed_b, toward_start=False)
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         pairs: list[tuple[str, str, Transform2D, float, float]] = []
         meeting = self.meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
         for i, a in enumerate(group_a):
@@ -325,7 +331,7 @@ class JoinJudge(PairJudge):
             most = value + sum(looks[i][0] for i in bearing if i not in done)
             return against > max_map_violation(most, p) * most
 
-        refuting = [i for i, (_, free) in enumerate(looks) if free >= p.validity.valid_refute_violation]
+        refuting = [i for i, (_, free) in enumerate(looks) if free >= VALID_REFUTE_VIOLATION]
         for i in sorted(refuting, key=lambda i: -looks[i][1]):
             if refuted():
                 break
@@ -368,9 +374,9 @@ class JoinJudge(PairJudge):
         poses in one frame of the tree; ``drift``: a tree path's integrations and drift. None where
         it cannot say (no verdict kept, one that failed, or groups that could not grow)."""
         judged = self._judged.get(_judged_key(e))
-        if judged is None or not judged.holds or judged.required != self.merge.join_support:
+        if judged is None or not judged.holds or judged.required != JOIN_SUPPORT:
             return None
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         for a, b, implied in pairs:
             joins, drift_t, drift_r = drift(a, b)
             if drift_t > reach_t or drift_r > reach_r:
@@ -391,22 +397,22 @@ class JoinJudge(PairJudge):
         return supports >= judged.required and against <= limit and self._pinned(fixed)
 
     def _support_required(self, group_a: list[str], group_b: list[str], pairs: int, bearing: list[float]) -> int:
-        """How many pairs must bear a join out (:meth:`_weigh_join`): ``join_support``, or every pair
+        """How many pairs must bear a join out (:meth:`_weigh_join`): :data:`JOIN_SUPPORT`, or every pair
         there is where a group can never grow (``bearing``: the wall on wall of each pair that can
         bear it out, by its look)."""
-        required = self.merge.join_support
+        required = JOIN_SUPPORT
         if not (self._chained(group_a) and self._chained(group_b)):
             # a group no link extends yet (a robot's only submap) has only the pairs it has to bear
             # a join out: the paper's validity of the one integration may be all
             required = min(required, pairs)
             if all(_map_file(k) for k in (*group_a, *group_b)):
                 # map files, which no link will ever extend: a pair with less wall on wall than a
-                # valid integration of two maps holds (``valid_min_map_value``) can bear nothing
+                # valid integration of two maps holds (``VALID_MIN_MAP_VALUE``) can bear nothing
                 # out (edmonton's local maps at their true poses: two joins refused for a pair that
                 # barely overlaps; tests/merger/test_graph_real_data.py). Not for a robot's first
                 # submap, whose join its next submaps can bear out (office-events: its map's p95
                 # error 0.032 -> 0.075 m with it)
-                able = sum(hit >= self.integration.validity.valid_min_map_value for hit in bearing)
+                able = sum(hit >= VALID_MIN_MAP_VALUE for hit in bearing)
                 required = min(required, max(able, 1))
         return required
 
@@ -414,13 +420,13 @@ class JoinJudge(PairJudge):
         """Whether the walls that bear a join out fix it in every direction: their translation
         information, summed in one frame (``fixed``: :func:`~fleetmap.shared.core.refine.fit_information`
         on the submaps' own walls), must leave it within the cycle tolerance at three standard
-        deviations by the edges' noise model (``edge_sigma_translation`` per unit). Down a corridor
+        deviations by the edges' noise model (``EDGE_SIGMA_TRANSLATION`` per unit). Down a corridor
         with no ends in view every pair bears out a join 1 m on or back as well as the right one
         (aces cut in 4: a robot 0.75 m off along a corridor, joined by pairs whose walls fixed it
         in no direction; docs/decisions/002-pose-graph.md)."""
         worst = float(np.linalg.eigvalsh(fixed)[0])
-        sigma = self.merge.edge_sigma_translation / math.sqrt(worst) if worst > 0 else math.inf
-        return 3.0 * sigma <= self.merge.cycle_translation_tolerance
+        sigma = EDGE_SIGMA_TRANSLATION / math.sqrt(worst) if worst > 0 else math.inf
+        return 3.0 * sigma <= CYCLE_TRANSLATION_TOLERANCE
 
     def _seen(self, at: str, group: list[str], rel: dict[str, Transform2D]) -> dict[str, tuple[int, Transform2D]]:
         """Each submap of one side of a join: its version and its pose from the join's submap ``at``."""
@@ -434,7 +440,7 @@ class JoinJudge(PairJudge):
         was given, a side may have grown, a submap may have a new version, or the tree may have
         moved one within its side (by a third of the base tolerance: :meth:`_pair_verdict`). Only
         the pairs such a submap makes are new evidence, so only they are looked at (:meth:`_look`):
-        a join that held is judged again only if one puts ``valid_refute_violation`` of wall in the
+        a join that held is judged again only if one puts ``VALID_REFUTE_VIOLATION`` of wall in the
         other's seen free space, one that failed only if one has ``valid_min_value`` of wall on
         wall (issue 49: judged again whole at every step, half the merger's time on aces x4)."""
         judged = self._judged.get(_judged_key(e))
@@ -467,7 +473,7 @@ class JoinJudge(PairJudge):
                     a_inverse = rel[a].inverse()
                     for j in np.flatnonzero(meeting[i]).tolist():
                         hit, free = self._look(a, side_b[j], a_inverse.compose(placed_b[side_b[j]]))
-                        if (free >= p.valid_refute_violation) if judged.holds else (hit >= p.valid_min_value):
+                        if (free >= VALID_REFUTE_VIOLATION) if judged.holds else (hit >= p.valid_min_value):
                             return None
         judged.side_a, judged.side_b = now_a, now_b
         return judged.holds

@@ -23,7 +23,7 @@ import numpy as np
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import MergeResult
 from fleetmap.merger.posegraph import PoseGraph
-from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, refine_key_scans
+from fleetmap.merger.scangraph import SCAN_CONSTRAINTS, IntegrationEdge, KeyScan, follow_key_scans, refine_key_scans
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
@@ -221,9 +221,9 @@ def scan_poses(
     stats: MergerStats,
 ) -> dict[tuple[str, int], tuple[int, Transform2D]]:
     """Every scan ``result`` placed, by (robot, index): its component's number and its laser pose in
-    that component's frame; with ``merge.scan_constraints``, the key scans registered on the submaps
-    they revisit and all refined together (:mod:`fleetmap.merger.scangraph`), else its submap's pose
-    composed with its pose in the submap. Counts the registrations in ``stats``."""
+    that component's frame; with ``SCAN_CONSTRAINTS``, the key scans
+    registered on the submaps they revisit and all refined together (:mod:`fleetmap.merger.scangraph`),
+    else its submap's pose composed with its pose in the submap. Counts the registrations in ``stats``."""
     out: dict[tuple[str, int], tuple[int, Transform2D]] = {}
     if result is None:
         return out
@@ -237,7 +237,7 @@ def scan_poses(
     stats.scan_registrations = stats.scan_constraints = 0
     for n, c in enumerate(result.components):
         placed = placed_scans(c.poses, tables)
-        if config.merge.scan_constraints:
+        if SCAN_CONSTRAINTS:
             keys = [k for key in c.members for k in key_scans.get(key, ())]
             walls = {key: np.asarray(submaps[key].segments) for key in c.members if key in submaps}
             integrations = [
@@ -245,9 +245,7 @@ def scan_poses(
                 for e in edges
                 if e.a in c.poses and e.b in c.poses
             ]
-            refined = refine_key_scans(
-                keys, c.poses, c.anchor, walls, links, integrations, config.merge, config.tracking
-            )
+            refined = refine_key_scans(keys, c.poses, c.anchor, walls, links, integrations, config.tracking)
             stats.scan_registrations += refined.registrations
             stats.scan_constraints += refined.constraints
             poses = follow_key_scans(placed, keys, refined.poses, c.poses)

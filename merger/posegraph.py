@@ -51,16 +51,22 @@ import numpy as np
 from fleetmap.merger.chains import _chain_of, _map_file
 from fleetmap.merger.forest import KeptForest
 from fleetmap.merger.graph import Component, Edge, MergeResult, _bfs_order, _unite
-from fleetmap.merger.joins import _within
+from fleetmap.merger.joins import JOIN_HYPOTHESES, _within
 from fleetmap.merger.pairs import VERDICT_VERSIONS
 from fleetmap.merger.refinement import RefinedGraph
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.kalman_fusion import offset_information
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION, RESIDUAL_SIGMA, SAMPLE_SPACING
+from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION
 from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
+
+MAX_REJECTION_ROUNDS = 5
+"""The refined poses are solved again, without the integrations they disagree with, at most this many
+times (one round instead: the warehouse's error 0.010 -> 0.014 m; docs/decisions/002-pose-graph.md)."""
 
 
 class PoseGraph(RefinedGraph):
@@ -231,7 +237,7 @@ class PoseGraph(RefinedGraph):
             kept.loops.append(e)
             refine.add(ra)
             return True
-        hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+        hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: JOIN_HYPOTHESES - 1])]
         agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
         if len(agreeing) == 1:
             kept.loops.append(replace(agreeing[0], valid=True))
@@ -273,7 +279,7 @@ class PoseGraph(RefinedGraph):
         the same (:meth:`_join_holds`), the group's joins are looked at again when a new submap
         joins it, and then only the pairs that its submaps new or grown since the last look make
         across a join are new evidence. Each is looked at (:meth:`_look`) where the tree puts it;
-        a pair that puts ``valid_refute_violation`` of wall in the other's seen free space is
+        a pair that puts ``VALID_REFUTE_VIOLATION`` of wall in the other's seen free space is
         weighed in (:meth:`holds_with`), and where that cannot say, the join is judged again
         whole (:meth:`_failed_join`). Which side of a join a submap is on is read off the rooted
         forest (:attr:`~fleetmap.merger.forest.RootedForest.joins_above`), so a step costs what
@@ -306,10 +312,10 @@ class PoseGraph(RefinedGraph):
         }
         # a pair whose chains can have drifted farther than registration reaches says nothing
         # either way (:meth:`_join_pairs`)
-        reach_t, reach_r = self.tracking.max_correspondence, REACH_ROTATION
+        reach_t, reach_r = MAX_CORRESPONDENCE, REACH_ROTATION
         drifts = {(f, g): forest.drift(f, g) for f, g in sorted(pairs) if above[f] != above[g]}  # across a join
         within = [p for p, (_, drift_t, drift_r) in drifts.items() if drift_t <= reach_t and drift_r <= reach_r]
-        refute = self.integration.validity.valid_refute_violation
+        refute = VALID_REFUTE_VIOLATION
         for e in joins:
             key = e.key()
             a_far = key in above[e.a]  # whether e.a is on the far side of e from the root
@@ -376,7 +382,7 @@ class PoseGraph(RefinedGraph):
         valid = sorted(valid, key=lambda e: (-e.value, order[e.a], order[e.b]))
         disagreeing: set[tuple[str, str]] = set()
         self._begin_refinement()
-        for _ in range(self.merge.max_rejection_rounds):
+        for _ in range(MAX_REJECTION_ROUNDS):
             built = self._forest(links, [e for e in valid if e.key() not in disagreeing], priors)
             components, off = self._refined_components(built.tree, built.loops)
             components = self._global_first(components)
@@ -437,17 +443,17 @@ class PoseGraph(RefinedGraph):
         information on its offset (Ballesta et al. 2009, Section 4, eqs. 6-8, as
         :func:`~fleetmap.shared.core.kalman_fusion.offset_information` gives it to the wall's line
         fit): from its submap's pose covariance in the solved graph (:meth:`pose_covariances`) and
-        its segment's fit, a submap's segment carrying none of its own: ``residual_sigma`` off the
-        wall every ``sample_spacing`` along it, as the tracking registers scans on it."""
+        its segment's fit, a submap's segment carrying none of its own: ``RESIDUAL_SIGMA`` off the
+        wall every ``SAMPLE_SPACING`` along it, as the tracking registers scans on it."""
         order, poses = list(c.members), c.poses
         maps = tuple(self._nodes[k].map for k in order)
         key = tuple((k, id(m), poses[k].x, poses[k].y, poses[k].theta) for k, m in zip(order, maps, strict=True))
         held = self._last_walls.get(key)
         if held is None or not all(a is b for a, b in zip(held[0], maps, strict=True)):
-            walls = WallMap(self.integration.simplify_tolerance)
+            walls = WallMap(SIMPLIFY_TOLERANCE)
             weighted = self.merge.wall_fusion == "weighted" and len(order) > 1
             covariances = self.pose_covariances(c.anchor, poses, edges) if weighted else None
-            sigma, spacing = self.tracking.residual_sigma, self.tracking.sample_spacing
+            sigma, spacing = RESIDUAL_SIGMA, SAMPLE_SPACING
             for k, m in zip(order, maps, strict=True):
                 weights = (
                     None

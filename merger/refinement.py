@@ -19,11 +19,25 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from fleetmap.merger.graph import Component, Edge, _bfs_order, _disagreement
+from fleetmap.merger.graph import (
+    EDGE_SIGMA_ROTATION,
+    EDGE_SIGMA_TRANSLATION,
+    Component,
+    Edge,
+    _bfs_order,
+    _disagreement,
+)
 from fleetmap.merger.spanning import ForestBuilder
 from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
 
 log = logging.getLogger(__name__)
+
+ROBUST_SCALE = 2.0
+"""The Cauchy loss of an integration in the refinement, in standard deviations of its information
+(docs/decisions/002-pose-graph.md: Gaussian first, then Cauchy from there)."""
+ISOTROPIC_SHARE = 0.01
+"""The share of the value-based weight an integration with known information keeps: no direction is
+entirely free (0: the scenarios within 3 mm; kept as a floor, 002)."""
 
 
 def _pose2(t: Transform2D) -> gtsam.Pose2:
@@ -154,19 +168,17 @@ class RefinedGraph(ForestBuilder):
         if e.link and given is not None:
             return gtsam.noiseModel.Gaussian.Information(given)
         w2 = max(e.value, 1e-3)
-        sigma_t, sigma_r = self.merge.edge_sigma_translation, self.merge.edge_sigma_rotation
+        sigma_t, sigma_r = EDGE_SIGMA_TRANSLATION, EDGE_SIGMA_ROTATION
         iso = np.diag([w2 / sigma_t**2, w2 / sigma_t**2, w2 / sigma_r**2])
         information = iso
         if given is not None:
-            candidate = given / sigma_t**2 + self.merge.isotropic_share * iso
+            candidate = given / sigma_t**2 + ISOTROPIC_SHARE * iso
             if np.isfinite(candidate).all() and np.linalg.eigvalsh(candidate).min() > 0:
                 information = candidate
         gaussian = gtsam.noiseModel.Gaussian.Information(information)
         if not robust:
             return gaussian
-        return gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Cauchy.Create(self.merge.robust_scale), gaussian
-        )
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(ROBUST_SCALE), gaussian)
 
     def _optimized(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> dict[str, Transform2D]:
         """The component's poses refined together (Levenberg-Marquardt over SE(2), anchor fixed),

@@ -8,16 +8,16 @@ constrain one scan, rigid by itself, to a submap instead (Cartographer's scan-to
 constraints; Hess et al. 2016, section V). Here, once the submap graph is solved:
 
 - **Nodes** are key scans: the first scan each submap places and then one per
-  ``scan_key_spacing`` metres (or ``scan_key_rotation``) of the robot's path.
+  :data:`SCAN_KEY_SPACING` metres (or :data:`SCAN_KEY_ROTATION`) of the robot's path.
 - **Chain edges** join a robot's consecutive key scans by its tracking (their poses in their
   submaps, and the links between submaps), as uncertain as the tracking's drift over the distance
   between them (:func:`fleetmap.shared.core.tracking.drift_covariance`, the random walk a link's
   covariance adds up too).
 - **Scan-to-submap edges**: every key scan is registered (:func:`fleetmap.shared.core.tracking.register`,
   the tracker's own point-to-line ICP) on the walls of each other submap of its component that
-  has a key scan within ``scan_search_radius`` of it, its robot's own neighbouring submaps
+  has a key scan within :data:`SCAN_SEARCH_RADIUS` of it, its robot's own neighbouring submaps
   aside, starting from where the solved graph puts it. A fit that matches at least
-  ``scan_min_matched_share`` of the scan's walls, within ``scan_max_correction`` of the start, is
+  :data:`SCAN_MIN_MATCHED_SHARE` of the scan's walls, within :data:`SCAN_MAX_CORRECTION` of the start, is
   an edge from that submap's nearest key scan, weighed by how firmly the walls fix each
   direction, through a Cauchy loss.
 - **Integrations** the graph kept stay, between key scans of their two submaps, for the pairs of
@@ -40,14 +40,42 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from fleetmap.shared.config import MergeParams, TrackingParams
+from fleetmap.merger.refinement import ROBUST_SCALE
+from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
-from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, drift_covariance, register, sample_segments
+from fleetmap.shared.core.tracking import (
+    SAMPLE_SPACING,
+    VOXEL_SIZE,
+    ReferenceMap,
+    ScanSamples,
+    drift_covariance,
+    register,
+    sample_segments,
+)
 from fleetmap.shared.io.keys import parse_submap_key
 from scipy.spatial import cKDTree
 
 _Noise = gtsam.noiseModel.Base
 
+SCAN_CONSTRAINTS = True
+"""Once the submaps are merged, key scans are registered on the submaps they revisit and every placed
+scan's pose is refined with them (a scan is rigid; a submap bends a little): far relations within,
+whole logs, aces 52.2 -> 87.8 %, mit-csail 77.5 -> 93.3 % (docs/decisions/002-pose-graph.md)."""
+SCAN_KEY_SPACING = 1.0
+"""A submap's next key scan is this far (m) along the robot's path from its last ..."""
+SCAN_KEY_ROTATION = 0.35
+"""... or turned this much from it (rad, 20 degrees); spacing 0.5 or 2 m: within a point (002)."""
+SCAN_SEARCH_RADIUS = 2.0
+"""A key scan is registered on every submap of its component with a key scan this near (m; 4 m:
+within a point, 002) ..."""
+SCAN_PRIOR_TRANSLATION = 0.3
+"""... from where the merged submaps put it, as uncertain as this (m) ..."""
+SCAN_PRIOR_ROTATION = 0.087
+"""... and this (rad, 5 degrees), which is also the most the fit may turn it ..."""
+SCAN_MAX_CORRECTION = 0.5
+"""... and the most (m) it may move it (a scan farther off is not on that submap's walls) ..."""
+SCAN_MIN_MATCHED_SHARE = 0.5
+"""... and the fit must match at least this share of the scan's walls."""
 MIN_STRETCH = 0.1
 """Chain edges shorter than this (m; a robot turning on the spot) drift as much as this length."""
 
@@ -90,14 +118,14 @@ class ScanRefinement:
     """Registrations tried."""
 
 
-def is_key(last: Transform2D | None, pose: Transform2D, params: MergeParams) -> bool:
+def is_key(last: Transform2D | None, pose: Transform2D) -> bool:
     """Whether a scan at ``pose`` (in its submap's frame) is a key scan, the submap's last key scan
     at ``last`` (None: it has none yet)."""
     if last is None:
         return True
     moved = math.hypot(pose.x - last.x, pose.y - last.y)
     turned = abs(math.remainder(pose.theta - last.theta, 2 * math.pi))
-    return moved >= params.scan_key_spacing or turned >= params.scan_key_rotation
+    return moved >= SCAN_KEY_SPACING or turned >= SCAN_KEY_ROTATION
 
 
 def _pose2(t: Transform2D) -> gtsam.Pose2:
@@ -130,7 +158,6 @@ def refine_key_scans(
     walls: Mapping[str, Array],
     links: Mapping[str, tuple[str, Transform2D]],
     integrations: Sequence[IntegrationEdge],
-    merge: MergeParams,
     tracking: TrackingParams,
 ) -> ScanRefinement:
     """The refined poses of one component's key scans (see the module docstring).
@@ -153,11 +180,11 @@ def refine_key_scans(
         if between is None:
             continue
         length = max(math.hypot(between.x, between.y), MIN_STRETCH)
-        chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(tracking, length))
+        chain = gtsam.noiseModel.Gaussian.Covariance(drift_covariance(length))
         graph.add(i, i + 1, between, chain, chain)
 
     out = ScanRefinement({})
-    joined = _scan_to_submap_edges(keys, start, submap_poses, walls, merge, tracking, graph, out)
+    joined = _scan_to_submap_edges(keys, start, submap_poses, walls, tracking, graph, out)
 
     # the integrations of pairs no scan joins
     by_submap: dict[str, list[int]] = {}
@@ -188,7 +215,6 @@ def _scan_to_submap_edges(
     start: list[Transform2D],
     submap_poses: Mapping[str, Transform2D],
     walls: Mapping[str, Array],
-    merge: MergeParams,
     tracking: TrackingParams,
     graph: _Factors,
     out: ScanRefinement,
@@ -198,12 +224,12 @@ def _scan_to_submap_edges(
     positions = np.array([[p.x, p.y] for p in start])
     tree = cKDTree(positions)
     references: dict[str, ReferenceMap] = {}
-    prior = np.diag([merge.scan_prior_translation**-2, merge.scan_prior_translation**-2, merge.scan_prior_rotation**-2])
-    robust = gtsam.noiseModel.mEstimator.Cauchy.Create(merge.robust_scale)
+    prior = np.diag([SCAN_PRIOR_TRANSLATION**-2, SCAN_PRIOR_TRANSLATION**-2, SCAN_PRIOR_ROTATION**-2])
+    robust = gtsam.noiseModel.mEstimator.Cauchy.Create(ROBUST_SCALE)
     joined: set[tuple[str, str]] = set()
     for i, k in enumerate(keys):
         nearest: dict[str, tuple[float, int]] = {}
-        for j in tree.query_ball_point(positions[i], merge.scan_search_radius):
+        for j in tree.query_ball_point(positions[i], SCAN_SEARCH_RADIUS):
             other = keys[j]
             if other.submap == k.submap or _neighbours(k.submap, other.submap):
                 continue
@@ -216,17 +242,17 @@ def _scan_to_submap_edges(
             if reference is None and submap not in walls:
                 continue
             if reference is None:
-                reference = references[submap] = ReferenceMap(tracking.voxel_size)
-                reference.insert(sample_segments(walls[submap], tracking.sample_spacing))
+                reference = references[submap] = ReferenceMap(VOXEL_SIZE)
+                reference.insert(sample_segments(walls[submap], SAMPLE_SPACING))
             initial = submap_poses[submap].inverse().compose(start[i])
             fit = register(k.samples, reference, initial, initial, prior, tracking)
             out.registrations += 1
             correction = initial.inverse().compose(fit.pose)
             if (
                 not fit.converged
-                or fit.matched_share < merge.scan_min_matched_share
-                or math.hypot(correction.x, correction.y) > merge.scan_max_correction
-                or abs(correction.theta) > merge.scan_prior_rotation
+                or fit.matched_share < SCAN_MIN_MATCHED_SHARE
+                or math.hypot(correction.x, correction.y) > SCAN_MAX_CORRECTION
+                or abs(correction.theta) > SCAN_PRIOR_ROTATION
             ):
                 continue
             there = keys[j].pose  # the submap's key scan nearest to it, in the submap's frame

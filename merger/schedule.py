@@ -3,24 +3,24 @@
 **Bounded work per submap.** A submap is integrated when it is final (it never changes again),
 and, while its robot's current epoch is not placed and has no final submap yet (a robot that
 just joined, or lost its place), as its active submap grows (each time its version doubles,
-``MergeParams.search_growth``). Which pairs:
+:data:`SEARCH_GROWTH`). Which pairs:
 
 - *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
   robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
   put the new one (not its neighbours on its own chain), at most
-  ``MergeParams.near_candidates``, registered near that prediction
+  :data:`NEAR_CANDIDATES`, registered near that prediction
   (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
   searches near a trajectory;
 - *far*: the submaps of the other components most like it (the cosine of pairwise geometric
-  histograms of the walls, the cheap descriptor), at most ``MergeParams.far_candidates``, by the
-  paper's pose-free integration; every ``loop_sweep_every``-th final
+  histograms of the walls, the cheap descriptor), at most :data:`FAR_CANDIDATES`, by the
+  paper's pose-free integration; every :data:`LOOP_SWEEP_EVERY`-th final
   submap also tries the most similar submap of its own component beyond its reach (a loop its
   drift hides from the near search);
 - *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups
-  whose walls now meet, registered near where the join puts them (at most ``near_candidates``
+  whose walls now meet, registered near where the join puts them (at most :data:`NEAR_CANDIDATES`
   a submap): the near search of a submap that arrived before the join only saw its own group;
 - *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
-  the global map, up to ``far_budget`` tries a submap.
+  the global map, up to :data:`FAR_BUDGET` tries a submap.
 
 Robots that known start poses alone hold in one component (:mod:`fleetmap.merger.startposes`)
 count as apart here until an integration ties them: they search each other *far* and *idle*, and
@@ -44,9 +44,30 @@ from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.descriptor import similarity
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.tracking import REACH_ROTATION
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
 from fleetmap.shared.io.keys import parse_submap_key
 from fleetmap.shared.io.messages import LocalMap
+
+NEAR_CANDIDATES = 3
+"""A placed robot's submap is registered on at most this many submaps near where the graph puts it,
+nearest first ..."""
+FAR_CANDIDATES = 3
+"""... and integrated (pose-free) with at most this many of the other components' submaps most like
+it (the descriptor ranks a submap's first overlapping candidate in the top 3 for 67-70 % of submaps;
+docs/decisions/002-pose-graph.md) ..."""
+FAR_BUDGET = 12
+"""... and, while nobody has placed its robot, with at most this many of them in all (the top 12:
+88-91 %; 002): n submaps cost O(n) integrations."""
+LOOP_SWEEP_EVERY = 4
+"""Every this-many-th final submap of a placed robot also tries the most similar submap of its own
+component beyond its reach (a loop its drift hides; 0 changes no figure on the three logs, 002)."""
+SEARCH_GROWTH = 2
+"""An unplaced robot's active submap is searched again once its version is this many times the
+version last searched: a submap of v versions costs about log(v) searches (1 or 2: the same times;
+docs/decisions/010-a-back-end-that-costs-what-is-new.md)."""
+MAX_QUEUED_PAIRS = 20_000
+"""Pairs of submaps waiting to be integrated, at most; more are dropped, logged and counted (a bound
+on a flooded merger's memory; docs/decisions/003-a-fleet-that-lets-in-only-its-own.md)."""
 
 Pair = tuple[str, str]
 
@@ -67,9 +88,9 @@ class PairSchedule:
         submaps: dict[str, LocalMap],
         config: FleetmapConfig,
         stats: MergerStats,
-        refuse: Callable[[str, str], None],
+        refuse: Callable[[str, int, str], None],
     ) -> None:
-        """``refuse(limit, what)`` counts and logs a pair ``max_queued_pairs`` refused."""
+        """``refuse(limit, value, what)`` counts and logs a pair :data:`MAX_QUEUED_PAIRS` refused."""
         self.graph = graph
         self.submaps = submaps
         self.config = config
@@ -100,8 +121,8 @@ class PairSchedule:
         """Queue a pair to integrate (once); False if it was queued already or the queue is full."""
         if pair in self.queue:
             return False
-        if len(self.queue) >= self.config.merge.max_queued_pairs:
-            self._refuse("max_queued_pairs", f"pair {pair[0]} {pair[1]}, {len(self.queue)} queued")
+        if len(self.queue) >= MAX_QUEUED_PAIRS:
+            self._refuse("max_queued_pairs", MAX_QUEUED_PAIRS, f"pair {pair[0]} {pair[1]}, {len(self.queue)} queued")
             return False
         self.owner[pair] = self._owner
         self.queue[pair] = predicted
@@ -128,7 +149,7 @@ class PairSchedule:
         """Whether robots apart from the global map have submaps with candidates left to try."""
         if p.result is None or len(p.groups) < 2:
             return False
-        budget = self.config.merge.far_budget
+        budget = FAR_BUDGET
         return any(self.far_tries.get(k, 0) < budget for k in self.idle_candidates(p))
 
     def job(self, pair: Pair, predicted: Transform2D | None) -> PairJob | None:
@@ -150,7 +171,6 @@ class PairSchedule:
         it is of its robot's current epoch."""
         key = m.submap_key
         self._owner = m.robot
-        mp = self.config.merge
         placed = p.placed_epoch(f"{m.robot}/{m.epoch}")
         last = self.scheduled.get(key)
         final = m.final and (last is None or last < m.version)
@@ -158,7 +178,7 @@ class PairSchedule:
             current
             and not placed
             and f"{m.robot}/{m.epoch}" not in self.finished_epochs
-            and (last is None or m.version >= self.config.merge.search_growth * max(last, 1))
+            and (last is None or m.version >= SEARCH_GROWTH * max(last, 1))
         )
         if not (final or searching):
             return
@@ -168,7 +188,7 @@ class PairSchedule:
             # its chain is in the graph: the submaps of its component near where the links put it
             # (its own earlier submaps too: a loop), whether or not another robot is there yet
             beyond = []
-            for other, predicted in self._near(key, mine, p)[: mp.near_candidates]:
+            for other, predicted in self._near(key, mine, p)[:NEAR_CANDIDATES]:
                 # registered near the prediction where the robot's own drift between the two
                 # cannot have carried it out of registration's reach; else pose-free (a loop
                 # after a long way round: the search window as wide as the uncertainty), the
@@ -183,7 +203,7 @@ class PairSchedule:
                 self.enqueue(ordered(best, key), None)
             if m.final:
                 self.finals += 1
-                if mp.loop_sweep_every > 0 and self.finals % mp.loop_sweep_every == 0:
+                if LOOP_SWEEP_EVERY > 0 and self.finals % LOOP_SWEEP_EVERY == 0:
                     sweep = self._far(key, mine, p, within=True)[:1]
                     for other in sweep:
                         self.enqueue(ordered(other, key), None)
@@ -191,7 +211,7 @@ class PairSchedule:
             # the global map's own submaps are not searched for the others: each of theirs
             # searches it, and one direction is enough
             group = self._group_members(key, p)
-            for other in self._far(key, group, p, within=False)[: mp.far_candidates]:
+            for other in self._far(key, group, p, within=False)[:FAR_CANDIDATES]:
                 self._queue_far(key, other)
 
     def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
@@ -199,7 +219,7 @@ class PairSchedule:
         before it): queue near registrations between the final submaps of the groups now joined
         whose walls meet at their refined poses and that no valid integration relates yet (a pair
         tried pose-free while apart, ambiguous then, may register near the join), each pair once,
-        at most ``near_candidates`` a submap, nearest first.
+        at most :data:`NEAR_CANDIDATES` a submap, nearest first.
 
         A final submap searches near its prediction once, when it arrives, among the submaps of its
         component then: two robots' submaps that meet only once a later join puts them in one frame
@@ -209,7 +229,7 @@ class PairSchedule:
         that meet, so the work stays O(n)."""
         if p.result is None:
             return
-        limit = self.config.merge.near_candidates
+        limit = NEAR_CANDIDATES
         at = {k: pose for k, pose in p.result.poses.items() if pose is not None}
         queued = 0
         for component in p.result.components:
@@ -246,12 +266,12 @@ class PairSchedule:
     def idle_pairs(self, p: Placement) -> int:
         """With nothing else to do: one more pose-free pair for a submap of each component apart
         from the global map (:meth:`idle_candidates`: robots not in it yet), its next most
-        similar submap of another component not tried yet, up to ``far_budget`` tries a submap;
+        similar submap of another component not tried yet, up to :data:`FAR_BUDGET` tries a submap;
         how many were queued. Every submap's candidates are tried in turn: in a building where
         most views look alike (racks), the descriptor ranks the right partner anywhere."""
         if p.result is None or len(p.groups) < 2:
             return 0
-        budget = self.config.merge.far_budget
+        budget = FAR_BUDGET
         queued = 0
         by_group: dict[str, list[str]] = {}
         for key in self.idle_candidates(p):
@@ -365,7 +385,7 @@ class PairSchedule:
         drift = self.graph.chain_drift(a, b)
         if drift is None:
             return p.tied(a, b)
-        return drift[0] <= self.config.tracking.max_correspondence and drift[1] <= REACH_ROTATION
+        return drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
 
     def _radius(self, key: str) -> float:
         """How far a submap's walls reach from its frame (m)."""

@@ -47,9 +47,6 @@ ANOTHER_MERGER = (
     "another merger (%s) is on this fleet: two mergers publish two global maps under one key, and a shared "
     "--state file is written by both; stop one"
 )
-STEP_SECONDS = 0.25
-"""The live service's time budget for one step's integrations: a step ends after the first
-integration that finds this much time gone; the other pairs wait for the next step."""
 
 
 class _Recalled(bytes):
@@ -72,8 +69,10 @@ class MergerService:
         state_file: str | Path | None = None,
         tick: float = 0.05,
         clock: Callable[[], float] = time.time,
-        step_seconds: float = STEP_SECONDS,
+        step_seconds: float | None = None,
     ) -> None:
+        if step_seconds is None:
+            step_seconds = merger.config.merge.step_seconds  # the live preset's (fleetmap/examples/live.toml)
         if not step_seconds >= 0 or math.isinf(step_seconds):
             raise BadInput("step_seconds", f"must be 0 (no budget) or a positive number, got {step_seconds}")
         self.bus = bus

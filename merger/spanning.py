@@ -20,7 +20,7 @@ from typing import Any
 
 from fleetmap.merger.forest import KeptForest, RootedForest
 from fleetmap.merger.graph import Edge, _bfs_order, _culprit, _unite
-from fleetmap.merger.joins import JoinJudge, _within
+from fleetmap.merger.joins import JOIN_HYPOTHESES, JoinJudge, _within
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.validity import is_valid
 
@@ -206,7 +206,7 @@ class ForestBuilder(JoinJudge):
                     (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
                     continue
                 # an ambiguous integration: the one of its hypotheses that agrees with the tree, if only one
-                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: self.merge.join_hypotheses - 1])]
+                hypotheses = [e, *(replace(e, transform=t) for t in e.rivals[: JOIN_HYPOTHESES - 1])]
                 agreeing = [h for h in hypotheses if _within(predicted, h.transform, tol_t, tol_r)]
                 if len(agreeing) == 1:
                     loops.append(replace(agreeing[0], valid=True))

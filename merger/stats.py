@@ -20,8 +20,8 @@ class MergerStats:
     """Messages naming another robot than the robot of their key (a robot speaking for another),
     dropped whatever the router allowed."""
     refused: Counter[str] = field(default_factory=Counter)
-    """Messages and pairs refused by a limit (``merge.max_submap_segments``, ``max_robots``,
-    ``max_queued_pairs``), per limit."""
+    """Messages and pairs refused by a limit (``MAX_SUBMAP_SEGMENTS``, ``max_robots``,
+    ``MAX_QUEUED_PAIRS``), per limit."""
     stale: int = 0
     """Submap versions older than (or as old as) the version already held."""
     steps: int = 0

@@ -61,10 +61,10 @@ def csail_in_line(csail_pieces: list[Piece], tmp_path_factory: pytest.TempPathFa
     and the folder of its outputs: the map every other way of running the same mapping (worker
     processes, a process pool, the command) must give exactly. Mapped once for the whole session."""
     from fleetmap.merger.executor import InlineExecutor
-    from fleetmap.shared.config import FleetmapConfig
 
+    from fleetmap.config_args import preset
     from fleetmap.mapping import map_logs
 
     out = tmp_path_factory.mktemp("csail-in-line")
-    result = map_logs(csail_pieces, out, FleetmapConfig(), None, InlineExecutor(), tracking_processes=0)
+    result = map_logs(csail_pieces, out, preset("offline"), None, InlineExecutor(), tracking_processes=0)
     return result, out

@@ -5,7 +5,10 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import sys
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import numpy as np
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
@@ -13,6 +16,18 @@ from fleetmap.shared.config import ExtractionParams
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
+from pytest import MonkeyPatch
+
+
+def set_constant(monkeypatch: MonkeyPatch, owner: ModuleType, name: str, value: Any) -> None:
+    """Set the module constant ``owner.name`` to ``value`` for one test, in ``owner`` and in every
+    fleetmap module that imported it by name (``from owner import NAME``), so the code that reads it
+    anywhere sees the new value; the test's processes only (a worker process keeps its own)."""
+    old = getattr(owner, name)
+    for module in list(sys.modules.values()):
+        if module.__name__.startswith("fleetmap") and getattr(module, name, None) is old:
+            monkeypatch.setattr(module, name, value)
+
 
 # A 12 m x 10 m room with an irregular inside: boxes, an L-shaped wall, a slanted wall and a
 # pillar, so that no rotation or shift of it looks like itself.

@@ -10,6 +10,7 @@ import pytest
 from fleetmap.shared.config import FleetmapConfig
 
 from fleetmap.agent_processes import AgentProcesses
+from fleetmap.config_args import preset
 from fleetmap.mapping import MapResult, Piece, map_logs
 
 
@@ -29,7 +30,7 @@ def test_agents_in_worker_processes_map_as_agents_in_line(
     pieces: list[Piece], csail_in_line: tuple[MapResult, Path], tmp_path: Path
 ) -> None:
     in_line = csail_in_line[0]
-    apart = map_logs(pieces, tmp_path / "apart", FleetmapConfig(), tracking_processes=2)
+    apart = map_logs(pieces, tmp_path / "apart", preset("offline"), tracking_processes=2)
     assert len(in_line.poses) > 300
     assert apart.poses == in_line.poses
     for a, b in zip(apart.report["map"]["robots"], in_line.report["map"]["robots"], strict=True):

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from fleetmap.parameters_doc import COMMAND, render
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 RECORDS = sorted((ROOT / "docs" / "decisions").glob("*.md"))
@@ -119,3 +121,8 @@ def test_the_record_check_finds_a_record_that_is_not_there() -> None:
 def test_every_decision_record_decides_in_under_200_lines(record: Path) -> None:
     lines = len(record.read_text(encoding="utf-8").splitlines())
     assert lines < RECORD_LINES, f"{record.name}: {lines} lines; its history belongs in git log"
+
+
+def test_the_parameter_reference_is_the_one_the_config_generates() -> None:
+    # (under a second) a parameter added, retired or redocumented shows in docs/parameters.md
+    assert (ROOT / "docs" / "parameters.md").read_text(encoding="utf-8") == render(), f"out of date: run {COMMAND}"

@@ -82,3 +82,36 @@ def test_the_check_finds_each_limit_passed(source: str, name: str) -> None:
 def test_the_check_lets_each_limit_be_reached() -> None:
     source = "class C:\n    " + _function(FUNCTION_LINES).replace("\n", "\n    ")
     assert breaches("m.py", source + "\n" * (MODULE_LINES - len(source.splitlines()))) == {}
+
+
+def undocumented_numbers(source: str) -> list[str]:
+    """The module-level constants of ``source`` that hold a number (``NAME = 0.3``, ``math.radians(5)``)
+    with no reason beside them: no docstring among the next two statements (a pair documented
+    together), no comment on or above its line."""
+    tree, lines = ast.parse(source), source.splitlines()
+    out = []
+    for i, node in enumerate(tree.body):
+        if not (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)):
+            continue
+        name = node.targets[0].id
+        numbers = [c for c in ast.walk(node.value) if isinstance(c, ast.Constant) and type(c.value) in (int, float)]
+        if not name.isupper() or not numbers:
+            continue
+        after = tree.body[i + 1 : i + 3]
+        documented = any(isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant) for s in after)
+        commented = "#" in lines[node.lineno - 1] or lines[node.lineno - 2].lstrip().startswith("#")
+        if not (documented or commented):
+            out.append(name)
+    return out
+
+
+def test_every_number_the_algorithm_fixes_says_why_beside_it() -> None:
+    # (well under a second) issue 51: a value that is not a parameter is a named constant with its reason
+    found = {
+        str(p.relative_to(ROOT)): names
+        for folder in ("agents", "merger", "shared/core")
+        for p in sorted((ROOT / folder).rglob("*.py"))
+        if (names := undocumented_numbers(p.read_text(encoding="utf-8")))
+    }
+    assert not found
+    assert undocumented_numbers('A = 1\n"""Why."""\nB = 2.5\nC = "text"\n') == ["B"]

@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from fleetmap.shared.config import MergeParams
+from fleetmap.merger.scangraph import SCAN_KEY_ROTATION, SCAN_KEY_SPACING
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.keys import FleetKeys
@@ -88,12 +88,11 @@ def _scan(index: int, pose: Transform2D | None, submap: int | None = 0) -> Scan:
 
 def test_the_grid_holds_the_ranges_of_key_scans_only_so_a_long_session_stays_bounded():
     keys = FleetKeys("t")
-    merge = MergeParams()
     with (
         open_zenoh(ZenohOptions(listen=("tcp/127.0.0.1:0",))) as zbus,
         Ros2Node(zbus.session, "fleetmap_merger") as node,
     ):
-        outputs = Ros2Outputs(InMemoryBus(), keys, node, merge=merge)
+        outputs = Ros2Outputs(InMemoryBus(), keys, node)
         # an hour at 5 Hz of a robot that stands, in one submap: one key scan
         for index in range(18_000):
             outputs.on_message(keys.scan("r1"), _scan(index, Transform2D(1.0, 2.0, 0.3)).to_msgpack())
@@ -104,7 +103,7 @@ def test_the_grid_holds_the_ranges_of_key_scans_only_so_a_long_session_stays_bou
         for k in range(400):
             pose = Transform2D(0.05 * (k % 20), 0.0, 0.0)  # in its submap's frame
             outputs.on_message(keys.scan("r1"), _scan(start + k, pose, submap=1 + k // 20).to_msgpack())
-        driven = 1 + 20 * math.ceil(20 * 0.05 / merge.scan_key_spacing)
+        driven = 1 + 20 * math.ceil(20 * 0.05 / SCAN_KEY_SPACING)
         assert len(outputs.grid_scans) <= driven
         # scans no submap placed are in no grid
         outputs.on_message(keys.scan("r1"), _scan(start + 400, None, submap=None).to_msgpack())
@@ -113,11 +112,10 @@ def test_the_grid_holds_the_ranges_of_key_scans_only_so_a_long_session_stays_bou
 
 
 def test_a_submaps_key_scans_are_spaced_along_the_path_or_turned():
-    merge = MergeParams()
-    grid = GridScans(merge)
-    step = merge.scan_key_spacing / 4
+    grid = GridScans()
+    step = SCAN_KEY_SPACING / 4
     kept = [grid.add(_scan(k, Transform2D(step * k, 0.0, 0.0))) for k in range(9)]
     assert kept == [True, False, False, False, True, False, False, False, True]
-    assert grid.add(_scan(9, Transform2D(step * 8, 0.0, merge.scan_key_rotation + 0.01)))  # turned in place
+    assert grid.add(_scan(9, Transform2D(step * 8, 0.0, SCAN_KEY_ROTATION + 0.01)))  # turned in place
     assert not grid.add(_scan(9, Transform2D(50.0, 0.0, 0.0)))  # the same scan again
     assert len(grid) == 4

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.merger.executor import InlineExecutor
-from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 
 from fleetmap.cli import main
+from fleetmap.config_args import preset
 from fleetmap.mapping import Piece, map_logs
 
 
@@ -38,7 +38,7 @@ def test_a_start_pose_3_m_wrong_is_corrected_where_the_maps_meet(
     start = {first: Transform2D(0.0, 0.0, 0.0), second: given, "ghost": Transform2D(9.0, 9.0, 0.0)}
     with caplog.at_level(logging.WARNING):
         result = map_logs(
-            csail_pieces, tmp_path, FleetmapConfig(), None, InlineExecutor(), tracking_processes=0, start_poses=start
+            csail_pieces, tmp_path, preset("offline"), None, InlineExecutor(), tracking_processes=0, start_poses=start
         )
     assert any("ghost" in r.getMessage() and "not used" in r.getMessage() for r in caplog.records)
     assert {c for _, _, c, _ in result.poses} == {0}

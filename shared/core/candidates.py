@@ -36,6 +36,15 @@ from scipy.spatial import cKDTree
 
 IntArray = NDArray[Any]
 
+SEED = 0
+"""Seed of the random heuristic's generator (Algorithm 3), so the same maps give the same result."""
+MAX_ANGLES = 300
+"""The consecutive and histogram heuristics use at most this many angles per map, those of the
+longest segments: large partial maps would give hundreds of millions of matches."""
+MIN_VERTEX_ANGLE = 0.35
+"""Two segments closer to parallel than this (rad, 20 degrees) form no angle: their vertex is ill
+defined (a small rotation moves it metres along the walls)."""
+
 
 @dataclass(frozen=True)
 class AngleSet:
@@ -65,7 +74,7 @@ def angle_set(
     """
     phi = orientations(segments)
     alpha = np.mod(phi[second] - phi[first] + period / 2, period) - period / 2
-    keep = np.abs(np.sin(alpha)) >= math.sin(params.min_vertex_angle)
+    keep = np.abs(np.sin(alpha)) >= math.sin(MIN_VERTEX_ANGLE)
     first, second, alpha = first[keep], second[keep], alpha[keep]
     if 0 < limit < len(first):
         ln = lengths(segments)
@@ -224,8 +233,8 @@ def random_transformations(
         a1 = angle_set(s1, i1[same], j1[same], params, period)
         a2 = angle_set(s2, i2[same], j2[same], params, period)
         # angle_set drops near-parallel pairs; keep the draws whose both angles survived.
-        keep1 = np.abs(np.sin(alpha1[same])) >= math.sin(params.min_vertex_angle)
-        keep2 = np.abs(np.sin(alpha2[same])) >= math.sin(params.min_vertex_angle)
+        keep1 = np.abs(np.sin(alpha1[same])) >= math.sin(MIN_VERTEX_ANGLE)
+        keep2 = np.abs(np.sin(alpha2[same])) >= math.sin(MIN_VERTEX_ANGLE)
         both = keep1 & keep2
         p = np.cumsum(keep1)[both] - 1
         q = np.cumsum(keep2)[both] - 1
@@ -277,7 +286,7 @@ def find_transformations(m1: SegmentMap, m2: SegmentMap, heuristic: str, params:
     period = 2 * math.pi if oriented else math.pi
     s1, s2 = m1.segments, m2.segments
     if heuristic == "random":
-        rng = np.random.default_rng(params.seed)
+        rng = np.random.default_rng(SEED)
         t = random_transformations(s1, s2, params, period, rng)
     elif heuristic == "alignments":
         t = segment_alignments(s1, s2, params, period)
@@ -293,7 +302,7 @@ def find_transformations(m1: SegmentMap, m2: SegmentMap, heuristic: str, params:
             p2 = pairs_histogram(s2, params)
         else:
             raise ValueError(f"unknown heuristic {heuristic!r}")
-        limit = 0 if heuristic == "all" else params.max_angles
+        limit = 0 if heuristic == "all" else MAX_ANGLES
         a1 = angle_set(s1, p1[0], p1[1], params, period, limit)
         a2 = angle_set(s2, *_both_orders(*p2), params, period, 2 * limit)
         t = match_angles(a1, a2, params, period)

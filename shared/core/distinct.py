@@ -18,6 +18,15 @@ from fleetmap.shared.core.candidates import IntArray, find_transformations
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.segmap import SegmentMap
 
+AUTO_MAX_ALL_CANDIDATES = 4000
+"""auto also tries the all heuristic when it yields at most this many transformations (small maps,
+where trying every pair costs little)."""
+DISTINCT_TRANSLATION = 0.10
+"""Candidates within this (m) ..."""
+DISTINCT_ROTATION = 0.035
+"""... and this (rad, 2 degrees) of a better one are the same transformation: the few refined are
+different transformations, not one found twice."""
+
 AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
 """What auto tries: the paper's heuristics, fleetmap's segment alignments (for corridors, which
 have no angles), and all pairs while the maps are small enough for that to stay cheap."""
@@ -37,7 +46,7 @@ def gather_candidates(
             n1, n2 = len(m1), len(m2)
             if (
                 n1 * (n1 - 1) / 2 * n2 * (n2 - 1) * params.angle_difference_tolerance / math.pi
-                > params.auto_max_all_candidates
+                > AUTO_MAX_ALL_CANDIDATES
             ):
                 continue
         t = find_transformations(m1, m2, name, params)
@@ -84,21 +93,22 @@ def _in_window(t: Array, labels: IntArray, window: Window | None) -> tuple[Array
 
 
 def _pick_distinct(t: Array, values: Array, k: int, p: IntegrationParams) -> list[int]:
-    """Indices of the k best candidates that differ by more than ``distinct_translation`` or
-    ``distinct_rotation``."""
+    """Indices of the k best candidates that differ by more than :data:`DISTINCT_TRANSLATION` or
+    :data:`DISTINCT_ROTATION`."""
     picked: list[int] = []
     for idx in np.argsort(-values, kind="stable"):
         if values[idx] <= 0 or len(picked) >= k:
             break
-        if not any(_alike(t, idx, j, p) for j in picked):
+        if not any(_alike(t, idx, j) for j in picked):
             picked.append(int(idx))
     return picked
 
 
-def _alike(t: Array, i: int, j: int, p: IntegrationParams) -> bool:
-    """Whether candidates i and j are within ``distinct_translation`` and ``distinct_rotation`` of each other."""
+def _alike(t: Array, i: int, j: int) -> bool:
+    """Whether candidates i and j are within :data:`DISTINCT_TRANSLATION` and :data:`DISTINCT_ROTATION`
+    of each other."""
     d = math.hypot(t[i, 0] - t[j, 0], t[i, 1] - t[j, 1])
-    return d < p.distinct_translation and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < p.distinct_rotation
+    return d < DISTINCT_TRANSLATION and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < DISTINCT_ROTATION
 
 
 def _also_by_value(t: Array, values: Array, picked: list[int], k: int, p: IntegrationParams) -> list[int]:
@@ -114,7 +124,7 @@ def _also_by_value(t: Array, values: Array, picked: list[int], k: int, p: Integr
     for j in _pick_distinct(t, values, k + len(picked), p):
         if len(kept) >= k:
             break
-        if not any(_alike(t, j, i, p) for i in picked):
+        if not any(_alike(t, j, i) for i in picked):
             kept.append(j)
     return kept
 

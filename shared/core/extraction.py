@@ -4,7 +4,7 @@
 2. Cluster: consecutive points (counter-clockwise order) closer than tau are in the same cluster.
 3. Split: approximate each cluster by a polyline, starting from the chord between its first and
    last points and adding the farthest point as a new vertex until every point is within kappa.
-4. Merge and fit (fleetmap, ``line_fit``; off gives the paper's polylines): with real sensor
+4. Merge and fit (fleetmap, :data:`LINE_FIT`; off gives the paper's polylines): with real sensor
    noise (1 cm, or the 5 cm range quantisation of some logs) step 3 cuts a straight wall into
    many short pieces wherever one reading strays beyond kappa. Adjacent pieces are merged again
    while the points of both fit one line (total least squares) with an RMS residual within
@@ -25,6 +25,21 @@ import numpy as np
 from fleetmap.shared.config import ExtractionParams
 from fleetmap.shared.core.geometry import Array
 from fleetmap.shared.core.rangescan import RangeScan
+
+LINE_FIT = True
+"""Step 4 on: merge split pieces that fit one line (false gives the paper's polylines); with real
+lasers' noise step 3 alone cuts straight walls into short pieces (docs/decisions/006)."""
+NOISY_KAPPA_SHARE = 1.25
+"""A scan's noise sets its polyline tolerance only where that is this many times kappa: keeps a clean
+laser (0.6-1.0 cm of noise) at the paper's kappa (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
+NOISE_SPAN = 0.3
+"""Neighbouring beams whose outer two points lie farther apart than this (m) do not measure noise
+(they straddle a corner or a gap, not one wall)."""
+BREAKPOINT_ANGLE = 0.1745
+"""Adaptive clustering (Borges & Aldon 2004's lambda, 10 degrees): walls seen at incidence down
+to this angle (rad) stay one cluster however far apart their points are."""
+MIN_CLUSTER_POINTS = 3
+"""Clusters with fewer points give no segment (a lone return is not a wall)."""
 
 
 def scan_points(scan: RangeScan, max_range: float) -> Array:
@@ -325,7 +340,7 @@ def _lines(m: Array) -> tuple[Array, Array]:
 
 def range_noise(points: Array, beams: Array, span: float = 0.3) -> float:
     """A scan's noise (m): the median distance of each point from the chord of its two neighbours,
-    over the triples of neighbouring beams that lie within ``span`` (m) of each other (``noise_span``) (on one
+    over the triples of neighbouring beams that lie within ``span`` (m) of each other (:data:`NOISE_SPAN`) (on one
     wall, mostly; a corner's few triples do not move the median). 0 for a scan with no such triple."""
     if len(points) < 3:
         return 0.0
@@ -342,13 +357,13 @@ def range_noise(points: Array, beams: Array, span: float = 0.3) -> float:
 
 def kappa_for(noise: float, p: ExtractionParams) -> float:
     """The polyline tolerance for a scan of this ``noise``: ``kappa_noise_factor`` times it where
-    that exceeds kappa ``noisy_kappa_share`` times, kappa otherwise. Merging pieces needs an RMS
+    that exceeds kappa :data:`NOISY_KAPPA_SHARE` times, kappa otherwise. Merging pieces needs an RMS
     residual within kappa / 2, so a laser of noise sigma (a noise reading of 0.83 sigma) needs
     about 2.5 sigma / 0.83: 3 times its noise, and a little more than that still cuts some walls.
-    ``noisy_kappa_share`` keeps a clean laser (the simulator's 1 cm sigma) at kappa
+    :data:`NOISY_KAPPA_SHARE` keeps a clean laser (the simulator's 1 cm sigma) at kappa
     (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
     wide = p.kappa_noise_factor * noise
-    return wide if wide > p.noisy_kappa_share * p.kappa else p.kappa
+    return wide if wide > NOISY_KAPPA_SHARE * p.kappa else p.kappa
 
 
 def extract_segments(scan: RangeScan, params: ExtractionParams | None = None) -> Array:
@@ -357,15 +372,15 @@ def extract_segments(scan: RangeScan, params: ExtractionParams | None = None) ->
     out: list[Array] = []
     step = abs(scan.angle_increment)
     points, beams = _returns(scan, p.max_range)
-    kappa = kappa_for(range_noise(points, beams, p.noise_span), p) if p.kappa_noise_factor > 0 else p.kappa
-    cum = _cumulative_moments(points) if p.line_fit else None
+    kappa = kappa_for(range_noise(points, beams, NOISE_SPAN), p) if p.kappa_noise_factor > 0 else p.kappa
+    cum = _cumulative_moments(points) if LINE_FIT else None
     runs: list[list[tuple[int, int]]] = []
-    bounds = [(a, b) for a, b in cluster_bounds(points, p.tau, step, p.breakpoint_angle, beams)]
-    bounds = [(a, b) for a, b in bounds if b - a >= max(p.min_cluster_points, 2)]
+    bounds = [(a, b) for a, b in cluster_bounds(points, p.tau, step, BREAKPOINT_ANGLE, beams)]
+    bounds = [(a, b) for a, b in bounds if b - a >= max(MIN_CLUSTER_POINTS, 2)]
     for (a, b), vertices in zip(bounds, split_polylines(points, bounds, kappa), strict=True):
         cluster = points[a:b]
         for run in vertex_runs(cluster, vertices, p.tau):
-            if p.line_fit:
+            if LINE_FIT:
                 runs.append(_without_corner_cuts(merge_pieces(points, [a + v for v in run], kappa, cum)))
             else:
                 v = cluster[run]

@@ -22,6 +22,7 @@ Array = NDArray[Any]
 """Arrays of the core: float64 for coordinates, int64 for indices, bool for masks."""
 
 TWO_PI = 2.0 * math.pi
+"""A full turn (rad)."""
 
 
 def wrap_angle(a: Array | float) -> Array:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fleetmap.shared.config import HEURISTICS, IntegrationParams
+from fleetmap.shared.core import mapgrid
 from fleetmap.shared.core.candidates import IntArray
 from fleetmap.shared.core.distinct import (
     AUTO_ORDER,
@@ -47,6 +48,41 @@ from fleetmap.shared.core.visibility import FreeSpace
 from fleetmap.shared.core.work import Work, WorkExhausted
 from fleetmap.shared.errors import BadInput
 
+MAX_SEARCH_SEGMENTS = 150
+"""Maps with more segments are searched on their longest this many; the best transformations are
+then refined and valued on the full maps (a bound on the search's cost, whatever the maps hold)."""
+MAX_EVALUATED = 8000
+"""At most this many distinct transformations are evaluated, the most supported first."""
+SHORTLIST = 64
+"""Candidates (best values first) whose free-space consistency is measured before the choice."""
+REFINE = True
+"""Refine the best transformations by least squares on the matched segment pairs (the value is flat
+near the truth: the best candidate of an angle match is a little off; docs/decisions/006)."""
+REFINE_CANDIDATES = 12
+"""How many of the best distinct transformations are refined before the best is chosen ..."""
+REFINE_FIRST_STEPS = 3
+"""... each this many Gauss-Newton steps first ..."""
+REFINE_KEEP = 0.6
+"""... and further only if it scores at least this fraction of the best so far (a bound on the
+refinement's cost)."""
+ALSO_BY_VALUE = 4
+"""Between scans, this many of the best-valued candidates are refined too, beside the best-scored:
+147 of 160 consecutive real scan pairs right against 132 without, at 1.3 times the time (12: 151,
+1.65 times; docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
+REFINE_COARSE_FACTOR = 8.0
+"""Those are refined first with POINTDISTANCETOLERANCE this many times larger (edmonton's first 30
+consecutive pairs: 24 right, 22 without; docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
+RIVALS = 8
+"""An integration keeps this many of its best-scoring clearly different transformations (what the
+merger's cycles and joins weigh against it; docs/decisions/002-pose-graph.md)."""
+FREE_SPACE_MARGIN = 0.10
+"""A wall point closer to a scan's sensor than the wall it saw, by more than this (m), lies in the
+scan's seen free space (:mod:`fleetmap.shared.core.visibility`; docs/decisions/007)."""
+MAP_FREE_SPACE_MIN_LENGTH = 0.0
+"""Two partial maps: the free-space limit on the best counts only segments at least this long (m; 0:
+every wall). Long walls only (0.8 m) merged more maps wrong on the corrected logs (14 against 5;
+docs/decisions/005-parameters-beyond-the-paper.md)."""
+
 FIRST_CHUNK = 256
 """The most supported candidates are evaluated in full first; their best score seeds the early stop."""
 
@@ -69,11 +105,11 @@ class Integration:
     """Between two partial maps, the part of ``violation`` that is evidence against the alignment,
     what the validity rule limits: the walls farther than ``map_free_space_clearance`` from the
     other map's walls (nearer, they are its walls, placed a little apart), of segments at least
-    ``map_free_space_min_length`` long (clutter); ``violation`` otherwise. The rest still lowers
+    :data:`MAP_FREE_SPACE_MIN_LENGTH` long (clutter); ``violation`` otherwise. The rest still lowers
     the score."""
     runner_up: float = 0.0
     """Score of the best transformation clearly different from the chosen one (more than
-    ``ambiguity_translation`` or ``ambiguity_rotation`` away): close to the best's in a repetitive world."""
+    ``AMBIGUITY_TRANSLATION`` or ``AMBIGUITY_ROTATION`` away): close to the best's in a repetitive world."""
     matches: tuple[IntArray, IntArray] = field(repr=False, default=(np.zeros(0, np.int64), np.zeros(0, np.int64)))
     """Matched segment pairs (index in S1, index in S2) under ``transform``."""
     rivals: tuple[tuple[Transform2D, float], ...] = field(repr=False, default=())
@@ -124,7 +160,7 @@ def integrate(
     scans, :mod:`fleetmap.shared.core.mapgrid` for maps that carry viewpoints; zero for maps that carry
     none, so the score is the paper's value there).
 
-    Large maps (more than ``max_search_segments`` segments) take fleetmap's large-map path (see
+    Large maps (more than :data:`MAX_SEARCH_SEGMENTS` segments) take fleetmap's large-map path (see
     :func:`_integrate_large`); ``index1``/``index2`` are their :func:`index_for` indexes when the
     caller keeps them (built here otherwise). With a ``window``, only the candidates inside it are
     valued (the best and its rivals alike). With ``work``, the integration stops once it has done
@@ -177,7 +213,7 @@ def _integrate_paper(
     solid: float | None = None
     if large:
         # Large partial maps are searched on their longest segments; the choice is made on the full maps.
-        search1, search2 = _longest(m1, p.max_search_segments), _longest(m2, p.max_search_segments)
+        search1, search2 = _longest(m1, MAX_SEARCH_SEGMENTS), _longest(m2, MAX_SEARCH_SEGMENTS)
         best, rivals, count, prep, solid = _integrate_large(
             m1, m2, search1, search2, h, p, index1, index2, window, work
         )
@@ -218,7 +254,8 @@ def _integrate_ransac(
     judged as :func:`integrate` values and judges its own: the paper's transformation value, the wall
     put in the other map's seen free space, the validity rule, whose rivals are RANSAC's next
     hypotheses clearly different from the best. An independent search, the same verdict. Its
-    work is counted from the valuing on (RANSAC's own draws are bounded by ``ransac_iterations``)."""
+    work is counted from the valuing on (RANSAC's own draws are bounded by
+    ``ITERATIONS``)."""
     start = time.perf_counter()
     found = ransac_align(m1.segments, m2.segments, p, None if window is None else window.contains)
     large = takes_large_path(m1, m2, p)
@@ -229,13 +266,13 @@ def _integrate_ransac(
         i2 = index2 if index2 is not None else index_for(m2, p)
         free = GridFreeSpace(i1, i2, work)
     else:
-        free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
+        free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, FREE_SPACE_MARGIN)
     refuse = not (large and free.active)
     best = _Choice(Transform2D.identity(), 0.0, 0.0, 0)
     rivals: list[tuple[Transform2D, float]] = []
     if found.supports:
         best = _evaluated(prep, free, found.transform, 0, p)
-        if p.refine:
+        if REFINE:
             # Landmarks place S2 within their support distance: refined coarse first, as a candidate
             # picked by its value alone is (the right transformation's walls may lie beyond the
             # paper's matching reach).
@@ -245,16 +282,16 @@ def _integrate_ransac(
     if best.value > 0 and found.others:
         centre = _overlap_centre(prep, best.transform, p) if large else None
         hypotheses = np.array([t.as_array() for t, _ in found.others])
-        open_ = clearly_different(best.transform, centre, p.validity)(hypotheses)
-        while open_.any() and len(rivals) < p.rivals:
+        open_ = clearly_different(best.transform, centre)(hypotheses)
+        while open_.any() and len(rivals) < RIVALS:
             other = _evaluated(prep, free, Transform2D.from_array(hypotheses[int(np.argmax(open_))]), 0, p)
             rivals.append((other.transform, other.score))
-            open_ &= clearly_different(other.transform, centre, p.validity)(hypotheses)
+            open_ &= clearly_different(other.transform, centre)(hypotheses)
     rivals = _best_rivals(rivals, p)
     runner_up = max((score for _, score in rivals), default=0.0)
     violation = best.value - best.score
     solid = violation
-    limited = p.validity.map_free_space_min_length > 0 or p.validity.map_free_space_clearance > 0
+    limited = MAP_FREE_SPACE_MIN_LENGTH > 0 or p.validity.map_free_space_clearance > 0
     maps = not (m1.ordered or m2.ordered)
     if limited and maps and isinstance(free, GridFreeSpace) and free.active and best.value > 0:
         solid = float(free.violation(best.transform.as_array(), solid=True)[0])
@@ -277,8 +314,8 @@ def _integrate_ransac(
 
 def takes_large_path(m1: SegmentMap, m2: SegmentMap, p: IntegrationParams) -> bool:
     """Whether :func:`integrate` takes the large-map path: a map has more than
-    ``max_search_segments`` segments, or carries viewpoints (then it is judged by its free space)."""
-    limit = p.max_search_segments
+    :data:`MAX_SEARCH_SEGMENTS` segments, or carries viewpoints (then it is judged by its free space)."""
+    limit = MAX_SEARCH_SEGMENTS
     return any((limit > 0 and len(m) > limit) or VIEWPOINTS in m.extras for m in (m1, m2))
 
 
@@ -288,11 +325,11 @@ def _integrate_small(
     """Scans and small maps: every candidate valued by Algorithm 4 (with the early stop)."""
     oriented = m1.oriented and m2.oriented
     prep = prepare(m1.segments, m2.segments, oriented, p, m1.ordered, m2.ordered, work)
-    free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, p.validity.free_space_margin)
+    free = FreeSpace(m1.segments, m2.segments, m1.ordered, m2.ordered, FREE_SPACE_MARGIN)
     raw, labels = gather_candidates(m1, m2, h, p)
     cand, labels = _in_window(*distinct_candidates(raw, labels, p), window)
-    if 0 < p.max_evaluated < len(cand):
-        cand, labels = cand[: p.max_evaluated], labels[: p.max_evaluated]  # the most supported
+    if 0 < MAX_EVALUATED < len(cand):
+        cand, labels = cand[:MAX_EVALUATED], labels[:MAX_EVALUATED]  # the most supported
     best = _Choice(Transform2D.identity(), 0.0, 0.0, AUTO_ORDER.index(h) if h != "auto" else 0)
     rivals: list[tuple[Transform2D, float]] = []
     if len(cand):
@@ -303,14 +340,14 @@ def _integrate_small(
         if len(cand) > FIRST_CHUNK:
             known = float(head_best.max()) if len(head_best) else 0.0
             values[FIRST_CHUNK:] = transformation_values(prep, cand[FIRST_CHUNK:], p, best_known=max(known, 0.0))
-        shortlist = np.argsort(-values, kind="stable")[: p.shortlist]
+        shortlist = np.argsort(-values, kind="stable")[:SHORTLIST]
         shortlist = shortlist[values[shortlist] > 0]
         scores = values[shortlist] - free.violation(cand[shortlist]) if free.active else values[shortlist]
-        k = max(1, p.refine_candidates) if p.refine else 1
+        k = max(1, REFINE_CANDIDATES) if REFINE else 1
         picked = _pick_distinct(cand[shortlist], scores, k, p)
         by_score = len(picked)
-        if p.refine and free.active:
-            picked += _also_by_value(cand[shortlist], values[shortlist], picked, p.also_by_value, p)
+        if REFINE and free.active:
+            picked += _also_by_value(cand[shortlist], values[shortlist], picked, ALSO_BY_VALUE, p)
         finals = [
             _Choice(
                 Transform2D.from_array(cand[shortlist[j]]),
@@ -323,7 +360,7 @@ def _integrate_small(
         ]
         best, rivals, centre = _choose(prep, free, finals, p, True)
         # The clearly different candidates that were not refined count too.
-        others = np.flatnonzero(clearly_different(best.transform, centre, p.validity)(cand[shortlist]))
+        others = np.flatnonzero(clearly_different(best.transform, centre)(cand[shortlist]))
         rivals += [(Transform2D.from_array(cand[shortlist[j]]), float(scores[j])) for j in others]
     return best, _best_rivals(rivals, p), len(cand), prep
 
@@ -373,10 +410,8 @@ def _integrate_large(
     if len(cand):
         order = np.argsort(-fine, kind="stable")
         ranked = first[order]
-        shortlist = ranked[: p.shortlist]
-        picked = _pick_distinct(
-            cand[shortlist], fine[order[: p.shortlist]], max(1, p.refine_candidates) if p.refine else 1, p
-        )
+        shortlist = ranked[:SHORTLIST]
+        picked = _pick_distinct(cand[shortlist], fine[order[:SHORTLIST]], max(1, REFINE_CANDIDATES) if REFINE else 1, p)
         finals = [
             _evaluated(prep, free, Transform2D.from_array(cand[shortlist[j]]), int(labels[shortlist[j]]), p)
             for j in picked
@@ -384,24 +419,24 @@ def _integrate_large(
         best, rivals, centre = _choose(prep, free, finals, p, not free.active, large=True)
         # More alignments clearly different from the best, best fine grid score first, among all
         # that got one (a small map in a symmetric building can fill the shortlist with one
-        # alignment): the first, and between two partial maps up to ``rivals``, each clearly different
+        # alignment): the first, and between two partial maps up to :data:`RIVALS`, each clearly different
         # from the others, since the free space refutes some aliases and not others in racks
         # (:func:`~fleetmap.shared.core.validity.unrefuted`), and one left out could be the clean one.
         maps = not (m1.ordered or m2.ordered)
         ranked_t = cand[ranked]
-        open_ = clearly_different(best.transform, centre, p.validity)(ranked_t)
+        open_ = clearly_different(best.transform, centre)(ranked_t)
         for t, _ in rivals if maps else ():
-            open_ &= clearly_different(t, centre, p.validity)(ranked_t)
-        for _ in range(p.rivals if maps else 1):
+            open_ &= clearly_different(t, centre)(ranked_t)
+        for _ in range(RIVALS if maps else 1):
             if not open_.any():
                 break
             other = _evaluated(prep, free, Transform2D.from_array(ranked_t[int(np.argmax(open_))]), 0, p)
             rivals.append((other.transform, other.score))
-            open_ &= clearly_different(other.transform, centre, p.validity)(ranked_t)
+            open_ &= clearly_different(other.transform, centre)(ranked_t)
         if maps:
             rivals = unrefuted(rivals, best.value, best.score, free, p)
     solid = None
-    limited = p.validity.map_free_space_min_length > 0 or p.validity.map_free_space_clearance > 0
+    limited = MAP_FREE_SPACE_MIN_LENGTH > 0 or p.validity.map_free_space_clearance > 0
     if limited and not (m1.ordered or m2.ordered) and free.active and best.value > 0:
         solid = float(free.violation(best.transform.as_array(), solid=True)[0])
     return best, _best_rivals(rivals, p), len(cand), prep, solid
@@ -423,11 +458,11 @@ def _choose(
     matched segments under the best), not at S2's origin: far from the overlap, a turn of a
     degree moves the origin by metres and would make the same alignment look like another.
     """
-    if p.refine:
+    if REFINE:
         # Two stages: a few steps for every pick, then to convergence for those still in the race.
-        finals = [_refined(prep, free, c, p, p.refine_first_steps, refuse) for c in finals]
+        finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse) for c in finals]
         top = max((c.score for c in finals), default=0.0)
-        finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= p.refine_keep * top else c for c in finals]
+        finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top else c for c in finals]
     best = finals[0] if finals else _Choice(Transform2D.identity(), 0.0, 0.0, 0)
     for choice in finals:
         if choice.score > best.score:
@@ -437,14 +472,14 @@ def _choose(
     centre = _overlap_centre(prep, best.transform, p) if large else None
     if not finals:
         return best, [], centre
-    mask = clearly_different(best.transform, centre, p.validity)(np.array([c.transform.as_array() for c in finals]))
+    mask = clearly_different(best.transform, centre)(np.array([c.transform.as_array() for c in finals]))
     return best, [(c.transform, c.score) for c, f in zip(finals, mask, strict=True) if f], centre
 
 
 def _best_rivals(rivals: list[tuple[Transform2D, float]], p: IntegrationParams) -> list[tuple[Transform2D, float]]:
-    """The ``rivals`` best-scoring rivals with a positive score, best first."""
+    """The :data:`RIVALS` best-scoring rivals with a positive score, best first."""
     kept = sorted((r for r in rivals if r[1] > 0), key=lambda r: -r[1])
-    return kept[: p.rivals]
+    return kept[:RIVALS]
 
 
 def _overlap_centre(prep: PreparedPairs, best: Transform2D, p: IntegrationParams) -> Array | None:
@@ -491,14 +526,14 @@ def _refined(
     refuse: bool,
 ) -> _Choice:
     """``c`` refined by least squares, if that raises its score; first coarse
-    (``refine_coarse_factor``) if it was picked for its value alone (``c.coarse``). With noisy
+    (:data:`REFINE_COARSE_FACTOR`) if it was picked for its value alone (``c.coarse``). With noisy
     walls the candidates an angle match gives near the right transformation are a few tenths of a
     metre or a few degrees off, beyond the pairs the tolerance matches, and would stay there. The
     picks by score are refined at the given tolerance only: a coarse step there slows large merges
     and helps nothing (docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
     t = c.transform
-    if c.coarse and p.refine_coarse_factor > 1:
-        wide = replace(p, point_distance_tolerance=p.refine_coarse_factor * p.point_distance_tolerance)
+    if c.coarse and REFINE_COARSE_FACTOR > 1:
+        wide = replace(p, point_distance_tolerance=REFINE_COARSE_FACTOR * p.point_distance_tolerance)
         t = refine_transform(prep, t, wide, iterations=steps)
     t = refine_transform(prep, t, p, iterations=steps)
     v = transformation_value(prep, t.as_array(), p, refuse=refuse)
@@ -536,11 +571,11 @@ def index_for(m: SegmentMap, p: IntegrationParams) -> MapIndex:
     """The grid index of a map for the large-map path (keep it to integrate the map again)."""
     return map_index(
         m,
-        p.grid_resolution,
+        mapgrid.GRID_RESOLUTION,
         p.segment_distance_threshold * p.point_distance_tolerance,
-        p.validity.map_free_space_margin,
-        p.validity.map_free_space_slope,
-        p.validity.map_free_space_min_length,
+        mapgrid.MAP_FREE_SPACE_MARGIN,
+        mapgrid.MAP_FREE_SPACE_SLOPE,
+        MAP_FREE_SPACE_MIN_LENGTH,
         p.validity.map_free_space_clearance,
     )
 

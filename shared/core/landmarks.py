@@ -3,7 +3,8 @@
 Ballesta et al. align landmark maps: points with a descriptor each, matched by descriptor
 similarity. A segment map's points that any viewpoint places alike are where walls end:
 
-- **corners**: two walls that are not parallel (at least ``min_vertex_angle`` apart) with an end of
+- **corners**: two walls that are not parallel (at least
+  ``MIN_VERTEX_ANGLE`` apart) with an end of
   each within ``segment_distance_threshold * point_distance_tolerance`` of the other's (the paper's
   "touching" reach); the landmark is where their lines cross, which is where the extraction put the
   corner (:mod:`fleetmap.shared.core.extraction`);

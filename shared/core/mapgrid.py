@@ -33,7 +33,7 @@ map's walls in the other's free space; the right one does not.
     (their scan-to-scan errors add up differently), and a viewpoint that sees the wall at a
     grazing angle puts such an offset metres along its ray, beyond any range margin. Another
     map's wall that close to one of this map's is that wall, placed a little apart;
-  - of long segments (at least ``min_length``, ``map_free_space_min_length``): short ones are
+  - of long segments (at least ``min_length``, ``MAP_FREE_SPACE_MIN_LENGTH``): short ones are
     mostly clutter that moves between visits, or that one viewpoint sees and another sees past.
   Ranking and scoring alignments count every wall (the free grid, every wall), so the choice, the
   ambiguity and the refutation of rivals are the same either way: in racks, the 8 cm posts a bay
@@ -55,6 +55,15 @@ from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientati
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.visibility import range_profile
 from fleetmap.shared.errors import BadInput
+
+GRID_RESOLUTION = 0.10
+"""Large maps: cell size (m) of the grids that rank candidates by matched wall length and wall in
+seen free space."""
+MAP_FREE_SPACE_MARGIN = 0.20
+"""Large maps: a wall point this much (m) closer to a viewpoint than the map's wall in that bearing
+lies in the seen free space ..."""
+MAP_FREE_SPACE_SLOPE = 0.02
+"""... plus this much per metre of range (far walls move most under a small rotation error)."""
 
 VIEWPOINTS = "viewpoints"
 """The key of a map's viewpoints in ``SegmentMap.extras``."""

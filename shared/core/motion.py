@@ -20,8 +20,25 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D
+
+ODOMETRY_TRANSLATION_SIGMA = 0.05
+"""Odometry's uncertainty per scan step: this (m) ..."""
+ODOMETRY_TRANSLATION_RATE = 0.1
+"""... plus this share of the distance driven ..."""
+ODOMETRY_ROTATION_SIGMA = 0.087
+"""... and this (rad, 5 degrees) ..."""
+ODOMETRY_ROTATION_RATE = 0.5
+"""... plus this share of the turn: deliberately loose, real robots' odometry is off by 10-25 degrees
+on single fast turns (mit-csail), and where the walls fix the pose they decide
+(docs/decisions/005-parameters-beyond-the-paper.md)."""
+VELOCITY_TRANSLATION_SIGMA = 0.05
+"""Constant velocity's uncertainty per scan step: this (m) plus ``max_acceleration`` dt^2 / 2 ..."""
+VELOCITY_ROTATION_SIGMA = 0.087
+"""... and this (rad, 5 degrees) plus :data:`MAX_ANGULAR_ACCELERATION` dt^2 / 2."""
+MAX_ANGULAR_ACCELERATION = 6.0
+"""The hardest a robot starts or stops turning (rad/s^2): it reaches mit-csail's 90 degrees a second
+on a fast turn (docs/decisions/001-tracking-front-end.md) in a quarter of a second."""
 
 
 @dataclass(frozen=True)
@@ -61,27 +78,27 @@ def odometry_increment(
     return increment, None
 
 
-def from_odometry(increment: Transform2D, params: TrackingParams) -> Prediction:
+def from_odometry(increment: Transform2D) -> Prediction:
     """The odometry's increment as a prediction (see the module docstring)."""
     distance = math.hypot(increment.x, increment.y)
     turn = abs(increment.theta)
     return Prediction(
         increment,
-        params.odometry_translation_sigma + params.odometry_translation_rate * distance,
-        params.odometry_rotation_sigma + params.odometry_rotation_rate * turn,
+        ODOMETRY_TRANSLATION_SIGMA + ODOMETRY_TRANSLATION_RATE * distance,
+        ODOMETRY_ROTATION_SIGMA + ODOMETRY_ROTATION_RATE * turn,
         "odometry",
     )
 
 
-def from_velocity(velocity: Array, seconds: float, params: TrackingParams, max_acceleration: float) -> Prediction:
+def from_velocity(velocity: Array, seconds: float, max_acceleration: float) -> Prediction:
     """Constant velocity ``(vx, vy, omega)`` (in the laser's frame, per second) over ``seconds``
     as a prediction (see the module docstring)."""
     dt = max(seconds, 0.0)
     v = np.asarray(velocity, dtype=np.float64) * dt
     return Prediction(
         Transform2D(float(v[0]), float(v[1]), float(v[2])),
-        params.velocity_translation_sigma + 0.5 * max_acceleration * dt * dt,
-        params.velocity_rotation_sigma + 0.5 * params.max_angular_acceleration * dt * dt,
+        VELOCITY_TRANSLATION_SIGMA + 0.5 * max_acceleration * dt * dt,
+        VELOCITY_ROTATION_SIGMA + 0.5 * MAX_ANGULAR_ACCELERATION * dt * dt,
         "velocity",
     )
 

@@ -24,10 +24,16 @@ from fleetmap.shared.core.integration import (
 )
 from fleetmap.shared.core.mapgrid import MapIndex
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments
+from fleetmap.shared.core.tracking import MAX_ITERATIONS, SAMPLE_SPACING, ReferenceMap, register, sample_segments
 from fleetmap.shared.core.transformation_value import prepare
 from fleetmap.shared.core.validity import is_valid
 from fleetmap.shared.core.work import Work, WorkExhausted
+
+NEAR_PRIOR_TRANSLATION = 1.0
+"""How far (m) registration near a prediction lets the prediction pull: loosely, so that the walls
+decide ..."""
+NEAR_PRIOR_ROTATION = 0.35
+"""... and how far it turns (rad, 20 degrees)."""
 
 
 def align_near(
@@ -75,10 +81,10 @@ def _align_near(
     work: Work,
     start: float,
 ) -> Integration:
-    samples = sample_segments(m2.segments, tracking.sample_spacing)
-    near_t, near_r = params.near_prior_translation, params.near_prior_rotation
+    samples = sample_segments(m2.segments, SAMPLE_SPACING)
+    near_t, near_r = NEAR_PRIOR_TRANSLATION, NEAR_PRIOR_ROTATION
     loose = np.diag([1.0 / near_t**2, 1.0 / near_t**2, 1.0 / near_r**2])
-    work.charge(len(samples) * tracking.max_iterations)
+    work.charge(len(samples) * MAX_ITERATIONS)
     reg = register(samples, reference1, predicted, predicted, loose, tracking)
     t = reg.pose
     prep = prepare(m1.segments, m2.segments, m1.oriented and m2.oriented, params, m1.ordered, m2.ordered, work)

@@ -19,9 +19,25 @@ from fleetmap.shared.core.integration import Integration, Window, integrate
 from fleetmap.shared.core.mapgrid import moved_viewpoints, viewpoints_of, with_viewpoints
 from fleetmap.shared.core.refine import refine_transform, refinement_kept
 from fleetmap.shared.core.segmap import SegmentMap
-from fleetmap.shared.core.simplify import simplify
+from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE, simplify
 from fleetmap.shared.core.transformation_value import prepare, transformation_value
+from fleetmap.shared.core.validity import VALID_MAX_AMBIGUITY
 from fleetmap.shared.errors import BadInput
+
+WITNESS_TRANSLATION = 0.30
+"""Two integrations agree on a scan's pose when they put it within this (m) ..."""
+WITNESS_ROTATION = 0.0524
+"""... and this (rad, 3 degrees) of each other: one wrong integration cannot place a scan
+(docs/decisions/008-pivot-local-maps.md); a refinement or a polish moves a pose no farther."""
+LOCAL_MAP_RADIUS = 20.0
+"""A scan that integrates with no previous scan is integrated with the built map within this (m) of
+the last placed pose: about a laser's reach (the default ``max_range``)."""
+CORNER_TURN = math.pi / 4
+"""A step that turned more than this (rad, 45 degrees) took a corner: the motion prior then drives on
+straight ahead in the new heading (docs/decisions/008-pivot-local-maps.md)."""
+SIMPLIFY_FROM = 200
+"""The built map is simplified once it holds more segments than this (and half again each time): a
+bound on the cost of integrating with it."""
 
 
 @dataclass(frozen=True)
@@ -42,7 +58,7 @@ class PivotMapBuilder:
 
     - **Map fallback** (``use_map``): a map that does not integrate validly with the previous one
       is integrated with the map built so far, near the last placed pose (within
-      ``local_map_radius``), which has more context (the previous scan may have been blocked by a
+      the :data:`LOCAL_MAP_RADIUS`), which has more context (the previous scan may have been blocked by a
       person, or turned away). A map that integrates with neither is not fused and gets no pose;
       the next map is integrated with the last placed one. (An agent takes failures as the sign of
       a kidnap and starts a new builder: a new epoch.)
@@ -55,7 +71,7 @@ class PivotMapBuilder:
       ahead in the new heading), because it is ambiguous (a hallway matches one door further as
       well, or turned round) or matches best elsewhere, the integration is done again within
       ``motion_prior_radius`` of that pose, and its match there counts if it is valid there and
-      scores at least ``valid_max_ambiguity`` of the best match anywhere. Motion picks between
+      scores at least ``VALID_MAX_AMBIGUITY`` of the best match anywhere. Motion picks between
       near-equal matches; against a clearly better one it needs two valid matches where it says
       (below). Against the motion (farther than ``motion_prior_radius`` from the prediction), a
       map is placed only where two valid integrations agree, and not there if one of them also
@@ -74,7 +90,7 @@ class PivotMapBuilder:
       scan-to-scan integrations do not add up along a hallway; never farther than the witness
       tolerances from the pose its integrations placed it at.
     - **Simplification**: whenever the map has grown by half since, it is simplified
-      (:func:`fleetmap.shared.core.simplify.simplify`, ``simplify_tolerance``), so it holds one segment
+      (:func:`fleetmap.shared.core.simplify.simplify`, ``SIMPLIFY_TOLERANCE``), so it holds one segment
       per stretch of wall rather than one per scan that saw it.
     """
 
@@ -107,7 +123,7 @@ class PivotMapBuilder:
         placed map to the last, scaled to the time since the last, continued from the last. None
         until two maps with increasing stamps are placed.
 
-        After a corner (a step turned more than ``corner_turn``), the robot drives on straight
+        After a corner (a step turned more than :data:`CORNER_TURN`), the robot drives on straight
         ahead in its new heading, as far as that step took it in the same time (the chord across
         the corner, a little short of the way driven): continuing the
         turn would put it facing back the way it came (a robot that turned 90 degrees in one step
@@ -122,14 +138,14 @@ class PivotMapBuilder:
             return None
         ratio = (stamp - t1) / (t1 - t0)
         step = self._before[1].inverse().compose(self._last_pose)
-        if abs(step.theta) > self.params.pivot.corner_turn:
+        if abs(step.theta) > CORNER_TURN:
             return self._last_pose.compose(Transform2D(math.hypot(step.x, step.y) * ratio, 0.0, 0.0))
         return self._last_pose.compose(Transform2D(step.x * ratio, step.y * ratio, step.theta * ratio))
 
     def add(self, m: SegmentMap, stamp: float | None = None) -> PivotStep:
         """Integrate and fuse one map. With its ``stamp`` (seconds; a robot agent's scans), the
         robot's motion counts: an integration that puts the map farther from the last placed one
-        than ``max_speed`` times the time since (plus ``witness_translation``), or farther along
+        than ``max_speed`` times the time since (plus :data:`WITNESS_TRANSLATION`), or farther along
         the way from the prediction than ``max_acceleration`` allows, does not count (the motion
         bounds), and ambiguous integrations are settled by the motion prior (see the class
         docstring)."""
@@ -187,8 +203,8 @@ class PivotMapBuilder:
             # Fig. 13b, steps 5-6: fuse S_i itself, placed by t_{1,i}.
             self._map = fuse(self._map, m, pose, self.params)
         self._viewpoints.append(moved_viewpoints(viewpoints_of(m), pose))
-        tol = self.params.simplify_tolerance
-        if tol > 0 and len(self._map) > max(self.params.pivot.simplify_from, 1.5 * self._simplified_size):
+        tol = SIMPLIFY_TOLERANCE
+        if tol > 0 and len(self._map) > max(SIMPLIFY_FROM, 1.5 * self._simplified_size):
             self._map = simplify(self._map, tol)
             self._simplified_size = len(self._map)
         self._before = (last, self._last_pose)
@@ -203,11 +219,11 @@ class PivotMapBuilder:
             # (Time that does not advance, as in a log whose stamps lost their precision, bounds nothing.)
             return _Motion(self._last_pose, p.motion.motion_prior_rotation)
         dt = stamp - self._stamps[-1]
-        max_motion = p.motion.max_speed * dt + p.pivot.witness_translation if p.motion.max_speed > 0 else None
+        max_motion = p.motion.max_speed * dt + WITNESS_TRANSLATION if p.motion.max_speed > 0 else None
         predicted = self.predict(stamp)
         slack = None
         if predicted is not None and p.motion.max_acceleration > 0:
-            slack = 0.5 * p.motion.max_acceleration * dt * dt + p.pivot.witness_translation
+            slack = 0.5 * p.motion.max_acceleration * dt * dt + WITNESS_TRANSLATION
         return _Motion(self._last_pose, p.motion.motion_prior_rotation, max_motion, predicted, slack)
 
     def _witness(self, base: SegmentMap, pose: Transform2D, m: SegmentMap, motion: _Motion) -> _Witness:
@@ -238,7 +254,7 @@ class PivotMapBuilder:
         near = integrate(base, m, p, window=window)
         self.integrations += 1
         near_pose = pose.compose(near.transform)
-        if near.valid and near.value - near.violation >= p.validity.valid_max_ambiguity * (r.value - r.violation):
+        if near.valid and near.value - near.violation >= VALID_MAX_AMBIGUITY * (r.value - r.violation):
             return _Witness(near_pose, near, at_prediction=predicted is not None)
         if predicted is None or near.value <= 0:
             return _Witness(pose.compose(r.transform), r)
@@ -253,7 +269,7 @@ class PivotMapBuilder:
         prep = prepare(near.segments, m.segments, near.oriented and m.oriented, self.params)
         before = transformation_value(prep, pose.as_array(), self.params, refuse=False)
         t = refine_transform(prep, pose, self.params, iterations=12)
-        if not _close(t, pose, self.params.pivot.witness_translation, self.params.pivot.witness_rotation):
+        if not _close(t, pose, WITNESS_TRANSLATION, WITNESS_ROTATION):
             return pose  # not a refinement: the integrations that placed it agree within these
         after = transformation_value(prep, t.as_array(), self.params, refuse=False)
         return t if refinement_kept(pose, t, before, after, self.params) else pose
@@ -269,7 +285,7 @@ class PivotMapBuilder:
         off with confidence, while the scan between them matches where the robot drove). Where the
         motion says, the agreeing witness may be invalid, and may agree by its best match inside
         the motion prior's window. Failing all that, :meth:`_with_motion`."""
-        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
+        tt, tr = WITNESS_TRANSLATION, WITNESS_ROTATION
         window = None
         if motion.predicted is not None and self.params.motion.motion_prior_radius > 0:
             window = Window(motion.predicted, self.params.motion.motion_prior_radius, math.pi)
@@ -294,7 +310,7 @@ class PivotMapBuilder:
         Where a better match lies elsewhere, geometry alone is ambiguous and motion decides: a
         forward-looking laser in racks that repeat sees more of the known map one rack back than
         where the robot drove, since the part of its view beyond the map matches nothing yet."""
-        tt, tr = self.params.pivot.witness_translation, self.params.pivot.witness_rotation
+        tt, tr = WITNESS_TRANSLATION, WITNESS_ROTATION
         at = [w for w in witnesses if w.at_prediction]
         for w in at:
             pose = w.motion_pose
@@ -309,8 +325,8 @@ class PivotMapBuilder:
         return w if w.integration.valid and motion.possible(w.pose) else None
 
     def _near(self, pose: Transform2D) -> SegmentMap:
-        """The built map within ``local_map_radius`` of ``pose`` (all of it if the radius is 0)."""
-        radius = self.params.pivot.local_map_radius
+        """The built map within :data:`LOCAL_MAP_RADIUS` of ``pose`` (all of it if the radius is 0)."""
+        radius = LOCAL_MAP_RADIUS
         seg, vp = self._map.segments, self._all_viewpoints()
         near = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
             axis=1

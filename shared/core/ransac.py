@@ -7,11 +7,11 @@ A second aligner beside the paper's integration, independent of it in how it sea
    :data:`MATCHES` landmarks of S1 of its kind with the most similar descriptors (step 1; the
    paper keeps the single most similar, below a threshold: laser corners look alike more often
    than visual features do, and RANSAC sorts out the wrong ones).
-2. Two correspondences (every pair while there are at most ``ransac_iterations`` of them, else
+2. Two correspondences (every pair while there are at most :data:`ITERATIONS` of them, else
    that many drawn at random) that keep their distance (the paper's geometric constraint, eq. 1,
    within twice the support distance) give an SE(2) transformation (eqs. 2-4); both landmarks'
    headings must turn by it, within ANGLEDIFFERENCETOLERANCE.
-3. Its supports are the correspondences it maps within ``ransac_support_distance`` (th2) with
+3. Its supports are the correspondences it maps within :data:`SUPPORT_DISTANCE` (th2) with
    their headings turned alike; the transformation with the most supports wins (ties: the smaller
    squared distances), and is refined by least squares on its supports (Umeyama's closed form in
    2D), re-collecting them, until they no longer change.
@@ -27,10 +27,20 @@ from dataclasses import dataclass
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
-from fleetmap.shared.core.candidates import IntArray
+from fleetmap.shared.core.candidates import MIN_VERTEX_ANGLE, SEED, IntArray
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.landmarks import Landmarks, find_landmarks
 from scipy.spatial import cKDTree
+
+SUPPORT_DISTANCE = 0.2
+"""A correspondence supports a transformation that maps it within this (m): the paper's th2 for laser
+landmarks (docs/decisions/012-the-other-papers.md)."""
+MIN_SUPPORTS = 3
+"""A transformation with fewer supports aligns nothing (the paper's min, 20 visual landmarks; a
+hypothesis always has the two correspondences it was drawn from)."""
+ITERATIONS = 2000
+"""Pairs of correspondences tried (the paper's M, 70): every pair while there are at most this many,
+else this many drawn at random."""
 
 CHUNK = 2048
 """Hypotheses whose supports are counted at once (bounds the (hypotheses, correspondences) arrays)."""
@@ -65,7 +75,7 @@ class RansacAlignment:
 def landmarks_of(segments: Array, p: IntegrationParams) -> Landmarks:
     """A map's landmarks with the reach, vertex angle and descriptor radius of ``p``."""
     reach = p.segment_distance_threshold * p.point_distance_tolerance
-    return find_landmarks(segments, reach, p.min_vertex_angle, DESCRIPTOR_RADIUS)
+    return find_landmarks(segments, reach, MIN_VERTEX_ANGLE, DESCRIPTOR_RADIUS)
 
 
 def correspondences(l1: Landmarks, l2: Landmarks, k: int) -> tuple[IntArray, IntArray]:
@@ -92,7 +102,6 @@ def ransac_align(
 ) -> RansacAlignment:
     """Steps 1-3 of the module docstring on segment maps ``s1`` and ``s2``. ``window``, if given,
     says which of ``(t, 3)`` hypotheses lie where S2 is expected: only those are considered."""
-    rp = p.ransac
     l1, l2 = landmarks_of(s1, p), landmarks_of(s2, p)
     c1, c2 = correspondences(l1, l2, MATCHES)
     none = RansacAlignment(Transform2D.identity(), 0, (), (len(l1), len(l2)), len(c1), 0)
@@ -100,23 +109,21 @@ def ransac_align(
         return none
     p1, p2 = l1.points[c1], l2.points[c2]
     turn = wrap_angle(l1.headings[c1] - l2.headings[c2])
-    i, j = _pairs(len(c1), rp.ransac_iterations, p.seed)
-    t = _hypotheses(p1, p2, turn, i, j, rp.ransac_support_distance, p.angle_difference_tolerance)
+    i, j = _pairs(len(c1), ITERATIONS, SEED)
+    t = _hypotheses(p1, p2, turn, i, j, SUPPORT_DISTANCE, p.angle_difference_tolerance)
     if window is not None and len(t):
         t = t[window(t)]
     if len(t) == 0:
         return none
     none = RansacAlignment(Transform2D.identity(), 0, (), (len(l1), len(l2)), len(c1), len(t))
-    reach, angle = rp.ransac_support_distance, p.angle_difference_tolerance
+    reach, angle = SUPPORT_DISTANCE, p.angle_difference_tolerance
     counts, errors = _supports(t, p1, p2, turn, reach, angle)
     order = np.lexsort((errors, -counts))
     best = _refined(t[order[0]], p1, p2, turn, reach, angle)
     n_best = int(_support_mask(best.as_array()[None], p1, p2, turn, reach, angle)[0].sum())
-    if n_best < rp.ransac_min_supports:
+    if n_best < MIN_SUPPORTS:
         return none
-    others = tuple(
-        (Transform2D.from_array(t[k]), int(counts[k])) for k in order[1:] if counts[k] >= rp.ransac_min_supports
-    )
+    others = tuple((Transform2D.from_array(t[k]), int(counts[k])) for k in order[1:] if counts[k] >= MIN_SUPPORTS)
     return RansacAlignment(best, n_best, others, (len(l1), len(l2)), len(c1), len(t))
 
 

@@ -17,6 +17,13 @@ from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.transformation_value import PreparedPairs, matched_pairs
 
+SLACK_TRANSLATION = 0.10
+"""A refinement that lowers the value within ``pivot_refine_slack`` is kept after a move of at most
+this (m) ..."""
+SLACK_ROTATION = 0.035
+"""... and this (rad, 2 degrees): the value is flat near the true pose, and a scan turned half a degree
+can score a little more than the least-squares pose (docs/decisions/005-parameters-beyond-the-paper.md)."""
+
 
 def pair_residuals(s1: Array, s2t: Array) -> tuple[Array, Array, Array, Array]:
     """For each pair: the two points of s2^t bounding its overlap with s1, s1's unit normal and
@@ -107,5 +114,5 @@ def refinement_kept(
     if after >= before:
         return True
     dt, dr = start.distance(refined)
-    small = dt <= params.pivot.pivot_refine_slack_translation and dr <= params.pivot.pivot_refine_slack_rotation
+    small = dt <= SLACK_TRANSLATION and dr <= SLACK_ROTATION
     return small and after >= before - params.pivot.pivot_refine_slack * abs(before)

@@ -23,6 +23,9 @@ import numpy as np
 from fleetmap.shared.core.geometry import Array, lengths
 from fleetmap.shared.core.segmap import SegmentMap
 
+SIMPLIFY_TOLERANCE = 0.05
+"""Partial maps: segments within this (m) of one line become one segment per covered stretch (0:
+never simplify): a submap's copies of one wall, each scan's a little apart, become one."""
 REFIT_ROUNDS = 4
 """Rounds of growing a group and refitting its line."""
 

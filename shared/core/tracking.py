@@ -6,12 +6,12 @@ centimetres and degrees from where its odometry (or its recent velocity) predict
 so do two of the project's source papers: Dugarjav & Lee build each robot's local map by ICP, and
 Armesto et al. register a scan's points to the continuous curve of the other scan (eICP). Here:
 
-- **The scan** is sampled along its extracted segments (paper III-D), every ``sample_spacing``
+- **The scan** is sampled along its extracted segments (paper III-D), every :data:`SAMPLE_SPACING`
   metres: points with the segment's normal and the wall length each stands for. Sampling the
   segments, not the raw returns, weighs a wall by its length rather than by how close it is, and
   the segment fit has already averaged the range noise.
 - **The submap** is a :class:`ReferenceMap`: the samples of its scans' segments, placed by their
-  tracked poses, averaged per cell of a ``voxel_size`` grid, each with the mean normal of its
+  tracked poses, averaged per cell of a :data:`VOXEL_SIZE` grid, each with the mean normal of its
   cell. A scan point is matched to the nearest such point whose normal faces the same way (a thin
   wall's two sides are two different walls), and its residual is the distance from that point's
   line (point-to-line: Censi's PLICP). Armesto et al.'s curve through the reference points is its
@@ -42,6 +42,54 @@ from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.rangescan import RangeScan
 from scipy.spatial import cKDTree
+
+SAMPLE_SPACING = 0.10
+"""Metres between the points sampled along a scan's segments for registration: two of the
+registration grid's cells."""
+VOXEL_SIZE = 0.05
+"""Cell size (m) of a submap's registration grid (the mean point and normal of each cell)."""
+RESIDUAL_SIGMA = 0.03
+"""Standard deviation (m) of a matched point's distance from the submap's wall: weighs the walls
+against the prior: the order of a laser's range noise (0.6-2.2 cm on the logs;
+docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
+MAX_CORRESPONDENCE = 1.0
+"""Registration's first stage matches a scan point to submap walls up to this far (m), each later
+stage half as far (a prediction a few tens of centimetres off still finds its walls) ..."""
+MIN_CORRESPONDENCE = 0.25
+"""... down to this (m)."""
+LOSS_SCALE = 0.2
+"""The robust (Cauchy) loss's scale, as a share of the stage's correspondence radius."""
+ITERATIONS_PER_STAGE = 8
+"""Gauss-Newton steps per registration stage, at most ..."""
+MAX_ITERATIONS = 30
+"""... and in all (a bound on a registration's cost)."""
+CONVERGENCE_TRANSLATION = 0.001
+"""A Gauss-Newton step shorter than this (m) ..."""
+CONVERGENCE_ROTATION = 0.001
+"""... and turned less than this (rad) has converged: a millimetre, well under the laser's noise."""
+MAX_NORMAL_ANGLE = 1.0472
+"""A scan point matches a submap wall only if their normals are within this (rad, 60 degrees): a
+thin wall's two sides are two different walls."""
+SEE_THROUGH_MARGIN = 0.3
+"""A beam passes through a submap wall when its return lies this much (m) beyond it ..."""
+SEE_THROUGH_SLOPE = 0.02
+"""... plus the range change a heading error of this much (rad) makes on that wall ..."""
+SEE_THROUGH = (SEE_THROUGH_MARGIN, SEE_THROUGH_SLOPE)
+"""The beam test's margin, as :func:`beam_test` takes it."""
+SEE_THROUGH_BEAMS = 5.0
+"""... and only walls spanning this many beams at their range count (a chair leg that one beam hits
+and the next misses is not a wall the next one saw through)."""
+DRIFT_TRANSLATION = 0.02
+"""A submap link's uncertainty grows with the way between the two frames: m per square root of the
+metres driven (without it the pose graph held a 380 s loop of mit-csail 15 degrees off its closure;
+docs/decisions/001-tracking-front-end.md) ..."""
+DRIFT_ROTATION = 0.004
+"""... and rad per square root of the metres driven."""
+
+RESIDUAL = "point_to_line"
+"""A scan point's residual: its distance from its matched cell's tangent line. Armesto et al.'s
+curve through the cells (eICP) gained nothing on cell means and cost twice the CPU
+(docs/decisions/012-the-other-papers.md); a config's ``[tracking] registration`` is read as this."""
 
 _KEY_STRIDE = 1 << 32
 """Packs a voxel's two cell indices into one int64 key."""
@@ -242,15 +290,15 @@ def _rotation(theta: float) -> Array:
     return np.array([[c, s], [-s, c]])
 
 
-def correspondence_schedule(params: TrackingParams) -> list[tuple[float, float]]:
+def correspondence_schedule() -> list[tuple[float, float]]:
     """The registration's stages: (correspondence radius, Cauchy scale) in metres, coarse to fine."""
     stages = []
-    radius = params.max_correspondence
-    while radius > params.min_correspondence * 1.001:
+    radius = MAX_CORRESPONDENCE
+    while radius > MIN_CORRESPONDENCE * 1.001:
         stages.append(radius)
         radius /= 2.0
-    stages.append(params.min_correspondence)
-    return [(r, r * params.loss_scale) for r in stages]
+    stages.append(MIN_CORRESPONDENCE)
+    return [(r, r * LOSS_SCALE) for r in stages]
 
 
 def _linearize(
@@ -296,12 +344,12 @@ def register(
     ``prior`` with ``prior_information`` (3x3, on x, y, theta in the submap's frame)."""
     x = initial.as_array()
     mu = prior.as_array()
-    schedule = correspondence_schedule(params)
+    schedule = correspondence_schedule()
     stage = 0
     radius, scale = schedule[0]
     since = 0
-    sigma2 = params.residual_sigma**2
-    cos_normals = math.cos(params.max_normal_angle)
+    sigma2 = RESIDUAL_SIGMA**2
+    cos_normals = math.cos(MAX_NORMAL_ANGLE)
     h_scan = np.zeros((3, 3))
     h = prior_information.copy()
     matched = np.zeros(len(scan), dtype=bool)
@@ -309,7 +357,7 @@ def register(
     w = np.zeros(0)
     converged = False
     iterations = 0
-    for iterations in range(1, params.max_iterations + 1):
+    for iterations in range(1, MAX_ITERATIONS + 1):
         rows, residuals, w, jac, jw = _linearize(scan, reference, x, radius, scale, sigma2, cos_normals)
         h_scan = jw.T @ jac
         h = h_scan + prior_information
@@ -323,13 +371,11 @@ def register(
         x = x + step
         matched = np.zeros(len(scan), dtype=bool)
         matched[rows] = True
-        small = math.hypot(step[0], step[1]) < params.convergence_translation and abs(step[2]) < (
-            params.convergence_rotation
-        )
+        small = math.hypot(step[0], step[1]) < CONVERGENCE_TRANSLATION and abs(step[2]) < (CONVERGENCE_ROTATION)
         if small and stage == len(schedule) - 1:
             converged = True
             break
-        if small or iterations - since >= params.iterations_per_stage:
+        if small or iterations - since >= ITERATIONS_PER_STAGE:
             stage = min(stage + 1, len(schedule) - 1)
             radius, scale = schedule[stage]
             since = iterations
@@ -351,31 +397,33 @@ def register(
     )
 
 
-def see_through(
-    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
-) -> tuple[float, float]:
+def see_through(reference: ReferenceMap, scan: RangeScan, pose: Transform2D, max_range: float) -> tuple[float, float]:
     """Wall of the submap the scan's beams pass through, at ``pose`` (the scan's pose in the
     submap): ``(violating length, visible length)`` in metres.
 
     A submap wall point is *visible* when it lies within the laser's field of view and reach,
     faces the laser, its beam returned something, and it lies on a wall wide enough for that beam
-    to hit: its segment spans ``see_through_beams`` beams at its range (a chair leg that one beam
+    to hit: its segment spans :data:`SEE_THROUGH_BEAMS` beams at its range (a chair leg that one beam
     hits and the next misses is not a wall the next one saw through). It is *seen through* when its
-    beam's return lies beyond it by more than the margin: ``see_through_margin``, plus the range
-    change that a heading error of ``see_through_slope`` radians makes on a wall at that range and
+    beam's return lies beyond it by more than the margin: :data:`SEE_THROUGH_MARGIN`, plus the range
+    change that a heading error of :data:`SEE_THROUGH_SLOPE` radians makes on a wall at that range and
     incidence (``r * slope * tan(incidence)``: a wall seen at a grazing angle moves far along the
     beam when the heading moves a little). A beam that returned nothing says little (glass, a dark
     surface) and counts for neither.
     """
     if len(reference) == 0:
         return 0.0, 0.0
-    visible, through = see_through_masks(reference, scan, pose, params, max_range)
+    visible, through = see_through_masks(reference, scan, pose, max_range)
     weights = reference.weights
     return float(weights[through].sum()), float(weights[visible].sum())
 
 
 def beam_evidence(
-    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+    reference: ReferenceMap,
+    scan: RangeScan,
+    pose: Transform2D,
+    max_range: float,
+    margin: tuple[float, float] = SEE_THROUGH,
 ) -> tuple[float, float]:
     """What the scan's beams say of the submap's walls at ``pose``: ``(through, hit)``, the wall
     length (m) they pass through and the length they return from (:func:`beam_test`). A beam that
@@ -387,18 +435,16 @@ def beam_evidence(
     if len(reference) == 0:
         return 0.0, 0.0
     points, normals, support = reference.points, reference.normals, reference.support
-    _, through, hit = beam_test(points, normals, support, scan, pose, params, max_range, max_range)
+    _, through, hit = beam_test(points, normals, support, scan, pose, max_range, max_range, margin)
     weights = reference.weights
     return float(weights[through].sum()), float(weights[hit].sum())
 
 
 def see_through_masks(
-    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, params: TrackingParams, max_range: float
+    reference: ReferenceMap, scan: RangeScan, pose: Transform2D, max_range: float
 ) -> tuple[Array, Array]:
     """:func:`see_through`'s cells: which are visible, and which of those are seen through."""
-    visible, through, _ = beam_test(
-        reference.points, reference.normals, reference.support, scan, pose, params, max_range
-    )
+    visible, through, _ = beam_test(reference.points, reference.normals, reference.support, scan, pose, max_range)
     return visible, through
 
 
@@ -408,14 +454,15 @@ def beam_test(
     support: Array,
     scan: RangeScan,
     pose: Transform2D,
-    params: TrackingParams,
     max_range: float,
     no_return_beyond: float = math.inf,
+    margin: tuple[float, float] = SEE_THROUGH,
 ) -> tuple[Array, Array, Array]:
     """The test of :func:`see_through` on wall points (their normals, and the length of the wall
     each lies on): which are visible to the scan at ``pose``, which of those its beams pass
-    through, and which of those its beams return from (within the same margin). A reading beyond
-    ``no_return_beyond`` counts as no return."""
+    through, and which of those its beams return from (within the same margin: ``margin`` is its
+    fixed part and its slope, :data:`SEE_THROUGH`). A reading beyond ``no_return_beyond`` counts as
+    no return."""
     ranges = np.asarray(scan.ranges, dtype=np.float64)
     beams = len(ranges)
     local = (points - (pose.x, pose.y)) @ _rotation(-pose.theta)
@@ -426,7 +473,7 @@ def beam_test(
     # facing the laser: the normal points back towards it; cos of the incidence angle
     cos_incidence = -(turned * local).sum(axis=1) / np.maximum(distance, 1e-9)
     reach = min(scan.range_max, max_range)
-    wide = support >= params.see_through_beams * distance * abs(scan.angle_increment)
+    wide = support >= SEE_THROUGH_BEAMS * distance * abs(scan.angle_increment)
     candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
     measured = ranges[np.clip(beam, 0, beams - 1)]
     with np.errstate(invalid="ignore"):
@@ -434,18 +481,18 @@ def beam_test(
     visible = candidate & returned
     cos_i = np.clip(cos_incidence, 1e-3, 1.0)
     tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
-    margin = params.see_through_margin + params.see_through_slope * distance * np.maximum(tan_incidence, 1.0)
-    through = visible & (measured > distance + margin)
-    hit = visible & (np.abs(measured - distance) <= margin)
+    beyond = margin[0] + margin[1] * distance * np.maximum(tan_incidence, 1.0)
+    through = visible & (measured > distance + beyond)
+    hit = visible & (np.abs(measured - distance) <= beyond)
     return visible, through, hit
 
 
 def wall_evidence(
     segments: Array,
     scans: list[tuple[RangeScan, Transform2D]],
-    params: TrackingParams,
     max_range: float,
     no_return_beyond: float = math.inf,
+    margin: tuple[float, float] = SEE_THROUGH,
 ) -> tuple[Array, Array]:
     """For each wall of a submap, what its own scans (each with its pose in the submap) say of it:
     ``(seen, through)``, the wall length (m, summed over the scans) their beams returned from, and
@@ -457,13 +504,13 @@ def wall_evidence(
     seen, through = np.zeros(len(seg)), np.zeros(len(seg))
     if len(seg) == 0 or not scans:
         return seen, through
-    samples = sample_segments(seg, params.sample_spacing)
+    samples = sample_segments(seg, SAMPLE_SPACING)
     owner, support = samples.segment, samples.support
     if owner is None or support is None:  # pragma: no cover - sample_segments gives both
         raise RuntimeError("the wall samples do not say which wall each lies on")
     for scan, pose in scans:
         _, passed, hit = beam_test(
-            samples.points, samples.normals, support, scan, pose, params, max_range, no_return_beyond
+            samples.points, samples.normals, support, scan, pose, max_range, no_return_beyond, margin
         )
         seen += np.bincount(owner[hit], weights=samples.weights[hit], minlength=len(seg))
         through += np.bincount(owner[passed], weights=samples.weights[passed], minlength=len(seg))
@@ -472,13 +519,13 @@ def wall_evidence(
 
 REACH_ROTATION = math.radians(5.0)
 """How far in heading a registration (:func:`register`) started from one pose settles into the same
-minimum as one started from another; in translation, ``TrackingParams.max_correspondence``. The
+minimum as one started from another; in translation, :data:`MAX_CORRESPONDENCE`. The
 tracker's second starts, the merger's near search and its join check all read it."""
 
 
-def drift_covariance(params: TrackingParams, distance: float) -> Array:
-    """What tracking adds up over ``distance`` metres driven (a random walk,
-    :attr:`~fleetmap.shared.config.TrackingParams.drift_translation`)."""
+def drift_covariance(distance: float) -> Array:
+    """What tracking adds up over ``distance`` metres driven (a random walk, :data:`DRIFT_TRANSLATION`,
+    :data:`DRIFT_ROTATION`)."""
     d = max(distance, 0.0)
-    t, r = params.drift_translation**2 * d, params.drift_rotation**2 * d
+    t, r = DRIFT_TRANSLATION**2 * d, DRIFT_ROTATION**2 * d
     return np.diag([t, t, r])

@@ -12,7 +12,7 @@ What makes it fast without changing the result that matters:
   the pairs near parallel under a candidate's rotation are one binary search away, and a
   midpoint-distance test (exact: segments whose midpoints are farther apart than their half
   lengths plus the threshold cannot overlap) prunes the rest before the exact computation.
-  Pairs more than ``pair_angle_limit`` from parallel are skipped: for them d <= D forces the
+  Pairs more than :data:`PAIR_ANGLE_LIMIT` from parallel are skipped: for them d <= D forces the
   shorter segment to be shorter than 2D / sin(angle), so their matching value is at most
   2D cot(angle), under 0.15 m at the default D = 75 mm, and in practice zero.
 - The early stop of III-B: S1's segments are taken longest first in blocks; after each block a
@@ -36,6 +36,14 @@ from scipy.spatial import cKDTree
 CHUNK_ENTRIES = 1_500_000
 """Candidate-pair entries processed at once: bounds memory to a few tens of MB."""
 
+
+PAIR_ANGLE_LIMIT = 0.5
+"""Segment pairs further from parallel than this (rad) are not evaluated: their matching value is at
+most 2D cot(angle), under 0.15 m at the default D (above)."""
+REFUSE_RANGE_SLOPE = 0.01
+"""The margin by which two long segments must cross to refuse grows by this (m) per metre of a scan
+segment's range: a far wall is fixed by a few sparse points (edmonton's consecutive pairs: 165 of 199
+right and valid, 147 at 0; docs/decisions/006-real-lasers-extraction-and-refusal.md)."""
 
 DENSE_PAIRS = 250_000
 """Up to this many segment pairs, one transformation's pairs are found densely; above, with a k-d tree."""
@@ -175,11 +183,11 @@ BLOCK_FRACTIONS = (0.5, 0.8, 1.0)
 def _crossing_margins(long: Array, scan: bool, params: IntegrationParams) -> Array:
     """How far (m) each long segment must reach beyond another's line, and the other beyond its,
     for the two to cross (:func:`refused`): SEGMENTDISTANCETHRESHOLD * POINTDISTANCETOLERANCE,
-    plus, for a scan's segment, ``refuse_range_slope`` times its midpoint's distance from the
+    plus, for a scan's segment, :data:`REFUSE_RANGE_SLOPE` times its midpoint's distance from the
     sensor."""
     margin = np.full(len(long), params.segment_distance_threshold * params.point_distance_tolerance)
-    if scan and params.refuse_range_slope > 0:
-        margin += params.refuse_range_slope * np.hypot(0.5 * (long[:, 0] + long[:, 2]), 0.5 * (long[:, 1] + long[:, 3]))
+    if scan and REFUSE_RANGE_SLOPE > 0:
+        margin += REFUSE_RANGE_SLOPE * np.hypot(0.5 * (long[:, 0] + long[:, 2]), 0.5 * (long[:, 1] + long[:, 3]))
     return margin
 
 
@@ -268,8 +276,8 @@ def _block_values(
     order, ext, pi, pk = prep.blocks[block]
     d_max = params.segment_distance_threshold * params.point_distance_tolerance
     theta = _wrapped(t[:, 2], prep.period)
-    lo = np.searchsorted(ext, theta - params.pair_angle_limit, side="left")
-    hi = np.searchsorted(ext, theta + params.pair_angle_limit, side="right")
+    lo = np.searchsorted(ext, theta - PAIR_ANGLE_LIMIT, side="left")
+    hi = np.searchsorted(ext, theta + PAIR_ANGLE_LIMIT, side="right")
     values = np.zeros(len(t))
     found: list[tuple[IntArray, IntArray, IntArray, Array]] = []
     counts = hi - lo
@@ -372,11 +380,11 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
     mid2 = 0.5 * (bt[:, 0:2] + bt[:, 2:4])
     if len(prep.s1) * len(prep.s2) <= DENSE_PAIRS:
         prep.work.charge(len(prep.s1) * len(prep.s2))
-        i, k = _dense_parallel(prep, theta, params.pair_angle_limit)
+        i, k = _dense_parallel(prep, theta, PAIR_ANGLE_LIMIT)
     else:
         i, k = _tree_pairs(prep, mid2, d_max)
         parallel = np.flatnonzero(
-            np.abs(_wrapped(prep.phi1[i] - prep.phi2[k] - theta, prep.period)) <= params.pair_angle_limit
+            np.abs(_wrapped(prep.phi1[i] - prep.phi2[k] - theta, prep.period)) <= PAIR_ANGLE_LIMIT
         )
         i, k = i[parallel], k[parallel]
     dx = prep.mid1[i, 0] - mid2[k, 0]

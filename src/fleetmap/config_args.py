@@ -12,14 +12,24 @@ import textwrap
 from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from fleetmap.shared.config import SECTIONS, FleetmapConfig, MergeParams, tuned
+from fleetmap.shared.config import SECTIONS, FleetmapConfig
 from fleetmap.shared.config_files import apply_overrides, load_config
 
 HELP_ALL = "--help-all"
 BASIC_CONFIG = Path(__file__).resolve().parent / "examples" / "basic.toml"
 """The basic parameters' config file, installed with the package (``--config`` help names it)."""
+Mode = Literal["live", "offline"]
+PRESETS: dict[str, Path] = {mode: BASIC_CONFIG.with_name(f"{mode}.toml") for mode in ("live", "offline")}
+"""The defaults of a live fleet (``fleetmap run``, ``agent``, ``merger``) and of an offline run
+(``fleetmap map``, ``merge``) where the two differ, installed with the package (as slam_toolbox
+ships one configuration per mode)."""
+
+
+def preset(mode: Mode) -> FleetmapConfig:
+    """The configuration of ``mode``: the defaults with its preset file read on top."""
+    return load_config(PRESETS[mode])
 
 
 class _HelpAll(argparse.Action):
@@ -37,15 +47,20 @@ class _HelpAll(argparse.Action):
         parser.exit()
 
 
-def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str]) -> None:
+def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str], mode: Mode | None = None) -> None:
     """Add ``--config FILE`` and one ``--field-name VALUE`` option per parameter of ``sections`` and
-    the sections nested in them, each with its tag (paper or fleetmap) and the first sentence of its
-    docstring. ``--help`` shows the basic parameters; ``--help-all`` every one."""
+    the sections nested in them, each with its tag (paper or fleetmap), the first sentence of its
+    docstring and its default (``mode``'s preset's, where the command has one:
+    :func:`config_from_args` starts from it). ``--help`` shows the basic parameters; ``--help-all``
+    every one."""
+    parser.set_defaults(config_mode=mode)
+    defaults = (preset(mode) if mode is not None else FleetmapConfig()).flat()
     parser.add_argument(
         "--config",
         metavar="FILE",
         help="a TOML file of algorithm parameters, one table per stage ([extraction], [integration], "
-        f"[integration.validity], ...; {BASIC_CONFIG} holds the basic ones: copy it)",
+        f"[integration.validity], ...; {BASIC_CONFIG} holds the basic ones: copy it), read on top of the "
+        "command's preset (live.toml or offline.toml beside it)",
     )
     parser.add_argument(HELP_ALL, action=_HelpAll, help="show this help with every algorithm parameter, and exit")
     basic = parser.add_argument_group("basic parameters (override --config)")
@@ -57,7 +72,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str
         for f in fields(SECTIONS[path]):
             if "origin" not in f.metadata:
                 continue
-            default = f.default
+            default = defaults[f"{path}.{f.name}"]
             text = f"[{f.metadata['origin']}] {said.get(f.name, '')} (default {default!r})"
             shown = f.metadata.get("basic", False)
             action = (basic if shown else group).add_argument(
@@ -72,9 +87,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, sections: Sequence[str
 
 
 @functools.cache
-def field_sentences(cls: type) -> dict[str, str]:
-    """The first sentence of each field's docstring (the string literal after it in the class body),
-    for ``--help``."""
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's docstring (the string literal after it in the class body), on one line."""
     try:
         body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0]
     except (OSError, TypeError, SyntaxError):
@@ -89,33 +103,29 @@ def field_sentences(cls: type) -> dict[str, str]:
             and isinstance(doc.value, ast.Constant)
             and isinstance(doc.value.value, str)
         ):
-            text = " ".join(doc.value.value.replace("``", "").split())
-            sentence = re.split(r"(?<=[a-z0-9)]\.)\s+(?=[A-Z(])", text, maxsplit=1)[0]
-            out[field_node.target.id] = sentence if len(sentence) <= 160 else sentence[:157].rstrip() + "..."
+            out[field_node.target.id] = " ".join(doc.value.value.split())
+    return out
+
+
+@functools.cache
+def field_sentences(cls: type) -> dict[str, str]:
+    """The first sentence of each field's docstring, for ``--help``."""
+    out: dict[str, str] = {}
+    for name, doc in field_docs(cls).items():
+        sentence = re.split(r"(?<=[a-z0-9)]\.)\s+(?=[A-Z(])", doc.replace("``", ""), maxsplit=1)[0]
+        out[name] = sentence if len(sentence) <= 160 else sentence[:157].rstrip() + "..."
     return out
 
 
 def config_from_args(args: argparse.Namespace) -> FleetmapConfig:
-    """The config file named by ``--config`` (or the defaults) with the command-line overrides."""
-    config = load_config(getattr(args, "config", None))
+    """The preset of the command's mode (live or offline, if it has one: :func:`add_config_arguments`),
+    the config file named by ``--config`` read on top of it, and the command-line overrides on top."""
+    mode = getattr(args, "config_mode", None)
+    base = preset(mode) if mode is not None else FleetmapConfig()
+    config = load_config(getattr(args, "config", None), base)
     overrides: dict[str, dict[str, Any]] = {}
     for key, value in vars(args).items():
         if key.startswith("cfg__") and value is not None:
             _, section, name = key.split("__", 2)
             overrides.setdefault(section, {})[name] = value
     return apply_overrides(config, overrides, "command line") if overrides else config
-
-
-def offline(config: FleetmapConfig, args: argparse.Namespace) -> FleetmapConfig:
-    """``config`` for a command that maps or merges a user's own data (``fleetmap map``, ``fleetmap
-    merge``): no budget of work per integration unless one was asked for, on the command line or
-    in the config file. The budget bounds what a robot's submaps can cost a live merger, and its
-    replay repeats it (:mod:`fleetmap.shared.core.work`); a user's own logs and maps are no
-    attacker's, and two halves of one building mapped apart need more than a live fleet's submaps
-    (mit-csail's: tests/test_map.py)."""
-    # without it on the command line, the value is the config file's (or the default)
-    asked = getattr(args, "cfg__merge__max_integration_work", None) is not None or (
-        getattr(args, "config", None) is not None
-        and config.merge.max_integration_work != MergeParams().max_integration_work
-    )
-    return config if asked else tuned(config, max_integration_work=0)

@@ -4,8 +4,9 @@ Each input is one robot (``--split K`` cuts it into K robots' consecutive pieces
 Every robot's scans run through its own :class:`~fleetmap.agents.agent.Agent`, side by side in the
 order of their clocks (each piece's clock starting at 0, as a fleet started together); the submaps
 they publish go, as bytes, through one :class:`~fleetmap.merger.engine.Merger`, which takes a step
-every :data:`STEP_SECONDS` of fleet time and, at the end, until it has nothing left to do. Nothing
-is re-implemented: the same messages, in a fixed order, so the same inputs give the same outputs.
+every ``merge.step_seconds`` of fleet time (the offline preset's 5 s) and, at the end, until it has
+nothing left to do. Nothing is re-implemented: the same messages, in a fixed order, so the same
+inputs give the same outputs.
 The agents track in worker processes of their own (:class:`~fleetmap.agent_processes.AgentProcesses`:
 the merger's work cannot starve them, as live), and the merger's side runs on a thread of its own,
 a little behind them (:class:`_Behind`): its calls are the same, in the same order, while the
@@ -43,10 +44,6 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap, Message, Scan
 from fleetmap.shared.io.sources import SourceScan, open_input
-
-STEP_SECONDS = 5.0
-"""Fleet seconds between two merger steps (a live merger steps as often as it can; offline, this
-keeps the graph current without solving it after every submap version)."""
 
 MAX_SPLIT = 64
 
@@ -186,7 +183,7 @@ def map_logs(
     timeline = sorted((s.stamp - p.scans[0].stamp, n, i) for n, p in enumerate(pieces) for i, s in enumerate(p.scans))
     processes = AgentProcesses.default_processes(len(pieces)) if tracking_processes is None else tracking_processes
     agents = AgentProcesses(pieces, [(n, i) for _, n, i in timeline], config, processes)
-    _track_and_merge(timeline, agents, side, progress)
+    _track_and_merge(timeline, agents, side, progress, config.merge.step_seconds)
     by_index = merger.scan_poses()
     poses = _with_stamps(by_index, pieces)
     report = write_outputs(side.log, None, out_dir, "fleetmap map: " + ", ".join(sorted({p.source for p in pieces})))
@@ -239,19 +236,20 @@ def _track_and_merge(
     agents: AgentProcesses,
     side: _MergerSide,
     progress: Callable[[int, int], None] | None,
+    step: float,
 ) -> None:
     """Every scan to its agent in the order of ``timeline`` (fleet seconds, piece, scan), what the
-    agents publish to the merger's side, a merger step every :data:`STEP_SECONDS` of fleet time,
+    agents publish to the merger's side, a merger step every ``step`` seconds of fleet time,
     and at the end the agents' last messages and the merger's last steps."""
     total = len(timeline)
     behind = _Behind()
     try:
-        due = STEP_SECONDS
+        due = step
         with agents:
             for done, ((t, _, _), (_, _, out)) in enumerate(zip(timeline, agents, strict=True), 1):
                 while t >= due:
                     behind.call(side.steps_due)
-                    due += STEP_SECONDS
+                    due = due + step if step > 0 else math.nextafter(t, math.inf)  # 0: at every scan
                 if out:
                     behind.call(functools.partial(side.send, out))
                 if progress is not None and (done % 50 == 0 or done == total):

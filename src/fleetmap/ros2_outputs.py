@@ -32,7 +32,6 @@ import numpy as np
 
 from fleetmap.merger.scangraph import is_key
 from fleetmap.report import SessionLog, occupancy_of
-from fleetmap.shared.config import MergeParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.bus import Bus, Handle
@@ -96,14 +95,13 @@ class GridScans:
     """The raw ranges the occupancy grid on /map is made of: those of each submap's key scans.
 
     A placed scan's ranges are kept when it is a key scan of the submap that placed it
-    (:func:`fleetmap.merger.scangraph.is_key`: ``scan_key_spacing`` along the path or
-    ``scan_key_rotation`` turned from the submap's last one), as the merger keeps key scans to
+    (:func:`fleetmap.merger.scangraph.is_key`: ``SCAN_KEY_SPACING`` along the path or
+    ``SCAN_KEY_ROTATION`` turned from the submap's last one), as the merger keeps key scans to
     refine with; a scan that no submap placed is in no grid and is not kept. A robot that stands
     or turns slowly for hours adds nothing; the scans held grow with the distance travelled.
     """
 
-    def __init__(self, params: MergeParams) -> None:
-        self.params = params
+    def __init__(self) -> None:
         self.ranges: dict[tuple[str, int], LaserRanges] = {}
         """The kept ranges by (robot, scan index), as :class:`~fleetmap.report.SessionLog` has them."""
         self._last: dict[str, tuple[int, Transform2D]] = {}
@@ -117,7 +115,7 @@ class GridScans:
         last = self._last.get(submap)
         if last is not None and scan.index <= last[0]:
             return False  # a scan again, or out of order
-        if not is_key(last[1] if last is not None else None, scan.pose, self.params):
+        if not is_key(last[1] if last is not None else None, scan.pose):
             return False
         self._last[submap] = (scan.index, scan.pose)
         self.ranges[(scan.robot, scan.index)] = scan.ranges
@@ -137,9 +135,7 @@ class Ros2Outputs:
         node: Ros2Node,
         map_seconds: float = MAP_SECONDS,
         clock: Callable[[], float] = time.time,
-        merge: MergeParams | None = None,
     ) -> None:
-        """``merge``: the merger's parameters (its key scans' spacing is the grid's)."""
         self.bus = bus
         self.keys = keys
         self.node = node
@@ -150,7 +146,7 @@ class Ros2Outputs:
         self._poses: dict[str, Ros2Publisher] = {}
         self._log = SessionLog()
         """The last global map and the latest version of every submap (scans go to ``grid_scans``)."""
-        self.grid_scans = GridScans(merge or MergeParams())
+        self.grid_scans = GridScans()
         self._odometry: dict[str, OrderedDict[float, Transform2D]] = {}
         self._lock = threading.Lock()
         self._new_map = threading.Event()

@@ -16,6 +16,7 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
 from fleetmap.shared.io.sources import CarmenSource
 
+from fleetmap.config_args import preset
 from fleetmap.mapping import Piece, map_logs, read_inputs
 
 TURN = (1134865028.0, 1134865040.0)
@@ -66,7 +67,7 @@ def test_a_real_log_restamped_in_bursts_maps_as_one_component_within_5cm_of_its_
     for clock in ("true", "burst"):
         given = list(break_clock(scans, clock, seed=7))
         piece = Piece("csail", str(source.path), given, True, {s.index: s.stamp for s in given})
-        maps[clock] = (piece, map_logs([piece], tmp_path / clock, FleetmapConfig()))
+        maps[clock] = (piece, map_logs([piece], tmp_path / clock, preset("offline")))
     piece, burst = maps["burst"]
     [robot] = burst.report["map"]["robots"]
     assert robot["epochs"] == 1 and robot["scans_placed"] == len(scans)

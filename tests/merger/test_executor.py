@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 from fleetmap.merger.executor import Executor, LocalExecutor, make_executor
-from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.errors import BadInput
 
 from fleetmap.cli import main
+from fleetmap.config_args import preset
 from fleetmap.mapping import MapResult, Piece, map_logs
 
 WAIT = 120.0
@@ -35,7 +35,7 @@ def _poses(result: MapResult) -> Poses:
 
 
 def _merge(pieces: list[Piece], executor: Executor, out: Path) -> Poses:
-    return _poses(map_logs(pieces, out, FleetmapConfig(), None, executor))
+    return _poses(map_logs(pieces, out, preset("offline"), None, executor))
 
 
 @pytest.fixture(scope="module")

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 from fleetmap.merger.graph import Edge, MapGraph
 from fleetmap.merger.posegraph import PoseGraph
-from fleetmap.shared.config import IntegrationParams, tuned
+from fleetmap.shared.config import IntegrationParams
+from fleetmap.shared.core import validity
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 
-from tests.helpers import NORTH_LANE, OMNI, ROOM, scan_map, scenario_scans
+from tests.helpers import NORTH_LANE, OMNI, ROOM, scan_map, scenario_scans, set_constant
 
 POSES = [(3.0, 4.5, 0.3), (5.0, 5.0, 2.0), (7.0, 4.0, -1.0), (9.0, 4.0, 2.8), (4.5, 7.0, -2.2)]
 MAPS = {f"m{k}": scan_map(ROOM, p, OMNI, seed=40 + k) for k, p in enumerate(POSES)}
@@ -153,7 +154,9 @@ def _local_map(scans: list[tuple[float, SegmentMap, Transform2D]]) -> SegmentMap
 
 
 @pytest.mark.slow  # builds two local maps from 20 simulated scans (about 5 s)
-def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_aliases() -> None:
+def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_aliases(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # NORTH_LANE (a warehouse-events variant): r2 maps the north lane westward from
     # x = 34 m (scans 0-13); r1, carried there, maps it from x = 20 m on (scans 21-26), past the
     # forklift's bay. A rack (3.5 m) off, r1's map matches more wall than where it belongs (it
@@ -165,12 +168,14 @@ def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_a
     lane, part = _local_map(lane_scans), _local_map(r1_scans)
     truth = lane_scans[0][2].inverse().compose(r1_scans[0][2])
     edges = {}
-    for refute in (0.0, IntegrationParams().validity.valid_refute_violation):
-        g = PoseGraph(tuned(IntegrationParams(), valid_refute_violation=refute))
-        g.add_map("r2/0", lane)
-        g.add_map("r1/1", part)
-        edges[refute] = g.edge("r2/0", "r1/1")
-    with_refuting, without = edges[IntegrationParams().validity.valid_refute_violation], edges[0.0]
+    for refute in (0.0, validity.VALID_REFUTE_VIOLATION):
+        with monkeypatch.context() as m:
+            set_constant(m, validity, "VALID_REFUTE_VIOLATION", refute)
+            g = PoseGraph(IntegrationParams())
+            g.add_map("r2/0", lane)
+            g.add_map("r1/1", part)
+            edges[refute] = g.edge("r2/0", "r1/1")
+    with_refuting, without = edges[validity.VALID_REFUTE_VIOLATION], edges[0.0]
     assert with_refuting is not None and without is not None
     assert truth.distance(with_refuting.transform)[0] > 3.0, "the best is the alias a rack off: the test shows nothing"
     assert with_refuting.runner_up < without.runner_up, "no rival was refuted: the test shows nothing"
@@ -181,18 +186,23 @@ def test_a_lane_map_is_not_merged_a_rack_off_when_free_space_refutes_the_other_a
 
 
 @pytest.mark.slow  # builds two local maps from 27 simulated scans (about 5 s)
-def test_an_office_map_is_merged_when_free_space_refutes_its_look_alike_alignments() -> None:
+def test_an_office_map_is_merged_when_free_space_refutes_its_look_alike_alignments(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # office: r1's last local map (its scans 29-34) and r2's first (scans 0-20). Elsewhere along the
     # corridor r1's map matches 90 % as well, but puts walls where r2's laser saw through: refuted,
     # so the right alignment is unambiguous.
     r1_scans = scenario_scans("office", "r1", 35)[29:]
     r2_scans = scenario_scans("office", "r2", 21)
     truth = r1_scans[0][2].inverse().compose(r2_scans[0][2])
-    for refute, merged in ((IntegrationParams().validity.valid_refute_violation, True), (0.0, False)):
-        g = MapGraph(tuned(IntegrationParams(), valid_refute_violation=refute))
-        g.add_map("r1/4", _local_map(r1_scans))
-        g.add_map("r2/0", _local_map(r2_scans))
-        edge = g.edge("r1/4", "r2/0")
+    r1_map, r2_map = _local_map(r1_scans), _local_map(r2_scans)
+    for refute, merged in ((validity.VALID_REFUTE_VIOLATION, True), (0.0, False)):
+        with monkeypatch.context() as m:
+            set_constant(m, validity, "VALID_REFUTE_VIOLATION", refute)
+            g = MapGraph(IntegrationParams())
+            g.add_map("r1/4", r1_map)
+            g.add_map("r2/0", r2_map)
+            edge = g.edge("r1/4", "r2/0")
         assert edge is not None and edge.valid == merged, f"refuting at {refute} m: merged {edge and edge.valid}"
         dt, dr = edge.transform.distance(truth)
         assert dt < 0.05 and math.degrees(dr) < 0.5, f"{dt:.3f} m {math.degrees(dr):.2f} deg"

@@ -4,10 +4,10 @@ precisely they are placed (corrected logs)."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from fleetmap.merger import executor
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.core.extraction import extract_segments
@@ -15,6 +15,8 @@ from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
+
+from tests.helpers import set_constant
 
 
 def _pieces(datasets: Path, log: str, which: list[int]) -> dict[str, tuple[SegmentMap, Transform2D]]:
@@ -65,7 +67,9 @@ def test_merged_maps_are_placed_as_their_walls_fit_not_as_their_simplified_copie
 
 
 @pytest.mark.slow  # four local maps fused from 28 real scans each, merged
-def test_an_edge_off_along_a_corridor_gives_way_to_the_edges_whose_walls_fix_that_direction(datasets: Path) -> None:
+def test_an_edge_off_along_a_corridor_gives_way_to_the_edges_whose_walls_fix_that_direction(
+    datasets: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # orebro, pieces 0-3 of 8: edge 0-1 lays map 1 0.29 m off along a corridor whose walls leave
     # that direction nearly free (its fit's normal matrix: 1.1 along it, 29 across), while the
     # cycle 0-3-2-1 places it right. Weighted by value alone in every direction, the poses
@@ -75,5 +79,6 @@ def test_an_edge_off_along_a_corridor_gives_way_to_the_edges_whose_walls_fix_tha
     errors = _errors(pieces, MergeParams())
     for key, (dt, dr) in errors.items():
         assert dt <= 0.2 and dr <= 0.5, (key, errors)
-    by_value = _errors(pieces, replace(MergeParams(), edge_information=False))
+    set_constant(monkeypatch, executor, "EDGE_INFORMATION", False)
+    by_value = _errors(pieces, MergeParams())
     assert max(dt for dt, _ in by_value.values()) > 0.2, by_value

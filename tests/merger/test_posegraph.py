@@ -9,6 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
+from fleetmap.merger import schedule
 from fleetmap.merger.engine import Merger
 from fleetmap.merger.graph import Edge, MergeResult
 from fleetmap.merger.outputs import Placement
@@ -20,7 +21,7 @@ from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap, RobotPose, SubmapLink, decode
 
-from tests.helpers import true_local_map
+from tests.helpers import set_constant, true_local_map
 
 KEYS = FleetKeys("test")
 
@@ -346,13 +347,15 @@ def test_a_join_its_walls_leave_free_along_a_corridor_joins_no_two_robots() -> N
 
 
 @pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
-def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(fleet: Fleet) -> None:
+def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # r2's submaps find nobody while they arrive (no pose-free search: as where every view looks
     # alike), then its last submap joins it to r1. Its earlier submaps lie over r1's: each must be
     # registered on the r1 submaps it meets, not hang on the one join through r2's chain.
-    config = FleetmapConfig()
-    apart = replace(config, merge=replace(config.merge, far_candidates=0, far_budget=0))
-    merger = Merger(KEYS, apart)
+    set_constant(monkeypatch, schedule, "FAR_CANDIDATES", 0)
+    set_constant(monkeypatch, schedule, "FAR_BUDGET", 0)
+    merger = Merger(KEYS, FleetmapConfig())
     mine = [m for m in fleet.finals if m.robot in ("r1", "r2")]
     last = max(m.submap_key for m in mine if m.robot == "r2")
     for m in mine:
@@ -360,7 +363,7 @@ def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(flee
             merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
             merger.step()
     assert merger.result is not None and len(merger.result.components) == 2
-    merger.config = config  # the last submap searches as usual
+    monkeypatch.undo()  # the last submap searches as usual
     merger.receive(KEYS.localmap("r2"), next(m for m in mine if m.submap_key == last).to_msgpack())
     while merger.has_work:
         merger.step()
@@ -381,12 +384,14 @@ def test_submaps_a_late_join_puts_side_by_side_are_registered_on_each_other(flee
 
 
 @pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
-def test_robots_placed_among_themselves_search_on_until_the_fleet_is_one_map(fleet: Fleet) -> None:
+def test_robots_placed_among_themselves_search_on_until_the_fleet_is_one_map(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # Six robots (each robot's chain cut in two, the second half a robot of its own) that search
     # only when idle: groups of robots that have joined each other, but not the global map, must
     # go on searching until the fleet is one map (aces cut in 8 stayed in 4 components).
-    config = FleetmapConfig()
-    merger = Merger(KEYS, replace(config, merge=replace(config.merge, far_candidates=0)))
+    set_constant(monkeypatch, schedule, "FAR_CANDIDATES", 0)
+    merger = Merger(KEYS, FleetmapConfig())
     for m in fleet.finals:
         if m.submap is not None and m.submap >= 3:
             link = None if m.link is None or m.submap == 3 else replace(m.link, submap=m.link.submap - 3)

@@ -9,17 +9,25 @@ import gtsam
 import numpy as np
 import pytest
 from fleetmap.merger.engine import Merger
-from fleetmap.merger.scangraph import IntegrationEdge, KeyScan, follow_key_scans, is_key, refine_key_scans
-from fleetmap.shared.config import MergeParams, TrackingParams
+from fleetmap.merger.scangraph import (
+    SCAN_KEY_ROTATION,
+    SCAN_KEY_SPACING,
+    IntegrationEdge,
+    KeyScan,
+    follow_key_scans,
+    is_key,
+    refine_key_scans,
+)
+from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.tracking import sample_segments
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, sample_segments
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import Scan
 
 # an L-shaped room, counter-clockwise: every wall's left side is the room
 CORNERS = [(0.0, 0.0), (10.0, 0.0), (10.0, 4.0), (6.0, 4.0), (6.0, 7.0), (0.0, 7.0)]
 ROOM = np.array([[*CORNERS[i], *CORNERS[(i + 1) % len(CORNERS)]] for i in range(len(CORNERS))])
-MERGE, TRACKING = MergeParams(), TrackingParams()
+TRACKING = TrackingParams()
 
 
 def seen_from(pose: Transform2D) -> np.ndarray:
@@ -33,7 +41,7 @@ def seen_from(pose: Transform2D) -> np.ndarray:
 
 def key(robot: str, index: int, submap: str, frame: Transform2D, truth: Transform2D) -> KeyScan:
     """A key scan taken at ``truth`` (world), placed by tracking exactly in its submap at ``frame``."""
-    samples = sample_segments(seen_from(truth), TRACKING.sample_spacing)
+    samples = sample_segments(seen_from(truth), SAMPLE_SPACING)
     return KeyScan(robot, 0, index, submap, frame.inverse().compose(truth), samples)
 
 
@@ -76,7 +84,6 @@ def test_key_scans_a_merge_left_centimetres_off_go_back_to_where_their_scans_say
         walls,
         {"b/0/1": ("b/0/0", link)},
         [IntegrationEdge("a/0/0", "b/0/0", wrong, noise, noise)],
-        MERGE,
         TRACKING,
     )
     assert refined.constraints >= 4
@@ -102,7 +109,7 @@ def test_without_a_revisit_nothing_moves() -> None:
     frame = Transform2D(1.0, 1.0, 0.0)
     keys = [key("a", 0, "a/0/0", frame, frame), key("a", 1, "a/0/0", frame, Transform2D(2.5, 1.2, 0.1))]
     poses = {"a/0/0": frame}
-    refined = refine_key_scans(keys, poses, "a/0/0", {"a/0/0": frame.inverse().apply(ROOM)}, {}, [], MERGE, TRACKING)
+    refined = refine_key_scans(keys, poses, "a/0/0", {"a/0/0": frame.inverse().apply(ROOM)}, {}, [], TRACKING)
     assert refined.constraints == 0
     for k in keys:
         p, q = refined.poses[(k.robot, k.index)], frame.compose(k.pose)
@@ -110,10 +117,10 @@ def test_without_a_revisit_nothing_moves() -> None:
 
 
 def test_a_key_scan_every_metre_or_turn() -> None:
-    assert is_key(None, Transform2D(), MERGE)
-    assert not is_key(Transform2D(), Transform2D(0.5, 0.0, 0.1), MERGE)
-    assert is_key(Transform2D(), Transform2D(MERGE.scan_key_spacing, 0.0, 0.0), MERGE)
-    assert is_key(Transform2D(), Transform2D(0.0, 0.0, -MERGE.scan_key_rotation), MERGE)
+    assert is_key(None, Transform2D())
+    assert not is_key(Transform2D(), Transform2D(0.5, 0.0, 0.1))
+    assert is_key(Transform2D(), Transform2D(SCAN_KEY_SPACING, 0.0, 0.0))
+    assert is_key(Transform2D(), Transform2D(0.0, 0.0, -SCAN_KEY_ROTATION))
 
 
 def test_a_mapping_merger_keeps_one_scan_per_metre_of_each_submap_off_the_scan_key() -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from fleetmap.merger import intake, schedule
 from fleetmap.merger.budget import SubmapBudget
 from fleetmap.merger.engine import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
@@ -33,7 +34,7 @@ from fleetmap.shared.io.messages import (
     decode,
 )
 
-from tests.helpers import true_local_map
+from tests.helpers import set_constant, true_local_map
 
 KEYS = FleetKeys("test")
 
@@ -207,10 +208,11 @@ def test_a_robot_speaking_for_another_is_dropped_and_counted(maps) -> None:  # t
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
 
 
-def test_limits_refuse_oversized_submaps_extra_robots_and_queue_overflow_and_count_them(maps) -> None:  # type: ignore[no-untyped-def]
+def test_limits_refuse_oversized_submaps_extra_robots_and_queue_overflow_and_count_them(maps, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     small = min(len(maps[r][0].segments) for r in ("r1", "r2", "r3"))
-    limits = MergeParams(max_submap_segments=small, max_robots=3, max_queued_pairs=1)
-    merger = Merger(KEYS, FleetmapConfig(merge=limits))
+    set_constant(monkeypatch, intake, "MAX_SUBMAP_SEGMENTS", small)
+    set_constant(monkeypatch, schedule, "MAX_QUEUED_PAIRS", 1)
+    merger = Merger(KEYS, FleetmapConfig(merge=MergeParams(max_robots=3)))
     big = max(("r1", "r2", "r3"), key=lambda r: len(maps[r][0].segments))
     merger.receive(KEYS.localmap(big), maps[big][0].to_msgpack())
     assert merger.pending == 0 and merger.stats.refused["max_submap_segments"] == 1

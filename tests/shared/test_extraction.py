@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.core import extraction
 from fleetmap.shared.core.extraction import _returns, clusters, extract_segments, range_noise, split_polyline
 from fleetmap.shared.core.geometry import lengths, point_segment_distance
 from fleetmap.shared.core.rangescan import RangeScan
@@ -25,9 +26,10 @@ def scan_of(walls: np.ndarray, noise: float = 0.0, seed: int = 0) -> RangeScan:
     return simulate_scan(walls, (0.0, 0.0, 0.0), LaserParams(noise=noise), np.random.default_rng(seed))
 
 
-def test_a_noiseless_corner_gives_touching_segments_on_the_walls() -> None:
+def test_a_noiseless_corner_gives_touching_segments_on_the_walls(monkeypatch: pytest.MonkeyPatch) -> None:
     # The paper's polyline: both walls, and a short cut across the corner between two beams.
-    seg = extract_segments(scan_of(CORNER), ExtractionParams(line_fit=False))
+    monkeypatch.setattr(extraction, "LINE_FIT", False)
+    seg = extract_segments(scan_of(CORNER))
     assert len(seg) == 3 and lengths(seg)[1] < 0.1
     np.testing.assert_allclose(seg[:-1, 2:4], seg[1:, 0:2], atol=1e-9)
     np.testing.assert_allclose(seg[0, [0, 2]], [3.0, 3.0], atol=1e-6)
@@ -35,16 +37,17 @@ def test_a_noiseless_corner_gives_touching_segments_on_the_walls() -> None:
 
 
 def test_line_fit_puts_the_corner_where_the_walls_cross() -> None:
-    seg = extract_segments(scan_of(CORNER, noise=0.005, seed=2), ExtractionParams(line_fit=True))
+    seg = extract_segments(scan_of(CORNER, noise=0.005, seed=2))
     assert len(seg) == 2
     np.testing.assert_allclose(seg[0, 2:4], seg[1, 0:2], atol=1e-9)
     assert math.hypot(seg[0, 2] - 3.0, seg[0, 3] - 2.0) < 0.01
 
 
 @pytest.mark.parametrize("line_fit", [False, True])
-def test_every_point_is_within_kappa_of_its_segments(line_fit: bool) -> None:
+def test_every_point_is_within_kappa_of_its_segments(line_fit: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     scan = scan_of(CORNER, noise=0.005, seed=3)
-    params = ExtractionParams(line_fit=line_fit)
+    monkeypatch.setattr(extraction, "LINE_FIT", line_fit)
+    params = ExtractionParams()
     seg = extract_segments(scan, params)
     a = scan.angle_min + np.arange(len(scan.ranges)) * scan.angle_increment
     ok = np.isfinite(scan.ranges)
@@ -54,11 +57,12 @@ def test_every_point_is_within_kappa_of_its_segments(line_fit: bool) -> None:
     assert d.max() <= (2 if line_fit else 1) * params.kappa + 1e-9
 
 
-def test_line_fit_keeps_a_noisy_wall_in_one_piece() -> None:
+def test_line_fit_keeps_a_noisy_wall_in_one_piece(monkeypatch: pytest.MonkeyPatch) -> None:
     wall = np.array([[2.0, -3.0, 2.0, 3.0]])
     # 1.5 cm noise (or 5 cm range quantisation, as in the aces log) puts readings beyond kappa.
-    plain = extract_segments(scan_of(wall, noise=0.015, seed=1), ExtractionParams(line_fit=False))
-    fitted = extract_segments(scan_of(wall, noise=0.015, seed=1), ExtractionParams(line_fit=True))
+    fitted = extract_segments(scan_of(wall, noise=0.015, seed=1))
+    monkeypatch.setattr(extraction, "LINE_FIT", False)
+    plain = extract_segments(scan_of(wall, noise=0.015, seed=1))
     assert len(plain) > 3  # the paper's split cuts at every reading beyond kappa
     assert len(fitted) == 1
     assert abs(fitted[0, 0] - 2.0) < 0.01 and abs(fitted[0, 2] - 2.0) < 0.01
@@ -100,13 +104,14 @@ def test_segments_run_counter_clockwise_with_the_sensor_on_their_left() -> None:
     assert (np.diff(bearings) > 0).all()
 
 
-def test_no_return_beams_and_far_ranges_are_dropped() -> None:
+def test_no_return_beams_and_far_ranges_are_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
     r = np.full(181, 2.0)
     holes = [(10, 20, np.nan), (30, 40, 0.0), (50, 60, 100.0), (70, 80, 9.0)]  # 100 > range_max, 9 > max_range
     for lo, hi, value in holes:
         r[lo:hi] = value
     scan = RangeScan(0.0, -math.pi / 2, math.radians(1), 81.9, r)
-    seg = extract_segments(scan, ExtractionParams(line_fit=False, max_range=8.0))
+    monkeypatch.setattr(extraction, "LINE_FIT", False)
+    seg = extract_segments(scan, ExtractionParams(max_range=8.0))
     pts = seg.reshape(-1, 2)
     np.testing.assert_allclose(np.hypot(pts[:, 0], pts[:, 1]), 2.0, atol=1e-9)
     beam = np.round((np.arctan2(pts[:, 1], pts[:, 0]) + math.pi / 2) / math.radians(1)).astype(int)

@@ -8,12 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleetmap.shared.config import ExtractionParams, IntegrationParams, tuned
+from fleetmap.shared.core import integration, transformation_value
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import integrate
 from fleetmap.shared.core.pivotmap import PivotMapBuilder
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.logs import read_carmen
+
+from tests.helpers import set_constant
 
 
 @pytest.mark.slow  # 50 scans of a real log, 25 relations
@@ -34,7 +37,7 @@ def test_mit_csail_relations_are_recovered_with_default_parameters(datasets: Pat
 
 @pytest.mark.slow  # two local maps of 28 real scans each, built as an agent builds them
 def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_walls_a_little_apart(
-    datasets: Path,
+    datasets: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # freiburg-079 (SLAM-corrected, a scan every 0.5 m): two consecutive stretches of the tour,
     # 3 scans shared, each built into a local map from its scans alone. The two maps place the
@@ -42,7 +45,7 @@ def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_w
     # right alignment 5 m of either map's walls lie in the other's seen free space, against 18 m
     # matched: without the wall clearance (map_free_space_clearance) the merge is refused. By
     # default it is made, and right. Counting only long walls in the free space
-    # (map_free_space_min_length, for clutter) is enough on its own too.
+    # (MAP_FREE_SPACE_MIN_LENGTH, for clutter) is enough on its own too.
     scans = list(read_carmen(datasets / "corrected" / "freiburg-079-corrected.log.gz"))[::5]
     maps, firsts = [], []
     for lo in (125, 150):
@@ -62,13 +65,14 @@ def test_two_local_maps_of_a_furnished_lab_merge_right_though_they_place_their_w
     refused = integrate(maps[0], maps[1], no_clearance)
     assert refused.transform == r.transform  # the same choice (the score is the same), refused
     assert not refused.valid and refused.solid_violation == refused.violation > 0.1 * refused.value
-    long_walls = integrate(maps[0], maps[1], tuned(no_clearance, map_free_space_min_length=0.8))
+    set_constant(monkeypatch, integration, "MAP_FREE_SPACE_MIN_LENGTH", 0.8)
+    long_walls = integrate(maps[0], maps[1], no_clearance)
     assert long_walls.valid and long_walls.transform.distance(truth)[0] <= 0.2
     assert long_walls.solid_violation <= 0.1 * long_walls.value < long_walls.violation
 
 
 @pytest.mark.slow  # 60 integrations of real scans
-def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path) -> None:
+def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # edmonton's laser is the noisiest of the corrected logs (a point lies 2.2 cm off its
     # neighbours' chord, median). At the paper's kappa its walls come out as short segments whose
     # directions are off by a degree or two, so the candidates the angle matches give near the
@@ -92,15 +96,18 @@ def test_consecutive_scans_of_a_noisy_laser_integrate_right(datasets: Path) -> N
 
     ok = right(IntegrationParams())
     assert ok >= 24, f"{ok}/30 consecutive pairs within (0.3 m, 3 deg)"
-    fine_only = right(IntegrationParams(refine_coarse_factor=1.0))
+    set_constant(monkeypatch, integration, "REFINE_COARSE_FACTOR", 1.0)
+    fine_only = right(IntegrationParams())
     assert fine_only <= ok - 2, (fine_only, ok)
 
 
-def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consecutive_scans(datasets: Path) -> None:
+def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consecutive_scans(
+    datasets: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # edmonton: at the true alignment of these consecutive scans, a 1 m segment 14-19 m away,
     # fixed by three or four points, crosses the other scan's line of the same wall at 14-31
     # degrees: the paper's SEGMENTLENGTHREFUSE discards the right alignment for it. Between scans the
-    # crossing margin grows with the distance from the sensor (refuse_range_slope,
+    # crossing margin grows with the distance from the sensor (REFUSE_RANGE_SLOPE,
     # docs/decisions/006-real-lasers-extraction-and-refusal.md): right within 0.1 m and 0.5 degrees.
     scans = list(read_carmen(datasets / "corrected" / "edmonton-corrected.log.gz"))[:123]
     for j in (22, 117, 119, 122):
@@ -110,5 +117,7 @@ def test_a_far_walls_sparse_points_do_not_refuse_the_right_integration_of_consec
         r = integrate(a, b)
         dt, dr = r.transform.distance(step)
         assert r.valid and dt <= 0.1 and math.degrees(dr) <= 0.5, (j, r.valid, dt, math.degrees(dr))
-        paper = integrate(a, b, IntegrationParams(refuse_range_slope=0.0))
+        with monkeypatch.context() as m:
+            set_constant(m, transformation_value, "REFUSE_RANGE_SLOPE", 0.0)
+            paper = integrate(a, b)
         assert not paper.valid and paper.violation > 0.2 * paper.value, (j, paper)

@@ -4,19 +4,29 @@ simulated scans of known poses."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest
+from fleetmap.agents.fitcheck import MAX_SEE_THROUGH, MIN_MATCHED_SHARE
 from fleetmap.agents.tracker import Tracker
 from fleetmap.scenarios import get_world
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
 from fleetmap.shared.config import TrackingParams
+from fleetmap.shared.core import tracking
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D, lengths
 from fleetmap.shared.core.motion import from_odometry, odometry_increment
-from fleetmap.shared.core.tracking import ReferenceMap, register, sample_segments, see_through
+from fleetmap.shared.core.tracking import (
+    SAMPLE_SPACING,
+    VOXEL_SIZE,
+    ReferenceMap,
+    register,
+    sample_segments,
+    see_through,
+)
 from fleetmap.shared.core.walls import WallMap
+
+from tests.helpers import set_constant
 
 PARAMS = TrackingParams()
 LOOSE = np.diag([1 / 0.5**2, 1 / 0.5**2, 1 / 0.3**2])
@@ -32,10 +42,10 @@ def scan_at(walls, pose, seed=0):
 
 def submap_of(walls, poses):
     """A reference map of scans taken at ``poses``, in the first one's frame (true poses)."""
-    reference = ReferenceMap(PARAMS.voxel_size)
+    reference = ReferenceMap(VOXEL_SIZE)
     frame = poses[0]
     for k, pose in enumerate(poses):
-        samples = sample_segments(extract_segments(scan_at(walls, pose, seed=k)), PARAMS.sample_spacing)
+        samples = sample_segments(extract_segments(scan_at(walls, pose, seed=k)), SAMPLE_SPACING)
         reference.insert(samples.moved(frame.inverse().compose(pose)))
     return reference, frame
 
@@ -54,14 +64,14 @@ def test_a_scan_predicted_off_is_registered_where_it_was_taken(office, offset):
     poses = [Transform2D(8.0 + 0.2 * k, 7.0, 0.0) for k in range(5)]
     reference, frame = submap_of(office, poses)
     true = Transform2D(9.3, 7.1, 0.08)
-    samples = sample_segments(extract_segments(scan_at(office, true, seed=99)), PARAMS.sample_spacing)
+    samples = sample_segments(extract_segments(scan_at(office, true, seed=99)), SAMPLE_SPACING)
     truth = frame.inverse().compose(true)
     start = truth.compose(offset)
     reg = register(samples, reference, start, start, LOOSE, PARAMS)
     dt, dr = reg.pose.distance(truth)
     assert dt < 0.02 and math.degrees(dr) < 0.3, (dt, math.degrees(dr))
     assert reg.matched_share > 0.8 and reg.rms < 0.02
-    through, visible = see_through(reference, scan_at(office, true, seed=99), reg.pose, PARAMS, 20.0)
+    through, visible = see_through(reference, scan_at(office, true, seed=99), reg.pose, 20.0)
     assert visible > 5.0 and through < 0.05 * visible
 
 
@@ -71,9 +81,9 @@ def test_a_featureless_corridor_leaves_the_translation_along_it_to_the_prior():
     poses = [Transform2D(0.2 * k, 0.0, 0.0) for k in range(6)]
     reference, _ = submap_of(walls, poses)
     true = Transform2D(1.5, 0.05, 0.02)
-    samples = sample_segments(extract_segments(scan_at(walls, true)), PARAMS.sample_spacing)
+    samples = sample_segments(extract_segments(scan_at(walls, true)), SAMPLE_SPACING)
     prior = Transform2D(1.8, -0.1, 0.0)  # odometry 30 cm long, 15 cm to the side, 1 degree off
-    information = from_odometry(Transform2D(0.3, 0.0, 0.0), PARAMS).information()
+    information = from_odometry(Transform2D(0.3, 0.0, 0.0)).information()
     reg = register(samples, reference, prior, prior, information, PARAMS)
     assert reg.pose.x == pytest.approx(prior.x, abs=0.01), "along the corridor the prior decides"
     assert reg.pose.y == pytest.approx(true.y, abs=0.01), "across it the walls do"
@@ -88,11 +98,11 @@ def test_a_scan_taken_elsewhere_sees_through_the_submaps_walls(office):
     reference, _ = submap_of(office, poses)
     elsewhere = Transform2D(16.0, 4.4, -1.0)  # in a south room
     scan = scan_at(office, elsewhere)
-    samples = sample_segments(extract_segments(scan), PARAMS.sample_spacing)
+    samples = sample_segments(extract_segments(scan), SAMPLE_SPACING)
     start = Transform2D(1.0, 0.0, 0.0)  # where odometry says the robot is: it was carried
     reg = register(samples, reference, start, start, LOOSE, PARAMS)
-    through, visible = see_through(reference, scan, reg.pose, PARAMS, 20.0)
-    fits = reg.matched_share >= PARAMS.min_matched_share and through <= PARAMS.max_see_through * visible
+    through, visible = see_through(reference, scan, reg.pose, 20.0)
+    fits = reg.matched_share >= MIN_MATCHED_SHARE and through <= MAX_SEE_THROUGH * visible
     assert not fits, (reg.matched_share, through, visible)
 
 
@@ -165,7 +175,7 @@ def test_a_person_who_walked_off_is_not_a_wall_of_the_submap(office):
     assert lengths(kept).sum() == pytest.approx(lengths(clean.matching.segment_map().segments).sum(), rel=0.05)
 
 
-def test_point_to_line_registers_walls_bent_to_a_30_cm_radius_without_bias():
+def test_point_to_line_registers_walls_bent_to_a_30_cm_radius_without_bias(monkeypatch):
     # Two arcs of 0.3 m radius about different centres (cheap: well under a second). A cell's mean
     # lies 0.4 mm inside such a wall, and a scan point as far inside its cell's tangent: the two
     # cancel, so the tangent line needs no curve (Armesto et al.'s second order; record 012).
@@ -175,12 +185,13 @@ def test_point_to_line_registers_walls_bent_to_a_30_cm_radius_without_bias():
         return np.hstack([pts[:-1], pts[1:]])
 
     world = np.vstack([arc(0.0, 3.0, -0.2 * math.pi, -0.8 * math.pi), arc(3.0, 0.0, 0.8 * math.pi, 1.2 * math.pi)])
-    reference = ReferenceMap(PARAMS.voxel_size)
+    reference = ReferenceMap(VOXEL_SIZE)
     reference.insert(sample_segments(world, 0.01))
     truth = Transform2D(0.05, -0.04, 0.03)
-    scan = sample_segments(truth.inverse().apply(world), PARAMS.sample_spacing)
+    scan = sample_segments(truth.inverse().apply(world), SAMPLE_SPACING)
     start = truth.compose(Transform2D(0.1, -0.1, 0.05))
-    tight = replace(PARAMS, convergence_translation=1e-7, convergence_rotation=1e-7, max_iterations=60)
-    reg = register(scan, reference, start, start, np.zeros((3, 3)), tight)
+    for name, value in (("CONVERGENCE_TRANSLATION", 1e-7), ("CONVERGENCE_ROTATION", 1e-7), ("MAX_ITERATIONS", 60)):
+        set_constant(monkeypatch, tracking, name, value)
+    reg = register(scan, reference, start, start, np.zeros((3, 3)), PARAMS)
     dt, dr = reg.pose.distance(truth)
     assert reg.converged and dt < 1e-4 and dr < math.radians(0.005), (dt, math.degrees(dr))

@@ -103,7 +103,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help=f"wait up to S seconds for a subscriber before the first scan (default {WAIT_FOR_LISTENER:g})",
     )
     add_zenoh_arguments(p)
-    add_config_arguments(p, ["extraction", "integration", "tracking"])
+    add_config_arguments(p, ["extraction", "integration", "tracking"], "live")
     p.set_defaults(func=run)
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetmap.commands import add_no_return_reading
-from fleetmap.config_args import add_config_arguments, config_from_args, offline
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.startposes import read_start_poses
@@ -55,14 +55,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     made.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
     made.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_arguments(p)
-    add_config_arguments(p, ["extraction", "integration", "tracking", "merge"])
+    add_config_arguments(p, ["extraction", "integration", "tracking", "merge"], "offline")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from fleetmap.mapping import map_logs, read_inputs
 
-    config = offline(config_from_args(args), args)
+    config = config_from_args(args)
     start_poses = read_start_poses(args.start_poses) if args.start_poses else None
     out = Path(args.out)
     if out.exists() and not out.is_dir():

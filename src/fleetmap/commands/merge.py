@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from fleetmap.config_args import add_config_arguments, config_from_args, offline
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.sequence import pivot, sequential, tree
 from fleetmap.shared.core.geometry import Array, Transform2D
@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--out", metavar="GLOBAL.json", help="write the merged map (largest component) with poses")
     p.add_argument("--plot", metavar="GLOBAL.png", help="draw the merged map, each input map in its colour")
-    add_config_arguments(p, ["integration", "merge"])
+    add_config_arguments(p, ["integration", "merge"], "offline")
     p.set_defaults(func=run)
 
 
@@ -47,7 +47,7 @@ def _pose(t: Transform2D | None) -> dict[str, float] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = offline(config_from_args(args), args)
+    config = config_from_args(args)
     for path, flag in ((args.out, "--out"), (args.plot, "--plot")):
         if path:
             output_file(path, flag)

@@ -10,7 +10,7 @@ from pathlib import Path
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.merger.engine import Merger
-from fleetmap.merger.service import STEP_SECONDS, MergerService
+from fleetmap.merger.service import MergerService
 from fleetmap.ros2_outputs import NODE_NAME, Ros2Outputs
 from fleetmap.shared.config import MergeParams
 from fleetmap.shared.errors import BadInput
@@ -40,15 +40,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="robot,x,y,theta lines: robots' laser poses when they start, in one frame (a header line allowed): each "
         "is placed from its first submap, and corrected where its map meets the others'",
     )
-    p.add_argument(
-        "--step-seconds",
-        type=float,
-        default=STEP_SECONDS,
-        metavar="S",
-        help="time budget of the integrations of a step that takes new local maps in (at least one): the other "
-        "pairs of submaps wait for the next step; a step with none integrates as long as a solve takes, until a "
-        f"local map arrives (0: every pending integration in one step; default {STEP_SECONDS:g})",
-    )
     ros2 = p.add_argument_group("ROS 2 outputs (rmw_zenoh)")
     ros2.add_argument(
         "--ros2",
@@ -60,7 +51,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ros2.add_argument("--domain", type=int, default=0, metavar="N", help="ROS_DOMAIN_ID (default 0)")
     add_zenoh_arguments(p)
     add_executor_arguments(p)
-    add_config_arguments(p, ["integration", "merge", "tracking"])
+    add_config_arguments(p, ["integration", "merge", "tracking"], "live")
     p.set_defaults(func=run)
 
 
@@ -87,9 +78,9 @@ def run(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop, ZenohBus.open(options) as bus:
             if is_open(zenoh_config(options)):
                 log.warning("%s", OPEN_FLEET)
-            service = MergerService(bus, merger, state_file=args.state, step_seconds=args.step_seconds)
+            service = MergerService(bus, merger, state_file=args.state)
             node = Ros2Node(bus.session, NODE_NAME, domain=args.domain) if args.ros2 else None
-            ros2 = Ros2Outputs(bus, options.keys, node, merge=config.merge) if node is not None else None
+            ros2 = Ros2Outputs(bus, options.keys, node) if node is not None else None
             if ros2 is not None:
                 ros2.start()  # before the service, which asks every robot for its maps at start
             service.start()

@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--view-port", type=int, default=8765, metavar="PORT", help="with --view: its port (default 8765)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print report.json instead of the summary")
-    add_config_arguments(p, ["extraction", "integration", "merge"])
+    add_config_arguments(p, ["extraction", "integration", "merge"], "live")
     p.set_defaults(func=run)
 
 
