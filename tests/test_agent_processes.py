@@ -42,6 +42,7 @@ def test_agents_in_worker_processes_map_as_agents_in_line(
         )
 
 
+@pytest.mark.slow  # starts worker processes (about 1 s)
 def test_a_worker_that_fails_raises_its_error_in_the_caller(pieces: list[Piece]) -> None:
     broken = [replace(pieces[0], scans=[replace(s, scan=None) for s in pieces[0].scans]), pieces[1]]
     with AgentProcesses(broken, _order(broken), FleetmapConfig(), 2) as agents, pytest.raises(AttributeError):
@@ -49,6 +50,7 @@ def test_a_worker_that_fails_raises_its_error_in_the_caller(pieces: list[Piece])
             pass
 
 
+@pytest.mark.slow  # starts and kills worker processes (about 2 s)
 def test_a_worker_that_dies_is_a_clear_error_not_a_wait(pieces: list[Piece]) -> None:
     with AgentProcesses(pieces, _order(pieces), FleetmapConfig(), 1) as agents:
         process = agents._workers[0][0]

@@ -49,6 +49,7 @@ def true_clock(r2_loop: list[SimulatedScan]) -> dict[bool, dict[int, tuple[int, 
         ("skew", 0.15),
     ],
 )
+@pytest.mark.slow  # tracks a robot's loop twelve times over (about 8 s in all)
 @pytest.mark.parametrize("odometry", [True, False], ids=["odometry", "no-odometry"])
 def test_a_robot_on_a_broken_clock_is_tracked_as_on_the_true_one(r2_loop, true_clock, clock, within, odometry) -> None:
     broken = list(break_clock(r2_loop, clock, seed=7))

@@ -110,6 +110,7 @@ def test_a_log_with_a_scan_a_metre_does_not_slide_along_its_corridors(datasets: 
     assert max(errors.values()) < 0.5, errors
 
 
+@pytest.mark.slow  # tracks a stretch of a real log (about 3 s)
 def test_a_robot_reversing_down_a_corridor_on_odometry_without_its_sign_is_placed_where_it_went(
     datasets: Path,
 ) -> None:
@@ -125,6 +126,7 @@ def test_a_robot_reversing_down_a_corridor_on_odometry_without_its_sign_is_place
     assert math.hypot(error.x, error.y) < 0.2, f"{math.hypot(error.x, error.y):.2f} m off"
 
 
+@pytest.mark.slow  # tracks 70 scans of a real log (about 2 s)
 def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datasets: Path) -> None:
     # freiburg-campus-corrected, scans 880-950 (about 3 s): outdoors, a scan a metre, most beams
     # returning nothing and consecutive scans sharing 0-0.3 m of wall. The walls say nothing

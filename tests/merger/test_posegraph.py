@@ -138,7 +138,7 @@ def test_one_wrong_integration_moves_no_map(fleet: Fleet) -> None:
         assert dt < 0.05, f"{key} moved {dt:.3f} m"
 
 
-@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+@pytest.mark.slow  # shares the fleet of three agents (about 20 s for the fixture); merges 8 submaps twice
 def test_submaps_taken_typed_in_process_merge_as_the_same_submaps_off_the_bus(fleet: Fleet) -> None:
     first = fleet.finals[:8]
     off_the_bus, typed = _merged(first), _merged(first, typed=True)
@@ -153,6 +153,7 @@ def test_submaps_taken_typed_in_process_merge_as_the_same_submaps_off_the_bus(fl
     assert typed.stats.ignored == ignored + 1
 
 
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
 def test_the_same_submaps_in_another_order_give_the_same_map(fleet: Fleet) -> None:
     forward = _merged(fleet.finals)
     backward = _merged(fleet.finals[::-1])
