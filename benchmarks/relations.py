@@ -6,7 +6,9 @@ scored with the log's relations (``../shared/data/relations``): a relation count
 scans got a pose. Within one component, its error is the relation's against the two poses; across
 components, the relation is *not joined*. Reported per log and K: relations with both scans placed;
 joined and within (0.10 m, 2 deg), mean errors; for K > 1 the same over *cross-robot* relations (the
-two scans in different robots' pieces), which only the merger can get right; relations off by more
+two scans in different robots' pieces), which only the merger can get right, with the whole log's
+(K = 1) mean error on those same relations beside theirs (the relations a cut crosses are mostly a
+loop's two passes, harder than the log's average); relations off by more
 than 1 m or 10 degrees (*wrong*); the time the command took against the log's duration; and the
 integrations it did.
 
@@ -71,6 +73,8 @@ class Score:
     wrong: int
     mean_t: float
     mean_r_deg: float
+    errors: dict[int, float]
+    """Each joined relation's translational error (m), by its place in the log's relations."""
 
 
 @dataclass(frozen=True)
@@ -115,8 +119,8 @@ def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]
     """All and cross-robot relations scored: each its two scans as placed (None: not placed) and
     the second's true pose in the first's frame."""
     counts = {k: [0, 0, 0, 0, 0] for k in ("all", "cross")}  # relations, placed, joined, within, wrong
-    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in counts}
-    for a, b, truth in relations:
+    errors: dict[str, dict[int, tuple[float, float]]] = {k: {} for k in counts}
+    for i, (a, b, truth) in enumerate(relations):
         kinds = ["all"] + (["cross"] if a is not None and b is not None and a[0] != b[0] else [])
         for k in kinds:
             counts[k][0] += 1
@@ -132,12 +136,13 @@ def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]
             counts[k][2] += 1
             counts[k][3] += et < WITHIN_M and er < WITHIN_DEG
             counts[k][4] += et > WRONG_M or er > WRONG_DEG
-            errors[k].append((et, er))
+            errors[k][i] = (et, er)
     out = []
     for k in ("all", "cross"):
         e = errors[k]
-        mean_t = statistics.fmean(x for x, _ in e) if e else math.nan
-        out.append(Score(*counts[k], mean_t, statistics.fmean(r for _, r in e) if e else math.nan))
+        mean_t = statistics.fmean(x for x, _ in e.values()) if e else math.nan
+        mean_r = statistics.fmean(r for _, r in e.values()) if e else math.nan
+        out.append(Score(*counts[k], mean_t, mean_r, {i: x for i, (x, _) in e.items()}))
     return out[0], out[1]
 
 
@@ -223,13 +228,28 @@ def _pct(n: int, d: int) -> str:
     return f"{100 * n / d:.1f} %" if d else "-"
 
 
-def table(runs: list[Run]) -> str:
+def same_relations(cut: Score, whole: Run | None) -> str:
+    """The cut's cross-robot relations' mean error against the whole log's (K = 1) on the same
+    relations: the relations that cross a cut are not a random sample (mostly a loop's two passes,
+    far apart in time), so the whole log's mean over all its relations says little of them."""
+    ids = [i for i in cut.errors if whole is not None and i in whole.all.errors]
+    if whole is None or not ids:
+        return "-"
+    w = statistics.fmean(whole.all.errors[i] for i in ids)
+    c = statistics.fmean(cut.errors[i] for i in ids)
+    return f"{w:.3f} m ({c / w:.2f}x)" if w > 0 else f"{w:.3f} m"
+
+
+def table(runs: list[Run], everything: list[Run] | None = None) -> str:
+    """The runs' rows; the whole log's (K = 1) run is looked for in ``everything`` (default: ``runs``)."""
     head = (
         "| log | K | relations placed | joined | within 0.10 m, 2 deg | mean error | wrong "
-        "| cross-robot: placed | joined | within | mean error | wrong | time (share of log) | integrations "
+        "| cross-robot: placed | joined | within | mean error | whole log on them (ratio) | wrong "
+        "| time (share of log) | integrations "
         "| components | relations' frame on the laser | within, laser frame (all / cross) |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
+    wholes = {r.log: r for r in (everything or runs) if r.split == 1}
     rows = []
     for r in runs:
         a, c = r.all, r.cross
@@ -238,9 +258,9 @@ def table(runs: list[Run]) -> str:
             f"| {_pct(a.within, a.joined)} | {a.mean_t:.3f} m, {a.mean_r_deg:.2f} deg | {a.wrong} "
             + (
                 f"| {c.placed} | {_pct(c.joined, c.placed)} | {_pct(c.within, c.joined)} "
-                f"| {c.mean_t:.3f} m, {c.mean_r_deg:.2f} deg | {c.wrong} "
+                f"| {c.mean_t:.3f} m, {c.mean_r_deg:.2f} deg | {same_relations(c, wholes.get(r.log))} | {c.wrong} "
                 if r.split > 1
-                else "| - | - | - | - | - "
+                else "| - | - | - | - | - | - "
             )
             + f"| {r.seconds:.0f} s ({r.seconds / r.duration:.2f}) | {r.integrations} | {r.components} "
             + f"| {r.frame.x:+.3f}, {r.frame.y:+.3f} m "
@@ -291,7 +311,7 @@ def main() -> int:
                 print(refused[-1], flush=True)
                 continue
             runs.append(r)
-            print(table([r]).splitlines()[-1], flush=True)
+            print(table([r], runs).splitlines()[-1], flush=True)
     body = (
         "`fleetmap map` on the logs cut into K robots (`--split K`), scored with all of each log's "
         "relations; cross-robot: relations whose scans are in different robots' pieces. Errors in the "
