@@ -223,6 +223,21 @@ class SdkRobot:
             intensities=np.zeros(0, dtype=np.float32),
         )
 
+    def wait_until_heard(self) -> None:
+        """Return once the robot's own session knows a subscriber of its scans and its odometry:
+        a client's publisher sends nothing until the router has told it of one, which can come
+        after the subscriber's token showed on another session (:func:`wait_for_subscription`)."""
+        for publisher in (self.scan, self.odom):
+            heard = threading.Event()
+            listener = publisher.pub.declare_matching_listener(
+                lambda status, heard=heard: heard.set() if status.matching else None
+            )
+            try:
+                if not publisher.pub.matching_status.matching:
+                    assert heard.wait(WAIT), f"the robot's {publisher.topic} publisher heard of no subscriber"
+            finally:
+                listener.undeclare()
+
     def play(self, scans: list[SourceScan]) -> None:
         """Publish ``scans`` at SPEED times the log's pace, as a robot would (a burst overflows the
         SDK's publishers, which drop when congested)."""
@@ -275,9 +290,10 @@ def test_an_agent_maps_a_real_log_published_by_a_ros2_robot_on_rmw_zenoh(
             bus.subscribe(keys.localmap("r1"), maps)
             agent = procs.start(
                 "agent", "agent", "--robot", "r1", "--ros2", "--namespace", "r1", "--domain", "11",
-                "--wait-for-listener", "0", *fleet_flags(router),
+                "--wait-for-listener", str(WAIT), *fleet_flags(router),
             )  # fmt: skip
             wait_for_subscription(bus, 11, "/r1/tf_static")
+            robot.wait_until_heard()
             robot.publish_mounting()
             robot.play(logged)
             assert scans.wait_for(SCANS, 120), f"{len(scans.items)} of {SCANS} scans reached the bus"
@@ -316,11 +332,13 @@ def test_bad_samples_are_dropped_counted_and_named_while_the_agent_goes_on(
         with client(router) as bus:
             scans = Inbox()
             bus.subscribe(keys.scan("r2"), scans)
+            bus.subscribe(keys.localmap("r2"), Inbox())  # the agent's first scan waits for it to be heard
             agent = procs.start(
                 "agent", "agent", "--robot", "r2", "--ros2", "--namespace", "/r2", "--domain", "12",
-                "--wait-for-listener", "0", *fleet_flags(router),
+                "--wait-for-listener", str(WAIT), *fleet_flags(router),
             )  # fmt: skip
             wait_for_subscription(bus, 12, "/r2/scan")
+            robot.wait_until_heard()
             robot.play(logged[:4])
             assert scans.wait_for(4, WAIT)
             attachment = wire.Attachment(1, time.time_ns(), bytes(16)).pack()
