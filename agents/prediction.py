@@ -72,7 +72,9 @@ class Predictor:
         """The robot's stops so far, the first aside, and how many of them turned the sign (expected
         counts): the chance that a stop turns it (:meth:`judge_odometry_sign`)."""
         self._stopped = False
+        """Whether the last judged step was a stop (a stop of several steps counts once)."""
         self._belief_at_stop: float | None = None
+        """:attr:`reversed_odometry` as the robot reached its last stop."""
         self.bad_odometry = 0
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
 
@@ -211,10 +213,11 @@ class Predictor:
         drives forward (fr079's, and the corrected log made from it, which carries no speed to
         tell: 103 of its 4,790 steps); along a corridor the walls cannot say which way the robot
         went, and the odometry's prior decides. A robot changes its direction of travel only
-        through standing still: after a step the odometry cannot tell from standing still (within
-        ``ODOMETRY_TRANSLATION_SIGMA``) either state is as likely, and the next steps' evidence
-        decides; while the robot moves, the belief holds unless a step only the other state explains
-        turns it by a likelihood ratio over 1e9. A step neither state explains (the chi-square
+        through standing still: at a step the odometry cannot tell from standing still (within
+        ``ODOMETRY_TRANSLATION_SIGMA``) the sign may turn, with the chance the robot's own stops
+        give (:meth:`_stop`), and the next steps' evidence decides; while the robot moves, the
+        belief holds unless a step only the other state explains turns it by a likelihood ratio
+        over 1e9. A step neither state explains (the chi-square
         validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
         state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
         step = self.odometry_step

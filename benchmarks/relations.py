@@ -232,7 +232,7 @@ def same_relations(cut: Score, whole: Run | None) -> str:
     """The cut's cross-robot relations' mean error against the whole log's (K = 1) on the same
     relations: the relations that cross a cut are not a random sample (mostly a loop's two passes,
     far apart in time), so the whole log's mean over all its relations says little of them."""
-    ids = [i for i in cut.errors if whole is not None and i in whole.all.errors]
+    ids = [i for i in cut.errors if i in whole.all.errors] if whole is not None else []
     if whole is None or not ids:
         return "-"
     w = statistics.fmean(whole.all.errors[i] for i in ids)
