@@ -27,8 +27,9 @@ stretch of wall (:class:`~fleetmap.shared.core.walls.WallMap`).
 
 A step costs what it adds (issue 49): the forest, its verdicts and the refined poses are kept
 from solve to solve, and a step that only adds submaps, their links and integrations that close
-loops or that the groups do not bear out carries them on (:meth:`PoseGraph._kept_solve`); the rest
-solves the whole graph again (:meth:`PoseGraph._whole_solve`).
+loops or that the groups do not bear out, or does such an integration again as its submaps grow,
+carries them on (:meth:`PoseGraph._kept_solve`); the rest solves the whole graph again
+(:meth:`PoseGraph._whole_solve`).
 
 The parts, each a layer of the class: the robots' links and their drift,
 :mod:`fleetmap.merger.chains`; what a pair of submaps says of a join, :mod:`fleetmap.merger.pairs`;
@@ -143,8 +144,10 @@ class PoseGraph(RefinedGraph):
         least-squares answer), an integration within one tree is checked against the tree's path
         (a loop that closes: the component is refined again from its last poses), and one between
         two trees that the groups do not bear out is refused, as the whole solve would. Everything
-        else that could change the answer calls for the whole solve: a submap or an edge gone or
-        changed, a join taken, a cycle that does not close, a link between two grown groups, a
+        else that could change the answer calls for the whole solve: a submap or an edge gone, a
+        link, a tree edge, an ambiguous integration or a cycle's accuser changed (an integration
+        that closed a loop or was refused as a join between groups still apart, done again, is
+        taken again as a new edge), a join taken, a cycle that does not close, a link between two grown groups, a
         join or a culprit that a grown group may now decide otherwise, an integration the refined
         poses now disagree with or agree with again. A step that adds nothing but new versions of
         submaps changes no pose."""
@@ -163,14 +166,26 @@ class PoseGraph(RefinedGraph):
                 continue
             taken[key] = e
         new: list[Edge] = []
+        redone: set[tuple[str, str]] = set()
+        fixed: set[tuple[str, str]] | None = None
         for key, e in taken.items():
             held = kept.edges.get(key)
             if held is None:
                 new.append(e)
             elif held is not e and held != e:
-                return None
+                fixed = _deciding(kept) if fixed is None else fixed
+                if e.link or not e.valid or key in fixed:
+                    return None  # a link, an ambiguous integration, a tree edge or a cycle's accuser changed
+                redone.add(key)
         if len(taken) - len(new) != len(kept.edges) or aside != len(kept.aside):
             return None  # an edge left
+        if redone:
+            # an integration done again as its submaps grew (a loop that closed, a join refused, one
+            # that said nothing): taken again as a new edge, as Kruskal's would take it, without its
+            # last version (the join refused again, the cycle closing, or the whole solve decides)
+            for name in ("loops", "conflicts", "apart", "rejected"):
+                setattr(kept, name, [e for e in getattr(kept, name) if e.key() not in redone])
+            new += [taken[key] for key in sorted(redone)]
         grown = {k for k, n in self._nodes.items() if kept.versions.get(k) != n.version}
         if not new and not grown:
             return self._kept_result(kept)
@@ -464,6 +479,18 @@ class PoseGraph(RefinedGraph):
             held = (maps, walls.segments)
         self._walls_now[key] = held
         return held[1]
+
+
+def _deciding(kept: KeptForest) -> set[tuple[str, str]]:
+    """The integrations whose new version only the whole solve can take: the forest's tree edges,
+    the cycles that did not close within a tree (the culprit rule counts them), and joins refused
+    between two groups that have since become one. The others (loops that closed, joins refused
+    between groups still apart, integrations that said nothing) the kept forest takes again as new
+    edges (:meth:`PoseGraph._kept_solve`)."""
+    root = kept.root
+    apart = {e.key() for e in kept.apart if root[e.a] != root[e.b]}
+    refused = {e.key() for e in (*kept.conflicts, *kept.rejected, *kept.apart)} - apart
+    return {e.key() for e in kept.tree} | refused
 
 
 def _edges_by_component(components: list[Component], edges: list[Edge]) -> list[list[Edge]]:

@@ -440,6 +440,25 @@ def test_a_graph_grown_submap_by_submap_carries_its_forest_on_and_ends_where_a_w
     _solves_as_a_whole(source, grown.solve())
 
 
+@pytest.mark.slow  # shares the fleet of the tests above (about 20 s if run alone)
+def test_a_loop_integrated_again_refines_its_component_and_ends_where_a_whole_solve_does(fleet: Fleet) -> None:
+    # issue 49: a submap that grew is integrated again with the same partner. Where that pair was a
+    # loop that closed (not a tree edge), the step refines its component from the kept forest
+    # rather than solving the whole graph, and the poses are the whole solve's within 1 mm.
+    graph = _merged(fleet.finals).graph
+    first = graph.solve()
+    tree = {e.key() for e in first.tree}
+    loops = [e for e in first.loops if not e.link and e.key() not in tree and e.valid]
+    assert loops, "the fleet's graph has loops that close"
+    for n, e in enumerate(loops[:3]):
+        kept = graph.kept_solves
+        again = replace(e, transform=e.transform.compose(Transform2D(0.01, -0.01, 0.002)), value=e.value + 1.0 + n)
+        graph.add_edge(again)
+        solved = graph.solve()
+        assert graph.kept_solves == kept + 1, f"the loop {e.a}-{e.b} integrated again solved the whole graph"
+        _solves_as_a_whole(graph, solved)
+
+
 def test_a_wall_two_submaps_see_lies_where_the_firmly_placed_one_saw_it_when_fused_weighted() -> None:
     # Ballesta et al.'s fusion (docs/decisions/012): a room seen by the anchor's submap and by the
     # next one, whose link (loose: 5 cm, half a degree) puts it 3 cm off across the room. The paper's
