@@ -165,27 +165,9 @@ class PoseGraph(RefinedGraph):
                 aside += 1
                 continue
             taken[key] = e
-        new: list[Edge] = []
-        redone: set[tuple[str, str]] = set()
-        fixed: set[tuple[str, str]] | None = None
-        for key, e in taken.items():
-            held = kept.edges.get(key)
-            if held is None:
-                new.append(e)
-            elif held is not e and held != e:
-                fixed = _deciding(kept) if fixed is None else fixed
-                if e.link or not e.valid or key in fixed:
-                    return None  # a link, an ambiguous integration, a tree edge or a cycle's accuser changed
-                redone.add(key)
-        if len(taken) - len(new) != len(kept.edges) or aside != len(kept.aside):
-            return None  # an edge left
-        if redone:
-            # an integration done again as its submaps grew (a loop that closed, a join refused, one
-            # that said nothing): taken again as a new edge, as Kruskal's would take it, without its
-            # last version (the join refused again, the cycle closing, or the whole solve decides)
-            for name in ("loops", "conflicts", "apart", "rejected"):
-                setattr(kept, name, [e for e in getattr(kept, name) if e.key() not in redone])
-            new += [taken[key] for key in sorted(redone)]
+        new = _new_edges(kept, taken)
+        if new is None or aside != len(kept.aside):
+            return None  # an edge left, or one changed that only the whole solve can take
         grown = {k for k, n in self._nodes.items() if kept.versions.get(k) != n.version}
         if not new and not grown:
             return self._kept_result(kept)
@@ -479,6 +461,33 @@ class PoseGraph(RefinedGraph):
             held = (maps, walls.segments)
         self._walls_now[key] = held
         return held[1]
+
+
+def _new_edges(kept: KeptForest, taken: dict[tuple[str, str], Edge]) -> list[Edge] | None:
+    """The edges ``taken`` (the step's links and integrations, by key) that the kept forest must
+    take as new: those it has not seen, and those done again as their submaps grew where their last
+    version closed a loop, was a join refused between groups still apart, or said nothing (removed
+    from the forest's lists: the join is refused again, the cycle closes, or the whole solve
+    decides). None where an edge left, or a link, an ambiguous integration or one the forest
+    decided by (:func:`_deciding`) changed: only the whole solve can take those."""
+    new: list[Edge] = []
+    redone: set[tuple[str, str]] = set()
+    fixed: set[tuple[str, str]] | None = None
+    for key, e in taken.items():
+        held = kept.edges.get(key)
+        if held is None:
+            new.append(e)
+        elif held is not e and held != e:
+            fixed = _deciding(kept) if fixed is None else fixed
+            if e.link or not e.valid or key in fixed:
+                return None
+            redone.add(key)
+    if len(taken) - len(new) != len(kept.edges):
+        return None
+    if redone:
+        for name in ("loops", "conflicts", "apart", "rejected"):
+            setattr(kept, name, [e for e in getattr(kept, name) if e.key() not in redone])
+    return new + [taken[key] for key in sorted(redone)]
 
 
 def _deciding(kept: KeptForest) -> set[tuple[str, str]]:
