@@ -147,10 +147,10 @@ class PoseGraph(RefinedGraph):
         else that could change the answer calls for the whole solve: a submap or an edge gone, a
         link, a tree edge, an ambiguous integration or a cycle's accuser changed (an integration
         that closed a loop or was refused as a join between groups still apart, done again, is
-        taken again as a new edge), a join taken, a cycle that does not close, a link between two grown groups, a
-        join or a culprit that a grown group may now decide otherwise, an integration the refined
-        poses now disagree with or agree with again. A step that adds nothing but new versions of
-        submaps changes no pose."""
+        taken again as a new edge: :func:`_new_edges`), a join taken, a cycle that does not close,
+        a link between two grown groups, a join or a culprit that a grown group may now decide
+        otherwise, an integration the refined poses now disagree with or agree with again. A step
+        that adds nothing but new versions of submaps changes no pose."""
         kept = self._kept
         assert kept is not None
         if any(k not in self._nodes for k in kept.versions):

@@ -459,6 +459,20 @@ def test_a_loop_integrated_again_refines_its_component_and_ends_where_a_whole_so
         _solves_as_a_whole(graph, solved)
 
 
+def test_a_join_refused_between_two_robots_and_integrated_again_is_refused_again_without_a_whole_solve() -> None:
+    # issue 49: the corridor with no ends in view, its one join refused; r2/0/1 grew and the pair is
+    # integrated again, a centimetre on. The kept forest refuses it again (the two robots stay
+    # apart), as the whole solve does, without solving the whole graph. (Milliseconds.)
+    graph = _corridor_fleet(jambs=False)
+    assert len(graph.solve().components) == 2
+    kept = graph.kept_solves
+    graph.add_edge(Edge("r1/0/1", "r2/0/1", Transform2D(1.31, 0.0, 0.0), 31.0, True))
+    again = graph.solve()
+    assert graph.kept_solves == kept + 1, "the refused join integrated again solved the whole graph"
+    assert len(again.components) == 2, "the join refused once was taken when integrated again"
+    _solves_as_a_whole(graph, again)
+
+
 def test_a_wall_two_submaps_see_lies_where_the_firmly_placed_one_saw_it_when_fused_weighted() -> None:
     # Ballesta et al.'s fusion (docs/decisions/012): a room seen by the anchor's submap and by the
     # next one, whose link (loose: 5 cm, half a degree) puts it 3 cm off across the room. The paper's
