@@ -276,6 +276,24 @@ def _small_disk(size: int) -> Callable[[], None]:
     return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
 
 
+def _readable_messages(path: Path) -> int:
+    """Messages in the complete chunks of a recording still being written (0 before its first)."""
+    if not path.exists():
+        return 0
+    with RecordingReader(path) as reader:
+        return sum(1 for _ in reader.messages())
+
+
+def _eventually(condition: Callable[[], bool], timeout: float) -> bool:
+    """Whether ``condition`` holds within ``timeout`` seconds (checked every 50 ms)."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 def test_a_full_disk_ends_the_recorder_loudly_and_a_restart_records_into_a_new_file(tmp_path: Path) -> None:
     """A recorder that cannot write exits 1 saying why (a supervisor starts it again: a recorder that
     stayed up recording nothing was never restarted); started again, it writes a new file beside the
@@ -303,7 +321,11 @@ def test_a_full_disk_ends_the_recorder_loudly_and_a_restart_records_into_a_new_f
         ]
         for robot in ("r1", "r2", "r3"):
             bus.declare_liveliness(keys.alive(robot))
-        for version in range(20):
+        # one map first, and its chunk on disk (else all may fall in one chunk too large to write)
+        bus.publish(keys.localmap(shapes[0].robot), shapes[0].to_msgpack())
+        bus.flush()
+        assert _eventually(lambda: _readable_messages(tmp_path / "s.mcap") > 0, WAIT)
+        for version in range(1, 20):
             for m in shapes:
                 v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose, m.previous_epoch_link)
                 bus.publish(keys.localmap(v.robot), v.to_msgpack())
