@@ -28,7 +28,7 @@ def test_robots_that_meet_at_a_crossing_that_looks_the_same_turned_round_are_not
     log = datasets / "corrected" / "aces-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(log) if s.odometry is not None]
     pieces = read_inputs([str(log)], 8)
-    result = map_logs(pieces, tmp_path / "out", preset("offline"), executor=InlineExecutor(), tracking_processes=0)
+    result = map_logs(pieces, tmp_path / "out", preset("offline"), executor=InlineExecutor())
     first: dict[str, tuple[int, int, Transform2D]] = {}  # each robot's first placed scan (by its index in the log)
     for (robot, index), (component, pose) in sorted(result.by_index.items()):
         first.setdefault(robot, (index, component, pose))
