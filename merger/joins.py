@@ -56,6 +56,7 @@ class _Judged:
     """What each pair registered said (:meth:`JoinJudge._pair_verdict`), its translation information
     turned into the join's own submap's frame on side a: the sums the verdict rests on."""
     required: int
+    """The pairs that had to bear the join out (:meth:`JoinJudge._support_required`)."""
     looks: dict[tuple[str, str], tuple[float, float]]
     """Each pair the join fixes, as looked at where it puts them (:meth:`PairJudge._look`): the
     groups as wholes (:func:`_wholes_refute`)."""
@@ -77,7 +78,6 @@ def _wholes_refute(
     hit = sum(h for h, _ in looks.values())
     free = sum(f for pair, (_, f) in looks.items() if not (pair in tally and tally[pair][0] > 0))
     return hit > 0 and free > max_map_violation(hit, params) * hit
-    """The pairs that had to bear the join out (:meth:`JoinJudge._support_required`)."""
 
 
 def _judged_key(e: Edge) -> tuple[object, ...]:
@@ -254,12 +254,12 @@ class JoinJudge(PairJudge):
             self._verdicts[key] = held
             return held
         pairs = self._join_pairs(e, group_a, group_b, rel, adjacency)
-        holds, tally, required, seen = self._weigh_join(e, pairs, group_a, group_b, rel)
+        holds, tally, required, looked = self._weigh_join(e, pairs, group_a, group_b, rel)
         self._verdicts[key] = holds
         if len(self._judged) > RIVALS_KEPT:
             self._judged.clear()
         self._judged[_judged_key(e)] = _Judged(
-            holds, self._seen(e.a, group_a, rel), self._seen(e.b, group_b, rel), tally, required, seen
+            holds, self._seen(e.a, group_a, rel), self._seen(e.b, group_b, rel), tally, required, looked
         )
         return holds
 
@@ -377,15 +377,15 @@ class JoinJudge(PairJudge):
             if i not in done:
                 register(i)
         limit = max_map_violation(value, p) * value
-        seen = {(a, b): looks[i] for i, (a, b, _, _, _) in enumerate(pairs)}
-        holds = supports >= required and against <= limit and _pinned(fixed) and not _wholes_refute(seen, tally, p)
+        looked = {(a, b): looks[i] for i, (a, b, _, _, _) in enumerate(pairs)}
+        holds = supports >= required and against <= limit and _pinned(fixed) and not _wholes_refute(looked, tally, p)
         log.debug(
             "join %s-%s (%.1f m): %d of %d pairs registered, %d bear it out (%.1f m), %.1f m of wall against"
             " (at most %.1f): %s",
             *(e.a, e.b, e.value, len(done), len(pairs), supports, value, against, limit),
             "kept" if holds else "rejected",
         )
-        return holds, tally, required, seen
+        return holds, tally, required, looked
 
     def holds_with(
         self,
@@ -478,6 +478,8 @@ class JoinJudge(PairJudge):
 
         fresh_a, fresh_b = fresh(judged.side_a, now_a), fresh(judged.side_b, now_b)
         looks = dict(judged.looks)
+        # a join the groups as wholes refused may hold once a pair it looked at moves or grows
+        wholes = not judged.holds and _wholes_refute(looks, judged.tally, self.integration)
         if fresh_a or fresh_b:
             p = self.integration.validity
             a_root_from_b_root = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())
@@ -494,8 +496,8 @@ class JoinJudge(PairJudge):
                         hit, free = self._look(a, b, a_inverse.compose(placed_b[b]))
                         if (free >= VALID_REFUTE_VIOLATION) if judged.holds else (hit >= p.valid_min_value):
                             return None
-                        if not judged.holds and (a, b) in looks:
-                            return None  # refused by the groups as wholes, maybe: judged again
+                        if wholes and (a, b) in looks:
+                            return None
                         looks[(a, b)] = (hit, free)
             if judged.holds and _wholes_refute(looks, judged.tally, self.integration):
                 return None  # new pairs with a little wall in free space each: judged again

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -13,6 +14,17 @@ from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 WAIT = 5.0
 """The longest any test waits for something the bus should deliver (s); it normally takes ms."""
+
+
+def eventually(predicate: Callable[[], bool], timeout: float) -> bool:
+    """Whether ``predicate`` holds within ``timeout`` seconds (asked every 50 ms)."""
+    pause = threading.Event()
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        pause.wait(0.05)
+    return True
 
 
 class Inbox:

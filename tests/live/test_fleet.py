@@ -23,7 +23,7 @@ from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
-from tests.bus_helpers import Inbox
+from tests.bus_helpers import Inbox, eventually
 from tests.helpers import true_local_map
 
 pytestmark = pytest.mark.slow
@@ -284,16 +284,6 @@ def _readable_messages(path: Path) -> int:
         return sum(1 for _ in reader.messages())
 
 
-def _eventually(condition: Callable[[], bool], timeout: float) -> bool:
-    """Whether ``condition`` holds within ``timeout`` seconds (checked every 50 ms)."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
-
-
 def test_a_full_disk_ends_the_recorder_loudly_and_a_restart_records_into_a_new_file(tmp_path: Path) -> None:
     """A recorder that cannot write exits 1 saying why (a supervisor starts it again: a recorder that
     stayed up recording nothing was never restarted); started again, it writes a new file beside the
@@ -324,7 +314,7 @@ def test_a_full_disk_ends_the_recorder_loudly_and_a_restart_records_into_a_new_f
         # one map first, and its chunk on disk (else all may fall in one chunk too large to write)
         bus.publish(keys.localmap(shapes[0].robot), shapes[0].to_msgpack())
         bus.flush()
-        assert _eventually(lambda: _readable_messages(tmp_path / "s.mcap") > 0, WAIT)
+        assert eventually(lambda: _readable_messages(tmp_path / "s.mcap") > 0, WAIT)
         for version in range(1, 20):
             for m in shapes:
                 v = LocalMap(m.robot, m.epoch, version, m.stamp, m.segments, m.scans, m.pose, m.previous_epoch_link)

@@ -35,7 +35,7 @@ from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
 from tests.agents.test_sources import write_robot_bag
-from tests.bus_helpers import Inbox
+from tests.bus_helpers import Inbox, eventually
 
 pytestmark = pytest.mark.slow
 sdk = pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk (the test extra) is not installed")
@@ -127,13 +127,7 @@ def fleet_flags(endpoint: str) -> list[str]:
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float = WAIT) -> bool:
-    pause = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.05)
-    return True
+    return eventually(predicate, timeout)
 
 
 def wait_for_subscription(bus: ZenohBus, domain: int, topic: str) -> None:
