@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import json
 import logging
+from typing import Any
 
 import numpy as np
+from fleetmap.agents.bursts import BurstOdometry, Timed
 from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
 from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
@@ -42,6 +44,9 @@ from fleetmap.shared.io.keys import check_name
 from fleetmap.shared.io.messages import EpochLink, FleetEvent, LaserRanges, LocalMap, Message, Scan, SubmapLink
 
 log = logging.getLogger(__name__)
+
+Tracked = tuple[int, int, Transform2D | None]
+"""A scan's index, its epoch and its pose in the epoch's frame (None: not placed)."""
 
 __all__ = ["LOST_SCANS", "Agent", "AgentCounts"]
 
@@ -94,9 +99,22 @@ class Agent:
         """What the tracking front end made of the scans' stamps (None with the pivot front end)."""
         return self._front.tracker.clock if isinstance(self._front, TrackingFrontEnd) else None
 
+    @property
+    def bursts(self) -> BurstOdometry[Any] | None:
+        """What the tracking front end made of bursts of scans (None with the pivot front end)."""
+        return self._front.bursts if isinstance(self._front, TrackingFrontEnd) else None
+
     def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None) -> list[Message]:
-        """The messages to publish for one scan, in order (see the module docstring)."""
+        """The messages to publish for one scan, in order (see the module docstring). A scan of a
+        burst is tracked when the burst ends (:mod:`fleetmap.agents.bursts`): its messages come then."""
         return self._front.add_scan(index, stamp, scan, odometry)
+
+    @property
+    def tracked(self) -> list[Tracked]:
+        """The scans the last :meth:`add_scan` (or :meth:`finish`) tracked, in order: each one's
+        index, epoch and pose in the epoch's frame (None where it was not placed). Usually the scan
+        just added; none while a burst is held, all of it when the burst ends."""
+        return self._front.tracked
 
     def start_at(self, epoch: int) -> None:
         """Number this run's first epoch ``epoch`` (before the first scan): a robot restarted
@@ -131,6 +149,13 @@ class TrackingFrontEnd:
         self.use_odometry = odometry and config.tracking.odometry != "off"
         self.lost_scans = lost_scans
         self.tracker = Tracker(config, self.use_odometry)
+        self.bursts: BurstOdometry[tuple[int, RangeScan, Transform2D | None]] = BurstOdometry(
+            config.integration.motion.max_speed, robot
+        )
+        """Scans held while a burst may go on (:mod:`fleetmap.agents.bursts`); only with odometry,
+        which is all a burst's stamps make wrong once the clock is judged."""
+        self.tracked: list[Tracked] = []
+        """The scans the last call tracked (:attr:`Agent.tracked`)."""
         self._latest: dict[tuple[int, int], LocalMap] = {}
         """The latest message of every submap, by (epoch, submap), in publication order."""
         self._found: set[int] = set()
@@ -157,10 +182,23 @@ class TrackingFrontEnd:
         return AgentCounts(self._scans, self._placed, epochs, self._local_maps)
 
     def add_scan(self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None) -> list[Message]:
-        segments = extract_segments(scan, self.config.extraction)
         self._scans += 1
+        self.tracked = []
+        if not self.use_odometry:
+            return self._add(index, stamp, scan, None, odometry)
+        out: list[Message] = []
+        for ready in self.bursts.add(Timed((index, scan, odometry), stamp, odometry)):
+            out += self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
+        return out
+
+    def _add(
+        self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None, reading: Transform2D | None
+    ) -> list[Message]:
+        """Track one scan with the ``odometry`` where it was taken; its Scan message carries the
+        robot's own ``reading``."""
+        segments = extract_segments(scan, self.config.extraction)
         self._stamp = stamp
-        steps = self.tracker.add(index, stamp, scan, segments, odometry if self.use_odometry else None)
+        steps = self.tracker.add(index, stamp, scan, segments, odometry)
         out: list[Message] = []
         for step in steps:
             if step.new_epoch:
@@ -176,16 +214,21 @@ class TrackingFrontEnd:
         out += self._finals(stamp)
         last = steps[-1]
         ranges = LaserRanges.from_range_scan(scan)
-        kept = odometry if odometry is not None and np.isfinite(odometry.as_array()).all() else None
+        kept = reading if reading is not None and np.isfinite(reading.as_array()).all() else None
         out.append(Scan(self.robot, last.epoch, index, stamp, _wire(segments), ranges, last.submap, last.pose, kept))
         out += self._due(stamp)
+        self.tracked.append((index, self.epoch, self.tracker.epoch_pose))
         return out
 
     def relocalized(self, epoch: int) -> None:
         self._found.add(epoch)
 
     def finish(self) -> list[Message]:
-        out = self._finals(self._stamp)
+        self.tracked = []
+        out: list[Message] = []
+        for ready in self.bursts.flush():
+            out += self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
+        out += self._finals(self._stamp)
         for submap in self.tracker.submaps():
             submap.finished = True
             out += self._message(submap, self._stamp, final=True)

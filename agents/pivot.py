@@ -171,6 +171,8 @@ class PivotFrontEnd:
         self._placed = 0
         self._local_maps = 0
         self._last_stamp = 0.0
+        self.tracked: list[tuple[int, int, Transform2D | None]] = []
+        """The scan the last :meth:`add_scan` placed: its index, epoch and epoch-frame pose."""
 
     def start_at(self, epoch: int) -> None:
         self._epoch = _Epoch(epoch, self.config, None)
@@ -228,6 +230,7 @@ class PivotFrontEnd:
         due = current.version < 0 or current.placed - current.published_placed >= every
         if current.started and due:
             out.append(self._local_map(stamp))
+        self.tracked = [(index, self.epoch, self.epoch_pose)]
         return out
 
     def relocalized(self, epoch: int) -> None:
@@ -238,6 +241,7 @@ class PivotFrontEnd:
 
     def finish(self) -> list[Message]:
         """The current epoch's final LocalMap, unless its latest version already says it all."""
+        self.tracked = []
         if self._epoch.started and self._epoch.changed:
             return [self._local_map(self._last_stamp)]
         return []

@@ -148,6 +148,13 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
     times = []
     scans = 0
     given: list[int] = []
+
+    def keep(tracked: list[tuple[int, int, Transform2D | None]]) -> None:
+        # a burst's scans are tracked when it ends (fleetmap.agents.bursts), so by their own index
+        for index, epoch, pose in tracked:
+            if pose is not None:
+                poses[true_stamp[index]] = (epoch, pose)
+
     for s in scans_given:
         given.append(s.index)
         start = time.perf_counter()
@@ -155,11 +162,10 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
             message.to_msgpack()
         times.append(time.perf_counter() - start)
         scans += 1
-        pose = agent.epoch_pose
-        if pose is not None:
-            poses[true_stamp[s.index]] = (agent.epoch, pose)
+        keep(agent.tracked)
     for message in agent.finish():
         message.to_msgpack()
+    keep(agent.tracked)
     errors_t, errors_r, counted, hits = [], [], 0, [0, 0]
     kept = {true_stamp[i] for i in given}
     for k1, k2, truth in relations:

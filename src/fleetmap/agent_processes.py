@@ -52,11 +52,14 @@ class Finished:
 
 def clock_summary(agent: Agent) -> dict[str, Any] | None:
     """What the tracker made of a robot's stamps (``stamps_trusted`` false: it timed the scans by
-    their sequence at ``mean_period`` from scan ``distrusted_at`` on)."""
-    clock = agent.clock
-    if clock is None:
+    their sequence at ``mean_period`` from scan ``distrusted_at`` on; ``bursts`` of scans stamped
+    together, whose ``odometry_spread`` readings were placed between the bursts' own)."""
+    clock, bursts = agent.clock, agent.bursts
+    if clock is None or bursts is None:
         return None
     return {
+        "bursts": bursts.bursts,
+        "odometry_spread": bursts.spread,
         "stamps_trusted": clock.trusted,
         "distrusted_at": clock.distrusted_at,
         "mean_period": clock.period,

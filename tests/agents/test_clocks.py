@@ -20,11 +20,11 @@ from tests.agents.conftest import epoch_events, kidnap_index
 def epoch_poses(stream: list[SimulatedScan], agent: Agent) -> tuple[dict[int, tuple[int, Transform2D]], list]:
     poses: dict[int, tuple[int, Transform2D]] = {}
     messages = []
-    for s in stream:
-        messages += agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        if agent.epoch_pose is not None:
-            poses[s.index] = (agent.epoch, agent.epoch_pose)
-    return poses, messages + agent.finish()
+    for s in [*stream, None]:
+        messages += agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        # a burst's scans are tracked when it ends (fleetmap.agents.bursts)
+        poses.update({index: (epoch, pose) for index, epoch, pose in agent.tracked if pose is not None})
+    return poses, messages
 
 
 @pytest.fixture(scope="module")
