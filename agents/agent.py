@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 from fleetmap.agents.bursts import BurstOdometry, Timed
+from fleetmap.agents.clock_evidence import say_distrusted
 from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
 from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
@@ -188,8 +189,17 @@ class TrackingFrontEnd:
             return self._add(index, stamp, scan, None, odometry)
         out: list[Message] = []
         for ready in self.bursts.add(Timed((index, scan, odometry), stamp, odometry)):
-            out += self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
+            out += self._released(ready)
         return out
+
+    def _released(self, ready: Timed[tuple[int, RangeScan, Transform2D | None]]) -> list[Message]:
+        """Track a scan :attr:`bursts` gave back; the first burst of a log tells the clock that the
+        stamps are not the scans' times (the scans' readings, spread, moved within milliseconds)."""
+        clock = self.tracker.clock
+        if ready.burst > 1 and clock.trusted:
+            clock.bunched(ready.burst)
+            say_distrusted(clock, f"scan {ready.item[0]} arrived in a burst of {ready.burst} scans stamped together")
+        return self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
 
     def _add(
         self, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None, reading: Transform2D | None
@@ -227,7 +237,7 @@ class TrackingFrontEnd:
         self.tracked = []
         out: list[Message] = []
         for ready in self.bursts.flush():
-            out += self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
+            out += self._released(ready)
         out += self._finals(self._stamp)
         for submap in self.tracker.submaps():
             submap.finished = True

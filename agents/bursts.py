@@ -17,18 +17,21 @@ the scans between are spread evenly between the two, in order (a laser scans at 
 and a log thinned by distance keeps a scan every so many metres). A reading is never moved
 outside the two the robot's wheels gave.
 
-Until a log shows its first burst nothing is held, so a robot whose stamps are its scans' times
-is tracked as it comes; from then on each scan waits for the next one (live, for the next burst,
-which arrives together anyway).
+Until a log shows its first burst only its first scan waits (for the second, which says whether
+they arrived together), so a robot whose stamps are its scans' times is tracked as it comes; from
+then on each scan waits for the next one (live, for the next burst, which arrives together
+anyway). The log's first burst has no reading before it: it waits for the next one, and its
+scans but the last are placed back from its reading at the next burst's pace.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Generic, TypeVar
 
+import gtsam
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.motion import ODOMETRY_ROTATION_SIGMA, ODOMETRY_TRANSLATION_SIGMA
 
@@ -44,6 +47,8 @@ class Timed(Generic[T]):
     item: T
     stamp: float
     odometry: Transform2D | None
+    burst: int = 1
+    """The scans in its burst (given back by :meth:`BurstOdometry.flush`)."""
 
 
 class BurstOdometry(Generic[T]):
@@ -62,6 +67,8 @@ class BurstOdometry(Generic[T]):
         self._run: list[Timed[T]] = []
         self._anchor: Transform2D | None = None
         """The reading of the last scan given back: where the robot was at that scan."""
+        self._first: list[Timed[T]] = []
+        """The log's first burst, while it waits for the next reading (:meth:`_before`)."""
         self._holding = False
         """Whether the log has shown a burst: from then on each scan waits for the next."""
         self._in_burst = False
@@ -73,7 +80,10 @@ class BurstOdometry(Generic[T]):
     def add(self, scan: Timed[T]) -> list[Timed[T]]:
         """The scans ready to track, in order, with their readings (none while a burst may go on)."""
         last, self._last = self._last, scan
-        if last is not None and self._same_burst(last, scan):
+        if last is None:
+            self._run = [scan]  # the log's first scan waits for the second: they may be a burst
+            return []
+        if self._same_burst(last, scan):
             if not self._in_burst:
                 self._in_burst = True
                 self.bursts += 1
@@ -115,27 +125,56 @@ class BurstOdometry(Generic[T]):
     def flush(self) -> list[Timed[T]]:
         """The held scans, each with the odometry where it was taken (:class:`BurstOdometry`)."""
         run, self._run = self._run, []
+        first, self._first = self._first, []
         if not run:
-            return []
+            return self._before(first, None, None, 1)
         reading, start = run[-1].odometry, self._anchor
         self._anchor = reading
-        if len(run) == 1 or reading is None or start is None or not (_finite(reading) and _finite(start)):
-            return run
         n = len(run)
+        if n > 1 and start is None and reading is not None and not first:
+            self._first = [replace(s, burst=n) for s in run]  # waits for the next burst's reading
+            return []
+        out = run
+        if n > 1 and reading is not None and start is not None and _finite(reading) and _finite(start):
+            out = [
+                s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, k / n), n)
+                for k, s in enumerate(run, 1)
+            ]
+            self.spread += sum(s.odometry is not None for s in run[:-1])
+        return self._before(first, start, reading, n) + out
+
+    def _before(
+        self, first: list[Timed[T]], start: Transform2D | None, reading: Transform2D | None, n: int
+    ) -> list[Timed[T]]:
+        """The log's first burst, held until the next reading (``reading``, ``n`` scans after the
+        burst's own, ``start``): nothing came before it, so its scans but the last are placed back
+        from its reading at the pace of the next (constant velocity per scan); without that, no
+        odometry (a reading that belongs to a later scan says nothing of where they were)."""
+        if not first:
+            return []
+        known = start is not None and reading is not None and _finite(start) and _finite(reading)
+        last = len(first) - 1
         out = []
-        for k, scan in enumerate(run, 1):
-            if scan.odometry is None:
-                out.append(scan)
-                continue
-            out.append(Timed(scan.item, scan.stamp, between(start, reading, k / n)))
-            self.spread += k < n
+        for k, s in enumerate(first):
+            if k == last or s.odometry is None:
+                out.append(s)
+            elif known and start is not None and reading is not None:
+                out.append(replace(s, odometry=between(start, reading, -(last - k) / n)))
+                self.spread += 1
+            else:
+                out.append(replace(s, odometry=None))
         return out
 
 
 def between(a: Transform2D, b: Transform2D, f: float) -> Transform2D:
-    """The pose a share ``f`` of the way from ``a`` to ``b`` (the turn the short way round)."""
-    theta = a.theta + f * math.remainder(b.theta - a.theta, math.tau)
-    return Transform2D(a.x + f * (b.x - a.x), a.y + f * (b.y - a.y), math.remainder(theta, math.tau))
+    """The pose a share ``f`` of the way from ``a`` to ``b`` along the arc a robot drives between
+    them at constant speed and turn rate (the geodesic of SE(2): ``a exp(f log(a^-1 b))``, GTSAM's
+    ``Pose2`` maps; the turn the short way round). Round a corner, the straight chord cuts it by
+    half a metre on a log with a scan a metre."""
+    pa = gtsam.Pose2(a.x, a.y, a.theta)
+    twist = gtsam.Pose2.Logmap(pa.between(gtsam.Pose2(b.x, b.y, b.theta)))
+    p = pa.compose(gtsam.Pose2.Expmap(f * twist))
+    return Transform2D(float(p.x()), float(p.y()), float(p.theta()))
 
 
 def _finite(p: Transform2D) -> bool:

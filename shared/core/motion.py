@@ -154,6 +154,10 @@ class ScanClock:
         """Stamps before the previous scan's."""
         self.too_fast = 0
         """Intervals over which the registered motion is farther than ``max_speed`` allows."""
+        self.bursts = 0
+        """Bursts of scans stamped together (:meth:`bunched`)."""
+        self.before_first = 0
+        """Scans taken before the first stamp: a burst's first scans, stamped when it arrived."""
         self.distrusted_at: int | None = None
         """The scan (count from 1) at which the stamps were first found wrong."""
 
@@ -174,9 +178,10 @@ class ScanClock:
     @property
     def period(self) -> float:
         """The log's mean time between scans (s); 1.0 where the stamps do not advance."""
-        if self.scans < 2 or self.first is None or self.latest is None or self.latest <= self.first:
+        periods = self.scans - 1 - self.before_first
+        if periods < 1 or self.first is None or self.latest is None or self.latest <= self.first:
             return 1.0
-        return (self.latest - self.first) / (self.scans - 1)
+        return (self.latest - self.first) / periods
 
     def elapsed(self, seconds: float, scans: int) -> float:
         """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart."""
@@ -195,6 +200,15 @@ class ScanClock:
             self.too_fast += 1
             self._distrust()
         return self.trusted
+
+    def bunched(self, size: int) -> None:
+        """``size`` scans the laser took apart arrived stamped together (a burst:
+        :mod:`fleetmap.agents.bursts`): the stamps are not their times. A burst before the first
+        scan was taken before the first stamp: the log's span leaves it out (:attr:`period`)."""
+        self.bursts += 1
+        if self.scans == 0:
+            self.before_first = size - 1
+        self._distrust()
 
     def _distrust(self) -> None:
         if self.trusted:

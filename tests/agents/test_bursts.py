@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import gtsam
+import numpy as np
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.bursts import BurstOdometry, Timed
 from fleetmap.scenarios.clocks import break_clock
@@ -16,8 +18,10 @@ from fleetmap.shared.io.sources import CarmenSource
 
 
 def driven(n: int) -> list[Transform2D]:
-    """A robot driving a metre a scan along x, turning 2 degrees a scan."""
-    return [Transform2D(float(i), 0.0, math.radians(2 * i)) for i in range(n)]
+    """A robot driving a metre a scan while turning 2 degrees a scan: at constant speed and turn
+    rate, an arc."""
+    poses = [gtsam.Pose2.Expmap(np.array([1.0, 0.0, math.radians(2)]) * i) for i in range(n)]
+    return [Transform2D(p.x(), p.y(), p.theta()) for p in poses]
 
 
 def given_back(runs: BurstOdometry[int], scans: list[Timed[int]]) -> list[Timed[int]]:
@@ -37,17 +41,19 @@ def test_a_bursts_scans_get_the_odometry_where_each_was_taken() -> None:
         scans.append(Timed(i, float(last) + 0.001 * (i % 3), truth[last]))
     out = given_back(BurstOdometry(3.0), scans)
     assert [s.item for s in out] == list(range(12)), "every scan, once, in order"
-    for s in out[3:]:  # the first burst has no reading before it to start from
+    for s in out:  # the first burst, with no reading before it, placed back at the next one's pace
         assert s.odometry is not None
         assert s.odometry.distance(truth[s.item])[0] < 1e-9
         assert abs(math.remainder(s.odometry.theta - truth[s.item].theta, math.tau)) < 1e-9
 
 
-def test_a_log_whose_stamps_are_its_scans_times_is_given_back_at_once_as_it_came() -> None:
+def test_a_log_whose_stamps_are_its_scans_times_is_given_back_as_it_came() -> None:
     truth = driven(6)
     runs: BurstOdometry[int] = BurstOdometry(3.0)
-    for i in range(6):
-        scan = Timed(i, 0.2 * i, truth[i])
+    scans = [Timed(i, 0.2 * i, truth[i]) for i in range(6)]
+    assert runs.add(scans[0]) == [], "the first scan waits for the second: were they a burst?"
+    assert runs.add(scans[1]) == scans[:2]
+    for scan in scans[2:]:
         assert runs.add(scan) == [scan], "nothing is held before the log shows a burst"
     assert runs.bursts == 0
 
@@ -55,9 +61,9 @@ def test_a_log_whose_stamps_are_its_scans_times_is_given_back_at_once_as_it_came
 def test_stamps_that_never_advance_or_readings_that_differ_make_no_burst() -> None:
     truth = driven(6)
     no_clock: BurstOdometry[int] = BurstOdometry(3.0)  # a corrected log: every stamp 0
-    assert [len(no_clock.add(Timed(i, 0.0, truth[i]))) for i in range(6)] == [1] * 6
+    assert [len(no_clock.add(Timed(i, 0.0, truth[i]))) for i in range(6)] == [0, 2, 1, 1, 1, 1]
     fresh: BurstOdometry[int] = BurstOdometry(3.0)  # 1 ms apart, but a metre apart by the wheels
-    assert [len(fresh.add(Timed(i, 0.001 * i, truth[i]))) for i in range(6)] == [1] * 6
+    assert [len(fresh.add(Timed(i, 0.001 * i, truth[i]))) for i in range(6)] == [0, 2, 1, 1, 1, 1]
     assert no_clock.bursts == fresh.bursts == 0
 
 
@@ -65,7 +71,7 @@ def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was
     # aces logged with a scan about every metre, its stamps in bursts of 2-4 within 2 ms and its
     # odometry read at them: the burst's first scan read a metre or more ahead of where it was,
     # and along a corridor the walls cannot say otherwise (taken at its word: 100 of 150 steps
-    # within 0.10 m, 2 deg; spread between the bursts' readings: 129)
+    # within 0.10 m, 2 deg; spread between the bursts' readings: 140)
     path = datasets / "corrected" / "aces-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]  # the corrected poses, by scan
     given = list(break_clock(list(CarmenSource(path, range_max=math.inf, stop=151)), "burst", seed=3))
@@ -83,4 +89,4 @@ def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was
         if i in poses and i + 1 in poses:
             error = truth[i].inverse().compose(truth[i + 1]).inverse().compose(poses[i].inverse().compose(poses[i + 1]))
             within += math.hypot(error.x, error.y) < 0.10 and abs(math.degrees(error.theta)) < 2.0
-    assert within >= 120, f"{within} of 150 steps within 0.10 m, 2 deg"
+    assert within >= 130, f"{within} of 150 steps within 0.10 m, 2 deg"

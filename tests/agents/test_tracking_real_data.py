@@ -99,8 +99,7 @@ def test_a_log_with_a_scan_a_metre_does_not_slide_along_its_corridors(datasets: 
     poses: dict[int, Transform2D] = {}
     for s in piece.scans[:60]:
         agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        if agent.epoch_pose is not None:
-            poses[s.index] = agent.epoch_pose
+        poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
     errors = {}
     for i in range(59):
         if i in poses and i + 1 in poses:
@@ -151,8 +150,7 @@ def track_stretch(path: Path, start: int, stop: int) -> tuple[Agent, dict[int, T
     the epoch poses of the scans it placed, by index."""
     agent = Agent("r1", FleetmapConfig(), odometry=True)
     poses: dict[int, Transform2D] = {}
-    for s in itertools.islice(CarmenSource(path, range_max=math.inf), start, stop):
-        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        if agent.epoch_pose is not None:
-            poses[s.index] = agent.epoch_pose
+    for s in [*itertools.islice(CarmenSource(path, range_max=math.inf), start, stop), None]:
+        agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
     return agent, poses
