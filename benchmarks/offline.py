@@ -64,13 +64,13 @@ def run_agents(
                 if isinstance(m, FleetEvent) and m.kind == "epoch":
                     detail = json.loads(m.detail)
                     frames[detail["epoch"]] = truth[detail["first_scan"]]
-            pose = agent.epoch_pose
-            if pose is None:
-                unplaced += 1
-                continue
-            frame = frames.setdefault(agent.epoch, s.pose)
-            dt, dr = pose.distance(frame.inverse().compose(s.pose))
-            wrong += dt > WRONG_M or math.degrees(dr) > WRONG_DEG
+            for index, epoch, pose in agent.tracked:  # (the log's first scan waits for the second)
+                if pose is None:
+                    unplaced += 1
+                    continue
+                frame = frames.setdefault(epoch, truth[index])
+                dt, dr = pose.distance(frame.inverse().compose(truth[index]))
+                wrong += dt > WRONG_M or math.degrees(dr) > WRONG_DEG
         messages += [(math.inf, n, m) for m in agent.finish()]
         seconds = time.perf_counter() - start
         agents.append((robot, agent.counts.epochs, unplaced, wrong, seconds))

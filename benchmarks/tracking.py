@@ -225,17 +225,17 @@ def run_scenario(job: tuple[str, FleetmapConfig]) -> list[ScenarioResult]:
             truth[s.index] = s.pose
             scans += 1
             agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-            pose = agent.epoch_pose
-            if pose is None:
-                continue
-            placed += 1
-            frame = frames.get(agent.epoch)
-            if frame is None:
-                # an epoch's frame is its first placed scan: the first pose seen in it is identity
-                frames[agent.epoch] = frame = s.pose.compose(pose.inverse())
-            dt, dr = pose.distance(frame.inverse().compose(s.pose))
-            errors.append(dt)
-            turns.append(math.degrees(dr))
+            for index, epoch, pose in agent.tracked:  # (the log's first scan waits for the second)
+                if pose is None:
+                    continue
+                placed += 1
+                frame = frames.get(epoch)
+                if frame is None:
+                    # an epoch's frame is its first placed scan: the first pose seen in it is identity
+                    frames[epoch] = frame = truth[index].compose(pose.inverse())
+                dt, dr = pose.distance(frame.inverse().compose(truth[index]))
+                errors.append(dt)
+                turns.append(math.degrees(dr))
         kidnaps = sum(1 for e in scenario.kidnaps() if e.robot == robot)
         out.append(
             ScenarioResult(
