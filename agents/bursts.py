@@ -83,7 +83,10 @@ class BurstOdometry(Generic[T]):
         if last is None:
             self._run = [scan]  # the log's first scan waits for the second: they may be a burst
             return []
-        if self._same_burst(last, scan):
+        self._advanced = self._advanced or scan.stamp > last.stamp
+        # a burst is the scans read within the odometry's resolution of its first: its whole span,
+        # not scan to scan (a laser faster than the resolution would make one endless burst)
+        if self._same_burst(self._run[0] if self._run else last, scan):
             if not self._in_burst:
                 self._in_burst = True
                 self.bursts += 1
@@ -104,17 +107,15 @@ class BurstOdometry(Generic[T]):
         self._run = [scan]
         return out + (self.flush() if not self._holding else [])
 
-    def _same_burst(self, last: Timed[T], scan: Timed[T]) -> bool:
-        """Whether ``scan`` brings no reading of its own: stamped after ``last`` by less than
-        :attr:`resolution`, and its reading no farther from ``last``'s than the odometry's noise
-        (readings that differ by more were not taken at those stamps). Stamps that have never
-        advanced are no clock at all (a log without one): they say nothing of when a reading was
-        taken."""
-        step = scan.stamp - last.stamp
-        self._advanced = self._advanced or step > 0.0
-        if not (self._advanced and 0.0 <= step <= self.resolution):
+    def _same_burst(self, first: Timed[T], scan: Timed[T]) -> bool:
+        """Whether ``scan`` brings no reading of its own: stamped after the burst's ``first`` scan
+        by less than :attr:`resolution`, and its reading no farther from ``first``'s than the
+        odometry's noise (readings that differ by more were not taken at those stamps). Stamps that
+        have never advanced are no clock at all (a log without one): they say nothing of when a
+        reading was taken."""
+        if not (self._advanced and 0.0 <= scan.stamp - first.stamp <= self.resolution):
             return False
-        a, b = last.odometry, scan.odometry
+        a, b = first.odometry, scan.odometry
         if a is None or b is None:
             return a is b
         return (

@@ -67,6 +67,22 @@ def test_stamps_that_never_advance_or_readings_that_differ_make_no_burst() -> No
     assert no_clock.bursts == fresh.bursts == 0
 
 
+def test_a_laser_faster_than_the_odometrys_resolution_is_never_held_long() -> None:
+    # 100 scans a second, a centimetre apart: each two stamps closer than the robot can drive the
+    # odometry's noise at full speed, but a burst spans no more than that from its first scan
+    truth = [Transform2D(0.01 * i, 0.0, 0.0) for i in range(50)]
+    runs: BurstOdometry[int] = BurstOdometry(3.0)
+    held, out = 0, []
+    for i in range(50):
+        given = runs.add(Timed(i, 0.01 * i, truth[i]))
+        held = 0 if given else held + 1
+        assert held <= (2 if i >= 10 else 4), "two scans a burst; the log's first also waits for the next"
+        out += given
+    out += runs.flush()
+    assert [s.item for s in out] == list(range(50))
+    assert all(s.odometry is not None and s.odometry.distance(truth[s.item])[0] < 0.011 for s in out)
+
+
 def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was_driven(datasets: Path) -> None:
     # aces logged with a scan about every metre, its stamps in bursts of 2-4 within 2 ms and its
     # odometry read at them: the burst's first scan read a metre or more ahead of where it was,
