@@ -25,7 +25,10 @@ The SLAM-corrected logs (``corrected/NAME``: a scan about every metre, as long t
 logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan index (their stamps
 repeat, or are all 0) with relations made from their corrected poses: every two scans within
 :data:`CORRECTED_WITHIN` of each other. A log that ``fleetmap map`` refuses (infinite-corridor's
-stamps run negative) says so.
+stamps run negative) says so. ``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`)
+maps each corrected log's pieces as a robot with that broken clock recorded them.
+
+    python benchmarks/relations.py --logs corrected/aces,corrected/acapulco --splits 1,4 --clock burst
 """
 
 from __future__ import annotations
@@ -40,11 +43,12 @@ import sys
 import tempfile
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from fleetmap.merger.executor import make_executor
+from fleetmap.scenarios.clocks import CLOCKS, break_clock
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
@@ -146,8 +150,8 @@ def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]
     return out[0], out[1]
 
 
-def run(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
-    name, split, data, extra, frame = job
+def run(job: tuple[str, int, Path, list[str], Transform2D, str]) -> Run:
+    name, split, data, extra, frame, _clock = job
     path, range_max = LOGS[name]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
@@ -195,12 +199,19 @@ def score_by_index(
     return _tally((poses.get(i), poses.get(j), truth) for i, j, truth in relations)
 
 
-def run_corrected(job: tuple[str, int, Path, list[str], Transform2D]) -> Run:
+def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str]) -> Run:
     """A corrected log mapped as ``fleetmap map LOG --split K`` maps it (same code, the default
-    executor), in a process of its own; scored by scan index."""
-    name, split, data, _extra, frame = job
+    executor), in a process of its own, each piece's clock broken as ``clock`` says; scored by
+    scan index."""
+    name, split, data, _extra, frame, clock = job
     path = data / "corrected" / f"{name.removeprefix('corrected/')}-corrected.log.gz"
     pieces = read_inputs([str(path)], split)
+    if clock != "true":
+        broken = [list(break_clock(p.scans, clock, seed=n)) for n, p in enumerate(pieces)]  # ValueError: no clock
+        pieces = [
+            replace(p, scans=b, stamps={s.index: s.stamp for s in b}) for p, b in zip(pieces, broken, strict=True)
+        ]
+        name = f"{name} ({clock})"
     executor = make_executor("local")
     try:
         with tempfile.TemporaryDirectory() as tmp:
@@ -280,6 +291,7 @@ def main() -> int:
     )
     ap.add_argument("--splits", default="1,2,4,8", help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
+    ap.add_argument("--clock", default="true", choices=CLOCKS, help="the corrected logs' clock (default: their own)")
     ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args, extra = ap.parse_known_args()
     names = [
@@ -298,7 +310,9 @@ def main() -> int:
         else Transform2D.identity()
         for n in names
     }
-    jobs = [(n, int(k), data, extra, frames[n]) for n in names for k in args.splits.split(",")]
+    if args.clock != "true" and any(n in LOGS for n in names):
+        raise SystemExit(f"--clock {args.clock}: only the corrected logs' clocks are broken here (corrected/NAME)")
+    jobs = [(n, int(k), data, extra, frames[n], args.clock) for n in names for k in args.splits.split(",")]
     runs = []
     with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(max_workers=1) as processes:
         futures = [threads.submit(run, job) if job[0] in LOGS else processes.submit(run_corrected, job) for job in jobs]
@@ -306,7 +320,7 @@ def main() -> int:
         for job, f in zip(jobs, futures, strict=True):
             try:
                 r = f.result()
-            except BadInput as e:  # as fleetmap map refuses it
+            except (BadInput, ValueError) as e:  # as fleetmap map refuses it; a clock there is none to break
                 refused.append(f"- {job[0]} cut in {job[1]}: refused ({e})")
                 print(refused[-1], flush=True)
                 continue
