@@ -199,6 +199,7 @@ class TrackingFrontEnd:
         if ready.burst > 1 and clock.trusted:
             clock.bunched(ready.burst)
             say_distrusted(clock, f"scan {ready.item[0]} arrived in a burst of {ready.burst} scans stamped together")
+        self.tracker.exact = ready.exact
         return self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
 
     def _add(

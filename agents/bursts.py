@@ -49,6 +49,8 @@ class Timed(Generic[T]):
     odometry: Transform2D | None
     burst: int = 1
     """The scans in its burst (given back by :meth:`BurstOdometry.flush`)."""
+    exact: bool = True
+    """Whether its reading is where it was taken (not spread between two bursts' readings)."""
 
 
 class BurstOdometry(Generic[T]):
@@ -138,7 +140,7 @@ class BurstOdometry(Generic[T]):
         out = run
         if n > 1 and reading is not None and start is not None and _finite(reading) and _finite(start):
             out = [
-                s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, k / n), n)
+                s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, k / n), n, k == n)
                 for k, s in enumerate(run, 1)
             ]
             self.spread += sum(s.odometry is not None for s in run[:-1])
@@ -160,7 +162,7 @@ class BurstOdometry(Generic[T]):
             if k == last or s.odometry is None:
                 out.append(s)
             elif known and start is not None and reading is not None:
-                out.append(replace(s, odometry=between(start, reading, -(last - k) / n)))
+                out.append(replace(s, odometry=between(start, reading, -(last - k) / n), exact=False))
                 self.spread += 1
             else:
                 out.append(replace(s, odometry=None))

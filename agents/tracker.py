@@ -139,6 +139,12 @@ class Tracker:
         self._good: tuple[float, Transform2D, int] | None = None
         """Stamp, epoch-frame pose and sequence number of the last placed scan."""
         self._held: list[_Held] = []
+        self.exact = True
+        """Whether the next scan's reading is where it was taken (:mod:`fleetmap.agents.bursts`)."""
+        self._anchor: tuple[Transform2D, Transform2D] | None = None
+        """The epoch pose and reading of the last placed scan whose reading was exact."""
+        self._spread = False
+        """Whether the last scan's reading was spread within a burst."""
         self._scores: deque[float] = deque(maxlen=RECENT_FITS)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
 
@@ -190,6 +196,13 @@ class Tracker:
         taken = _ScanIn(seq, index, stamp, scan, segments, samples, odometry)
         if self.epoch < 0:
             return [self._start_epoch(taken, new=False)]
+        spread, self._spread = self._spread, not self.exact
+        if spread and self.exact and odometry is not None and self._anchor is not None and self._pose is not None:
+            # a reading where the scan was taken, after readings spread within a burst: the
+            # increment from the last such scan, as placed, not from the spread one before it
+            # (a turn in place is not even: a spread heading can be 50 degrees off)
+            at, reading = self._anchor
+            self.motion.odometry = reading.compose(at.inverse()).compose(self._pose)
         predictions = self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)
         fit = self._fit(taken, predictions)
         odometry_predicts = "odometry" in predictions[0].source
@@ -380,6 +393,7 @@ class Tracker:
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
         # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
         self.motion.odometry = odometry
+        self._anchor = (pose, odometry) if self.exact and odometry is not None else self._anchor
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if self.chain.due(stamp, pose):
             self.chain.insert(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples, pose, reg)
@@ -391,6 +405,7 @@ class Tracker:
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
         self.motion.restart(taken.odometry)
+        self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []
         self._scores.clear()
         self.chain.restart(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples)

@@ -86,11 +86,11 @@ def test_a_laser_faster_than_the_odometrys_resolution_is_never_held_long() -> No
 def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was_driven(datasets: Path) -> None:
     # aces logged with a scan about every metre, its stamps in bursts of 2-4 within 2 ms and its
     # odometry read at them: the burst's first scan read a metre or more ahead of where it was,
-    # and along a corridor the walls cannot say otherwise (taken at its word: 100 of 150 steps
-    # within 0.10 m, 2 deg; spread between the bursts' readings: 140)
+    # and along a corridor the walls cannot say otherwise (taken at its word: 84 of 150 steps
+    # within 0.10 m, 2 deg; spread between the bursts' readings: 141)
     path = datasets / "corrected" / "aces-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]  # the corrected poses, by scan
-    given = list(break_clock(list(CarmenSource(path, range_max=math.inf, stop=151)), "burst", seed=3))
+    given = list(break_clock(list(CarmenSource(path, range_max=math.inf, stop=151)), "burst", seed=0))
     agent = Agent("r1", FleetmapConfig())
     poses: dict[int, Transform2D] = {}
     published: list[int] = []
