@@ -59,8 +59,8 @@ class BurstOdometry(Generic[T]):
 
     def __init__(self, max_speed: float, name: str = "the robot") -> None:
         self.resolution = ODOMETRY_TRANSLATION_SIGMA / max_speed if max_speed > 0 else 0.0
-        """Seconds within which two readings cannot differ measurably: a scan stamped within this of
-        the previous one brings no reading of its own."""
+        """Seconds within which two readings cannot differ measurably: a scan stamped within this
+        after its burst's first brings no reading of its own."""
         self.name = name
         self.bursts = 0
         """Bursts of two scans or more seen."""
