@@ -9,13 +9,14 @@ sparse log) and says the others did not move.
 
 The evidence is in the stamps and readings themselves: two readings taken closer together than
 the robot can drive ``ODOMETRY_TRANSLATION_SIGMA`` (at ``max_speed``) cannot differ by more than
-the odometry's own noise, so a scan stamped that close after the one before, its reading within
-that noise of the one before, brought no new reading: it is in the same burst.
+the odometry's own noise, so a scan stamped that close after its burst's first, its reading within
+that noise of the first's, brought no new reading: it is in the same burst.
 :class:`BurstOdometry` holds a burst's scans until a scan with a new reading ends it. Then
 the burst's reading belongs to its last scan, the previous burst's to the scan before its first;
-the scans between are spread evenly between the two, in order (a laser scans at a steady rate,
-and a log thinned by distance keeps a scan every so many metres). A reading is never moved
-outside the two the robot's wheels gave.
+the scans between are spread evenly, in order, along the arc a robot drives between the two at
+constant speed and turn rate (:func:`between`; a laser scans at a steady rate, and a log thinned
+by distance keeps a scan every so many metres). Each scan given back says whether its reading is
+its own (``Timed.exact``): the tracker predicts such a scan from the last one that was.
 
 Until a log shows its first burst only its first scan waits (for the second, which says whether
 they arrived together), so a robot whose stamps are its scans' times is tracked as it comes; from

@@ -154,8 +154,6 @@ class ScanClock:
         """Stamps before the previous scan's."""
         self.too_fast = 0
         """Intervals over which the registered motion is farther than ``max_speed`` allows."""
-        self.bursts = 0
-        """Bursts of scans stamped together (:meth:`bunched`)."""
         self.before_first = 0
         """Scans taken before the first stamp: a burst's first scans, stamped when it arrived."""
         self.distrusted_at: int | None = None
@@ -205,7 +203,6 @@ class ScanClock:
         """``size`` scans the laser took apart arrived stamped together (a burst:
         :mod:`fleetmap.agents.bursts`): the stamps are not their times. A burst before the first
         scan was taken before the first stamp: the log's span leaves it out (:attr:`period`)."""
-        self.bursts += 1
         if self.scans == 0:
             self.before_first = size - 1
         self._distrust()

@@ -73,6 +73,7 @@ def test_a_real_log_restamped_in_bursts_maps_as_one_component_within_5cm_of_its_
     assert robot["epochs"] == 1 and robot["scans_placed"] == len(scans)
     assert burst.report["map"]["components"] == 1
     assert robot["clock"]["stamps_trusted"] is False, "report.json says the stamps were not the scans' times"
+    assert robot["clock"]["bursts"] > 0 and robot["clock"]["odometry_spread"] > 0, "and that they came in bursts"
     assert maps["true"][1].report["map"]["robots"][0]["clock"]["stamps_trusted"] is True
     # the same scan's pose in both maps, where its broken stamp names it alone
     true_piece, true_map = maps["true"]
