@@ -86,7 +86,10 @@ class ChainGraph(MapGraph):
         except np.linalg.LinAlgError:
             raise BadInput(f"link {a}-{b}", "its covariance is singular") from None
         information = 0.5 * (information + information.T)
-        self._links[b] = Edge(a, b, transform, math.inf, True, information=tuple(information.ravel()), link=True)
+        link = Edge(a, b, transform, math.inf, True, information=tuple(information.ravel()), link=True)
+        if self._links.get(b) != link:  # each version of a submap sends its link again: the same
+            # edge kept as it was, so the kept forest sees an edge it holds, not one to compare
+            self._links[b] = link
         self._link_covariances[(a, b)] = self._link_covariances[(b, a)] = cov
         self._link_sources.add(a)
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import functools
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from fleetmap.merger.graph import Component as GraphComponent
@@ -65,6 +65,15 @@ def epoch_of(key: str) -> str:
     return f"{robot}/{epoch}"
 
 
+_LAST: dict[str, tuple[tuple[tuple[int, ...], ...], Placement, MergeResult]] = {}
+"""The last result indexed (:meth:`Placement.of`), by the identities of what the index reads."""
+
+
+def _shaped(result: MergeResult) -> tuple[list[GraphComponent], list, list]:
+    """What :meth:`Placement._index` reads of a result: its components and its edges."""
+    return list(result.components), list(result.tree), list(result.loops)
+
+
 @dataclass(frozen=True)
 class Placement:
     """One solve's result, indexed: which component holds each submap and each epoch, and which
@@ -83,6 +92,20 @@ class Placement:
 
     @classmethod
     def of(cls, result: MergeResult | None) -> Placement:
+        """The result indexed; a step whose solve kept every component and edge as the last one
+        had (a kept solve that only took new versions of submaps) reuses the last index, so that
+        such a step costs what it adds (issue 49)."""
+        shape = None if result is None else tuple(tuple(map(id, part)) for part in _shaped(result))
+        last = _LAST.get("placement")
+        if shape is not None and last is not None and last[0] == shape:
+            return replace(last[1], result=result)
+        placement = cls._index(result)
+        if shape is not None:
+            _LAST["placement"] = (shape, placement, result)  # the result keeps the ids in ``shape`` alive
+        return placement
+
+    @classmethod
+    def _index(cls, result: MergeResult | None) -> Placement:
         where: dict[str, int] = {}
         epoch_where: dict[str, int] = {}
         epochs_in: list[set[str]] = []

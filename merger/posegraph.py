@@ -339,10 +339,10 @@ class PoseGraph(RefinedGraph):
         poses now disagree with an integration taken or agree with one left out."""
         group = kept.members[r]
         anchor = self._pick_anchor(group)
-        order = _bfs_order(kept.adjacency, anchor)
         held = kept.components.get(r)
-        if held is not None and held.anchor == anchor and not cycles_changed and len(held.members) == len(order):
-            return True  # new versions of its submaps only: the same poses
+        if held is not None and held.anchor == anchor and not cycles_changed and len(held.members) == len(group):
+            return True  # new versions of its submaps only: the same poses (the tree spans the group)
+        order = _bfs_order(kept.adjacency, anchor)
         if held is not None and held.anchor == anchor and not cycles_changed:
             poses = dict(held.poses)
             for k in order:  # the leaves hung from the chain since: breadth first, parents first

@@ -229,6 +229,10 @@ class PairSchedule:
         that meet, so the work stays O(n)."""
         if p.result is None:
             return
+        if all(
+            apart.get(epoch, frozenset({epoch})) == epochs for epochs in map(frozenset, p.epochs_in) for epoch in epochs
+        ):
+            return  # every component holds the epochs it held: nothing joined (a step costs what it adds)
         limit = NEAR_CANDIDATES
         at = {k: pose for k, pose in p.result.poses.items() if pose is not None}
         queued = 0
