@@ -95,13 +95,14 @@ class Placement:
         """The result indexed; a step whose solve kept every component and edge as the last one
         had (a kept solve that only took new versions of submaps) reuses the last index, so that
         such a step costs what it adds (issue 49)."""
-        shape = None if result is None else tuple(tuple(map(id, part)) for part in _shaped(result))
+        if result is None:
+            return cls._index(None)
+        shape = tuple(tuple(map(id, part)) for part in _shaped(result))
         last = _LAST.get("placement")
-        if shape is not None and last is not None and last[0] == shape:
+        if last is not None and last[0] == shape:
             return replace(last[1], result=result)
         placement = cls._index(result)
-        if shape is not None:
-            _LAST["placement"] = (shape, placement, result)  # the result keeps the ids in ``shape`` alive
+        _LAST["placement"] = (shape, placement, result)  # the result keeps the ids in ``shape`` alive
         return placement
 
     @classmethod
