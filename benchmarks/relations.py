@@ -26,7 +26,9 @@ logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan i
 repeat, or are all 0) with relations made from their corrected poses: every two scans within
 :data:`CORRECTED_WITHIN` of each other. A log that ``fleetmap map`` refuses (infinite-corridor's
 stamps run negative) says so. ``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`)
-maps each corrected log's pieces as a robot with that broken clock recorded them.
+maps each corrected log's pieces as a robot with that broken clock recorded them; ``--seeds N`` does
+it N times, each with other breaks (one wrong placement can bend a sparse log's map, and which scan
+the clock breaks decides it: a single seed is a single draw).
 
     python benchmarks/relations.py --logs corrected/aces,corrected/acapulco --splits 1,4 --clock burst
 """
@@ -150,8 +152,8 @@ def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]
     return out[0], out[1]
 
 
-def run(job: tuple[str, int, Path, list[str], Transform2D, str]) -> Run:
-    name, split, data, extra, frame, _clock = job
+def run(job: tuple[str, int, Path, list[str], Transform2D, str, int]) -> Run:
+    name, split, data, extra, frame, _clock, _draw = job
     path, range_max = LOGS[name]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
@@ -199,19 +201,21 @@ def score_by_index(
     return _tally((poses.get(i), poses.get(j), truth) for i, j, truth in relations)
 
 
-def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str]) -> Run:
+def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str, int]) -> Run:
     """A corrected log mapped as ``fleetmap map LOG --split K`` maps it (same code, the default
-    executor), in a process of its own, each piece's clock broken as ``clock`` says; scored by
-    scan index."""
-    name, split, data, _extra, frame, clock = job
+    executor), in a process of its own, each piece's clock broken as ``clock`` says (on the
+    job's ``draw``: 0, 1, ...); scored by scan index."""
+    name, split, data, _extra, frame, clock, draw = job
     path = data / "corrected" / f"{name.removeprefix('corrected/')}-corrected.log.gz"
     pieces = read_inputs([str(path)], split)
     if clock != "true":
-        broken = [list(break_clock(p.scans, clock, seed=n)) for n, p in enumerate(pieces)]  # ValueError: no clock
+        broken = [
+            list(break_clock(p.scans, clock, seed=n + 1000 * draw)) for n, p in enumerate(pieces)
+        ]  # no clock: ValueError
         pieces = [
             replace(p, scans=b, stamps={s.index: s.stamp for s in b}) for p, b in zip(pieces, broken, strict=True)
         ]
-        name = f"{name} ({clock})"
+        name = f"{name} ({clock})" if draw == 0 else f"{name} ({clock}, draw {draw})"
     executor = make_executor("local")
     try:
         with tempfile.TemporaryDirectory() as tmp:
@@ -292,6 +296,9 @@ def main() -> int:
     ap.add_argument("--splits", default="1,2,4,8", help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
     ap.add_argument("--clock", default="true", choices=CLOCKS, help="the corrected logs' clock (default: their own)")
+    ap.add_argument(
+        "--seeds", type=int, default=1, help="with --clock: map each log this many times, each clock broken anew"
+    )
     ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args, extra = ap.parse_known_args()
     names = [
@@ -312,7 +319,14 @@ def main() -> int:
     }
     if args.clock != "true" and any(n in LOGS for n in names):
         raise SystemExit(f"--clock {args.clock}: only the corrected logs' clocks are broken here (corrected/NAME)")
-    jobs = [(n, int(k), data, extra, frames[n], args.clock) for n in names for k in args.splits.split(",")]
+    if args.seeds < 1 or (args.seeds > 1 and args.clock == "true"):
+        raise SystemExit("--seeds: a positive number, and more than 1 only with a broken --clock")
+    jobs = [
+        (n, int(k), data, extra, frames[n], args.clock, draw)
+        for n in names
+        for k in args.splits.split(",")
+        for draw in range(args.seeds if n not in LOGS else 1)
+    ]
     runs = []
     with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(max_workers=1) as processes:
         futures = [threads.submit(run, job) if job[0] in LOGS else processes.submit(run_corrected, job) for job in jobs]
