@@ -331,9 +331,7 @@ class Tracker:
             if any(same_start(predicted, other) for other in tried):
                 continue
             tried.append(predicted)
-            reg = register(taken.samples, submap.reference, predicted, predicted, prediction.information(), self.params)
-            why, (contradicted, disputed) = self._judge(reg, taken, submap)
-            fits.append(Fit(reg, why == "", why, contradicted, disputed))
+            fits.append(self._registered(taken, submap, predicted, predicted, prediction))
         best = best_fit(fits, apart)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
@@ -368,7 +366,8 @@ class Tracker:
         step a metre long (acapulco-corrected, scan 115), whose registration settled in a wrong
         minimum; the robot was carried on that heading, and the submap it built turned the map."""
         step = 2.0 * REACH_ROTATION
-        mean = self.chain.active[0].origin.inverse().compose(self._pose_in_epoch(prediction))
+        submap = self.chain.active[0]
+        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
         fits: list[Fit] = []
         for k in range(1, int(min(prediction.sigma_rotation, math.pi) / step) + 1):
             for turn in (k * step, -k * step):
@@ -376,13 +375,19 @@ class Tracker:
                 if any(same_start(start, other) for other in tried):
                     continue
                 tried.append(start)
-                submap = self.chain.active[0]
-                reg = register(taken.samples, submap.reference, start, mean, prediction.information(), self.params)
-                why, (contradicted, disputed) = self._judge(reg, taken, submap)
-                fits.append(Fit(reg, why == "", why, contradicted, disputed))
-                if why == "" and reg.score >= floor:
+                fits.append(self._registered(taken, submap, start, mean, prediction))
+                if fits[-1].good and fits[-1].registration.score >= floor:
                     return fits
         return fits
+
+    def _registered(
+        self, taken: _ScanIn, submap: Submap, start: Transform2D, mean: Transform2D, prediction: Prediction
+    ) -> Fit:
+        """The scan registered on ``submap`` from ``start``, pulled towards the prediction's
+        ``mean`` with its information, and checked (:meth:`_judge`)."""
+        reg = register(taken.samples, submap.reference, start, mean, prediction.information(), self.params)
+        why, (contradicted, disputed) = self._judge(reg, taken, submap)
+        return Fit(reg, why == "", why, contradicted, disputed)
 
     def _judge(self, reg: Registration, taken: _ScanIn, submap: Submap) -> tuple[str, tuple[bool, bool]]:
         """The fit check (:func:`~fleetmap.agents.fitcheck.judge`), its beam test excusing the

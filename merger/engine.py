@@ -210,7 +210,7 @@ class Merger(Intake):
         solved = self.graph.solve(fuse_maps=fuse)
         self.solve_seconds = time.perf_counter() - solving
         self._unfused = not fuse
-        self.placement = Placement.of(solved)
+        self.placement = Placement.of(solved, self.placement)
         self.schedule.queue_joined(self.placement, apart)
         self._global = global_map_of(solved, self.seq, self.stamp, self._made)
         out.append(Outgoing(self.keys.globalmap, self._global.to_msgpack()))

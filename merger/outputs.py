@@ -65,13 +65,9 @@ def epoch_of(key: str) -> str:
     return f"{robot}/{epoch}"
 
 
-_LAST: dict[str, tuple[tuple[tuple[int, ...], ...], Placement, MergeResult]] = {}
-"""The last result indexed (:meth:`Placement.of`), by the identities of what the index reads."""
-
-
-def _shaped(result: MergeResult) -> tuple[list[GraphComponent], list, list]:
-    """What :meth:`Placement._index` reads of a result: its components and its edges."""
-    return list(result.components), list(result.tree), list(result.loops)
+def _shape(result: MergeResult) -> tuple[tuple[int, ...], ...]:
+    """What :meth:`Placement.of` reads of a result, by identity: its components and its edges."""
+    return tuple(map(id, result.components)), tuple(map(id, result.tree)), tuple(map(id, result.loops))
 
 
 @dataclass(frozen=True)
@@ -91,22 +87,18 @@ class Placement:
     :mod:`fleetmap.merger.startposes`), in the components' order."""
 
     @classmethod
-    def of(cls, result: MergeResult | None) -> Placement:
-        """The result indexed; a step whose solve kept every component and edge as the last one
-        had (a kept solve that only took new versions of submaps) reuses the last index, so that
-        such a step costs what it adds (issue 49)."""
-        if result is None:
-            return cls._index(None)
-        shape = tuple(tuple(map(id, part)) for part in _shaped(result))
-        last = _LAST.get("placement")
-        if last is not None and last[0] == shape:
-            return replace(last[1], result=result)
-        placement = cls._index(result)
-        _LAST["placement"] = (shape, placement, result)  # the result keeps the ids in ``shape`` alive
-        return placement
-
-    @classmethod
-    def _index(cls, result: MergeResult | None) -> Placement:
+    def of(cls, result: MergeResult | None, last: Placement | None = None) -> Placement:
+        """The result indexed. Where the ``last`` placement's result holds the same components and
+        edges (a kept solve that only took new versions of submaps), its index is reused, so that
+        such a step costs what it adds (issue 49); its result keeps those objects, and so their
+        identities, alive."""
+        if (
+            result is not None
+            and last is not None
+            and last.result is not None
+            and _shape(last.result) == _shape(result)
+        ):
+            return replace(last, result=result)
         where: dict[str, int] = {}
         epoch_where: dict[str, int] = {}
         epochs_in: list[set[str]] = []
