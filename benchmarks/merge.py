@@ -231,8 +231,8 @@ def run(name: str, k: int, args: argparse.Namespace, config: FleetmapConfig, poo
     stamps = args.stamps
     times = [s.stamp for p in pieces for s in p.scans]
     if stamps == "log" and any(t < 0 for t in times):
-        # infinite-corridor's times run negative (the data README: "timestamps corrupt"); an agent
-        # refuses such a scan, so the scans' indices stand in for them
+        # infinite-corridor's times run negative (the data README: "timestamps corrupt"); the
+        # scans' indices stand in for them here
         print(f"{name}: the log's times are corrupt (negative); a scan a second instead (--stamps index)")
         stamps = "index"
     built = pool.map(build_local_maps, [(p, config, args.kidnap_after, stamps, args.local_maps) for p in pieces])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import gzip
 import json
+import logging
 import math
 import subprocess
 import sys
@@ -298,3 +299,45 @@ def test_the_summary_says_whether_the_tracking_used_each_robot_s_odometry() -> N
     }  # fmt: skip
     said = {line.split()[0]: line.split(None, 5)[5].strip() for line in table(summary).splitlines()[1:4]}
     assert said == {"wheels": "used", "ignored": "not used", "laser-only": "none"}
+
+
+def test_a_log_stamped_before_its_start_and_then_never_again_maps_with_its_own_stamps(
+    csail_start: Path, datasets: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A converter that counted time from its own start, backwards, then lost the clock (the
+    stamps of corrected/infinite-corridor: -0.45 to -1.82 s, then 4.29e9 s for every scan). It was
+    refused for its first stamp; a merger step per second of its jump would never have ended."""
+    from fleetmap.merger.executor import InlineExecutor
+
+    from fleetmap.config_args import preset
+    from fleetmap.mapping import map_logs, read_inputs
+
+    lines = csail_start.read_text().splitlines()
+    own = [float(line.split()[-3]) for line in lines]
+    given = [-0.4 - (t - own[0]) if n < 4 else 4294970000.0 for n, t in enumerate(own)]
+    log = tmp_path / "no-clock.clf"
+    log.write_text(
+        "".join(
+            " ".join([*line.split()[:-3], repr(t), "host", repr(t)]) + "\n"
+            for line, t in zip(lines, given, strict=True)
+        )
+    )
+    with caplog.at_level(logging.WARNING, logger="fleetmap.shared.io.sources"):
+        pieces = read_inputs([str(log)], 1, None, 81.91, None)
+    said = [r.getMessage() for r in caplog.records if r.name == "fleetmap.shared.io.sources"]
+    assert len(said) == 2 and "scan 0: stamp -0.4 cannot be a time (it is negative)" in said[0], said
+    assert "4 of its 360 scans' stamps could not be times" in said[1], said
+    result = map_logs(pieces, tmp_path / "out", preset("offline"), None, InlineExecutor(), tracking_processes=0)
+    rows = _rows(tmp_path / "out" / "poses.csv")
+    # every scan placed, in one map, in the log's order, with the log's own stamps
+    assert [float(r["stamp"]) for r in rows] == given
+    assert {r["component"] for r in rows} == {"0"}
+    assert result.report["map"]["robots"][0]["first_stamp"] == -0.4
+    # the map is right: the log's relations between these scans, by the scans' true times
+    poses = {round(t, 4): _pose(r) for t, r in zip(own, rows, strict=True)}
+    errors = []
+    for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(datasets / "relations" / "mit-csail.relations"):
+        a, b = poses.get(round(t1, 4)), poses.get(round(t2, 4))
+        if a is not None and b is not None:
+            errors.append(math.hypot(*Transform2D(x, y, yaw).inverse().compose(a.inverse().compose(b)).as_array()[:2]))
+    assert len(errors) > 50 and np.mean(errors) < 0.10, errors

@@ -79,6 +79,9 @@ class SourceScan:
     odometry: Transform2D | None = None
     """The robot's odometry pose at the scan (the laser's, in the odometry's own frame: only its
     change from scan to scan means anything); None where the source has none."""
+    given: float | None = None
+    """The stamp as the input gives it, where it cannot be a time (:class:`BusStamps`); None where
+    ``stamp`` is the input's own."""
 
     def __iter__(self) -> Iterator[Any]:
         return iter((self.index, self.stamp, self.scan))
@@ -95,11 +98,63 @@ class ScanSource(Protocol):
     def __iter__(self) -> Iterator[SourceScan]: ...
 
 
+class BusStamps:
+    """A source's stamps as the bus carries them. A stamp that cannot be a time (negative, or not a
+    number: a log whose converter counted from its own start, or lost the clock) is read as the last
+    usable one repeated, said once: the tracker goes by the scans' sequence where stamps repeat
+    (docs/decisions/009-clocks-evidence-over-stamps.md), and ``fleetmap map`` still writes the
+    input's own stamp (:attr:`SourceScan.given`). One log seen: infinite-corridor-corrected, stamped
+    -0.45 to -1.82 s, then 4.29e9 s throughout."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.last = 0.0
+        self.unusable = 0
+        self.seen = 0
+
+    def __call__(self, index: int, stamp: float) -> float:
+        self.seen += 1
+        if math.isfinite(stamp) and stamp >= 0:
+            self.last = stamp
+            return stamp
+        self.unusable += 1
+        if self.unusable == 1:
+            log.warning(
+                "%s: scan %d: stamp %s cannot be a time (it is %s): read as the last usable stamp "
+                "(%g s), as is any other such; the scans are tracked by their sequence where stamps repeat",
+                self.source,
+                index,
+                stamp,
+                "negative" if stamp < 0 else "not a number",
+                self.last,
+            )
+        return self.last
+
+    def summary(self) -> None:
+        """Said at the source's end: how many stamps were read as repeats."""
+        if self.unusable > 1:
+            log.warning(
+                "%s: %d of its %d scans' stamps could not be times (read as the last usable stamp)",
+                self.source,
+                self.unusable,
+                self.seen,
+            )
+
+
 def checked_scan(
-    source: str, index: int, stamp: float, scan: RangeScan, odometry: Transform2D | None = None
+    source: str,
+    index: int,
+    stamp: float,
+    scan: RangeScan,
+    odometry: Transform2D | None = None,
+    stamps: BusStamps | None = None,
 ) -> SourceScan:
-    """The scan as an agent gets it: a valid stamp and beam geometry, no pose but the odometry."""
+    """The scan as an agent gets it: a valid stamp (``stamps`` reads one that cannot be a time; without
+    it, such a stamp is refused) and beam geometry, no pose but the odometry."""
     where = f"{source}: scan {index}"
+    given = stamp
+    if stamps is not None:
+        stamp = stamps(index, stamp)
     if not math.isfinite(stamp) or stamp < 0:
         raise BadInput(where, f"stamp {stamp} is not a finite non-negative number of seconds")
     if stamp > MAX_STAMP:
@@ -108,7 +163,8 @@ def checked_scan(
         raise BadInput(where, f"bad beam angles (angle_min {scan.angle_min}, increment {scan.angle_increment})")
     if not scan.range_max > 0:
         raise BadInput(where, f"range_max {scan.range_max} is not positive")
-    return SourceScan(index, stamp, replace(scan, stamp=stamp, odom=None, odometry=None), odometry)
+    bus = replace(scan, stamp=stamp, odom=None, odometry=None)
+    return SourceScan(index, stamp, bus, odometry, None if given == stamp else given)
 
 
 def _existing_file(path: str | Path, what: str) -> Path:
@@ -148,6 +204,7 @@ class CarmenSource:
         total = 0
         yielded = 0
         track = OdometryTrack(read_carmen_odometry(self.path))
+        stamps = BusStamps(str(self.path))
         for index, (line, scan) in enumerate(read_carmen_lines(self.path, self.range_max)):
             total = index + 1
             if self.stop is not None and index >= self.stop:
@@ -155,7 +212,8 @@ class CarmenSource:
             if index >= self.start and (index - self.start) % self.step == 0:
                 yielded += 1
                 odometry = track.at(line, scan.stamp) if track else _pose(scan.odometry)
-                yield checked_scan(str(self.path), index, scan.stamp, scan, odometry)
+                yield checked_scan(str(self.path), index, scan.stamp, scan, odometry, stamps)
+        stamps.summary()
         if not yielded:
             raise BadInput(str(self.path), f"no laser scan from index {self.start} on (the log has {total})")
 
@@ -389,8 +447,10 @@ class RangesSource:
         self.name = str(path)
 
     def __iter__(self) -> Iterator[SourceScan]:
+        stamps = BusStamps(self.name)
         for index, scan in enumerate(read_ranges_jsonl(self.path)):
-            yield checked_scan(self.name, index, scan.stamp, scan)
+            yield checked_scan(self.name, index, scan.stamp, scan, stamps=stamps)
+        stamps.summary()
 
 
 def open_input(

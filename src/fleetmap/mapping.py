@@ -103,7 +103,8 @@ def read_inputs(
         for k, cut in enumerate(cuts):
             robot = base if split == 1 else robot_name(f"{base}-{k + 1}", taken)
             part = scans[int(cut[0]) : int(cut[-1]) + 1]
-            pieces.append(Piece(robot, str(path), part, source.has_odometry, {s.index: s.stamp for s in part}))
+            given = {s.index: s.stamp if s.given is None else s.given for s in part}
+            pieces.append(Piece(robot, str(path), part, source.has_odometry, given))
     return pieces
 
 
@@ -221,8 +222,11 @@ class _MergerSide:
             if isinstance(m, (LocalMap, Scan)):
                 self.merger.take(m)
 
-    def steps_due(self) -> None:
-        if self.merger.has_work:
+    def steps_due(self, n: int = 1) -> None:
+        """Up to ``n`` steps, while the merger has work."""
+        for _ in range(n):
+            if not self.merger.has_work:
+                return
             self.step()
 
     def finish(self) -> None:
@@ -247,9 +251,13 @@ def _track_and_merge(
         due = step
         with agents:
             for done, ((t, _, _), (_, _, out)) in enumerate(zip(timeline, agents, strict=True), 1):
-                while t >= due:
-                    behind.call(side.steps_due)
-                    due = due + step if step > 0 else math.nextafter(t, math.inf)  # 0: at every scan
+                if t >= due:
+                    # the steps due since the last scan, while the merger has work (a log's clock can
+                    # jump by years: a call a step would never end)
+                    after = (math.floor(t / step) + 1) * step if step > 0 else math.nextafter(t, math.inf)
+                    n = max(1, round((after - due) / step)) if step > 0 else 1
+                    behind.call(functools.partial(side.steps_due, n))
+                    due = after
                 if out:
                     behind.call(functools.partial(side.send, out))
                 if progress is not None and (done % 50 == 0 or done == total):
@@ -285,15 +293,15 @@ def _with_stamps(
     by_index: dict[tuple[str, int], tuple[int, Transform2D]], pieces: list[Piece]
 ) -> list[tuple[str, float, int, Transform2D]]:
     """Every placed scan as ``(robot, stamp, component, pose)``, its stamp as its input gives it, by
-    robot in input order, then by stamp (the order poses.csv and the TUM files write)."""
+    robot in input order, then in the input's order (the order poses.csv and the TUM files write:
+    a log's stamps may repeat or go back)."""
     poses: list[tuple[str, float, int, Transform2D]] = []
     stamps = {p.robot: p.stamps for p in pieces}
-    for (robot, index), (n, pose) in by_index.items():
+    order = {p.robot: n for n, p in enumerate(pieces)}
+    for (robot, index), (n, pose) in sorted(by_index.items(), key=lambda x: (order[x[0][0]], x[0][1])):
         stamp = stamps[robot].get(index)
         if stamp is not None:
             poses.append((robot, stamp, n, pose))
-    order = {p.robot: n for n, p in enumerate(pieces)}
-    poses.sort(key=lambda x: (order[x[0]], x[1]))
     return poses
 
 
@@ -324,8 +332,8 @@ def _summary(
                 "robot": p.robot,
                 "input": p.source,
                 "scans": len(p.scans),
-                "first_stamp": p.scans[0].stamp,
-                "last_stamp": p.scans[-1].stamp,
+                "first_stamp": p.stamps.get(p.scans[0].index, p.scans[0].stamp),
+                "last_stamp": p.stamps.get(p.scans[-1].index, p.scans[-1].stamp),
                 "odometry": p.has_odometry,
                 "odometry_used": p.has_odometry and merger.config.tracking.odometry != "off",
                 "epochs": finished[n].epochs,
