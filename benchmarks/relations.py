@@ -25,10 +25,11 @@ The SLAM-corrected logs (``corrected/NAME``: a scan about every metre, as long t
 logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan index (their stamps
 repeat, or are all 0) with relations made from their corrected poses: every two scans within
 :data:`CORRECTED_WITHIN` of each other (infinite-corridor's stamps run negative, then repeat
-4.29e9 s: it is tracked by its scans' sequence). A log that ``fleetmap map`` refuses says so. ``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`)
-maps each corrected log's pieces as a robot with that broken clock recorded them; ``--seeds N`` does
-it N times, each with other breaks (one wrong placement can bend a sparse log's map, and which scan
-the clock breaks decides it: a single seed is a single draw).
+4.29e9 s: it is tracked by its scans' sequence). A log that ``fleetmap map`` refuses says so.
+``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`) maps each corrected log's
+pieces as a robot with that broken clock recorded them; ``--seeds N`` does it N times, each with
+other breaks (one wrong placement can bend a sparse log's map, and which scan the clock breaks
+decides it: a single seed is a single draw).
 
     python benchmarks/relations.py --logs corrected/aces,corrected/acapulco --splits 1,4 --clock burst
 """

@@ -319,11 +319,13 @@ def _summary(
     for robot, _, n, _ in poses:
         placed[robot] = placed.get(robot, 0) + 1
         components.setdefault(robot, set()).add(n)
-    session = max(p.scans[-1].stamp - p.scans[0].stamp for p in pieces)
+    session: float | None = max(p.scans[-1].stamp - p.scans[0].stamp for p in pieces)
     inputs: dict[str, list[float]] = {}
     for p in pieces:
         inputs.setdefault(p.source, []).extend((p.scans[0].stamp, p.scans[-1].stamp))
-    duration = sum(max(stamps) - min(stamps) for stamps in inputs.values())
+    duration: float | None = sum(max(stamps) - min(stamps) for stamps in inputs.values())
+    if any(s.given is not None for p in pieces for s in p.scans):
+        duration = session = None  # stamps that could not be times (BusStamps) measure no duration
     result = merger.result
     return {
         "inputs": sorted({p.source for p in pieces}),
@@ -359,7 +361,7 @@ def _summary(
         "seconds": seconds,
         "agent_seconds": agent_seconds,
         "merger_seconds": merger_seconds,
-        "time_share": seconds / duration if duration > 0 else None,
+        "time_share": seconds / duration if duration else None,
     }
 
 

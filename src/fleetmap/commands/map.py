@@ -117,14 +117,15 @@ def table(summary: dict[str, Any]) -> str:
         )
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)) for row in rows]
-    share = summary["time_share"]
-    split = summary["session_s"] < summary["duration_s"]
+    share, duration = summary["time_share"], summary["duration_s"]
+    split = duration is not None and summary["session_s"] < duration
     lines.append(
         f"{summary['submaps']} submaps in {summary['components']} merged map(s) "
         f"(#0, the largest, holds {summary['largest_component_submaps']}); "
         f"{summary['integrations']} integrations ({summary['integrations_near']} near a prediction, "
         f"{summary['integrations_idle']} while idle); "
-        f"{summary['seconds']:.1f} s for {summary['duration_s']:.0f} s of log"
+        f"{summary['seconds']:.1f} s for "
+        + (f"{duration:.0f} s of log" if duration is not None else "a log whose stamps are not times")
         + (f" ({share:.2f} of its duration)" if share is not None else "")
         + (f", played as a {summary['session_s']:.0f} s session" if split else "")
     )
