@@ -79,6 +79,12 @@ class BurstOdometry(Generic[T]):
         """Whether a stamp has come after the one before: the log has a clock."""
         self._last: Timed[T] | None = None
         """The last scan added."""
+        self.own_readings = False
+        """Whether the log has shown that its readings are not read at its stamps: two scans
+        stamped within :attr:`resolution` of each other whose readings differ by more than the
+        odometry's noise (a CARMEN laser line's own odometry, a corrected log's increments, ODOM
+        lines taken by file order where the stamps repeat). A clock found wrong then leaves the
+        readings right (:meth:`fleetmap.agents.prediction.Predictor.predictions`)."""
 
     def add(self, scan: Timed[T]) -> list[Timed[T]]:
         """The scans ready to track, in order, with their readings (none while a burst may go on)."""
@@ -87,6 +93,8 @@ class BurstOdometry(Generic[T]):
             self._run = [scan]  # the log's first scan waits for the second: they may be a burst
             return []
         self._advanced = self._advanced or scan.stamp > last.stamp
+        if not self.own_readings and abs(scan.stamp - last.stamp) <= self.resolution:
+            self.own_readings = _apart(last.odometry, scan.odometry)
         # a burst is the scans read within the odometry's resolution of its first: its whole span,
         # not scan to scan (a laser faster than the resolution would make one endless burst)
         if self._same_burst(self._run[0] if self._run else last, scan):
@@ -121,10 +129,7 @@ class BurstOdometry(Generic[T]):
         a, b = first.odometry, scan.odometry
         if a is None or b is None:
             return a is b
-        return (
-            math.hypot(b.x - a.x, b.y - a.y) <= ODOMETRY_TRANSLATION_SIGMA
-            and abs(math.remainder(b.theta - a.theta, math.tau)) <= ODOMETRY_ROTATION_SIGMA
-        )
+        return not _apart(a, b)
 
     def flush(self) -> list[Timed[T]]:
         """The held scans, each with the odometry where it was taken (:class:`BurstOdometry`)."""
@@ -168,6 +173,16 @@ class BurstOdometry(Generic[T]):
             else:
                 out.append(replace(s, odometry=None))
         return out
+
+
+def _apart(a: Transform2D | None, b: Transform2D | None) -> bool:
+    """Whether two readings differ by more than the odometry's noise (False where one is missing)."""
+    if a is None or b is None:
+        return False
+    return (
+        math.hypot(b.x - a.x, b.y - a.y) > ODOMETRY_TRANSLATION_SIGMA
+        or abs(math.remainder(b.theta - a.theta, math.tau)) > ODOMETRY_ROTATION_SIGMA
+    )
 
 
 def between(a: Transform2D, b: Transform2D, f: float) -> Transform2D:

@@ -47,6 +47,9 @@ class Predictor:
         """The time between scans as the evidence supports it (the stamps, or the scans' sequence)."""
         self.odometry: Transform2D | None = None
         """The odometry reading of the last scan, which the next increment starts from."""
+        self.own_readings = False
+        """Whether the readings are the scans' own, not read at their stamps
+        (:attr:`fleetmap.agents.bursts.BurstOdometry.own_readings`): a wrong clock leaves them right."""
         self.velocity = np.zeros(3)
         """Per second of :attr:`clock` time, in the laser's frame."""
         self.velocity_known = False
@@ -105,7 +108,8 @@ class Predictor:
         (:class:`ScanClock`): the stamps while they agree with the motion, else the scans' sequence.
         Odometry read at a stamp the clock does not trust is as wrong as the stamp: its uncertainty
         then grows by the motion over the stamp's error, and the first start is the two models
-        fused by their information."""
+        fused by their information; readings shown to be the scans' own (:attr:`own_readings`) are
+        not read at a stamp, and stay as sure as on a true clock."""
         integration = self.config.integration
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
         elapsed = self.clock.elapsed(seconds, seq - last_seq)
@@ -116,7 +120,7 @@ class Predictor:
             odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed)
             if odometry_prediction is not None:
                 out.append(odometry_prediction)
-        if self.clock.trusted or not out:
+        if self.clock.trusted or self.own_readings or not out:
             out.append(velocity)
         else:
             # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
@@ -162,7 +166,7 @@ class Predictor:
         prediction = self.odometry_step = from_odometry(increment)
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
-        if not self.clock.trusted:
+        if not self.clock.trusted and not self.own_readings:
             # read at a wrong stamp, the odometry is off by the robot's motion over the
             # stamp's error: the stamps' interval less the sequence's, a period at least
             error = max(self.clock.period, abs(seconds - elapsed))
