@@ -146,18 +146,22 @@ def test_a_log_without_a_clock_is_tracked_on_its_scans_own_odometry(datasets: Pa
     # infinite-corridor-corrected: stamped -0.45 to -1.82 s, then 4.29e9 s for every scan, its
     # odometry the laser lines' own. The clock is rightly distrusted, but the readings were not
     # read at its stamps: taken as mistimed (as sure as one step's motion, a metre), they held
-    # nothing along the corridor, and scans 46-57 slid 1.1-2.8 m a step (47 of 60 within).
+    # nothing along the corridor, and scans 46-57 slid 1.1-2.8 m a step (47 of 60 within). A clock
+    # that says nothing bounds no reach either: scan 151 was re-acquired 15.6 m and 88 degrees from
+    # its odometry's prediction.
     path = datasets / "corrected" / "infinite-corridor-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
     agent = Agent("r1", FleetmapConfig())
     poses: dict[int, Transform2D] = {}
-    for s in [*CarmenSource(path, range_max=math.inf, stop=61), None]:
+    for s in [*CarmenSource(path, range_max=math.inf, stop=161), None]:
         agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
         poses.update({index: pose for index, _epoch, pose in agent.tracked if pose is not None})
     assert agent.counts.epochs == 1 and agent.clock is not None and not agent.clock.trusted
     errors = []
-    for i in range(60):
+    for i in range(160):
         error = truth[i].inverse().compose(truth[i + 1]).inverse().compose(poses[i].inverse().compose(poses[i + 1]))
         errors.append((math.hypot(error.x, error.y), abs(math.degrees(error.theta))))
     within = sum(t < 0.10 and r < 2.0 for t, r in errors)
-    assert within >= 55 and max(t for t, _ in errors) < 0.5, f"{within} of 60 steps within 0.10 m, 2 deg"
+    worst = max(range(160), key=lambda i: errors[i][0])
+    assert within >= 145, f"{within} of 160 steps within 0.10 m, 2 deg"
+    assert errors[worst][0] < 0.5 and max(r for _, r in errors) < 10.0, f"step {worst + 1}: {errors[worst]}"
