@@ -99,8 +99,8 @@ class ScanSource(Protocol):
 
 
 class BusStamps:
-    """A source's stamps as the bus carries them. A stamp that cannot be a time (negative, or not a
-    number: a log whose converter counted from its own start, or lost the clock) is read as the last
+    """A source's stamps as the bus carries them. A stamp that cannot be a time (negative, or not
+    finite: a log whose converter counted from its own start, or lost the clock) is read as the last
     usable one repeated, said once: the tracker goes by the scans' sequence where stamps repeat
     (docs/decisions/009-clocks-evidence-over-stamps.md), and ``fleetmap map`` still writes the
     input's own stamp (:attr:`SourceScan.given`). One log seen: infinite-corridor-corrected, stamped
@@ -125,7 +125,7 @@ class BusStamps:
                 self.source,
                 index,
                 stamp,
-                "negative" if stamp < 0 else "not a number",
+                "negative" if stamp < 0 else "not finite",
                 self.last,
             )
         return self.last
