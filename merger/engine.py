@@ -332,6 +332,11 @@ class Merger(Intake):
     def result(self) -> MergeResult | None:
         return self._result
 
+    @property
+    def key_scans(self) -> dict[str, list[KeyScan]]:
+        """The key scans kept, by the submap that placed them (a merger made with ``keep_key_scans``)."""
+        return self._key_scans
+
     def scan_poses(self) -> dict[tuple[str, int], tuple[int, Transform2D]]:
         """Every scan the last solve placed, by (robot, index): its component's number and its laser
         pose in that component's frame (:func:`fleetmap.merger.outputs.scan_poses`; the key scans

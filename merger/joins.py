@@ -143,13 +143,14 @@ class JoinJudge(PairJudge):
         integration is refused when a clearly different alignment scores about as well, and two
         groups are not joined while two clearly different alignments of them both hold.
 
-        The alignments looked at are the other integrations between the groups, their best and
-        their rivals (:data:`JOIN_HYPOTHESES` of them), most valuable first, at most ``RIVAL_JOINS``
-        clearly different ones. One counts only if the two groups as wholes hold it valid, by a
-        cheap look at every pair that then meets (:meth:`_group_look`: the wall in seen free space
-        within what the validity rule allows the wall on wall): a rival can put a metre of wall in
-        free space at each of twenty pairs, none enough to refute it alone (the office: r3 turned
-        round 39 m off, 23.6 m in free space against 102 m on wall, borne out by two pairs).
+        The alignments looked at are the other integrations between the groups, their best (unless
+        :meth:`_outweighed`) and their rivals (:data:`JOIN_HYPOTHESES` of them), most valuable
+        first, at most ``RIVAL_JOINS`` clearly different ones. One counts only if the two groups
+        as wholes hold it valid, by a cheap look at every pair that then meets
+        (:meth:`_group_look`: the wall in seen free space within what the validity rule allows the
+        wall on wall): a rival can put a metre of wall in free space at each of twenty pairs, none
+        enough to refute it alone (the office: r3 turned round 39 m off, 23.6 m in free space
+        against 102 m on wall, borne out by two pairs).
         In a warehouse every aisle looks like the next: a young robot's submaps down one aisle
         integrate validly with another robot's of the aisle 14 m along, every pair of their
         submaps bears that out, and the rivals one and six aisles along are borne out as well:
@@ -163,7 +164,8 @@ class JoinJudge(PairJudge):
                 if f.key() == e.key() or not ((f.a in in_a and f.b in in_b) or (f.a in in_b and f.b in in_a)):
                     continue
                 g = f if f.a in in_a else f.reversed()
-                scored.append((g.value, g))
+                if not self._outweighed(g):
+                    scored.append((g.value, g))
                 scored += [(g.runner_up, replace(g, transform=t)) for t in g.rivals[: JOIN_HYPOTHESES - 1]]
         scored.sort(key=lambda s: (-s[0], s[1].a, s[1].b))
         hypotheses = [h for _, h in scored]
@@ -179,6 +181,11 @@ class JoinJudge(PairJudge):
             self._rivals.clear()
         rival = self._rivals[key] = self._found_rival_join(e, joined, hypotheses, group_a, group_b, rel, adjacency)
         return rival
+
+    def _outweighed(self, f: Edge) -> bool:
+        """Whether an integration between two groups is outweighed by others between them that
+        agree with each other (none here; :mod:`fleetmap.merger.consistency`): not a rival."""
+        return False
 
     def _found_rival_join(
         self,

@@ -207,7 +207,7 @@ class PoseGraph(RefinedGraph):
                 kept.apart.append(e)  # an ambiguous integration joins nothing (_kruskal)
                 return True
             if not e.link:
-                if self._join_holds(e, members[ra], members[rb], rel, adjacency):
+                if self._join_accepted(e, members[ra], members[rb], rel, adjacency):
                     return False  # a join: the whole solve judges it with its rivals
                 kept.conflicts.append(e)
                 kept.rejected.append(e)
@@ -252,7 +252,7 @@ class PoseGraph(RefinedGraph):
         for e in kept.apart:
             ra, rb = root[e.a], root[e.b]
             regrown = ra != rb and (ra in touched or rb in touched)
-            if regrown and e.valid and not e.link and self._join_holds(e, members[ra], members[rb], rel, adjacency):
+            if regrown and e.valid and not e.link and self._join_accepted(e, members[ra], members[rb], rel, adjacency):
                 return False
         for r in sorted(touched):
             group = set(members[r])

@@ -18,9 +18,10 @@ from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import Any
 
+from fleetmap.merger.consistency import ConsistencyJudge
 from fleetmap.merger.forest import KeptForest, RootedForest
 from fleetmap.merger.graph import Edge, _bfs_order, _culprit, _unite
-from fleetmap.merger.joins import JOIN_HYPOTHESES, JoinJudge, _within
+from fleetmap.merger.joins import JOIN_HYPOTHESES, _within
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.validity import is_valid
 
@@ -41,7 +42,7 @@ def _tree_poses(keys: Iterable[str], adjacency: dict[str, list[Edge]]) -> dict[s
     return poses
 
 
-class ForestBuilder(JoinJudge):
+class ForestBuilder(ConsistencyJudge):
     """Submaps, links and integrations, and the spanning forest that orders their merge."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:  # as ChainGraph's
@@ -146,6 +147,8 @@ class ForestBuilder(JoinJudge):
         path through the forest is the same once the forest is whole: the cycle checks are made
         then, on the forest rooted once (:class:`~fleetmap.merger.forest.RootedForest`), in the
         order the edges came."""
+        self.refused_whole.clear()
+        self.outweighed.clear()
         root = {k: k for k in self._nodes}
         rel = {k: Transform2D.identity() for k in self._nodes}
         members = {k: [k] for k in self._nodes}
@@ -171,7 +174,11 @@ class ForestBuilder(JoinJudge):
                 if ra == rb:
                     checks.append((e, "ambiguous"))
                 continue
-            elif ra != rb and not e.link and not self._join_holds(e, members[ra], members[rb], rel, adjacency):
+            elif (
+                ra != rb
+                and not e.link
+                and not self._join_accepted(e, members[ra], members[rb], rel, adjacency, by_node)
+            ):
                 checks.append((e, "refused"))
                 continue
             elif ra != rb and not e.link:

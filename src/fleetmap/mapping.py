@@ -153,6 +153,8 @@ class MapResult:
     """(robot, stamp, component, laser pose in the component's frame) of every placed scan."""
     by_index: dict[tuple[str, int], tuple[int, Transform2D]] = field(default_factory=dict)
     """The same by (robot, the scan's index in its input): a log's stamps may repeat."""
+    merger: Merger | None = None
+    """The merger that made the map, its pose graph and all (benchmarks look inside it)."""
 
 
 def map_logs(
@@ -191,7 +193,7 @@ def map_logs(
     seconds = time.perf_counter() - started
     report["map"] = _summary(pieces, poses, merger, agents.finished, seconds, agents.seconds, side.seconds)
     _write_map_files(Path(out_dir), report, poses, pieces)
-    return MapResult(report, poses, by_index)
+    return MapResult(report, poses, by_index, merger)
 
 
 class _MergerSide:
