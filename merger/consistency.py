@@ -177,7 +177,7 @@ class ConsistencyJudge(JoinJudge):
 
 
 def _agreed_key(e: Edge) -> tuple[object, ...]:
-    """An integration's key in :attr:`ConsistencyJudge._agreed`: its submaps in order, versions and transform."""
+    """An integration's key in :class:`ConsistencyJudge`'s sets: its submaps in order, versions and transform."""
     f = e if e.a <= e.b else e.reversed()
     t = f.transform
     return (f.a, f.b, f.versions, round(t.x, 3), round(t.y, 3), round(t.theta, 4))
