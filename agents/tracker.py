@@ -360,16 +360,19 @@ class Tracker:
         """Fits from starts turned across the prediction's heading uncertainty, nearest first, up to
         the first good and typical one. A registration settles within :data:`REACH_ROTATION` of its
         start, so a prediction less sure of its heading than that leaves the rest unsearched; the
-        starts, ``2 REACH_ROTATION`` apart over one sigma either side, search it as a correlative
-        matcher searches its prior's window (Olson, ICRA 2009). The prior stays the prediction's.
-        The case: a burst's spread reading inside an uneven turn, 14 degrees short of a 29-degree
-        step a metre long (acapulco-corrected, scan 115), whose registration settled in a wrong
-        minimum; the robot was carried on that heading, and the submap it built turned the map."""
+        starts, ``2 REACH_ROTATION`` apart over two sigma either side (95 % of the prior), search it
+        as a correlative matcher searches its prior's window (Olson, ICRA 2009). The prior stays
+        the prediction's. The cases: a burst's spread reading inside an uneven turn, 14 degrees
+        short of a 29-degree step a metre long (acapulco-corrected, scan 115), whose registration
+        settled in a wrong minimum; the robot was carried on that heading, and the submap it built
+        turned the map. And an odometry reading 8 degrees off with a sigma of 7 (freiburg-079-
+        corrected, scan 4386): one sigma left no start to search, and an atypical fit 10 degrees
+        off was taken (record 015)."""
         step = 2.0 * REACH_ROTATION
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
         fits: list[Fit] = []
-        for k in range(1, int(min(prediction.sigma_rotation, math.pi) / step) + 1):
+        for k in range(1, int(min(2.0 * prediction.sigma_rotation, math.pi) / step) + 1):
             for turn in (k * step, -k * step):
                 start = Transform2D(mean.x, mean.y, mean.theta + turn)
                 if any(same_start(start, other) for other in tried):
