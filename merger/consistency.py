@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from typing import Any
 
 import networkx as nx
@@ -102,11 +103,7 @@ class ConsistencyJudge(JoinJudge):
             self.refused_whole.add(_agreed_key(e))
             return False
         if by_node is None:
-            by_node = {}
-            for f in self._edges.values():
-                if not f.link:
-                    by_node.setdefault(f.a, []).append(f)
-                    by_node.setdefault(f.b, []).append(f)
+            by_node = integrations_by_node(self._edges.values())
         return self._consistent_join(e, group_a, group_b, adjacency, by_node)
 
     def _consistent_join(
@@ -174,6 +171,16 @@ class ConsistencyJudge(JoinJudge):
         tol_t = math.sqrt(base_t * base_t + drift_ta * drift_ta + drift_tb * drift_tb)
         tol_r = math.sqrt(base_r * base_r + drift_ra * drift_ra + drift_rb * drift_rb)
         return cycle_distance(error, tol_t, tol_r) <= CONSISTENT_CHI2
+
+
+def integrations_by_node(edges: Iterable[Edge]) -> dict[str, list[Edge]]:
+    """The integrations (not the links) among ``edges``, by each of their two submaps."""
+    by_node: dict[str, list[Edge]] = {}
+    for e in edges:
+        if not e.link:
+            by_node.setdefault(e.a, []).append(e)
+            by_node.setdefault(e.b, []).append(e)
+    return by_node
 
 
 def _agreed_key(e: Edge) -> tuple[object, ...]:

@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from typing import Any
 
-from fleetmap.merger.consistency import ConsistencyJudge
+from fleetmap.merger.consistency import ConsistencyJudge, integrations_by_node
 from fleetmap.merger.forest import KeptForest, RootedForest
 from fleetmap.merger.graph import Edge, _bfs_order, _culprit, _unite
 from fleetmap.merger.joins import JOIN_HYPOTHESES, _within
@@ -158,11 +158,7 @@ class ForestBuilder(ConsistencyJudge):
         adjacency: dict[str, list[Edge]] = {k: [] for k in self._nodes}
         edges = list(edges)
         checks: list[tuple[Edge, str]] = []  # joins refused, and edges within one group, in order
-        by_node: dict[str, list[Edge]] = {}
-        for e in edges:
-            if not e.link:
-                by_node.setdefault(e.a, []).append(e)
-                by_node.setdefault(e.b, []).append(e)
+        by_node = integrations_by_node(edges)
         for e in edges:
             ra, rb = root[e.a], root[e.b]
             if not e.valid:

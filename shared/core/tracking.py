@@ -352,14 +352,12 @@ def register(
     odometry, settled 7 degrees and 0.13 m off, its fine-stage support down from 2.5 m of wall at
     the prediction to 2.1 m (docs/decisions/015-a-descent-that-ends-no-worse.md)."""
     schedule = correspondence_schedule()
-    mu = prior.as_array()
-    run = _gauss_newton(scan, reference, initial.as_array(), mu, prior_information, schedule)
+    start, mu = initial.as_array(), prior.as_array()
+    run = _gauss_newton(scan, reference, start, mu, prior_information, schedule)
     radius, scale = schedule[-1]
     ended = _objective(scan, reference, run.x, mu, prior_information, radius, scale)
-    if len(schedule) > 1 and ended > _objective(
-        scan, reference, initial.as_array(), mu, prior_information, radius, scale
-    ):
-        fine = _gauss_newton(scan, reference, initial.as_array(), mu, prior_information, schedule[-1:])
+    if len(schedule) > 1 and ended > _objective(scan, reference, start, mu, prior_information, radius, scale):
+        fine = _gauss_newton(scan, reference, start, mu, prior_information, schedule[-1:])
         if _objective(scan, reference, fine.x, mu, prior_information, radius, scale) < ended:
             run = fine
     inliers = np.abs(run.residuals) <= run.radius
