@@ -208,7 +208,7 @@ class Predictor:
             return off <= 0.5 * integration.motion.max_acceleration * seconds * seconds + margin
         return True
 
-    def judge_odometry_sign(self, moved: Transform2D) -> None:
+    def judge_odometry_sign(self, moved: Transform2D, step: Prediction | None = None) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
         scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),
         filtered forward (Rabiner 1989, the forward algorithm). Each state predicts the increment
@@ -223,8 +223,10 @@ class Predictor:
         belief holds unless a step only the other state explains turns it by a likelihood ratio
         over 1e9. A step neither state explains (the chi-square
         validation gate) says nothing of the sign. Where the odometry keeps its sign the signed
-        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md)."""
-        step = self.odometry_step
+        state predicts the motion and holds (docs/decisions/009-clocks-evidence-over-stamps.md).
+        ``step``: the odometry's increment over the step ``moved`` spans, when it is not the last
+        scan's (:attr:`odometry_step`)."""
+        step = self.odometry_step if step is None else step
         if step is None:
             return
         signed = step.increment

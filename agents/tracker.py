@@ -56,7 +56,7 @@ from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
-from fleetmap.shared.core.motion import Prediction
+from fleetmap.shared.core.motion import Prediction, from_odometry
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
@@ -233,10 +233,9 @@ class Tracker:
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
-            before = self._pose
+            before, anchor = self._pose, self._anchor
             step = self._place(taken, fit, status)
-            if before is not None and self._pose is not None:
-                self.motion.judge_odometry_sign(before.inverse().compose(self._pose))
+            self._judge_sign(before, anchor, spread, odometry)
             return [step]
         if not fit.contradicted and odometry_predicts:
             return [self._carried(taken, fit, predictions[0])]
@@ -250,6 +249,27 @@ class Tracker:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
+
+    def _judge_sign(
+        self,
+        before: Transform2D | None,
+        anchor: tuple[Transform2D, Transform2D] | None,
+        spread: bool,
+        odometry: Transform2D | None,
+    ) -> None:
+        """The odometry's sign judged on the step just placed (:meth:`Predictor.judge_odometry_sign`),
+        where the step is a measurement: a reading spread within a burst is a guess between two
+        readings (a turn in place spread as a share of the burst's drive reads as a step forward the
+        walls did not see, or a stop), so only a reading taken where its scan was is judged, from
+        the last such scan as placed (``anchor``) when spread ones came between."""
+        if before is None or self._pose is None or not self.exact:
+            return
+        if not spread:
+            self.motion.judge_odometry_sign(before.inverse().compose(self._pose))
+        elif anchor is not None and odometry is not None:
+            at, reading = anchor
+            measured = from_odometry(reading.inverse().compose(odometry))
+            self.motion.judge_odometry_sign(at.inverse().compose(self._pose), measured)
 
     def _carried(self, taken: _ScanIn, fit: Fit, prediction: Prediction) -> TrackStep:
         """No evidence either way (open space, a few metres of wall, a person in front of the

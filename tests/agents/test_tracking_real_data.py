@@ -138,6 +138,34 @@ def test_a_registration_the_coarse_stage_carries_off_is_taken_from_the_fine_stag
     assert not off, f"steps off their truth (m, deg), by scan: {off}"
 
 
+@pytest.mark.slow  # tracks a real log of 440 scans (about 4 s)
+def test_readings_spread_within_bursts_never_turn_the_odometry_round(datasets: Path) -> None:
+    # aces-corrected stamped in bursts: a burst's readings but its last are spread between two
+    # readings, and a turn in place spread as a share of the burst's drive read as steps the walls
+    # contradicted, or stops; judged as measurements they turned the odometry's sign, and the robot
+    # was placed driving backwards down corridors (scans 199-200, 271, 361-364: up to 5.5 m)
+    path = datasets / "corrected" / "aces-corrected.log.gz"
+    agent = Agent("r1", FleetmapConfig())
+    poses: dict[int, Transform2D] = {}
+    for s in break_clock(CarmenSource(path), "burst"):
+        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
+    agent.finish()
+    poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
+    truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
+    backwards = {}
+    for i in range(len(truth) - 1):
+        if i not in poses or i + 1 not in poses:
+            continue
+        true, placed = truth[i].inverse().compose(truth[i + 1]), poses[i].inverse().compose(poses[i + 1])
+        length = math.hypot(true.x, true.y)
+        along = (true.x * placed.x + true.y * placed.y) / length if length > 0.5 else 0.0
+        if along < -0.3:
+            backwards[i + 1] = round(along, 2)
+    assert agent.counts.epochs == 1
+    assert not backwards, f"steps placed backwards (m along the true step), by scan: {backwards}"
+
+
 @pytest.mark.slow  # tracks 800 scans of a real log (about 10 s)
 def test_an_odometry_reading_over_a_sigma_off_is_searched_across_two_sigma(datasets: Path) -> None:
     # freiburg-079-corrected's fourth quarter: scan 4386's odometry is 8 degrees off with a sigma
