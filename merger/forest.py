@@ -50,12 +50,16 @@ class RootedForest:
         """The keys of the integrations on each node's path from its root: a node is on the far
         side of a join from its root exactly where the join is among them."""
         self._sums: dict[str, _Sums] = {}
+        self._jumps: dict[str, list[str]] = {}
+        """Each node's ancestors 1, 2, 4, ... levels up (binary lifting: a lowest common ancestor
+        in a climb of log(depth) jumps, not one edge at a time up a robot's long chain)."""
         for start in keys:
             if start in self.depth:
                 continue
             self.parent[start], self.depth[start], self.root[start] = None, 0, start
             self.at[start], self._sums[start] = Transform2D.identity(), _ZERO
             self.joins_above[start] = frozenset()
+            self._jumps[start] = []
             queue, i = [start], 0
             while i < len(queue):
                 k = queue[i]
@@ -68,6 +72,7 @@ class RootedForest:
                     self.at[u] = self.at[k].compose(e.transform)
                     self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
                     self.joins_above[u] = self.joins_above[k] if e.link else self.joins_above[k] | {e.key()}
+                    self._hang(u, k)
                     queue.append(u)
 
     def add_root(self, key: str) -> None:
@@ -75,6 +80,7 @@ class RootedForest:
         self.parent[key], self.depth[key], self.root[key] = None, 0, key
         self.at[key], self._sums[key] = Transform2D.identity(), _ZERO
         self.joins_above[key] = frozenset()
+        self._jumps[key] = []
 
     def add_leaf(self, e: Edge, covariances: dict[tuple[str, str], Array]) -> None:
         """Hang ``e.b`` (a tree of one node) from ``e.a``: the forest as if rooted again, for the
@@ -84,23 +90,32 @@ class RootedForest:
         self.at[u] = self.at[k].compose(e.transform)
         self._sums[u] = _add(self._sums[k], e, covariances, self.at[u], self.at[k])
         self.joins_above[u] = self.joins_above[k] if e.link else self.joins_above[k] | {e.key()}
+        self._hang(u, k)
+
+    def _hang(self, u: str, parent: str) -> None:
+        """``u``'s jumps, its parent's known: 2^j levels up is 2^(j-1) up from 2^(j-1) up."""
+        jumps = self._jumps[u] = [parent]
+        while len(jumps) <= len(self._jumps[jumps[-1]]):
+            jumps.append(self._jumps[jumps[-1]][len(jumps) - 1])
 
     def lowest_common(self, a: str, b: str) -> str | None:
         """The lowest common ancestor of two nodes (None: in different trees)."""
         if self.root.get(a) is None or self.root.get(a) != self.root.get(b):
             return None
-        while self.depth[a] > self.depth[b]:
-            a = self._up(a)
-        while self.depth[b] > self.depth[a]:
-            b = self._up(b)
-        while a != b:
-            a, b = self._up(a), self._up(b)
-        return a
-
-    def _up(self, k: str) -> str:
-        e = self.parent[k]
-        assert e is not None
-        return e.a
+        if self.depth[a] < self.depth[b]:
+            a, b = b, a
+        climb, j = self.depth[a] - self.depth[b], 0
+        while climb:
+            if climb & 1:
+                a = self._jumps[a][j]
+            climb, j = climb >> 1, j + 1
+        if a == b:
+            return a
+        for j in reversed(range(len(self._jumps[a]))):
+            # a and b at one depth have as many jumps; one past a's root is no jump
+            if j < len(self._jumps[a]) and self._jumps[a][j] != self._jumps[b][j]:
+                a, b = self._jumps[a][j], self._jumps[b][j]
+        return self._jumps[a][0]
 
     def path_keys(self, a: str, b: str) -> list[tuple[str, str]]:
         """The keys of the tree edges on the path from a to b (empty if not connected)."""
