@@ -70,3 +70,33 @@ def test_paths_and_drift_are_those_of_a_search_along_the_forest(seed: int) -> No
         got = graph._tolerance_between(forest, a, b)
         assert got == pytest.approx(expected, rel=1e-9, abs=1e-12)
     assert connected > 20
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_forest_grown_leaf_by_leaf_finds_the_ancestors_a_climb_finds(seed: int) -> None:
+    # the kept solve hangs each new submap from its parent as a leaf (add_leaf); the lowest common
+    # ancestor is found by jumps of 1, 2, 4, ... levels, so the chains are made long and bushy
+    rng = random.Random(seed)
+    forest = RootedForest([], {}, {})
+    parent: dict[str, str | None] = {}
+    for t in range(3):
+        forest.add_root(f"t{t}")
+        parent[f"t{t}"] = None
+    for n in range(400):
+        # mostly the newest node (a robot's chain), now and then any (a branch)
+        up = f"n{n - 1}" if n > 0 and rng.random() < 0.8 else rng.choice(sorted(parent))
+        key = f"n{n}"
+        forest.add_leaf(Edge(up, key, Transform2D(1.0, 0.0, 0.0), math.inf, True, link=True), {})
+        parent[key] = up
+
+    def ancestors(k: str) -> list[str]:
+        out = [k]
+        while parent[out[-1]] is not None:
+            out.append(parent[out[-1]])  # type: ignore[arg-type]
+        return out
+
+    for _ in range(500):
+        a, b = rng.sample(sorted(parent), 2)
+        above_b = set(ancestors(b))
+        expected = next((k for k in ancestors(a) if k in above_b), None)
+        assert forest.lowest_common(a, b) == expected
