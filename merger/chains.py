@@ -90,6 +90,7 @@ class ChainGraph(MapGraph):
         if self._links.get(b) != link:  # each version of a submap sends its link again: the same
             # edge kept as it was, so the kept forest sees an edge it holds, not one to compare
             self._links[b] = link
+            self.edits += 1
         self._link_covariances[(a, b)] = self._link_covariances[(b, a)] = cov
         self._link_sources.add(a)
 

@@ -210,6 +210,14 @@ class MapGraph:
         """The registration of an integration near a prediction (:meth:`align_pair`)."""
         self._nodes: dict[str, _Node] = {}
         self._edges: dict[tuple[str, str], Edge] = {}
+        self.edits = 0
+        """Changes to the graph's maps (added or removed), integrations and links so far: a solve
+        whose graph has had none since the last one holds every edge it held
+        (:meth:`~fleetmap.merger.posegraph.PoseGraph.solve`)."""
+        self.rivalled: dict[str, set[tuple[str, str]]] = {}
+        """The integrations at each map that are invalid and have rivals: whether such a one is
+        ambiguous depends on its maps' versions, not on the edge alone
+        (:meth:`~fleetmap.merger.spanning.ForestBuilder._ambiguous`)."""
         self._counter = 0
         self._references: dict[str, tuple[int, ReferenceMap]] = {}
 
@@ -270,6 +278,7 @@ class MapGraph:
                 # stand, their versions move on (one kept from an older version stays old).
                 old = node.version
                 node.version = version
+                self.edits += 1
                 for k, e in list(self._edges.items()):
                     if key in k:
                         va, vb = e.versions
@@ -281,8 +290,9 @@ class MapGraph:
             node.work, node.index = self._work(key, segment_map), None
             if not keep_edges:
                 for k in [k for k in self._edges if key in k]:
-                    del self._edges[k]
+                    self._put_edge(k, None)
             return True
+        self.edits += 1
         self._nodes[key] = _Node(
             segment_map,
             self._counter,
@@ -305,16 +315,32 @@ class MapGraph:
         return node.index
 
     def remove_map(self, key: str) -> None:
+        self.edits += 1
         self._nodes.pop(key, None)
         self._references.pop(key, None)
         for k in [k for k in self._edges if key in k]:
-            del self._edges[k]
+            self._put_edge(k, None)
+        self.rivalled.pop(key, None)
 
     def add_edge(self, edge: Edge) -> None:
         """Record an integration (computed here or elsewhere, e.g. restored from a recording)."""
         if edge.a not in self._nodes or edge.b not in self._nodes:
             raise BadInput(f"edge {edge.a}-{edge.b}", "names a map that is not in the graph")
-        self._edges[edge.key()] = edge
+        self._put_edge(edge.key(), edge)
+
+    def _put_edge(self, key: tuple[str, str], edge: Edge | None) -> None:
+        """Record an integration by its key, or remove it (None), counted in :attr:`edits`."""
+        self.edits += 1
+        if edge is None:
+            self._edges.pop(key, None)
+        else:
+            self._edges[key] = edge
+        rivalled = edge is not None and not edge.valid and bool(edge.rivals)
+        for k in key:
+            if rivalled:
+                self.rivalled.setdefault(k, set()).add(key)
+            elif k in self.rivalled:
+                self.rivalled[k].discard(key)
 
     def edge(self, a: str, b: str) -> Edge | None:
         e = self._edges.get((a, b) if a <= b else (b, a))
@@ -383,7 +409,7 @@ class MapGraph:
         )
         na, nb = self._nodes.get(job.a), self._nodes.get(job.b)
         if na is not None and nb is not None and (na.version, nb.version) == job.versions:
-            self._edges[e.key()] = e
+            self._put_edge(e.key(), e)
         # the indexes a worker built: kept, so that nothing builds them again
         if na is not None and na.version == job.versions[0]:
             if na.index is None and "index_a" in result.built:

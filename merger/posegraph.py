@@ -55,6 +55,7 @@ from fleetmap.merger.graph import Component, Edge, MergeResult, _bfs_order, _uni
 from fleetmap.merger.joins import JOIN_HYPOTHESES, _within
 from fleetmap.merger.pairs import VERDICT_VERSIONS
 from fleetmap.merger.refinement import RefinedGraph
+from fleetmap.merger.spanning import _robot_of
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.kalman_fusion import offset_information
 from fleetmap.shared.core.segmap import SegmentMap
@@ -88,6 +89,9 @@ class PoseGraph(RefinedGraph):
         self.whole_solves = 0
         self.kept_solves = 0
         """Solves of the whole graph, and solves that carried the last one on."""
+        self._settled = -1
+        """The graph's :attr:`edits` when the last solve's forest was found to hold every link and
+        integration (none added, changed or gone since: its edges need no second look)."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
@@ -103,25 +107,24 @@ class PoseGraph(RefinedGraph):
         """The global maps: the forest and the refined poses kept from the last solve where the
         step only added to them (:meth:`_kept_solve`), else found again from the whole graph
         (:meth:`_whole_solve`)."""
-        links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
-        # the links between two robots' first submaps (their known start poses,
-        # fleetmap.merger.startposes) are the forest's weakest edges: it takes every integration
-        # first, so that a join of two robots is judged as any join is, and a start pose only
-        # unites what no integration joins (else it closes a cycle, and weighs in the refinement);
-        # a forest with them is solved whole (a later join may take a start pose's place)
-        priors = [e for e in links if _robot_of(e.a) != _robot_of(e.b)]
-        if priors:
-            links = [e for e in links if _robot_of(e.a) == _robot_of(e.b)]
-        valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
         self._last_walls, self._walls_now = self._walls_now, {}
         self._with_walls, self._with_walls_now = self._with_walls_now, {}
-        kept = self._kept_solve(links, valid) if self._kept is not None and not priors else None
+        # no link or integration added, changed or gone: a quiet step (new versions of the active
+        # submaps, at most) looks at no edge, not every edge in the graph
+        quiet = self._kept is not None and self.edits == self._settled and self._ambiguity_stands(self._kept)
+        kept = self._kept_solve(None) if quiet else None
+        if kept is None:  # (a kept solve that fails has changed its forest: the whole solve then)
+            links, priors, valid = self._edges_to_solve()
+            if not quiet and self._kept is not None and not priors:
+                kept = self._kept_solve((links, valid))
         if kept is None:
             self.whole_solves += 1
             components, tree, loops, rejected = self._whole_solve(links, valid, priors)
+            self._settled = -1 if priors else self.edits
         else:
             self.kept_solves += 1
             components, tree, loops, rejected = kept
+            self._settled = self.edits
         if fuse_maps:  # the walls of the final round's components only
             edges = _edges_by_component(components, [*tree, *loops])
             components = [self._fused(c, edges[i]) for i, c in enumerate(components)]
@@ -132,7 +135,7 @@ class PoseGraph(RefinedGraph):
         return MergeResult(poses, components, tree, loops, rejected)
 
     def _kept_solve(
-        self, links: list[Edge], valid: list[Edge]
+        self, edges: tuple[list[Edge], list[Edge]] | None
     ) -> tuple[list[Component], list[Edge], list[Edge], list[Edge]] | None:
         """The last solve's forest and poses carried on by what this step added, where that alone
         decides the answer (issue 49: a step costs what it adds); None where the whole graph must
@@ -153,21 +156,25 @@ class PoseGraph(RefinedGraph):
         that adds nothing but new versions of submaps changes no pose."""
         kept = self._kept
         assert kept is not None
-        if any(k not in self._nodes for k in kept.versions):
-            return None
-        taken = {e.key(): e for e in links}
-        aside = 0
-        for e in valid:
-            key = e.key()
-            if key in kept.aside:
-                if kept.aside[key] is not e and kept.aside[key] != e:
-                    return None  # integrated again: the whole solve judges it
-                aside += 1
-                continue
-            taken[key] = e
-        new = _new_edges(kept, taken)
-        if new is None or aside != len(kept.aside):
-            return None  # an edge left, or one changed that only the whole solve can take
+        new: list[Edge] = []
+        if edges is not None:  # (None: the graph's edges are those the forest was found to hold)
+            if any(k not in self._nodes for k in kept.versions):
+                return None
+            links, valid = edges
+            taken = {e.key(): e for e in links}
+            aside = 0
+            for e in valid:
+                key = e.key()
+                if key in kept.aside:
+                    if kept.aside[key] is not e and kept.aside[key] != e:
+                        return None  # integrated again: the whole solve judges it
+                    aside += 1
+                    continue
+                taken[key] = e
+            found = _new_edges(kept, taken)
+            if found is None or aside != len(kept.aside):
+                return None  # an edge left, or one changed that only the whole solve can take
+            new = found
         grown = {k for k, n in self._nodes.items() if kept.versions.get(k) != n.version}
         if not new and not grown:
             return self._kept_result(kept)
@@ -511,9 +518,3 @@ def _edges_by_component(components: list[Component], edges: list[Edge]) -> list[
         if i is not None and where.get(e.b) == i:
             out[i].append(e)
     return out
-
-
-def _robot_of(key: str) -> str:
-    """The robot a node belongs to: a submap's (``robot/epoch/submap``), else the node itself (a map file)."""
-    parts = key.split("/")
-    return parts[0] if len(parts) == 3 else key

@@ -222,6 +222,31 @@ class ForestBuilder(ConsistencyJudge):
         base_t, base_r = self._tolerance(1 + joins)
         return math.hypot(base_t, drift_t), math.hypot(base_r, drift_r)
 
+    def _ambiguity_stands(self, kept: KeptForest) -> bool:
+        """Whether every integration that is invalid for its rivals alone is, at its submaps'
+        new versions, still as ambiguous as the kept forest took it (or left it out)."""
+        for k, node in self._nodes.items():
+            if kept.versions.get(k) != node.version:
+                for key in self.rivalled.get(k, ()):
+                    if self._ambiguous(self._edges[key]) != (key in kept.edges or key in kept.aside):
+                        return False
+        return True
+
+    def _edges_to_solve(self) -> tuple[list[Edge], list[Edge], list[Edge]]:
+        """The robots' links, the known start poses (links between two robots) and the
+        integrations the forest may take (valid or ambiguous)."""
+        links = [e for e in self._links.values() if e.a in self._nodes and e.b in self._nodes]
+        # the links between two robots' first submaps (their known start poses,
+        # fleetmap.merger.startposes) are the forest's weakest edges: it takes every integration
+        # first, so that a join of two robots is judged as any join is, and a start pose only
+        # unites what no integration joins (else it closes a cycle, and weighs in the refinement);
+        # a forest with them is solved whole (a later join may take a start pose's place)
+        priors = [e for e in links if _robot_of(e.a) != _robot_of(e.b)]
+        if priors:
+            links = [e for e in links if _robot_of(e.a) == _robot_of(e.b)]
+        valid = [e for e in self._edges.values() if e.valid or self._ambiguous(e)]
+        return links, priors, valid
+
     def _ambiguous(self, e: Edge) -> bool:
         """Whether an integration is invalid for its rivals alone (its value and free space would
         do): its alignment and its rivals' are hypotheses for a cycle to test."""
@@ -236,3 +261,9 @@ class ForestBuilder(ConsistencyJudge):
         )
         self._ambiguity[e.key()] = (e, na.version, nb.version, ambiguous)
         return ambiguous
+
+
+def _robot_of(key: str) -> str:
+    """The robot a node belongs to: a submap's (``robot/epoch/submap``), else the node itself (a map file)."""
+    parts = key.split("/")
+    return parts[0] if len(parts) == 3 else key

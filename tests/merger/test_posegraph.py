@@ -440,6 +440,33 @@ def test_a_graph_grown_submap_by_submap_carries_its_forest_on_and_ends_where_a_w
     _solves_as_a_whole(source, grown.solve())
 
 
+def test_a_quiet_solve_looks_at_no_edge_yet_sees_every_integration_added_after_it(fleet: Fleet) -> None:
+    # issue 49: a solve whose graph gained no link or integration since the last one (new
+    # versions at most) carries the last one on without a look at every edge; an integration
+    # added after it must still be taken, as the whole solve takes it.
+    source = _merged(fleet.finals).graph
+    graph = PoseGraph(source.integration, source.merge, source.tracking)
+    for key in sorted(source.keys, key=lambda k: source._nodes[k].order):
+        graph.put_map(key, source.map_of(key), source.version_of(key))
+    for link in source.links:
+        graph.put_link(link.a, link.b, link.transform, source._link_covariances[(link.a, link.b)])
+    apart = graph.solve()
+    assert len(apart.components) == 3, "each robot its own map before any integration"
+    whole = graph.whole_solves
+    for key in graph.keys:  # new versions of every submap (a wall fewer), their edges kept
+        walls = source.map_of(key).segments
+        graph.put_map(key, SegmentMap(walls[:-1]), source.version_of(key) + 1, keep_edges=True)
+    assert graph.edits == graph._settled, "new versions alone changed the graph's edges"
+    quiet = graph.solve()
+    assert graph.whole_solves == whole and len(quiet.components) == 3
+    for e in source.edges:
+        if not e.link:
+            graph.add_edge(replace(e, versions=(e.versions[0] + 1, e.versions[1] + 1)))
+    joined = graph.solve()
+    assert len([c for c in joined.components if len(c.members) > 1]) == 1, "the integrations added were not taken"
+    _solves_as_a_whole(graph, joined)
+
+
 @pytest.mark.slow  # shares the fleet of the tests above (about 20 s if run alone)
 def test_a_loop_integrated_again_refines_its_component_and_ends_where_a_whole_solve_does(fleet: Fleet) -> None:
     # issue 49: a submap that grew is integrated again with the same partner. Where that pair was a
