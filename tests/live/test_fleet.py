@@ -214,12 +214,17 @@ def test_a_busy_merger_stops_on_sigterm_before_a_container_would_be_killed_and_l
     state = tmp_path / "merger.state"
     sent = []
     with router_session(tmp_path) as (bus, _, common, procs):
-        maps = Inbox()
+        maps, events = Inbox(), Inbox()
         bus.subscribe(keys.globalmap, maps)
+        bus.subscribe(keys.events, events)
         merger = start(procs, "merger", *common, "--state", str(state), log=tmp_path / "merger.log")
         assert bus.wait_for_subscribers(keys.localmap("r1"), WAIT)
-        for robot in ("r1", "r2", "r3"):
+        robots = ("r1", "r2", "r3")
+        for robot in robots:
             bus.declare_liveliness(keys.alive(robot))
+        # a map put just after its robot's token may reach the merger first, and is then dropped
+        assert events.wait_until(lambda got: all(any(_joined(p, r) for _, p in got) for r in robots), WAIT)
+        for robot in robots:
             for epoch, first in enumerate(range(0, 32, 8)):
                 m = true_local_map("department", robot, first, first + 8, epoch=epoch)[0]
                 bus.publish(keys.localmap(robot), m.to_msgpack())
@@ -240,15 +245,19 @@ def test_a_restarted_merger_gets_the_maps_of_robots_that_finished_while_it_was_d
     keys = bus_keys()
     state = str(tmp_path / "merger.state")
     with router_session(tmp_path) as (bus, _, common, procs):
-        services, steps = Inbox(), Inbox()
+        services, steps, events = Inbox(), Inbox(), Inbox()
         bus.subscribe_liveliness(keys.all_services, services, lambda k: None)
         bus.subscribe(keys.steps, steps)
+        bus.subscribe(keys.events, events)
         start(procs, "record", "--out", str(tmp_path / "s.mcap"), *common, log=tmp_path / "recorder.log")
         merger = start(procs, "merger", *common, "--state", state, log=tmp_path / "merger.log")
         assert services.wait_for(2, WAIT)
         first = true_local_map("department", "r1", 0, 8)[0]
         for robot in ("r1", "r2"):
             bus.declare_liveliness(keys.alive(robot))
+        # the merger listens to robots holding their token once it has seen it: a token and a map
+        # put just after it may reach it the other way round (the map is then dropped)
+        assert events.wait_until(lambda got: all(any(_joined(p, r) for _, p in got) for r in ("r1", "r2")), WAIT)
         bus.publish(keys.localmap("r1"), first.to_msgpack())
         assert steps.wait_for(1, WAIT)
         merger.kill()  # down, while r1 sends its final version and r2 maps and finishes
