@@ -54,12 +54,15 @@ from fleetmap.agents.fitcheck import KIDNAP_REASON, TYPICAL_SCORE_SHARE, Fit, be
 from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.correlative import window_support
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.motion import Prediction, from_odometry
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
+    MAX_CORRESPONDENCE,
+    MIN_CORRESPONDENCE,
     REACH_ROTATION,
     SAMPLE_SPACING,
     Registration,
@@ -71,6 +74,12 @@ from fleetmap.shared.core.tracking import (
 __all__ = ["KIDNAP_REASON", "PlacedScan", "Submap", "TrackStep", "Tracker"]
 
 log = logging.getLogger(__name__)
+
+WINDOW_STARTS = 3
+"""The best-supported positions of a wide prediction's window, apart by registration's reach, that
+are registered (:meth:`Tracker._searched`). Without odometry (short relations within 0.10 m,
+2 deg): 1: orebro-c 57.3 %, freiburg-101-c 92.9 %, aces-c 67.8 %; 3: 60.3, 94.2, 72.2 %; 6: 63.2,
+92.9, 70.0 % at half as much again of the time."""
 
 RECENT_FITS = 20
 """The robot's recent fits whose median a typical fit is measured against (``TYPICAL_SCORE_SHARE``):
@@ -372,9 +381,48 @@ class Tracker:
             ):
                 best = again
         if best is not None:
+            best = self._searched(taken, predictions[0], best)
             self._scores.append(best.registration.score)
             return best
         return replace(fits[0], everywhere=all(f.disputed for f in fits))
+
+    def _searched(self, taken: _ScanIn, prediction: Prediction, best: Fit) -> Fit:
+        """The best-scoring good fit from ``best`` and the best-supported positions of the
+        prediction's window, where that window is wider than registration's reach: the window is
+        the prediction's two sigma (95 %), no farther than the robot drives in one scan step,
+        scored every :data:`MIN_CORRESPONDENCE` at the heading the walls gave ``best``
+        (:func:`~fleetmap.shared.core.correlative.window_support`), and registered from its
+        :data:`WINDOW_STARTS` best positions apart by registration's reach (:func:`same_start`).
+        A prediction that measures nothing (constant velocity over a second between scans of a
+        log without odometry: 1.5 m and 177 degrees) picks one minimum of many, the nearest to a
+        guess; a correlative matcher searches its prior's window and refines its best
+        pose (Olson, ICRA 2009). Down a corridor logged a scan a metre, the prediction's fit lay
+        1-3 m short of where the robot was while the fit there supported the scan 1.5-3 times as
+        well (orebro-corrected, scans 26-37). A prediction as sure as registration's reach
+        (scans a tenth of a second apart) searches nothing, nor does one the odometry measured,
+        however wide: its prior is evidence along the corridor that the walls' support is not (a
+        burst's spread readings, searched, placed aces-corrected's robot up to 6 m backwards)."""
+        last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
+        radius = min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
+        if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
+            return best
+        submap = self.chain.active[0]
+        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        center = Transform2D(mean.x, mean.y, best.registration.pose.theta)
+        spacing = MIN_CORRESPONDENCE
+        positions, support = window_support(submap.reference, taken.samples, center, radius, spacing, spacing)
+        tried = [best.registration.pose]
+        for k in np.argsort(-support, kind="stable").tolist():
+            start = Transform2D(float(positions[k, 0]), float(positions[k, 1]), center.theta)
+            if any(same_start(start, other) for other in tried):
+                continue
+            if len(tried) > WINDOW_STARTS:
+                break
+            tried.append(start)
+            fit = self._registered(taken, submap, start, mean, prediction)
+            if fit.good and fit.registration.score > best.registration.score:
+                best = fit
+        return best
 
     def _turned_fits(self, taken: _ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty, nearest first, up to
