@@ -411,6 +411,8 @@ class Tracker:
         center = Transform2D(mean.x, mean.y, best.registration.pose.theta)
         spacing = MIN_CORRESPONDENCE
         positions, support = window_support(submap.reference, taken.samples, center, radius, spacing, spacing)
+        if len(positions) == 0:
+            return best
         tried = [best.registration.pose]
         for k in np.argsort(-support, kind="stable").tolist():
             start = Transform2D(float(positions[k, 0]), float(positions[k, 1]), center.theta)

@@ -32,19 +32,27 @@ def window_support(
     match: float,
 ) -> tuple[Array, Array]:
     """The positions ``(c, 2)`` of a square grid ``spacing`` apart within ``radius`` of ``center``
-    (the reference's frame) and, for each, the wall length (m) of ``samples`` placed there at
-    ``center``'s heading whose points lie within about ``match`` of a reference wall (the lookup
-    table's cells are ``match`` wide)."""
-    n = int(radius / spacing)
-    steps = np.arange(-n, n + 1, dtype=np.float64) * spacing
-    gx, gy = np.meshgrid(steps, steps, indexing="ij")
+    (the reference's frame) where the scan can overlap the reference and, for each, the wall
+    length (m) of ``samples`` placed there at ``center``'s heading whose points lie within about
+    ``match`` of a reference wall (the lookup table's cells are ``match`` wide)."""
+    if len(samples) == 0 or len(reference) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    turned = samples.moved(Transform2D(0.0, 0.0, center.theta))
+    # only where the scan can overlap the reference at all: a window as wide as a broken clock
+    # makes it (stamps 4e9 s apart) is as large as the reference, not the clock's guess
+    walls = reference.points
+    lowest = walls.min(axis=0) - turned.points.max(axis=0) - match - np.array([center.x, center.y])
+    highest = walls.max(axis=0) - turned.points.min(axis=0) + match - np.array([center.x, center.y])
+    lo = np.ceil(np.maximum(lowest, -radius) / spacing).astype(np.int64)
+    hi = np.floor(np.minimum(highest, radius) / spacing).astype(np.int64)
+    if np.any(hi < lo):
+        return np.zeros((0, 2)), np.zeros(0)
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1) * spacing, np.arange(lo[1], hi[1] + 1) * spacing, indexing="ij")
     inside = np.hypot(gx, gy) <= radius + 1e-9
     positions = np.column_stack([gx[inside] + center.x, gy[inside] + center.y])
-    if len(samples) == 0 or len(reference) == 0:
-        return positions, np.zeros(len(positions))
-    turned = samples.moved(Transform2D(0.0, 0.0, center.theta))
+    if len(positions) == 0:
+        return positions, np.zeros(0)
     # the lookup table: the reference's walls over the window's reach, dilated by one cell
-    walls = reference.points
     low = positions.min(axis=0) + turned.points.min(axis=0) - 2 * match
     high = positions.max(axis=0) + turned.points.max(axis=0) + 2 * match
     shape = np.ceil((high - low) / match).astype(np.int64) + 1
