@@ -7,6 +7,9 @@ For each scan (:meth:`Tracker.add`):
    uncertainty (:mod:`fleetmap.agents.prediction`, which also judges the odometry's sign).
 2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
    (:func:`fleetmap.shared.core.tracking.register`).
+   A prediction that measures nothing and is wider than registration's reach (constant
+   velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
+   :mod:`fleetmap.shared.core.correlative`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
