@@ -9,7 +9,7 @@ For each scan (:meth:`Tracker.add`):
    (:func:`fleetmap.shared.core.tracking.register`).
    A prediction that measures nothing and is wider than registration's reach (constant
    velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
-   :mod:`fleetmap.shared.core.correlative`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md).
+   :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
@@ -53,11 +53,19 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from fleetmap.agents.clock_evidence import check_motion, check_order
-from fleetmap.agents.fitcheck import KIDNAP_REASON, TYPICAL_SCORE_SHARE, Fit, best_fit, judge, near, same_start
+from fleetmap.agents.fitcheck import (
+    KIDNAP_REASON,
+    TYPICAL_SCORE_SHARE,
+    Fit,
+    best_fit,
+    judge,
+    near,
+    same_start,
+    window_fit,
+)
 from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.correlative import window_support
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.motion import Prediction, from_odometry
@@ -65,7 +73,6 @@ from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
     MAX_CORRESPONDENCE,
-    MIN_CORRESPONDENCE,
     REACH_ROTATION,
     SAMPLE_SPACING,
     Registration,
@@ -77,12 +84,6 @@ from fleetmap.shared.core.tracking import (
 __all__ = ["KIDNAP_REASON", "PlacedScan", "Submap", "TrackStep", "Tracker"]
 
 log = logging.getLogger(__name__)
-
-WINDOW_STARTS = 3
-"""The best-supported positions of a wide prediction's window, apart by registration's reach, that
-are registered (:meth:`Tracker._searched`). Without odometry (short relations within 0.10 m,
-2 deg): 1: orebro-c 57.3 %, freiburg-101-c 92.9 %, aces-c 67.8 %; 3: 60.3, 94.2, 72.2 %; 6: 63.2,
-92.9, 70.0 % at half as much again of the time."""
 
 RECENT_FITS = 20
 """The robot's recent fits whose median a typical fit is measured against (``TYPICAL_SCORE_SHARE``):
@@ -390,20 +391,10 @@ class Tracker:
         return replace(fits[0], everywhere=all(f.disputed for f in fits))
 
     def _searched(self, taken: _ScanIn, prediction: Prediction, best: Fit) -> Fit:
-        """The best-scoring good fit from ``best`` and the best-supported positions of the
-        prediction's window, where that window is wider than registration's reach: the window is
-        the prediction's two sigma (95 %), no farther than the robot drives in one scan step,
-        scored every :data:`MIN_CORRESPONDENCE` at the heading the walls gave ``best``
-        (:func:`~fleetmap.shared.core.correlative.window_support`), and registered from its
-        :data:`WINDOW_STARTS` best positions apart by registration's reach (:func:`same_start`).
-        A prediction that measures nothing (constant velocity over a second between scans of a
-        log without odometry: 1.5 m and 177 degrees) picks one minimum of many, the nearest to a
-        guess; a correlative matcher searches its prior's window and refines its best
-        pose (Olson, ICRA 2009). Down a corridor logged a scan a metre, the prediction's fit lay
-        1-3 m short of where the robot was while the fit there supported the scan 1.5-3 times as
-        well (orebro-corrected, scans 26-37). A prediction as sure as registration's reach
-        (scans a tenth of a second apart) searches nothing, nor does one the odometry measured,
-        however wide: its prior is evidence along the corridor that the walls' support is not (a
+        """``best``, or a better fit from the prediction's window (:func:`window_fit`) where the
+        prediction is constant velocity and its two sigma, no farther than the robot drives in one
+        scan step, is wider than registration's reach. The odometry's prediction is never searched,
+        however wide: its prior is evidence along a corridor that the walls' support is not (a
         burst's spread readings, searched, placed aces-corrected's robot up to 6 m backwards)."""
         last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
         radius = min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
@@ -411,23 +402,14 @@ class Tracker:
             return best
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        center = Transform2D(mean.x, mean.y, best.registration.pose.theta)
-        spacing = MIN_CORRESPONDENCE
-        positions, support = window_support(submap.reference, taken.samples, center, radius, spacing, spacing)
-        if len(positions) == 0:
-            return best
-        tried = [best.registration.pose]
-        for k in np.argsort(-support, kind="stable").tolist():
-            start = Transform2D(float(positions[k, 0]), float(positions[k, 1]), center.theta)
-            if any(same_start(start, other) for other in tried):
-                continue
-            if len(tried) > WINDOW_STARTS:
-                break
-            tried.append(start)
-            fit = self._registered(taken, submap, start, mean, prediction)
-            if fit.good and fit.registration.score > best.registration.score:
-                best = fit
-        return best
+        return window_fit(
+            best,
+            submap,
+            taken.samples,
+            mean,
+            radius,
+            lambda start: self._registered(taken, submap, start, mean, prediction),
+        )
 
     def _turned_fits(self, taken: _ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty, nearest first, up to
