@@ -1,5 +1,5 @@
-"""Benchmark: ``fleetmap map`` on the full-rate logs, whole and cut into K robots, scored with their
-Kümmerle relations (run on demand, not in CI).
+"""Benchmark: ``fleetmap map`` on every log at hand, whole and cut into K robots, scored with their
+relations (run on demand, not in CI).
 
 Each log is mapped by the command itself (a subprocess, ``--split K``); its ``poses.csv`` is then
 scored with the log's relations (``../shared/data/relations``): a relation counts where both of its
@@ -17,9 +17,9 @@ relations sit about 5 cm ahead of its laser, which puts a right map's relations 
 degrees 6 cm off. ``relation_frame.py`` measures that frame on each log's raw scans, without any
 map, before the runs; the table gives it, and the shares within as scored in the laser's frame.
 
-    python benchmarks/relations.py                       # aces, fr079, mit-csail; K = 1, 2, 4, 8
+    python benchmarks/relations.py                       # every log; K = 1, 2, 4, 8 (about an hour)
     python benchmarks/relations.py --logs mit-csail --splits 1,4 --write-results
-    python benchmarks/relations.py --logs corrected --splits 1,4,8   # the SLAM-corrected logs
+    python benchmarks/relations.py --logs corrected --splits 1,4,8   # the SLAM-corrected logs only
 
 The SLAM-corrected logs (``corrected/NAME``: a scan about every metre, as long tours are often
 logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan index (their stamps
@@ -290,9 +290,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument(
         "--logs",
-        default=",".join(LOGS),
+        default=",".join([*LOGS, "corrected"]),
         help="logs (comma-separated): full-rate ones by name, SLAM-corrected ones as corrected/NAME "
-        "(or 'corrected' for all of them)",
+        "(or 'corrected' for all of them; default: every log)",
     )
     ap.add_argument("--splits", default="1,2,4,8", help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
@@ -329,8 +329,14 @@ def main() -> int:
         for draw in range(args.seeds if n not in LOGS else 1)
     ]
     runs = []
-    with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(max_workers=1) as processes:
-        futures = [threads.submit(run, job) if job[0] in LOGS else processes.submit(run_corrected, job) for job in jobs]
+    with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(args.workers) as processes:
+        # at most --workers maps at once, of either kind: the times are shares of the logs' durations
+        futures = [
+            threads.submit(run, job)
+            if job[0] in LOGS
+            else threads.submit(lambda j: processes.submit(run_corrected, j).result(), job)
+            for job in jobs
+        ]
         refused = []
         for job, f in zip(jobs, futures, strict=True):
             try:
