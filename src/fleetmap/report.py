@@ -329,7 +329,10 @@ def _scan_at(log: SessionLog, robot: str, stamp: float) -> int | None:
 
 
 def _kidnap(log: SessionLog, truth: Truth, event: Kidnap) -> dict[str, Any]:
-    """Scans and seconds from a kidnap to the robot's first pose in a later epoch, and its error."""
+    """Scans and seconds from a kidnap to the robot's first pose in a later epoch in the fleet's map
+    (the global map's largest component), and its error. A pose only beside another robot's maps,
+    apart from the fleet's, is not the robot found again (warehouse-events' r1, placed with the
+    crashed r4 alone; docs/decisions/018-what-the-walls-did-not-check.md)."""
     out: dict[str, Any] = {
         "robot": event.robot,
         "time": event.t,
@@ -352,7 +355,7 @@ def _kidnap(log: SessionLog, truth: Truth, event: Kidnap) -> dict[str, Any]:
     ]
     out["new_epoch"] = new_epochs[0] if new_epochs else None
     for p, maps_before in log.poses:
-        if p.robot != event.robot or p.pose is None or not new_epochs or p.epoch < new_epochs[0]:
+        if p.robot != event.robot or p.pose is None or not new_epochs or p.epoch < new_epochs[0] or p.component != 0:
             continue
         out["relocalized"] = True
         out["seconds_to_relocalize"] = max(p.stamp - event.t, 0.0)
