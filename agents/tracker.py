@@ -61,6 +61,7 @@ from fleetmap.agents.fitcheck import (
     judge,
     near,
     same_start,
+    turned_fits,
     window_fit,
 )
 from fleetmap.agents.prediction import Predictor, within_gate
@@ -73,7 +74,6 @@ from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
     MAX_CORRESPONDENCE,
-    REACH_ROTATION,
     SAMPLE_SPACING,
     Registration,
     ScanSamples,
@@ -373,6 +373,8 @@ class Tracker:
             fits += turned
             if turned and turned[-1].good and turned[-1].registration.score >= floor:
                 best = turned[-1]
+            elif best is None:
+                best = self._reachable_fit(taken, turned)
         if best is None or best.registration.score < floor:
             # a scan re-acquired by pose-free integration must fit as well as the robot's scans
             # usually do: one that explains a fraction of what they did matched a look-alike (a
@@ -412,31 +414,24 @@ class Tracker:
         )
 
     def _turned_fits(self, taken: _ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
-        """Fits from starts turned across the prediction's heading uncertainty, nearest first, up to
-        the first good and typical one. A registration settles within :data:`REACH_ROTATION` of its
-        start, so a prediction less sure of its heading than that leaves the rest unsearched; the
-        starts, ``2 REACH_ROTATION`` apart over two sigma either side (95 % of the prior), search it
-        as a correlative matcher searches its prior's window (Olson, ICRA 2009). The prior stays
-        the prediction's. The cases: a burst's spread reading inside an uneven turn, 14 degrees
-        short of a 29-degree step a metre long (acapulco-corrected, scan 115), whose registration
-        settled in a wrong minimum; the robot was carried on that heading, and the submap it built
-        turned the map. And an odometry reading 8 degrees off with a sigma of 7 (freiburg-079-
-        corrected, scan 4386): one sigma left no start to search, and an atypical fit 10 degrees
-        off was taken (record 015)."""
-        step = 2.0 * REACH_ROTATION
+        """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        fits: list[Fit] = []
-        for k in range(1, int(min(2.0 * prediction.sigma_rotation, math.pi) / step) + 1):
-            for turn in (k * step, -k * step):
-                start = Transform2D(mean.x, mean.y, mean.theta + turn)
-                if any(same_start(start, other) for other in tried):
-                    continue
-                tried.append(start)
-                fits.append(self._registered(taken, submap, start, mean, prediction))
-                if fits[-1].good and fits[-1].registration.score >= floor:
-                    return fits
-        return fits
+        registered = lambda start: self._registered(taken, submap, start, mean, prediction)  # noqa: E731
+        return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
+
+    def _reachable_fit(self, taken: _ScanIn, fits: list[Fit]) -> Fit | None:
+        """No start of the motion models placed the scan: the best good fit from a turned start
+        (:func:`best_fit`) where the robot can have driven, as a re-acquired one must be, however
+        little of the scan the submap holds yet (a turn into new space: acapulco-corrected without
+        odometry, scan 77, a fit at half the robot's typical score, 0.04 m from the truth). One
+        that slid beyond that lies where no start searched (scan 161: 5.7 m along a corridor)."""
+        origin, last, seq, stamp = self.chain.active[0].origin, self._good, taken.seq, taken.stamp
+        reachable = [f for f in fits if self.motion.reachable(last, origin.compose(f.registration.pose), seq, stamp)]
+        best = best_fit(reachable, False)
+        if best is not None:
+            log.debug("scan %d fits from a turned start alone (score %.2f)", taken.index, best.registration.score)
+        return best
 
     def _registered(
         self, taken: _ScanIn, submap: Submap, start: Transform2D, mean: Transform2D, prediction: Prediction
