@@ -187,16 +187,16 @@ def turned_fits(
 ) -> list[Fit]:
     """Fits ``registered`` from starts turned about the prediction's ``mean`` (the submap's frame)
     across its heading uncertainty (``sigma_rotation``), nearest first, each start not ``tried``
-    yet (and added to it), up to the first good one scoring ``floor`` or more (typical). A registration settles within :data:`REACH_ROTATION` of its
-    start, so a prediction less sure of its heading than that leaves the rest unsearched; the
-    starts, ``2 REACH_ROTATION`` apart over two sigma either side (95 % of the prior), search it
-    as a correlative matcher searches its prior's window (Olson, ICRA 2009). The prior stays
-    the prediction's. The cases: a burst's spread reading inside an uneven turn, 14 degrees
-    short of a 29-degree step a metre long (acapulco-corrected, scan 115), whose registration
-    settled in a wrong minimum; the robot was carried on that heading, and the submap it built
-    turned the map. And an odometry reading 8 degrees off with a sigma of 7 (freiburg-079-
-    corrected, scan 4386): one sigma left no start to search, and an atypical fit 10 degrees
-    off was taken (record 015)."""
+    yet (and added to it), up to the first good one scoring ``floor`` or more (typical). A
+    registration settles within :data:`REACH_ROTATION` of its start, so a prediction less sure
+    of its heading than that leaves the rest unsearched; the starts, ``2 REACH_ROTATION`` apart
+    over two sigma either side (95 % of the prior), search it as a correlative matcher searches
+    its prior's window (Olson, ICRA 2009). The prior stays the prediction's. The cases: a
+    burst's spread reading inside an uneven turn, 14 degrees short of a 29-degree step a metre
+    long (acapulco-corrected, scan 115), whose registration settled in a wrong minimum; the
+    robot was carried on that heading, and the submap it built turned the map. And an odometry
+    reading 8 degrees off with a sigma of 7 (freiburg-079-corrected, scan 4386): one sigma left
+    no start to search, and an atypical fit 10 degrees off was taken (record 015)."""
     step = 2.0 * REACH_ROTATION
     fits: list[Fit] = []
     for k in range(1, int(min(2.0 * sigma_rotation, math.pi) / step) + 1):

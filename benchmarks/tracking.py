@@ -16,9 +16,10 @@ relations made from their corrected poses (:data:`CORRECTED_APART`).
 odometry on a skewed clock); a relation counts only where the log still has both its scans. A
 log whose own stamps do not increase has no clock to break, and says so.
 
-**Scenarios**: every bundled scenario's robots through their agents: epochs started (against the
-kidnaps the scenario has), scans placed, and the placed scans' pose error against the truth,
-relative to their epoch's first scan (mean and 95th percentile).
+**Scenarios**: every bundled scenario's robots through their agents, with their odometry and without
+(as ``--with-odometry`` runs the logs): epochs started (against the kidnaps the scenario has), scans
+placed, and the placed scans' pose error against the truth, relative to their epoch's first scan
+(mean and 95th percentile).
 
     python benchmarks/tracking.py                      # everything
     python benchmarks/tracking.py --logs mit-csail --no-scenarios
@@ -203,6 +204,7 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
 class ScenarioResult:
     name: str
     robot: str
+    odometry: bool
     scans: int
     placed: int
     epochs: int
@@ -212,12 +214,12 @@ class ScenarioResult:
     rotation_p95_deg: float
 
 
-def run_scenario(job: tuple[str, FleetmapConfig]) -> list[ScenarioResult]:
-    name, config = job
+def run_scenario(job: tuple[str, FleetmapConfig, bool]) -> list[ScenarioResult]:
+    name, config, odometry = job
     scenario = load_scenario(name)
     out = []
     for robot in scenario.robot_ids:
-        agent = Agent(robot, config)
+        agent = Agent(robot, config, odometry=odometry)
         frames: dict[int, Transform2D] = {}
         truth: dict[int, Transform2D] = {}
         errors, turns, placed, scans = [], [], 0, 0
@@ -241,6 +243,7 @@ def run_scenario(job: tuple[str, FleetmapConfig]) -> list[ScenarioResult]:
             ScenarioResult(
                 name,
                 robot,
+                odometry,
                 scans,
                 placed,
                 agent.counts.epochs,
@@ -275,12 +278,13 @@ def log_table(results: list[LogResult]) -> str:
 
 def scenario_table(results: list[ScenarioResult]) -> str:
     rows = [
-        "| scenario | robot | scans | placed | epochs | kidnaps | error mean / p95 | rotation p95 |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scenario | robot | odometry | scans | placed | epochs | kidnaps | error mean / p95 | rotation p95 |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         rows.append(
-            f"| {r.name} | {r.robot} | {r.scans} | {r.placed} | {r.epochs} | {r.kidnaps} "
+            f"| {r.name} | {r.robot} | {'on' if r.odometry else 'off'} | {r.scans} | {r.placed} | {r.epochs} "
+            f"| {r.kidnaps} "
             f"| {100 * r.error_mean:.1f} / {100 * r.error_p95:.1f} cm | {r.rotation_p95_deg:.2f} deg |"
         )
     return "\n".join(rows)
@@ -335,7 +339,8 @@ def main() -> int:
             print(log_table([r]).splitlines()[-1], flush=True)
         scenario_results = []
         if not args.no_scenarios:
-            for part in pool.map(run_scenario, [(n, config) for n in list_scenarios()]):
+            jobs = [(n, config, odometry) for n in list_scenarios() for odometry in modes]
+            for part in pool.map(run_scenario, jobs):
                 scenario_results += part
     body = ""
     if log_results:
@@ -348,8 +353,8 @@ def main() -> int:
             "the broken stamps).\n\n" + log_table(log_results)
         )
     if scenario_results:
-        body += "\n\nBundled scenarios: epochs against kidnaps, and the placed scans' pose error relative to "
-        body += "their epoch's first scan.\n\n" + scenario_table(scenario_results)
+        body += "\n\nBundled scenarios, each robot with its odometry and without: epochs against kidnaps, and the "
+        body += "placed scans' pose error relative to their epoch's first scan.\n\n" + scenario_table(scenario_results)
     print(body)
     if args.write_results:
         write_result("tracking", "Tracking front end (`benchmarks/tracking.py`)", body, config=config)
