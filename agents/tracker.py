@@ -15,7 +15,8 @@ For each scan (:meth:`Tracker.add`):
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
    bounds no registration (docs/decisions/009-clocks-evidence-over-stamps.md).
 4. A failed fit is tried again from starts turned across the prediction's heading uncertainty
-   (:meth:`Tracker._turned_fits`), then **re-acquired** with the paper's pose-free integration of
+   (:meth:`Tracker._turned_fits`; where only those fit, the best where the robot can have driven,
+   :meth:`Tracker._reachable_fit`), then **re-acquired** with the paper's pose-free integration of
    the scan on the submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
    :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
