@@ -286,6 +286,12 @@ def table(runs: list[Run], everything: list[Run] | None = None) -> str:
     return head + "\n".join(rows) + "\n"
 
 
+def _in_process(processes: ProcessPoolExecutor, job: tuple[str, int, Path, list[str], Transform2D, str, int]) -> Run:
+    """A corrected log's map (:func:`run_corrected`) in a worker process, waited for on a thread of
+    the pool that bounds how many maps run at once (``--workers``, maps of either kind)."""
+    return processes.submit(run_corrected, job).result()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument(
@@ -332,10 +338,7 @@ def main() -> int:
     with ThreadPoolExecutor(max_workers=args.workers) as threads, ProcessPoolExecutor(args.workers) as processes:
         # at most --workers maps at once, of either kind: the times are shares of the logs' durations
         futures = [
-            threads.submit(run, job)
-            if job[0] in LOGS
-            else threads.submit(lambda j: processes.submit(run_corrected, j).result(), job)
-            for job in jobs
+            threads.submit(run, job) if job[0] in LOGS else threads.submit(_in_process, processes, job) for job in jobs
         ]
         refused = []
         for job, f in zip(jobs, futures, strict=True):
