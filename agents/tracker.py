@@ -51,6 +51,7 @@ import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from fleetmap.agents.clock_evidence import check_motion, check_order
@@ -418,7 +419,7 @@ class Tracker:
         """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        registered = lambda start: self._registered(taken, submap, start, mean, prediction)  # noqa: E731
+        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
         return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
 
     def _reachable_fit(self, taken: _ScanIn, fits: list[Fit]) -> Fit | None:
