@@ -115,23 +115,10 @@ def test_a_sparse_log_without_odometry_is_placed_where_the_walls_support_it_best
     # freiburg-101-corrected without odometry: a scan every 2.6 s, so constant velocity predicts a
     # window metres wide; registered from the prediction alone, scans 2, 3 and 12 settled 1.1-1.7 m
     # from their true steps, in minima nearest a guess
-    path = datasets / "corrected" / "freiburg-101-corrected.log.gz"
-    agent = Agent("r1", FleetmapConfig(), odometry=False)
-    poses: dict[int, Transform2D] = {}
-    for s in CarmenSource(path, stop=120):
-        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
-    truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
-    off = {}
-    for i in range(119):
-        if i not in poses or i + 1 not in poses:
-            continue
-        error = truth[i].inverse().compose(truth[i + 1]).inverse().compose(poses[i].inverse().compose(poses[i + 1]))
-        if math.hypot(error.x, error.y) >= 0.3:
-            off[i + 1] = round(math.hypot(error.x, error.y), 2)
+    agent, poses, off = _first_scans_without_odometry(datasets / "corrected" / "freiburg-101-corrected.log.gz", 120)
     assert agent.counts.epochs == 1
     assert sorted(poses) == list(range(120)), f"unplaced: {sorted(set(range(120)) - set(poses))}"
-    assert not off, f"steps 0.3 m or more off their truth (m), by scan: {off}"
+    assert not off, f"steps 0.3 m or more off their truth (m, deg), by scan: {off}"
 
 
 @pytest.mark.slow  # tracks 120 scans of a real log, searching wide windows (about 5 s)
@@ -142,21 +129,33 @@ def test_a_turn_into_new_space_without_odometry_is_placed_where_a_turned_start_f
     # true pose (0.04 m off), but at half the robot's typical score it was refused, and scans
     # 77-85 started a false epoch
     path = datasets / "corrected" / "acapulco-corrected.log.gz"
+    agent, poses, off = _first_scans_without_odometry(path, 120, max_deg=3.0, range_max=math.inf)
+    assert agent.counts.epochs == 1
+    assert 77 in poses and 78 in poses
+    assert not off, f"steps 0.3 m or 3 degrees or more off their truth (m, deg), by scan: {off}"
+
+
+def _first_scans_without_odometry(
+    path: Path, stop: int, max_deg: float = math.inf, range_max: float | None = None
+) -> tuple[Agent, dict[int, Transform2D], dict[int, tuple[float, float]]]:
+    """A corrected log's first ``stop`` scans tracked as one robot without odometry (its beams read
+    up to ``range_max``: the log's own, by default): the agent, the placed scans' epoch poses by
+    index, and the steps between consecutive placed scans 0.3 m or ``max_deg`` degrees or more off
+    the corrected poses' (m, deg), by the later scan."""
     agent = Agent("r1", FleetmapConfig(), odometry=False)
     poses: dict[int, Transform2D] = {}
-    for s in CarmenSource(path, stop=120, range_max=math.inf):
+    source = CarmenSource(path, stop=stop) if range_max is None else CarmenSource(path, stop=stop, range_max=range_max)
+    for s in source:
         agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
         poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
     off = {}
-    for i in range(119):
+    for i in range(stop - 1):
         if i in poses and i + 1 in poses:
             error = truth[i].inverse().compose(truth[i + 1]).inverse().compose(poses[i].inverse().compose(poses[i + 1]))
-            if math.hypot(error.x, error.y) >= 0.3 or abs(math.degrees(error.theta)) >= 3.0:
+            if math.hypot(error.x, error.y) >= 0.3 or abs(math.degrees(error.theta)) >= max_deg:
                 off[i + 1] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
-    assert agent.counts.epochs == 1
-    assert 77 in poses and 78 in poses
-    assert not off, f"steps 0.3 m or 3 degrees or more off their truth (m, deg), by scan: {off}"
+    return agent, poses, off
 
 
 def _tracked_stretch(path: Path, start: int, stop: int) -> tuple[list[Transform2D], dict[int, Transform2D]]:
