@@ -114,6 +114,12 @@ class Predictor:
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
         elapsed = self.clock.elapsed(seconds, seq - last_seq)
         velocity = from_velocity(self.velocity, elapsed, integration.motion.max_acceleration)
+        if not self.velocity_known and integration.motion.max_speed > 0:
+            # no two placed scans have measured the motion yet: the robot may be driving at any
+            # speed it can, not standing still (an epoch begun in a corridor, whose walls fix
+            # nothing along it, was placed as standing, 0.3 m short a scan)
+            reach = integration.motion.max_speed * elapsed
+            velocity = replace(velocity, sigma_translation=max(velocity.sigma_translation, reach))
         out = []
         self.odometry_step = None
         if self.use_odometry and odometry is not None:

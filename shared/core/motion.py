@@ -136,7 +136,10 @@ class ScanClock:
     scan period (its whole span over its scans, which bursts, jitter and repeats do not change).
     A laser scans at a steady rate; its sequence is the clock a burst cannot break. A log whose
     stamps never advance has a period of one "second" per scan: the motion models then run per
-    scan.
+    scan. It takes two steps to measure a rate: stamps that advanced once only are a reset, a
+    wrap or a stamp printed coarser than the log runs (csail-corrected's six digits, 1.13486e9,
+    step once by 1e4 s in 406 scans; infinite-corridor-corrected's go back for four scans, then
+    wrap to 4.29e9 s, a period of 2.2 million seconds), and time nothing either.
     """
 
     def __init__(self, max_speed: float) -> None:
@@ -146,6 +149,8 @@ class ScanClock:
         self.first: float | None = None
         self.latest: float | None = None
         self.previous: float | None = None
+        self.advances = 0
+        """Stamps after the previous scan's."""
         self.trusted = True
         """Whether the stamps have agreed with the motion so far."""
         self.repeated = 0
@@ -169,15 +174,17 @@ class ScanClock:
             else:
                 self.backwards += 1
             self._distrust()
+        elif self.previous is not None:
+            self.advances += 1
         self.first = stamp if self.first is None else min(self.first, stamp)
         self.latest = stamp if self.latest is None else max(self.latest, stamp)
         self.previous = stamp
 
     @property
     def period(self) -> float:
-        """The log's mean time between scans (s); 1.0 where the stamps do not advance."""
+        """The log's mean time between scans (s); 1.0 where the stamps have not advanced twice."""
         periods = self.scans - 1 - self.before_first
-        if periods < 1 or self.first is None or self.latest is None or self.latest <= self.first:
+        if periods < 1 or self.first is None or self.latest is None or self.advances < 2:
             return 1.0
         return (self.latest - self.first) / periods
 

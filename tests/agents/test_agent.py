@@ -87,6 +87,16 @@ def test_without_odometry_constant_velocity_tracks_the_robot_too(office_r3):
     assert all(m.odometry is not None for m in messages if isinstance(m, Scan)), "still recorded"
 
 
+def test_without_odometry_a_robot_that_starts_down_a_corridor_is_not_placed_as_standing(department):
+    # department's r3 sets off along a corridor whose walls fix nothing along it; its second scan,
+    # predicted as standing still at its first's pose, was registered there and every later scan
+    # followed: the whole track 3.5 m short. Until two placed scans measure it, the robot may be
+    # driving at any speed it can
+    config = replace(FleetmapConfig(), tracking=TrackingParams(odometry="off"))
+    (worst_m, worst_deg), _ = track(list(robot_stream(department, "r3")), Agent("r3", config))
+    assert worst_m < 0.15 and worst_deg < 1.0, (worst_m, worst_deg)
+
+
 def test_submaps_are_bounded_overlap_chain_by_links_and_are_final_once(office_r3, office_r3_run):
     _, messages = office_r3_run
     params = TrackingParams()

@@ -53,6 +53,20 @@ def test_a_repeated_or_backward_stamp_distrusts_the_clock_and_a_log_without_time
     assert flat.period == 1.0 and flat.elapsed(0.0, 2) == 2.0
 
 
+def test_stamps_that_advanced_once_only_time_nothing_and_two_steps_measure_the_rate() -> None:
+    # csail-corrected's stamps, printed to six digits, step once by 1e4 s in 406 scans: not a
+    # period of 25 s a scan
+    coarse = ScanClock(max_speed=1.0)
+    for k in range(406):
+        coarse.tick(1.13486e9 if k < 364 else 1.13487e9)
+    assert coarse.period == 1.0 and coarse.elapsed(0.0, 3) == 3.0
+    # a burst's first two scans arrived together, the third a period later: two steps, a rate
+    burst = ScanClock(max_speed=1.0)
+    for stamp in (0.0, 0.001, 0.4):
+        burst.tick(stamp)
+    assert burst.period == pytest.approx(0.2)
+
+
 def test_two_predictions_fuse_by_their_information() -> None:
     sure = Prediction(Transform2D(1.0, 0.0, 0.0), 0.1, 0.1, "odometry")
     loose = Prediction(Transform2D(0.0, 0.0, math.pi - 0.1), 0.3, 0.3, "velocity")
