@@ -16,6 +16,9 @@ relations made from their corrected poses (:data:`CORRECTED_APART`).
 odometry on a skewed clock); a relation counts only where the log still has both its scans. A
 log whose own stamps do not increase has no clock to break, and says so.
 
+**People** (``--people 0,5``): so many people walking past each log's robot, their legs hiding the walls
+behind them (:mod:`fleetmap.scenarios.crowd`), before its clock is broken.
+
 **Scenarios**: every bundled scenario's robots through their agents, with their odometry and without
 (as ``--with-odometry`` runs the logs): epochs started (against the kidnaps the scenario has), scans
 placed, and the placed scans' pose error against the truth, relative to their epoch's first scan
@@ -24,6 +27,7 @@ placed, and the placed scans' pose error against the truth, relative to their ep
     python benchmarks/tracking.py                      # everything
     python benchmarks/tracking.py --logs mit-csail --no-scenarios
     python benchmarks/tracking.py --clock true,burst,jitter,drop,skew,repeat --no-scenarios
+    python benchmarks/tracking.py --people 0,5 --no-scenarios
     python benchmarks/tracking.py --write-results      # and write its result (benchmarks/results/)
 """
 
@@ -42,6 +46,7 @@ import numpy as np
 from fleetmap.agents.agent import Agent
 from fleetmap.scenarios import load_scenario, robot_stream
 from fleetmap.scenarios.clocks import CLOCKS, break_clock
+from fleetmap.scenarios.crowd import walk_people
 from fleetmap.scenarios.loader import list_scenarios
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
@@ -121,8 +126,8 @@ def not_run(name: str, why: str, odometry: bool) -> LogResult:
     return LogResult(name, why, odometry, 0, 0, 0, (math.nan, math.nan), math.nan, math.nan, 0, 0, 0)
 
 
-def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
-    name, odometry, config, data, clock = job
+def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
+    name, odometry, config, data, clock, people = job
     if name.startswith("corrected/"):
         path, range_max = f"{name}-corrected.log.gz", math.inf
     else:
@@ -140,8 +145,11 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str]) -> LogResult:
             for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(data / "relations" / f"{name}.relations")
             if abs(t2 - t1) <= MAX_SECONDS
         ]
+    if people:
+        clock = f"{clock}, {people} people"
+        source = list(walk_people(source, people))
     try:
-        scans_given = list(break_clock(source, clock))
+        scans_given = list(break_clock(source, clock.split(",")[0]))
     except ValueError as e:
         return not_run(name, f"{clock}: {e}", odometry)
     agent = Agent("r1", config, odometry=odometry)
@@ -308,6 +316,11 @@ def main() -> int:
         default="true",
         help=f"the logs' clocks, comma-separated: {', '.join(CLOCKS)} (fleetmap.scenarios.clocks; default true)",
     )
+    ap.add_argument(
+        "--people",
+        default="0",
+        help="people walking past each log's robot, comma-separated counts (fleetmap.scenarios.crowd; default 0)",
+    )
     ap.add_argument("--no-scenarios", action="store_true", help="skip the bundled scenarios")
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
@@ -324,7 +337,13 @@ def main() -> int:
     bad = [c for c in clocks if c not in CLOCKS]
     if bad:
         raise SystemExit(f"unknown clock {bad[0]!r} (known: {', '.join(CLOCKS)})")
-    jobs = [(n, o, config, data, c) for n in names for c in clocks for o in modes]
+    try:
+        crowds = [int(k) for k in args.people.split(",") if k]
+    except ValueError:
+        raise SystemExit(f"--people: {args.people!r} is not a list of counts") from None
+    if any(k < 0 for k in crowds):
+        raise SystemExit(f"--people: {args.people!r} (each must be 0 or more)")
+    jobs = [(n, o, config, data, c, k) for n in names for k in crowds for c in clocks for o in modes]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         log_results = []
         said: set[tuple[str, str]] = set()
@@ -350,7 +369,8 @@ def main() -> int:
             "poses. Counted where the log (its clock broken) still has both scans. Clocks: "
             "`fleetmap.scenarios.clocks` (burst: groups of 2-4 scans within 2 ms; jitter: +-50 ms; drop: a "
             "scan in ten; skew: odometry 0.1 s late; repeat: a stamp in ten repeated; the odometry read at "
-            "the broken stamps).\n\n" + log_table(log_results)
+            "the broken stamps). People: `fleetmap.scenarios.crowd` (N people walking past the robot, their legs "
+            "hiding the walls behind them).\n\n" + log_table(log_results)
         )
     if scenario_results:
         body += "\n\nBundled scenarios, each robot with its odometry and without: epochs against kidnaps, and the "

@@ -68,7 +68,7 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
     stamps = [float(_field(s, "stamp")) for s in items]
     if any(b <= a for a, b in itertools.pairwise(stamps)):
         raise ValueError("the log's stamps do not increase from scan to scan: it has no clock to break")
-    track = _Track(stamps, [_field(s, "odometry") for s in items])
+    track = OdometryTrack(stamps, [_field(s, "odometry") for s in items])
     rng = random.Random(seed)
     if clock == "drop":
         lost = {i for i in range(len(items)) if i > 0 and rng.randrange(DROP_EVERY) == 0}
@@ -99,7 +99,7 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
         yield _replaced(s, stamp, track.at(at))
 
 
-class _Track:
+class OdometryTrack:
     """The true odometry as a function of the true time (linear between scans, held at the ends)."""
 
     def __init__(self, stamps: Sequence[float], poses: Sequence[Transform2D | None]) -> None:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.scenarios.clocks import break_clock
+from fleetmap.scenarios.crowd import walk_people
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
@@ -272,3 +273,32 @@ def track_stretch(path: Path, start: int, stop: int) -> tuple[Agent, dict[int, T
         agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
         poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
     return agent, poses
+
+
+@pytest.mark.slow  # tracks 400 scans of a real log twice (about 10 s)
+def test_people_walking_past_a_real_robot_are_no_kidnap_and_cost_no_relation(datasets: Path) -> None:
+    # A laser in a lab sees people as well as walls: eight people walking past mit-csail's robot
+    # (fleetmap.scenarios.crowd), their legs hiding the walls behind them, in most scans
+    scans = list(CarmenSource(datasets / "mit-csail" / "mit-csail.clf.gz", range_max=81.91, stop=400))
+    crowded = list(walk_people(scans, 8, seed=3))
+    hidden = [int(np.sum(a.scan.ranges != b.scan.ranges)) for a, b in zip(scans, crowded, strict=True)]
+    assert np.mean(np.array(hidden) > 0) > 0.8, "people in view of most scans"
+    relations = np.loadtxt(datasets / "relations" / "mit-csail.relations")
+    within = {}
+    for name, given in (("alone", scans), ("people", crowded)):
+        agent = Agent("r1", FleetmapConfig())
+        poses: dict[int, Transform2D] = {}
+        for s in given:
+            agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+            poses.update({round(scans[i].stamp * 1e4): pose for i, _, pose in agent.tracked if pose is not None})
+        assert agent.counts.epochs == 1, name
+        assert len(poses) == len(scans), f"{name}: every scan placed"
+        errors = []
+        for t1, t2, x, y, _z, _roll, _pitch, yaw in relations:
+            a, b = poses.get(round(t1 * 1e4)), poses.get(round(t2 * 1e4))
+            if a is not None and b is not None:
+                dt, dr = a.inverse().compose(b).distance(Transform2D(x, y, yaw))
+                errors.append(dt < 0.10 and math.degrees(dr) < 2.0)
+        assert len(errors) > 200
+        within[name] = float(np.mean(errors))
+    assert within["people"] >= within["alone"] - 0.01, within
