@@ -145,13 +145,12 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
             for t1, t2, x, y, _z, _roll, _pitch, yaw in np.loadtxt(data / "relations" / f"{name}.relations")
             if abs(t2 - t1) <= MAX_SECONDS
         ]
-    if people:
-        clock = f"{clock}, {people} people"
-        source = list(walk_people(source, people))
+    label = f"{clock}, {people} people" if people else clock
+    source = list(walk_people(source, people))
     try:
-        scans_given = list(break_clock(source, clock.split(",")[0]))
+        scans_given = list(break_clock(source, clock))
     except ValueError as e:
-        return not_run(name, f"{clock}: {e}", odometry)
+        return not_run(name, f"{label}: {e}", odometry)
     agent = Agent("r1", config, odometry=odometry)
     poses: dict[float, tuple[int, Transform2D]] = {}
     times = []
@@ -194,7 +193,7 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
             hits[k] += et < tt and er < rr
     return LogResult(
         name,
-        clock,
+        label,
         odometry,
         scans,
         counted,

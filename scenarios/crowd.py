@@ -89,8 +89,9 @@ def walk_people(scans: Iterable[S], people: int, seed: int = 0) -> Iterator[S]:
         for k, person in enumerate(crowd):
             if person is None or t >= person.until or _distance(person, t, pose) > GONE:
                 person = crowd[k] = _appear(rng, pose, t, field)
-            legs += [pose.inverse().apply_points(np.array([leg]))[0] for leg in person.legs(t)]
-        ranges = _occluded(np.asarray(scan.ranges, dtype=float), angles, np.array(legs), scan.range_max)
+            legs += person.legs(t)
+        in_laser = pose.inverse().apply_points(np.array(legs))
+        ranges = _occluded(np.asarray(scan.ranges, dtype=float), angles, in_laser, scan.range_max)
         yield _with_ranges(s, dataclasses.replace(scan, ranges=ranges))
 
 
