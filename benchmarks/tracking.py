@@ -19,6 +19,11 @@ log whose own stamps do not increase has no clock to break, and says so.
 **People** (``--people 0,5``): so many people walking past each log's robot, their legs hiding the walls
 behind them (:mod:`fleetmap.scenarios.crowd`), before its clock is broken.
 
+**Pieces** (``--split 1,8``): each log cut into K pieces of consecutive scans, each tracked as a robot
+of its own, as ``fleetmap map --split K`` cuts it: K robots that each start where they know nothing
+of their motion. Relations between two pieces are nobody's to join and are not counted; epochs are
+counted per piece (a piece's first is no failure).
+
 **Scenarios**: every bundled scenario's robots through their agents, with their odometry and without
 (as ``--with-odometry`` runs the logs): epochs started (against the kidnaps the scenario has), scans
 placed, and the placed scans' pose error against the truth, relative to their epoch's first scan
@@ -28,6 +33,7 @@ placed, and the placed scans' pose error against the truth, relative to their ep
     python benchmarks/tracking.py --logs mit-csail --no-scenarios
     python benchmarks/tracking.py --clock true,burst,jitter,drop,skew,repeat --no-scenarios
     python benchmarks/tracking.py --people 0,5 --no-scenarios
+    python benchmarks/tracking.py --logs corrected/csail --split 1,8 --with-odometry on --no-scenarios
     python benchmarks/tracking.py --write-results      # and write its result (benchmarks/results/)
 """
 
@@ -126,8 +132,8 @@ def not_run(name: str, why: str, odometry: bool) -> LogResult:
     return LogResult(name, why, odometry, 0, 0, 0, (math.nan, math.nan), math.nan, math.nan, 0, 0, 0)
 
 
-def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
-    name, odometry, config, data, clock, people = job
+def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int, int]) -> LogResult:
+    name, odometry, config, data, clock, people, split = job
     if name.startswith("corrected/"):
         path, range_max = f"{name}-corrected.log.gz", math.inf
     else:
@@ -146,41 +152,43 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
             if abs(t2 - t1) <= MAX_SECONDS
         ]
     label = f"{clock}, {people} people" if people else clock
+    label += f", cut in {split}" if split > 1 else ""
     source = list(walk_people(source, people))
     try:
         scans_given = list(break_clock(source, clock))
     except ValueError as e:
         return not_run(name, f"{label}: {e}", odometry)
-    agent = Agent("r1", config, odometry=odometry)
-    poses: dict[float, tuple[int, Transform2D]] = {}
+    poses: dict[float, tuple[tuple[int, int], Transform2D]] = {}
     times = []
-    scans = 0
-    given: list[int] = []
+    scans = epochs = 0
+    piece: dict[float, int] = {}
+    for k, cut in enumerate(np.array_split(np.arange(len(scans_given)), split)):
+        agent = Agent(f"r{k + 1}", config, odometry=odometry)
 
-    def keep(tracked: list[tuple[int, int, Transform2D | None]]) -> None:
-        # a burst's scans are tracked when it ends (fleetmap.agents.bursts), so by their own index
-        for index, epoch, pose in tracked:
-            if pose is not None:
-                poses[true_stamp[index]] = (epoch, pose)
+        def keep(tracked: list[tuple[int, int, Transform2D | None]], k: int = k) -> None:
+            # a burst's scans are tracked when it ends (fleetmap.agents.bursts), so by their own index
+            for index, epoch, pose in tracked:
+                if pose is not None:
+                    poses[true_stamp[index]] = ((k, epoch), pose)
 
-    for s in scans_given:
-        given.append(s.index)
-        start = time.perf_counter()
-        for message in agent.add_scan(s.index, s.stamp, s.scan, s.odometry):
+        for s in (scans_given[i] for i in cut):
+            piece[true_stamp[s.index]] = k
+            start = time.perf_counter()
+            for message in agent.add_scan(s.index, s.stamp, s.scan, s.odometry):
+                message.to_msgpack()
+            took = time.perf_counter() - start
+            # a call that tracked a burst's scans took their time: each its share (none: nothing tracked)
+            times += [took / len(agent.tracked)] * len(agent.tracked) if agent.tracked else []
+            scans += 1
+            keep(agent.tracked)
+        for message in agent.finish():
             message.to_msgpack()
-        took = time.perf_counter() - start
-        # a call that tracked a burst's scans took their time: each its share (none: nothing tracked)
-        times += [took / len(agent.tracked)] * len(agent.tracked) if agent.tracked else []
-        scans += 1
         keep(agent.tracked)
-    for message in agent.finish():
-        message.to_msgpack()
-    keep(agent.tracked)
+        epochs += agent.counts.epochs - 1 if agent.counts.epochs else 0
     errors_t, errors_r, counted, hits = [], [], 0, [0, 0]
-    kept = {true_stamp[i] for i in given}
     for k1, k2, truth in relations:
-        if k1 not in kept or k2 not in kept:
-            continue  # a relation of a scan the broken clock dropped is nobody's to join
+        if k1 not in piece or k2 not in piece or piece[k1] != piece[k2]:
+            continue  # a scan the broken clock dropped, or two robots': nobody's to join
         counted += 1
         a, b = poses.get(k1), poses.get(k2)
         if a is None or b is None or a[0] != b[0]:
@@ -201,7 +209,7 @@ def run_log(job: tuple[str, bool, FleetmapConfig, Path, str, int]) -> LogResult:
         (hits[0] / max(counted, 1), hits[1] / max(counted, 1)),
         statistics.fmean(errors_t) if errors_t else math.nan,
         statistics.fmean(errors_r) if errors_r else math.nan,
-        agent.counts.epochs,
+        epochs + 1,
         1000 * statistics.median(times),
         1000 * float(np.percentile(times, 95)),
     )
@@ -320,6 +328,11 @@ def main() -> int:
         default="0",
         help="people walking past each log's robot, comma-separated counts (fleetmap.scenarios.crowd; default 0)",
     )
+    ap.add_argument(
+        "--split",
+        default="1",
+        help="each log cut into K robots (comma-separated counts, as fleetmap map --split; default 1)",
+    )
     ap.add_argument("--no-scenarios", action="store_true", help="skip the bundled scenarios")
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
@@ -342,7 +355,20 @@ def main() -> int:
         raise SystemExit(f"--people: {args.people!r} is not a list of counts") from None
     if any(k < 0 for k in crowds):
         raise SystemExit(f"--people: {args.people!r} (each must be 0 or more)")
-    jobs = [(n, o, config, data, c, k) for n in names for k in crowds for c in clocks for o in modes]
+    try:
+        splits = [int(k) for k in args.split.split(",") if k]
+    except ValueError:
+        raise SystemExit(f"--split: {args.split!r} is not a list of counts") from None
+    if not splits or any(k < 1 for k in splits):
+        raise SystemExit(f"--split: {args.split!r} (each must be 1 or more)")
+    jobs = [
+        (n, o, config, data, c, k, split)
+        for n in names
+        for split in splits
+        for k in crowds
+        for c in clocks
+        for o in modes
+    ]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         log_results = []
         said: set[tuple[str, str]] = set()
