@@ -43,6 +43,7 @@ OUTPUTS = (FOLDER, RESULTS)
 ORDER = (
     "relations",
     "tracking",
+    "tracking-pieces",
     "live-secure",
     "integration-size",
     "executor",
