@@ -395,7 +395,8 @@ def main() -> int:
                 "are not counted, epochs are counted per piece (docs/decisions/022).\n\n"
             )
         body += (
-            "Real logs, each one robot. Short relations: the full-rate logs' relations whose scans are at "
+            ("Real logs, each one robot. " if splits == [1] else "Real logs. ")
+            + "Short relations: the full-rate logs' relations whose scans are at "
             f"most 10 s apart; a corrected log's, each scan with the next {CORRECTED_APART} by their corrected "
             "poses. Counted where the log (its clock broken) still has both scans. Clocks: "
             "`fleetmap.scenarios.clocks` (burst: groups of 2-4 scans within 2 ms; jitter: +-50 ms; drop: a "
