@@ -226,10 +226,12 @@ def window_fit(
     samples: ScanSamples,
     mean: Transform2D,
     radius: float,
+    sigma: tuple[float, float],
     registered: Callable[[Transform2D], Fit],
 ) -> Fit:
-    """The best-scoring good fit of ``best`` and those ``registered`` from the best-supported
-    positions of the prediction's window: ``radius`` around its ``mean`` (the submap's frame),
+    """The good fit of ``best`` and those ``registered`` from the best-supported positions of the
+    prediction's window whose score, weighed by the prediction (:func:`weighed`), is highest: the
+    window is ``radius`` around the prediction's ``mean`` (the submap's frame),
     scored every :data:`MIN_CORRESPONDENCE` at the heading the walls gave ``best``
     (:func:`~fleetmap.shared.core.correlative.window_support`), registered from its
     :data:`WINDOW_STARTS` best positions apart by registration's reach (:func:`same_start`).
@@ -239,7 +241,12 @@ def window_fit(
     correlative matcher searches its prior's window and refines its best pose (Olson, ICRA 2009).
     Down a corridor logged a scan a metre, the prediction's fit lay 1-3 m short of where the robot
     was while the fit there supported the scan 1.5-3 times as well (orebro-corrected, scans 26-37;
-    docs/decisions/017-a-prior-that-measures-nothing-is-searched.md)."""
+    docs/decisions/017-a-prior-that-measures-nothing-is-searched.md).
+
+    The search finds the walls' minima; the prediction still weighs them. Along a corridor whose
+    doors repeat every two metres, two minima support the scan alike (9.28 and 9.30 m of wall:
+    orebro-corrected, scan 111), and the better score alone moved the robot two metres back at
+    every other scan (docs/decisions/023-the-window-weighed-by-its-prior.md)."""
     center = Transform2D(mean.x, mean.y, best.registration.pose.theta)
     positions, support = window_support(
         submap.reference, samples, center, radius, MIN_CORRESPONDENCE, MIN_CORRESPONDENCE
@@ -253,6 +260,19 @@ def window_fit(
             break
         tried.append(start)
         fit = registered(start)
-        if fit.good and fit.registration.score > best.registration.score:
+        if fit.good and weighed(fit, mean, sigma) > weighed(best, mean, sigma):
             best = fit
     return best
+
+
+def weighed(fit: Fit, mean: Transform2D, sigma: tuple[float, float]) -> float:
+    """A fit's score weighed by the prediction it searched: the score times the prediction's
+    Gaussian at the fit's pose, ``exp(-d^2 / 2)`` with ``d`` its Mahalanobis distance from the
+    prediction's ``mean`` by ``sigma`` (translation m, rotation rad). The real-time correlative
+    scan matcher's form (Olson, ICRA 2009, the posterior as the scan's likelihood times the motion
+    prior; Cartographer's ``RealTimeCorrelativeScanMatcher2D`` weighs each candidate's score the
+    same way), with the prediction's own uncertainty for its weights."""
+    p = fit.registration.pose
+    d2 = ((p.x - mean.x) ** 2 + (p.y - mean.y) ** 2) / sigma[0] ** 2
+    d2 += math.remainder(p.theta - mean.theta, math.tau) ** 2 / sigma[1] ** 2
+    return fit.registration.score * math.exp(-0.5 * d2)

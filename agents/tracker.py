@@ -412,6 +412,7 @@ class Tracker:
             taken.samples,
             mean,
             radius,
+            (prediction.sigma_translation, prediction.sigma_rotation),
             lambda start: self._registered(taken, submap, start, mean, prediction),
         )
 
