@@ -32,6 +32,11 @@ other breaks (one wrong placement can bend a sparse log's map, and which scan th
 decides it: a single seed is a single draw).
 
     python benchmarks/relations.py --logs corrected/aces,corrected/acapulco --splits 1,4 --clock burst
+
+Any other option is ``fleetmap map``'s, for every log: ``--odometry off`` maps them as robots
+without odometry would be mapped.
+
+    python benchmarks/relations.py --logs corrected/csail --splits 1 --odometry off
 """
 
 from __future__ import annotations
@@ -52,12 +57,13 @@ from pathlib import Path
 import numpy as np
 from fleetmap.merger.executor import make_executor
 from fleetmap.scenarios.clocks import CLOCKS, break_clock
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
 from scipy.spatial import cKDTree
 
-from fleetmap.config_args import preset
+from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -202,11 +208,19 @@ def score_by_index(
     return _tally((poses.get(i), poses.get(j), truth) for i, j, truth in relations)
 
 
+def map_config(extra: list[str]) -> FleetmapConfig:
+    """The config ``fleetmap map`` runs with given the command line's other options (``extra``, as
+    passed on to it for the full-rate logs: ``--odometry off``, ``--config FILE``, ...)."""
+    ap = argparse.ArgumentParser(prog="fleetmap map")
+    add_config_arguments(ap, ["extraction", "integration", "tracking", "merge"], "offline")
+    return config_from_args(ap.parse_args(extra))
+
+
 def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str, int]) -> Run:
     """A corrected log mapped as ``fleetmap map LOG --split K`` maps it (same code, the default
     executor), in a process of its own, each piece's clock broken as ``clock`` says (on the
     job's ``draw``: 0, 1, ...); scored by scan index."""
-    name, split, data, _extra, frame, clock, draw = job
+    name, split, data, extra, frame, clock, draw = job
     path = data / "corrected" / f"{name.removeprefix('corrected/')}-corrected.log.gz"
     pieces = read_inputs([str(path)], split)
     if clock != "true":
@@ -220,7 +234,7 @@ def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str, int]) 
     executor = make_executor("local")
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            result = map_logs(pieces, Path(tmp) / "out", preset("offline"), executor=executor)
+            result = map_logs(pieces, Path(tmp) / "out", map_config(extra), executor=executor)
     finally:
         executor.close()
     all_, cross = score_by_index(result.by_index, corrected_relations(path))
@@ -360,7 +374,7 @@ def main() -> int:
     )
     print(body)
     if args.write_results:
-        write_result("relations", "Mapping real logs (`benchmarks/relations.py`)", body, config=preset("offline"))
+        write_result("relations", "Mapping real logs (`benchmarks/relations.py`)", body, config=map_config(extra))
     return 0
 
 
