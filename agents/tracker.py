@@ -9,7 +9,8 @@ For each scan (:meth:`Tracker.add`):
    (:func:`fleetmap.shared.core.tracking.register`).
    A prediction that measures nothing and is wider than registration's reach (constant
    velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
-   :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md).
+   :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md),
+   its minima weighed by the prediction (docs/decisions/023-the-window-weighed-by-its-prior.md).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
