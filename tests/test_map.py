@@ -301,6 +301,7 @@ def test_the_summary_says_whether_the_tracking_used_each_robot_s_odometry() -> N
     assert said == {"wheels": "used", "ignored": "not used", "laser-only": "none"}
 
 
+@pytest.mark.slow  # maps 360 real scans (about 8 s)
 def test_a_log_stamped_before_its_start_and_then_never_again_maps_with_its_own_stamps(
     csail_start: Path, datasets: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
+import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.bursts import BurstOdometry, Timed
 from fleetmap.scenarios.clocks import break_clock
@@ -83,6 +84,7 @@ def test_a_laser_faster_than_the_odometrys_resolution_is_never_held_long() -> No
     assert all(s.odometry is not None and s.odometry.distance(truth[s.item])[0] < 0.011 for s in out)
 
 
+@pytest.mark.slow  # tracks 151 real scans (about 4 s)
 def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was_driven(datasets: Path) -> None:
     # aces logged with a scan about every metre, its stamps in bursts of 2-4 within 2 ms and its
     # odometry read at them: the burst's first scan read a metre or more ahead of where it was,
@@ -108,6 +110,7 @@ def test_a_sparse_real_log_restamped_in_bursts_is_tracked_step_by_step_as_it_was
     assert within >= 130, f"{within} of 150 steps within 0.10 m, 2 deg"
 
 
+@pytest.mark.slow  # tracks 131 real scans in bursts (about 4 s)
 def test_a_spread_reading_short_of_a_turn_is_searched_across_its_heading_uncertainty(datasets: Path) -> None:
     # acapulco-corrected in bursts: scan 115's reading, spread within its burst, turns 16 of the
     # 29 degrees the robot turned over that metre, and registration from there settled 14 degrees
@@ -142,6 +145,7 @@ def test_readings_that_moved_while_the_stamp_stood_still_are_the_scans_own() -> 
     assert not at_stamps.own_readings and not timed.own_readings
 
 
+@pytest.mark.slow  # tracks 161 real scans (about 5 s)
 def test_a_log_without_a_clock_is_tracked_on_its_scans_own_odometry(datasets: Path) -> None:
     # infinite-corridor-corrected: stamped -0.45 to -1.82 s, then 4.29e9 s for every scan, its
     # odometry the laser lines' own. The clock is rightly distrusted, but the readings were not

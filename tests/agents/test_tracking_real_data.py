@@ -90,6 +90,7 @@ def test_a_real_log_restamped_in_bursts_maps_as_one_component_within_5cm_of_its_
     assert max(off) < 0.05, f"{sum(d >= 0.05 for d in off)} scans 5 cm or more apart, the worst {max(off):.3f} m"
 
 
+@pytest.mark.slow  # tracks 60 real scans (about 2 s)
 def test_a_log_with_a_scan_a_metre_does_not_slide_along_its_corridors(datasets: Path) -> None:
     # aces logged with a scan about every metre: on some scans the odometry's and the velocity's
     # fits turn alike but lie 1.3-1.5 m apart along a corridor, which the walls leave free; the
@@ -193,6 +194,7 @@ def _tracked_stretch(path: Path, start: int, stop: int) -> tuple[list[Transform2
     return [Transform2D(*s.odometry) for s in read_carmen(path)], poses
 
 
+@pytest.mark.slow  # tracks 28 real scans (about 3 s)
 def test_a_registration_the_coarse_stage_carries_off_is_taken_from_the_fine_stage_at_its_prediction(
     datasets: Path,
 ) -> None:
