@@ -22,7 +22,7 @@ import numpy as np
 from fleetmap.agents.submap import Submap
 from fleetmap.shared.core.correlative import window_support
 from fleetmap.shared.core.geometry import Array, Transform2D
-from fleetmap.shared.core.motion import CHI2_1DOF_99
+from fleetmap.shared.core.motion import CHI2_1DOF_99, Prediction
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
@@ -226,7 +226,7 @@ def window_fit(
     samples: ScanSamples,
     mean: Transform2D,
     radius: float,
-    sigma: tuple[float, float],
+    prediction: Prediction,
     registered: Callable[[Transform2D], Fit],
 ) -> Fit:
     """The good fit of ``best`` and those ``registered`` from the best-supported positions of the
@@ -260,19 +260,16 @@ def window_fit(
             break
         tried.append(start)
         fit = registered(start)
-        if fit.good and weighed(fit, mean, sigma) > weighed(best, mean, sigma):
+        if fit.good and weighed(fit, mean, prediction) > weighed(best, mean, prediction):
             best = fit
     return best
 
 
-def weighed(fit: Fit, mean: Transform2D, sigma: tuple[float, float]) -> float:
+def weighed(fit: Fit, mean: Transform2D, prediction: Prediction) -> float:
     """A fit's score weighed by the prediction it searched: the score times the prediction's
     Gaussian at the fit's pose, ``exp(-d^2 / 2)`` with ``d`` its Mahalanobis distance from the
-    prediction's ``mean`` by ``sigma`` (translation m, rotation rad). The real-time correlative
+    prediction's ``mean`` under its uncertainty. The real-time correlative
     scan matcher's form (Olson, ICRA 2009, the posterior as the scan's likelihood times the motion
     prior; Cartographer's ``RealTimeCorrelativeScanMatcher2D`` weighs each candidate's score the
     same way), with the prediction's own uncertainty for its weights."""
-    p = fit.registration.pose
-    d2 = ((p.x - mean.x) ** 2 + (p.y - mean.y) ** 2) / sigma[0] ** 2
-    d2 += math.remainder(p.theta - mean.theta, math.tau) ** 2 / sigma[1] ** 2
-    return fit.registration.score * math.exp(-0.5 * d2)
+    return fit.registration.score * math.exp(-0.5 * prediction.distance2(mean, fit.registration.pose))

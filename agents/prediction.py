@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.geometry import Transform2D, wrap_angle
+from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.motion import (
     CHI2_3DOF_99,
     ODOMETRY_TRANSLATION_SIGMA,
@@ -242,14 +242,7 @@ class Predictor:
             return
         self._stopped = False
         unsigned = Transform2D(-signed.x, -signed.y, signed.theta)
-        information = step.information()
-
-        def distance(predicted: Transform2D) -> float:
-            off = predicted.inverse().compose(moved).as_array()
-            off[2] = float(wrap_angle(off[2]))
-            return float(off @ information @ off)
-
-        d_signed, d_unsigned = distance(signed), distance(unsigned)
+        d_signed, d_unsigned = step.distance2(signed, moved), step.distance2(unsigned, moved)
         low = min(d_signed, d_unsigned)  # likelihoods relative to the likelier state's
         if low > CHI2_3DOF_99:
             return  # neither state explains the step (the validation gate): the odometry is off otherwise
@@ -284,6 +277,4 @@ def within_gate(placed: Transform2D, predicted: Transform2D, prediction: Predict
     """Whether a fit's pose ``placed`` lies within the 99 % validation gate of a ``prediction`` that
     put the scan at ``predicted`` (both in one frame): its squared Mahalanobis distance under the
     motion model's uncertainty within the chi-square bound of three degrees of freedom."""
-    off = predicted.inverse().compose(placed).as_array()
-    off[2] = float(wrap_angle(off[2]))
-    return float(off @ prediction.information() @ off) <= CHI2_3DOF_99
+    return prediction.distance2(predicted, placed) <= CHI2_3DOF_99

@@ -413,7 +413,7 @@ class Tracker:
             taken.samples,
             mean,
             radius,
-            (prediction.sigma_translation, prediction.sigma_rotation),
+            prediction,
             lambda start: self._registered(taken, submap, start, mean, prediction),
         )
 

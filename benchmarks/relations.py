@@ -63,6 +63,7 @@ from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.logs import read_carmen
 from scipy.spatial import cKDTree
 
+from fleetmap.commands.map import CONFIG_SECTIONS
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.mapping import map_logs, read_inputs
 
@@ -212,7 +213,7 @@ def map_config(extra: list[str]) -> FleetmapConfig:
     """The config ``fleetmap map`` runs with given the command line's other options (``extra``, as
     passed on to it for the full-rate logs: ``--odometry off``, ``--config FILE``, ...)."""
     ap = argparse.ArgumentParser(prog="fleetmap map")
-    add_config_arguments(ap, ["extraction", "integration", "tracking", "merge"], "offline")
+    add_config_arguments(ap, CONFIG_SECTIONS, "offline")
     return config_from_args(ap.parse_args(extra))
 
 

@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 
 ODOMETRY_TRANSLATION_SIGMA = 0.05
 """Odometry's uncertainty per scan step: this (m) ..."""
@@ -58,6 +58,13 @@ class Prediction:
         """The inverse covariance over (x, y, theta)."""
         t = 1.0 / self.sigma_translation**2
         return np.diag([t, t, 1.0 / self.sigma_rotation**2])
+
+    def distance2(self, predicted: Transform2D, placed: Transform2D) -> float:
+        """The squared Mahalanobis distance of ``placed`` from where this prediction put the scan,
+        ``predicted`` (both in one frame), under its uncertainty."""
+        off = predicted.inverse().compose(placed).as_array()
+        off[2] = float(wrap_angle(off[2]))
+        return float(off @ self.information() @ off)
 
 
 def odometry_increment(

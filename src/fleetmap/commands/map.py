@@ -13,6 +13,9 @@ from fleetmap.executor_args import add_executor_arguments, executor_from_args
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.startposes import read_start_poses
 
+CONFIG_SECTIONS = ["extraction", "integration", "tracking", "merge"]
+"""The config sections ``fleetmap map`` takes options of (offline preset)."""
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -55,7 +58,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     made.add_argument("--json", action="store_true", help="print report.json's map section instead of the table")
     made.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_arguments(p)
-    add_config_arguments(p, ["extraction", "integration", "tracking", "merge"], "offline")
+    add_config_arguments(p, CONFIG_SECTIONS, "offline")
     p.set_defaults(func=run)
 
 
