@@ -12,11 +12,16 @@ the robot can drive ``ODOMETRY_TRANSLATION_SIGMA`` (at ``max_speed``) cannot dif
 the odometry's own noise, so a scan stamped that close after its burst's first, its reading within
 that noise of the first's, brought no new reading: it is in the same burst.
 :class:`BurstOdometry` holds a burst's scans until a scan with a new reading ends it. Then
-the burst's reading belongs to its last scan, the previous burst's to the scan before its first;
-the scans between are spread evenly, in order, along the arc a robot drives between the two at
+the burst's reading belongs to one of its scans, its *owner*: the one whose place in the sequence
+makes the robot's drive per scan since the last owner nearest its recent pace
+(:meth:`BurstOdometry._owner`). A logger that stamps at receipt reads where the robot was at the
+burst's last scan; a driver that repeats a stamp reads, for the repeated scan, where the one
+before it was (docs/decisions/025-a-readings-owner-by-the-robots-pace.md). The scans between two
+owners are spread evenly, in order, along the arc a robot drives between their readings at
 constant speed and turn rate (:func:`between`; a laser scans at a steady rate, and a log thinned
-by distance keeps a scan every so many metres). Each scan given back says whether its reading is
-its own (``Timed.exact``): the tracker predicts such a scan from the last one that was.
+by distance keeps a scan every so many metres); those after a burst's owner wait for the next
+reading. Each scan given back says whether its reading is its own (``Timed.exact``): the tracker
+predicts such a scan from the last one that was.
 
 Until a log shows its first burst only its first scan waits (for the second, which says whether
 they arrived together), so a robot whose stamps are its scans' times is tracked as it comes; from
@@ -29,14 +34,22 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Generic, TypeVar
 
 import gtsam
+import numpy as np
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.motion import ODOMETRY_ROTATION_SIGMA, ODOMETRY_TRANSLATION_SIGMA
 
 log = logging.getLogger(__name__)
+
+PACES = 50
+"""The recent steps between readings one scan apart whose median is the robot's pace per scan
+(:meth:`BurstOdometry._owner`): a minute of a sparse log, seconds of a dense one."""
+PACES_KNOWN = 3
+"""Steps it takes to know the pace; before that, a burst's reading is its last scan's."""
 
 T = TypeVar("T")
 
@@ -79,6 +92,10 @@ class BurstOdometry(Generic[T]):
         """Whether a stamp has come after the one before: the log has a clock."""
         self._last: Timed[T] | None = None
         """The last scan added."""
+        self._waiting: list[Timed[T]] = []
+        """Scans after the last burst's owner (:meth:`_owner`): they wait for the next reading."""
+        self._paces: deque[float] = deque(maxlen=PACES)
+        """The robot's recent drive per scan, between readings one scan apart (m)."""
         self.own_readings = False
         """Whether the log has shown that its readings are not read at its stamps: two scans
         stamped within :attr:`resolution` of each other whose readings differ by more than the
@@ -135,22 +152,42 @@ class BurstOdometry(Generic[T]):
         """The held scans, each with the odometry where it was taken (:class:`BurstOdometry`)."""
         run, self._run = self._run, []
         first, self._first = self._first, []
+        waiting, self._waiting = self._waiting, []
         if not run:
-            return self._before(first, None, None, 1)
+            # the log ended: the scans after the last owner have no reading of their own
+            return self._before(first, None, None, 1) + [replace(s, odometry=None, exact=False) for s in waiting]
         reading, start = run[-1].odometry, self._anchor
         self._anchor = reading
         n = len(run)
         if n > 1 and start is None and reading is not None and not first:
             self._first = [replace(s, burst=n) for s in run]  # waits for the next burst's reading
             return []
-        out = run
-        if n > 1 and reading is not None and start is not None and _finite(reading) and _finite(start):
-            out = [
-                s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, k / n), n, k == n)
-                for k, s in enumerate(run, 1)
-            ]
-            self.spread += sum(s.odometry is not None for s in run[:-1])
-        return self._before(first, start, reading, n) + out
+        if reading is None or start is None or not _finite(reading) or not _finite(start):
+            return self._before(first, start, reading, n) + waiting + run
+        k = self._owner(len(waiting), n, start, reading)
+        spread = waiting + run[:k]
+        m = len(spread) + 1
+        out = [
+            s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, i / m), n, False)
+            for i, s in enumerate(spread, 1)
+        ]
+        self.spread += sum(s.odometry is not None for s in spread)
+        if m == 1:
+            self._paces.append(_drive(start, reading))
+        self._waiting = run[k + 1 :]
+        return self._before(first, start, reading, n) + out + [replace(run[k], burst=n, exact=True)]
+
+    def _owner(self, waiting: int, n: int, start: Transform2D, reading: Transform2D) -> int:
+        """Which of a burst's ``n`` scans its reading belongs to: the one whose place in the
+        sequence makes the robot's drive per scan since the last owner (``waiting`` scans after it)
+        nearest its recent pace (the median of :attr:`_paces`; the robot at a constant pace per
+        scan, the model :func:`between` spreads by). A logger that stamps at receipt reads where
+        the robot was after the burst's last scan; a driver that repeats a stamp reads, for the
+        repeated scan, where the one before was. Without a pace yet, the last."""
+        if n == 1 or len(self._paces) < PACES_KNOWN:
+            return n - 1
+        pace, drive = float(np.median(self._paces)), _drive(start, reading)
+        return min(range(n), key=lambda k: (abs(drive / (waiting + k + 1) - pace), -k))
 
     def _before(
         self, first: list[Timed[T]], start: Transform2D | None, reading: Transform2D | None, n: int
@@ -183,6 +220,12 @@ def _apart(a: Transform2D | None, b: Transform2D | None) -> bool:
         math.hypot(b.x - a.x, b.y - a.y) > ODOMETRY_TRANSLATION_SIGMA
         or abs(math.remainder(b.theta - a.theta, math.tau)) > ODOMETRY_ROTATION_SIGMA
     )
+
+
+def _drive(a: Transform2D, b: Transform2D) -> float:
+    """The length of the arc a robot drives from ``a`` to ``b`` (:func:`between`), in metres."""
+    twist = gtsam.Pose2.Logmap(gtsam.Pose2(a.x, a.y, a.theta).between(gtsam.Pose2(b.x, b.y, b.theta)))
+    return float(math.hypot(twist[0], twist[1]))
 
 
 def between(a: Transform2D, b: Transform2D, f: float) -> Transform2D:

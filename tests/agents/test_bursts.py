@@ -48,6 +48,27 @@ def test_a_bursts_scans_get_the_odometry_where_each_was_taken() -> None:
         assert abs(math.remainder(s.odometry.theta - truth[s.item].theta, math.tau)) < 1e-9
 
 
+def test_a_repeated_stamps_reading_is_given_to_the_scan_it_was_read_for() -> None:
+    # a driver that stamps a scan in ten as the scan before it: the odometry read at that stamp is
+    # where the robot was at the scan before. The robot's pace per scan says which scan the
+    # reading is: the earlier one's; the repeated scan waits for the next reading
+    truth = driven(40)
+    scans = []
+    for i in range(40):
+        j = i - 1 if i % 10 == 5 else i
+        scans.append(Timed(i, float(j), truth[j]))
+    runs: BurstOdometry[int] = BurstOdometry(3.0)
+    out = given_back(runs, scans)
+    assert [s.item for s in out] == list(range(40)), "every scan, once, in order"
+    assert runs.bursts == 4
+    # the log's first repeat: the scan before it was given back before the log showed a burst
+    # (nothing waits until then), so its reading is the repeated scan's alone (as before)
+    for s in out[10:]:
+        assert s.odometry is not None
+        assert s.odometry.distance(truth[s.item])[0] < 1e-6, f"scan {s.item} read {s.odometry}, not {truth[s.item]}"
+        assert s.exact == (s.item % 10 != 5), "the repeated scan's reading is spread, not its own"
+
+
 def test_a_log_whose_stamps_are_its_scans_times_is_given_back_as_it_came() -> None:
     truth = driven(6)
     runs: BurstOdometry[int] = BurstOdometry(3.0)
