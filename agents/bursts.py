@@ -131,9 +131,9 @@ class BurstOdometry(Generic[T]):
             self._run.append(scan)
             return []
         self._in_burst = False
-        out = self.flush()
+        out = self._release()
         self._run = [scan]
-        return out + (self.flush() if not self._holding else [])
+        return out + (self._release() if not self._holding else [])
 
     def _same_burst(self, first: Timed[T], scan: Timed[T]) -> bool:
         """Whether ``scan`` brings no reading of its own: stamped after the burst's ``first`` scan
@@ -149,7 +149,13 @@ class BurstOdometry(Generic[T]):
         return not _apart(a, b)
 
     def flush(self) -> list[Timed[T]]:
-        """The held scans, each with the odometry where it was taken (:class:`BurstOdometry`)."""
+        """Every scan still held, at the end of the log: the last burst's, each with the odometry
+        where it was taken, and those still waiting for a reading (with none: none came)."""
+        out = self._release()
+        return out + self._release()
+
+    def _release(self) -> list[Timed[T]]:
+        """The burst just ended, each scan with the odometry where it was taken (:class:`BurstOdometry`)."""
         run, self._run = self._run, []
         first, self._first = self._first, []
         waiting, self._waiting = self._waiting, []
@@ -163,7 +169,9 @@ class BurstOdometry(Generic[T]):
             self._first = [replace(s, burst=n) for s in run]  # waits for the next burst's reading
             return []
         if reading is None or start is None or not _finite(reading) or not _finite(start):
-            return self._before(first, start, reading, n) + waiting + run
+            # no reading to spread the waiting scans towards: the one they carry is the last owner's
+            stale = [replace(s, odometry=None, exact=False) for s in waiting]
+            return self._before(first, start, reading, n) + stale + run
         k = self._owner(len(waiting), n, start, reading)
         spread = waiting + run[:k]
         m = len(spread) + 1

@@ -69,6 +69,25 @@ def test_a_repeated_stamps_reading_is_given_to_the_scan_it_was_read_for() -> Non
         assert s.exact == (s.item % 10 != 5), "the repeated scan's reading is spread, not its own"
 
 
+def test_a_repeated_scan_whose_next_reading_never_comes_keeps_no_stale_one() -> None:
+    # a repeated scan waits for the next reading to be spread towards. Where the next scan has none
+    # (a wheel message lost), it is given back without any, not with the reading of the scan
+    # before it; so is a repeated scan that the log ends on (the log's first repeat, at scan 5,
+    # comes before anything waits)
+    truth = driven(30)
+    repeated = (5, 15, 29)
+    scans = []
+    for i in range(30):
+        j = i - 1 if i in repeated else i
+        scans.append(Timed(i, float(j), None if i == 16 else truth[j]))
+    out = {s.item: s for s in given_back(BurstOdometry(3.0), scans)}
+    assert sorted(out) == list(range(30)), "every scan, once"
+    for i in (15, 29):
+        assert out[i].odometry is None and not out[i].exact, f"scan {i} kept a reading that is not its own"
+    reading = out[17].odometry
+    assert reading is not None and reading.distance(truth[17])[0] < 1e-9
+
+
 def test_a_log_whose_stamps_are_its_scans_times_is_given_back_as_it_came() -> None:
     truth = driven(6)
     runs: BurstOdometry[int] = BurstOdometry(3.0)
