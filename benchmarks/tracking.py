@@ -415,11 +415,12 @@ def main() -> int:
         said: set[tuple[str, str]] = set()
         draws: dict[tuple[str, str, bool], list[LogResult]] = {}
         for job, r in zip(jobs, pool.map(run_log, jobs), strict=True):
+            clock, draw = job[4], job[-1]
             if r.scans and args.seeds > 1:
                 group = draws.setdefault((r.name, r.clock, r.odometry), [])
                 group.append(r)
-                print(f"  {r.name} {r.clock} draw {job[-1]}: {100 * r.within[0]:.1f} %", flush=True)
-                if len(group) < (args.seeds if job[4] != "true" else 1):
+                print(f"  {r.name} {r.clock} draw {draw}: {100 * r.within[0]:.1f} %", flush=True)
+                if len(group) < (args.seeds if clock != "true" else 1):
                     continue
                 r = pooled(group)
             if r.scans == 0:  # one row says why a log was not run, or has no clock to break
