@@ -21,6 +21,18 @@ def data_dir() -> Path | None:
     return None
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The slow tests (real zenoh sessions, maps of many scans) run one after another on one xdist worker.
+
+    Two fleets of processes at once on a two-core machine would time each other out; the fast tests
+    share the other workers.
+    """
+    for item in items:
+        if item.get_closest_marker("slow"):
+            item.add_marker(pytest.mark.xdist_group("slow"))
+
+
 @pytest.fixture(scope="session")
 def datasets() -> Path:
     d = data_dir()
