@@ -25,7 +25,9 @@ The SLAM-corrected logs (``corrected/NAME``: a scan about every metre, as long t
 logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan index (their stamps
 repeat, or are all 0) with relations made from their corrected poses: every two scans within
 :data:`CORRECTED_WITHIN` of each other (infinite-corridor's stamps run negative, then repeat
-4.29e9 s: it is tracked by its scans' sequence). A log that ``fleetmap map`` refuses says so.
+4.29e9 s: it is tracked by its scans' sequence). Their corrected poses are GMapping's, wrong at a
+few scans: a wrong relation whose own two raw scans side with the map is counted apart, as the raw
+scans contradicting it (:mod:`raw_truth`). A log that ``fleetmap map`` refuses says so.
 ``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`) maps each corrected log's
 pieces as a robot with that broken clock recorded them; ``--seeds N`` does it N times, each with
 other breaks (one wrong placement can bend a sparse log's map, and which scan the clock breaks
@@ -49,7 +51,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -68,6 +70,7 @@ from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from raw_truth import RawTruth
 from relation_frame import measure
 from results import write_result
 from tracking import CORRECTED, LOGS, data_folder
@@ -89,6 +92,9 @@ class Score:
     mean_r_deg: float
     errors: dict[int, float]
     """Each joined relation's translational error (m), by its place in the log's relations."""
+    contradicted: int = 0
+    """Relations wrong by the corrected poses whose own raw scans side with the map (:mod:`raw_truth`):
+    not counted in ``wrong`` (they still count in ``within`` and the mean error)."""
 
 
 @dataclass(frozen=True)
@@ -129,10 +135,18 @@ def score(poses_csv: Path, relations: Path, frame: Transform2D | None = None) ->
     )
 
 
-def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]) -> tuple[Score, Score]:
+Excuse = Callable[[int, Transform2D], bool]
+"""Whether the raw scans of the relation at this place side with the map's estimate of it."""
+
+
+def _tally(
+    relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]], excused: Excuse | None = None
+) -> tuple[Score, Score]:
     """All and cross-robot relations scored: each its two scans as placed (None: not placed) and
-    the second's true pose in the first's frame."""
+    the second's true pose in the first's frame. A wrong one that ``excused`` says its raw scans
+    contradict is counted apart (``Score.contradicted``)."""
     counts = {k: [0, 0, 0, 0, 0] for k in ("all", "cross")}  # relations, placed, joined, within, wrong
+    contradicted = {k: 0 for k in counts}
     errors: dict[str, dict[int, tuple[float, float]]] = {k: {} for k in counts}
     for i, (a, b, truth) in enumerate(relations):
         kinds = ["all"] + (["cross"] if a is not None and b is not None and a[0] != b[0] else [])
@@ -144,19 +158,23 @@ def _tally(relations: Iterable[tuple[Placed | None, Placed | None, Transform2D]]
             counts[k][1] += 1
         if a[1] != b[1]:
             continue
-        error = truth.inverse().compose(a[2].inverse().compose(b[2]))
+        estimate = a[2].inverse().compose(b[2])
+        error = truth.inverse().compose(estimate)
         et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
+        wrong = et > WRONG_M or er > WRONG_DEG
+        not_truth = wrong and excused is not None and excused(i, estimate)
         for k in kinds:
             counts[k][2] += 1
             counts[k][3] += et < WITHIN_M and er < WITHIN_DEG
-            counts[k][4] += et > WRONG_M or er > WRONG_DEG
+            counts[k][4] += wrong and not not_truth
+            contradicted[k] += not_truth
             errors[k][i] = (et, er)
     out = []
     for k in ("all", "cross"):
         e = errors[k]
         mean_t = statistics.fmean(x for x, _ in e.values()) if e else math.nan
         mean_r = statistics.fmean(r for _, r in e.values()) if e else math.nan
-        out.append(Score(*counts[k], mean_t, mean_r, {i: x for i, (x, _) in e.items()}))
+        out.append(Score(*counts[k], mean_t, mean_r, {i: x for i, (x, _) in e.items()}, contradicted[k]))
     return out[0], out[1]
 
 
@@ -202,11 +220,19 @@ def corrected_relations(path: Path) -> list[tuple[int, int, Transform2D]]:
 
 
 def score_by_index(
-    by_index: dict[tuple[str, int], tuple[int, Transform2D]], relations: list[tuple[int, int, Transform2D]]
+    by_index: dict[tuple[str, int], tuple[int, Transform2D]],
+    relations: list[tuple[int, int, Transform2D]],
+    raw: RawTruth | None = None,
 ) -> tuple[Score, Score]:
-    """:func:`score` for relations named by scan index (a corrected log's stamps repeat)."""
+    """:func:`score` for relations named by scan index (a corrected log's stamps repeat); with the
+    log's ``raw`` scans, a wrong relation they contradict is counted apart (:mod:`raw_truth`)."""
     poses = {index: (robot, n, pose) for (robot, index), (n, pose) in by_index.items()}
-    return _tally((poses.get(i), poses.get(j), truth) for i, j, truth in relations)
+
+    def excused(k: int, estimate: Transform2D) -> bool:
+        i, j, truth = relations[k]
+        return raw is not None and raw.sides_with_map(i, j, truth, estimate, WRONG_M, WRONG_DEG)
+
+    return _tally(((poses.get(i), poses.get(j), truth) for i, j, truth in relations), excused)
 
 
 def map_config(extra: list[str]) -> FleetmapConfig:
@@ -238,7 +264,7 @@ def run_corrected(job: tuple[str, int, Path, list[str], Transform2D, str, int]) 
             result = map_logs(pieces, Path(tmp) / "out", map_config(extra), executor=executor)
     finally:
         executor.close()
-    all_, cross = score_by_index(result.by_index, corrected_relations(path))
+    all_, cross = score_by_index(result.by_index, corrected_relations(path), RawTruth(path))
     summary = result.report["map"]
     return Run(
         name,
@@ -271,6 +297,10 @@ def same_relations(cut: Score, whole: Run | None) -> str:
     return f"{w:.3f} m ({c / w:.2f}x)" if w > 0 else f"{w:.3f} m"
 
 
+def _wrong(s: Score) -> str:
+    return f"{s.wrong} (+{s.contradicted} the raw scans contradict)" if s.contradicted else str(s.wrong)
+
+
 def table(runs: list[Run], everything: list[Run] | None = None) -> str:
     """The runs' rows; the whole log's (K = 1) run is looked for in ``everything`` (default: ``runs``)."""
     head = (
@@ -286,10 +316,10 @@ def table(runs: list[Run], everything: list[Run] | None = None) -> str:
         a, c = r.all, r.cross
         rows.append(
             f"| {r.log} | {r.split} | {a.placed} of {a.relations} | {_pct(a.joined, a.placed)} "
-            f"| {_pct(a.within, a.joined)} | {a.mean_t:.3f} m, {a.mean_r_deg:.2f} deg | {a.wrong} "
+            f"| {_pct(a.within, a.joined)} | {a.mean_t:.3f} m, {a.mean_r_deg:.2f} deg | {_wrong(a)} "
             + (
                 f"| {c.placed} | {_pct(c.joined, c.placed)} | {_pct(c.within, c.joined)} "
-                f"| {c.mean_t:.3f} m, {c.mean_r_deg:.2f} deg | {same_relations(c, wholes.get(r.log))} | {c.wrong} "
+                f"| {c.mean_t:.3f} m, {c.mean_r_deg:.2f} deg | {same_relations(c, wholes.get(r.log))} | {_wrong(c)} "
                 if r.split > 1
                 else "| - | - | - | - | - | - "
             )
