@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.shared.config import TrackingParams
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D, wrap_angle
 from fleetmap.shared.core.tracking import ReferenceMap, ScanSamples, register
 from fleetmap.shared.io.logs import read_carmen
 from relation_frame import raw_samples
@@ -74,7 +74,7 @@ class RawTruth:
         if not fit.converged:
             return False
         moved = fit.pose.as_array() - truth.as_array()
-        moved[2] = math.remainder(moved[2], 2 * math.pi)
+        moved[2] = wrap_angle(moved[2])
         return (
             beyond(truth.inverse().compose(fit.pose), wrong_m, wrong_deg)
             and not beyond(estimate.inverse().compose(fit.pose), wrong_m, wrong_deg)

@@ -70,7 +70,7 @@ from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.mapping import map_logs, read_inputs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from raw_truth import RawTruth
+from raw_truth import RawTruth, beyond
 from relation_frame import measure
 from results import write_result
 from tracking import CORRECTED, LOGS, data_folder
@@ -161,7 +161,7 @@ def _tally(
         estimate = a[2].inverse().compose(b[2])
         error = truth.inverse().compose(estimate)
         et, er = math.hypot(error.x, error.y), math.degrees(abs(error.theta))
-        wrong = et > WRONG_M or er > WRONG_DEG
+        wrong = beyond(error, WRONG_M, WRONG_DEG)
         not_truth = wrong and excused is not None and excused(i, estimate)
         for k in kinds:
             counts[k][2] += 1
