@@ -272,7 +272,9 @@ class Merger(Intake):
                     job.merge.max_integration_work,
                     self.stats.exhausted,
                 )
-            new_edges.append(self.graph.take(job, result))
+            edge = self.graph.take(job, result)
+            self.schedule.registered((job.a, job.b), edge.valid)
+            new_edges.append(edge)
         return new_edges, taken
 
     def where_it_stands(self) -> list[Outgoing]:

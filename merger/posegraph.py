@@ -97,6 +97,17 @@ class PoseGraph(RefinedGraph):
         super().remove_map(key)
         self._kept = None
 
+    def tree_drift(self, a: str, b: str) -> tuple[float, float] | None:
+        """Three standard deviations (m, rad) of where the last solve's forest can have put b
+        relative to a: what the links on the forest's path between them can have drifted
+        (:meth:`~fleetmap.merger.forest.RootedForest.drift`); None if no solve holds both in one
+        tree. The integrations on the path add nothing: the walls fix them."""
+        kept = self._kept
+        if kept is None or a not in kept.forest.root or kept.forest.root.get(a) != kept.forest.root.get(b):
+            return None
+        _, drift_t, drift_r = kept.forest.drift(a, b)
+        return drift_t, drift_r
+
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);
         # a map file (a pivot local map: many short pieces of each wall) is simplified as the map

@@ -19,6 +19,8 @@ just joined, or lost its place), as its active submap grows (each time its versi
 - *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups
   whose walls now meet, registered near where the join puts them (at most :data:`NEAR_CANDIDATES`
   a submap): the near search of a submap that arrived before the join only saw its own group;
+  where the forest's path between the two can have drifted beyond registration's reach and the
+  registration fails, the pair is integrated again pose-free (:meth:`PairSchedule.registered`);
 - *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
   the global map, up to :data:`FAR_BUDGET` tries a submap.
 
@@ -111,6 +113,12 @@ class PairSchedule:
         """Queued pairs that :meth:`idle_pairs` chose."""
         self.joined: set[Pair] = set()
         """Pairs :meth:`queue_joined` queued (each once: a pair that did not register stays so)."""
+        self.wide: set[Pair] = set()
+        """Joined pairs registered near the join where the drift of the forest's path between them
+        may have carried them beyond registration's reach (:meth:`_tie_within_reach`): pose-free if the
+        registration is not valid (:meth:`registered`)."""
+        self.retry: set[Pair] = set()
+        """Pairs queued pose-free again after their registration near a prediction failed."""
         self.owner: dict[Pair, str] = {}
         """The robot whose submap queued each pair (whose turn takes it: :meth:`next_pair`)."""
         self._owner = ""
@@ -164,7 +172,20 @@ class PairSchedule:
         if predicted is not None:
             self.stats.near += 1
             return self.graph.pair_job(a, b, predicted)
+        if pair in self.retry:  # (its edge is current: the registration's, which failed)
+            self.retry.discard(pair)
+            return self.graph.pair_job(*ordered(a, b))
         return self.graph.job_once(a, b)
+
+    def registered(self, pair: Pair, edge_valid: bool) -> None:
+        """A pair integrated: one of :attr:`wide` whose registration near the join is not valid is
+        queued again pose-free (the paper's integration, whose search window is the whole map:
+        infinite-corridor-c cut in 2 had its one wrong relation where two robots' submaps, 2.2 m
+        from where the join put them, were registered there and slid; docs/decisions/028)."""
+        if pair in self.wide:
+            self.wide.discard(pair)
+            if not edge_valid and self.enqueue(pair, None):
+                self.retry.add(pair)
 
     def submap(self, m: LocalMap, current: bool, p: Placement) -> None:
         """Queue the integrations a submap version is due (see the module docstring); ``current``:
@@ -261,6 +282,8 @@ class PairSchedule:
                     continue
                 self._owner = parse_submap_key(b)[0]
                 if self.enqueue((a, b), at[a].inverse().compose(at[b])):
+                    if not self._tie_within_reach(a, b, p):
+                        self.wide.add((a, b))
                     self.joined.add((a, b))
                     count[a] += 1
                     count[b] += 1
@@ -390,6 +413,14 @@ class PairSchedule:
         if drift is None:
             return p.tied(a, b)
         return drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
+
+    def _tie_within_reach(self, a: str, b: str, p: Placement) -> bool:
+        """Whether registration near where the last solve's forest puts b on a can find it: the
+        drift of the links on the forest's path between them
+        (:meth:`~fleetmap.merger.posegraph.PoseGraph.tree_drift`) is within the tracking's
+        correspondence distance and 5 degrees, as :meth:`_within_reach` for one robot's chain."""
+        drift = self.graph.tree_drift(self._placed_as(a, p), self._placed_as(b, p))
+        return drift is not None and drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
 
     def _radius(self, key: str) -> float:
         """How far a submap's walls reach from its frame (m)."""
