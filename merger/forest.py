@@ -148,6 +148,15 @@ class RootedForest:
         joins = sa[8] + sb[8] - 2 * st[8]
         return joins, 3.0 * math.sqrt(max(var_t, 0.0)), 3.0 * math.sqrt(max(c, 0.0))
 
+    def spread(self, a: str, b: str) -> tuple[float, float] | None:
+        """Three standard deviations (m, rad) of where the forest can have put b relative to a:
+        :meth:`drift` (the integrations on the path add nothing: the walls fix them); None if
+        they are not in one tree."""
+        if a not in self.root or self.root.get(a) != self.root.get(b):
+            return None
+        _, drift_t, drift_r = self.drift(a, b)
+        return drift_t, drift_r
+
 
 def _add(
     sums: _Sums, e: Edge, covariances: dict[tuple[str, str], Array], child: Transform2D, parent: Transform2D

@@ -90,23 +90,15 @@ class PoseGraph(RefinedGraph):
         self.kept_solves = 0
         """Solves of the whole graph, and solves that carried the last one on."""
         self._settled = -1
-        """The graph's :attr:`edits` when the last solve's forest was found to hold every link and
-        integration (none added, changed or gone since: its edges need no second look)."""
+        """The :attr:`edits` when the last solve's forest held every edge (none changed since: no second look)."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
         self._kept = None
 
     def tree_drift(self, a: str, b: str) -> tuple[float, float] | None:
-        """Three standard deviations (m, rad) of where the last solve's forest can have put b
-        relative to a: what the links on the forest's path between them can have drifted
-        (:meth:`~fleetmap.merger.forest.RootedForest.drift`); None if no solve holds both in one
-        tree. The integrations on the path add nothing: the walls fix them."""
-        kept = self._kept
-        if kept is None or a not in kept.forest.root or kept.forest.root.get(a) != kept.forest.root.get(b):
-            return None
-        _, drift_t, drift_r = kept.forest.drift(a, b)
-        return drift_t, drift_r
+        """:meth:`~fleetmap.merger.forest.RootedForest.spread` in the last solve's forest."""
+        return None if self._kept is None else self._kept.forest.spread(a, b)
 
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);

@@ -65,14 +65,14 @@ def _two_robots(
     integrations: list[tuple[int, int, Transform2D, float]],
     shift_in_world: bool = False,
     r2_start: float = 1.3,
+    last_link_heading: float = 0.001,
 ) -> tuple[PoseGraph, dict[str, Transform2D]]:
     """Two robots' chains of three submaps down a hall, r2's frames ``r2_start`` m on from r1's and
     turned 0.2 rad; links exact; ``integrations``: (r1's submap, r2's submap, an error, its value) each,
     the error on the true transform (``shift_in_world``: r2's submap moved by it in the world's
-    frame instead)."""
+    frame instead); each chain's last link's heading measured within ``last_link_heading`` (rad)."""
     graph = PoseGraph()
     truth: dict[str, Transform2D] = {}
-    cov = np.diag([1e-4, 1e-4, 1e-6])
     for robot, start in (("r1", Transform2D(0.0, 0.0, 0.0)), ("r2", Transform2D(r2_start, 0.2, 0.2))):
         for n in range(3):
             frame = Transform2D(start.x + _STEP * n, start.y, start.theta)
@@ -80,6 +80,7 @@ def _two_robots(
             graph.put_map(f"{robot}/0/{n}", _seen_from(world, frame), 1)
             if n:
                 before = truth[f"{robot}/0/{n - 1}"]
+                cov = np.diag([1e-4, 1e-4, 1e-6 if n == 1 else last_link_heading**2])
                 graph.put_link(f"{robot}/0/{n - 1}", f"{robot}/0/{n}", before.inverse().compose(frame), cov)
     for i, j, error, value in integrations:
         a, b = f"r1/0/{i}", f"r2/0/{j}"
