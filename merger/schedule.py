@@ -412,7 +412,7 @@ class PairSchedule:
         drift = self.graph.chain_drift(a, b)
         if drift is None:
             return p.tied(a, b)
-        return drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
+        return _reaches(drift)
 
     def _tie_within_reach(self, a: str, b: str, p: Placement) -> bool:
         """Whether registration near where the last solve's forest puts b on a can find it: the
@@ -420,7 +420,7 @@ class PairSchedule:
         (:meth:`~fleetmap.merger.posegraph.PoseGraph.tree_drift`) is within the tracking's
         correspondence distance and 5 degrees, as :meth:`_within_reach` for one robot's chain."""
         drift = self.graph.tree_drift(self._placed_as(a, p), self._placed_as(b, p))
-        return drift is not None and drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
+        return drift is not None and _reaches(drift)
 
     def _radius(self, key: str) -> float:
         """How far a submap's walls reach from its frame (m)."""
@@ -449,6 +449,12 @@ class PairSchedule:
             candidates.append((-similarity(self.graph.descriptor(other), h), other))
         candidates.sort()
         return [other for _, other in candidates]
+
+
+def _reaches(drift: tuple[float, float]) -> bool:
+    """Whether registration from a prediction this far off (three standard deviations, m and rad)
+    finds the same minimum: within the tracking's correspondence distance and 5 degrees."""
+    return drift[0] <= MAX_CORRESPONDENCE and drift[1] <= REACH_ROTATION
 
 
 def _neighbours(a: str, b: str) -> bool:
