@@ -3,7 +3,9 @@
 **Bounded work per submap.** A submap is integrated when it is final (it never changes again),
 and, while its robot's current epoch is not placed and has no final submap yet (a robot that
 just joined, or lost its place), as its active submap grows (each time its version doubles,
-:data:`SEARCH_GROWTH`). Which pairs:
+:data:`SEARCH_GROWTH`). A final submap that no solve has seen yet, nor its predecessor (a flood
+of one robot's submaps in one step), searches once the next solve has placed its chain
+(:meth:`PairSchedule.placed`), as if it had come alone. Which pairs:
 
 - *near* (a submap whose predecessor is in the graph): the submaps of its component, its own
   robot's earlier ones included (a loop), whose refined poses lie within reach of where its links
@@ -119,6 +121,9 @@ class PairSchedule:
         registration is not valid (:meth:`registered`)."""
         self.retry: set[Pair] = set()
         """Pairs queued pose-free again after their registration near a prediction failed."""
+        self.unplaced: set[str] = set()
+        """Final submaps scheduled before any solve saw them or their chain: their searches wait for
+        one (:meth:`placed`)."""
         self.owner: dict[Pair, str] = {}
         """The robot whose submap queued each pair (whose turn takes it: :meth:`next_pair`)."""
         self._owner = ""
@@ -204,36 +209,64 @@ class PairSchedule:
         if not (final or searching):
             return
         self.scheduled[key] = m.version
-        mine = self._component_members(key, p)
-        if final and self._predicted(key, p) is not None:
-            # its chain is in the graph: the submaps of its component near where the links put it
-            # (its own earlier submaps too: a loop), whether or not another robot is there yet
-            beyond = []
-            for other, predicted in self._near(key, mine, p)[:NEAR_CANDIDATES]:
-                # registered near the prediction where the robot's own drift between the two
-                # cannot have carried it out of registration's reach; else pose-free (a loop
-                # after a long way round: the search window as wide as the uncertainty), the
-                # most similar such submap only: the paper's integration costs ten registrations
-                if self._within_reach(other, key, p):
-                    self.enqueue((other, key), predicted)
-                else:
-                    beyond.append(other)
-            if beyond:
-                h = self.graph.descriptor(key)
-                best = max(beyond, key=lambda k: (similarity(self.graph.descriptor(k), h), k))
-                self.enqueue(ordered(best, key), None)
-            if m.final:
-                self.finals += 1
-                if LOOP_SWEEP_EVERY > 0 and self.finals % LOOP_SWEEP_EVERY == 0:
-                    sweep = self._far(key, mine, p, within=True)[:1]
-                    for other in sweep:
-                        self.enqueue(ordered(other, key), None)
+        if final and self._placed_as(key, p) not in p.where:
+            self.unplaced.add(key)  # no solve has seen it or its chain yet: it searches after one
+            return
+        if final:
+            self._near_search(key, p)
+        self._far_search(key, p)
+
+    def _far_search(self, key: str, p: Placement) -> None:
+        """Queue a submap's *far* search, unless it is in the global map (whose submaps are not
+        searched for the others: each of theirs searches it, and one direction is enough)."""
         if not self._in_global_map(key, p):
-            # the global map's own submaps are not searched for the others: each of theirs
-            # searches it, and one direction is enough
             group = self._group_members(key, p)
             for other in self._far(key, group, p, within=False)[:FAR_CANDIDATES]:
                 self._queue_far(key, other)
+
+    def _near_search(self, key: str, p: Placement) -> None:
+        """Queue a final submap's near search (the module docstring's *near*) and, every
+        :data:`LOOP_SWEEP_EVERY`-th, its sweep for a loop beyond reach."""
+        mine = self._component_members(key, p)
+        beyond = []
+        for other, predicted in self._near(key, mine, p)[:NEAR_CANDIDATES]:
+            if (key, other) in self.queue:
+                continue  # (a flood's submaps search each other: one way is enough, one edge a pair)
+            # registered near the prediction where the robot's own drift between the two
+            # cannot have carried it out of registration's reach; else pose-free (a loop
+            # after a long way round: the search window as wide as the uncertainty), the
+            # most similar such submap only: the paper's integration costs ten registrations
+            if self._within_reach(other, key, p):
+                self.enqueue((other, key), predicted)
+            else:
+                beyond.append(other)
+        if beyond:
+            h = self.graph.descriptor(key)
+            best = max(beyond, key=lambda k: (similarity(self.graph.descriptor(k), h), k))
+            self.enqueue(ordered(best, key), None)
+        self.finals += 1
+        if LOOP_SWEEP_EVERY > 0 and self.finals % LOOP_SWEEP_EVERY == 0:
+            for other in self._far(key, mine, p, within=True)[:1]:
+                self.enqueue(ordered(other, key), None)
+
+    def placed(self, p: Placement) -> int:
+        """After a solve: the searches of each final submap that no solve had seen, nor its chain,
+        when it was scheduled (:attr:`unplaced`), now that one has; how many searched. A robot whose
+        submaps reach the merger in a flood, before any solve (one that joins late, a merger that
+        fell behind), would otherwise have no near search, and search pose-free its own chain as if
+        it were another robot's: infinite-corridor-c cut in 4 had its one wrong relation at such a
+        robot's end (docs/decisions/029)."""
+        done = 0
+        for key in sorted(self.unplaced):
+            if key not in self.graph:
+                self.unplaced.discard(key)
+            elif key in p.where:
+                self.unplaced.discard(key)
+                self._owner = parse_submap_key(key)[0]
+                self._near_search(key, p)
+                self._far_search(key, p)
+                done += 1
+        return done
 
     def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
         """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs

@@ -520,3 +520,25 @@ def test_a_wall_two_submaps_see_lies_where_the_firmly_placed_one_saw_it_when_fus
         off[fusion] = float(np.max(np.abs(np.abs(along_x[:, [1, 3]]) - 2.0)))
     assert off["unweighted"] > 0.01, off
     assert off["weighted"] < 0.002, off
+
+
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s)
+def test_a_robot_whose_submaps_arrive_at_once_is_registered_near_where_its_links_put_them(fleet: Fleet) -> None:
+    # A robot that joins late, or a merger that fell behind, takes a whole chain in one step,
+    # before any solve has placed it: its final submaps must still search near where their links
+    # put them, as they do arriving one by one (infinite-corridor-c cut in 4 had its one wrong
+    # relation at such a robot's end, whose last submaps searched only pose-free; decision 029).
+    mine = [m for m in fleet.finals if m.robot == "r1"]
+    searched = {}
+    for flood in (False, True):
+        merger = Merger(KEYS, FleetmapConfig())
+        for m in mine:
+            merger.receive(KEYS.localmap(m.robot), m.to_msgpack())
+            if not flood:
+                merger.step()
+        while merger.has_work:
+            merger.step()
+        searched[flood] = merger.stats.near
+        errors = _errors(merger, {k: fleet.truth[k] for k in merger.graph.keys})
+        assert max(e[0] for e in errors.values()) < 0.10
+    assert searched[True] >= searched[False] > 0, f"near registrations one by one / at once: {searched}"

@@ -449,6 +449,7 @@ def test_robots_take_turns_at_integration_so_a_flood_delays_only_its_robot(maps)
         link = EpochLink(epoch - 1, "lost") if epoch else None
         merger.receive(KEYS.localmap("f"), _box("f", epoch=epoch, previous_epoch_link=link, final=True).to_msgpack())
     merger.receive(KEYS.localmap("r1"), maps["r1"][0].to_msgpack())
+    merger.step(limit=0)  # in the graph and placed: the flood's final submaps search from here on
     out = _decoded(merger.step(limit=2))
     edges = [m for m in out if isinstance(m, MergeEdge)]
     assert merger.queued > 20 and len(edges) == 2
