@@ -363,7 +363,6 @@ class Merger(Intake):
             finals=s.finals,
             far_tries=s.far_tries,
             last_out=self._last_out,
-            unplaced=sorted(s.unplaced),
         )
         write_state(path, state)
 
@@ -387,11 +386,9 @@ class Merger(Intake):
         s.finished_epochs = fresh.schedule.finished_epochs
         s.queue = {(a, b): t for (a, b), t in state.queue.items() if a in self.graph and b in self.graph}
         s.scheduled, s.finals, s.far_tries = state.scheduled, state.finals, state.far_tries
-        s.unplaced = set(state.unplaced)
         self.schedule = s
         self._pending = {m.submap_key: m for m in state.pending}
         if len(self.graph):
             solved = self.graph.solve()
             self.placement = Placement.of(solved)
-            s.placed(self.placement)
             self._global = global_map_of(solved, self.seq, self.stamp, self._made)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,8 +42,6 @@ class MergerState:
     finals: int
     far_tries: dict[str, int]
     last_out: list[Outgoing]
-    unplaced: list[str] = field(default_factory=list)
-    """Final submaps whose near search waits for a solve to place their chain."""
 
 
 def write_state(path: str | Path, state: MergerState) -> None:
@@ -62,7 +60,6 @@ def write_state(path: str | Path, state: MergerState) -> None:
         "finals": state.finals,
         "far_tries": state.far_tries,
         "last_out": [[o.key, o.payload] for o in state.last_out],
-        "unplaced": state.unplaced,
     }
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
@@ -110,7 +107,6 @@ def read_state(path: str | Path) -> MergerState:
             finals=int(state.get("finals", 0)),
             far_tries={str(k): int(v) for k, v in state.get("far_tries", {}).items()},
             last_out=[Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])],
-            unplaced=[str(k) for k in state.get("unplaced", [])],
         )
     except (
         OSError,
