@@ -249,24 +249,21 @@ class PairSchedule:
             for other in self._far(key, mine, p, within=True)[:1]:
                 self.enqueue(ordered(other, key), None)
 
-    def placed(self, p: Placement) -> int:
+    def placed(self, p: Placement) -> None:
         """After a solve: the searches of each final submap that no solve had seen, nor its chain,
-        when it was scheduled (:attr:`unplaced`), now that one has; how many searched. A robot whose
+        when it was scheduled (:attr:`unplaced`), now that one has. A robot whose
         submaps reach the merger in a flood, before any solve (one that joins late, a merger that
         fell behind), would otherwise have no near search, and search pose-free its own chain as if
         it were another robot's: infinite-corridor-c cut in 4 had its one wrong relation at such a
         robot's end (docs/decisions/029)."""
-        done = 0
         for key in sorted(self.unplaced):
-            if key not in self.graph:
+            if key not in self.graph:  # (its robot was forgotten)
                 self.unplaced.discard(key)
             elif key in p.where:
                 self.unplaced.discard(key)
                 self._owner = parse_submap_key(key)[0]
                 self._near_search(key, p)
                 self._far_search(key, p)
-                done += 1
-        return done
 
     def queue_joined(self, p: Placement, apart: dict[str, frozenset[str]]) -> None:
         """After a solve that joined groups of epochs (``apart``: each epoch's component's epochs
