@@ -179,6 +179,7 @@ class PairSchedule:
             return self.graph.pair_job(a, b, predicted)
         if pair in self.retry:  # (its edge is current: the registration's, which failed)
             self.retry.discard(pair)
+            self.stats.retried += 1
             return self.graph.pair_job(*ordered(a, b))
         return self.graph.job_once(a, b)
 

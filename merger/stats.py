@@ -32,7 +32,10 @@ class MergerStats:
     idle: int = 0
     """... and pose-free tries for robots apart from the global map, taken when nothing else was due."""
     join_pairs: int = 0
-    """Near registrations queued between the groups of submaps a join put in one frame."""
+    """Near registrations queued between the groups of submaps a join put in one frame ..."""
+    retried: int = 0
+    """... and those of them integrated again pose-free, their registration not valid where the
+    chains' drift may have carried them beyond its reach (docs/decisions/028)."""
     exhausted: int = 0
     """Integrations stopped at ``merge.max_integration_work`` (not valid; logged)."""
     failed: int = 0
@@ -61,6 +64,7 @@ class MergerStats:
             "near": self.near,
             "idle": self.idle,
             "join_pairs": self.join_pairs,
+            "retried": self.retried,
             "exhausted": self.exhausted,
             "failed": self.failed,
             "poses_dropped": self.poses_dropped,

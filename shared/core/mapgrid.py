@@ -52,6 +52,7 @@ from typing import TypeVar
 import numpy as np
 from fleetmap.shared.core.candidates import ragged_ranges
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientations, segment_points
+from fleetmap.shared.core.gridlookup import code_sums
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.visibility import range_profile
 from fleetmap.shared.errors import BadInput
@@ -305,7 +306,8 @@ def _channel(direction: Array, period: float) -> Array:
 
 
 CHUNK = 1_000_000
-"""Candidate-point lookups done at once (the arrays of a chunk hold at most this many points)."""
+"""Candidate-point lookups of :func:`grid_scores` done at once (the arrays of a chunk hold at most
+this many points)."""
 
 RANK_ROTATION_STEP = math.radians(0.25)
 """For ranking, candidates are grouped by rotation rounded to this (rad); each group's points are
@@ -315,64 +317,21 @@ turned once."""
 def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
     """Grid score contributions of ``s`` moved by each transformation (rotations rounded, for ranking).
 
-    All candidates at once: each rotation group's points are turned once, then every candidate
-    takes its group's row (a rotation group holds a handful of candidates, so looping over the
-    groups cost more in numpy calls than in lookups). The codes are summed as integers and scaled
-    by the samples' spacing: the score is then exact, so equal scores tie exactly (the stable
-    sort keeps the candidates' order) and do not depend on how a BLAS sums floats.
+    All candidates at once, in one compiled pass (:func:`~fleetmap.shared.core.gridlookup.code_sums`):
+    each rotation group's points are turned once, then every candidate of the group looks them up
+    moved by its translation. The codes are summed as integers and scaled by the samples' spacing
+    (each sample stands for the same wall length: :meth:`Samples.along`): the score is then exact,
+    so equal scores tie exactly (the stable sort keeps the candidates' order).
     """
-    out = np.zeros(len(t))
     if len(s.points) == 0 or len(t) == 0:
-        return out
-    code = index.code.reshape(-1)
-    nx, ny = index.code.shape[1:]
-    res = index.frame.resolution
-    ox, oy = index.frame.origin
-    q = np.round(t[:, 2] / RANK_ROTATION_STEP).astype(np.int64)
-    groups, inverse = np.unique(q, return_inverse=True)
-    inverse = inverse.ravel()
-    th_all = groups.astype(np.float64) * RANK_ROTATION_STEP
-    cos_all, sin_all = np.cos(th_all), np.sin(th_all)
-    x, y = s.points[None, :, 0], s.points[None, :, 1]
+        return np.zeros(len(t))
     spacing = float(s.weight[0])
-    uniform = bool(np.all(s.weight == spacing))
-    step = max(1, CHUNK // len(s.points))
-    # in single precision from here: a cell coordinate is off by a few parts in 1e8 of its value
-    # (a ten-thousandth of a cell on a grid a thousand cells wide: a point that close to a cell's
-    # edge may fall in its neighbour), and every array takes half the memory traffic, which is
-    # what the lookups cost
-    move_x = (t[:, 0] / res).astype(np.float32)
-    move_y = (t[:, 1] / res).astype(np.float32)
-    whole = np.int32 if code.size < 2**31 else np.int64  # cell numbers (a grid of 2**31 cells is 2 GB)
-    for c0 in range(0, len(t), step):
-        # The chunk's rotation groups, each turned once (at most ``step`` of them: memory stays
-        # within CHUNK points per array, whatever the number of groups in all).
-        used, g = np.unique(inverse[c0 : c0 + step], return_inverse=True)
-        g = g.ravel()
-        th = th_all[used]
-        c, sn = cos_all[used, None], sin_all[used, None]
-        # Cell coordinates (in cells, shifted by the padding) of each group's turned points, and their layer.
-        px = ((c * x - sn * y - ox) / res + 1.0).astype(np.float32)
-        py = ((sn * x + c * y - oy) / res + 1.0).astype(np.float32)
-        layer = (_channel(s.direction[None, :] + th[:, None], index.period) * (nx * ny)).astype(whole)
-        ci = px[g]
-        ci += move_x[c0 : c0 + step, None]
-        np.floor(ci, out=ci)
-        np.clip(ci, 0, nx - 1, out=ci)
-        cj = py[g]
-        cj += move_y[c0 : c0 + step, None]
-        np.floor(cj, out=cj)
-        np.clip(cj, 0, ny - 1, out=cj)
-        cell = ci.astype(whole)
-        cell *= ny
-        cell += cj.astype(whole)
-        cell += layer[g]
-        codes = code[cell]
-        if uniform:
-            out[c0 : c0 + step] = codes.sum(axis=1, dtype=np.int64) * spacing
-        else:
-            out[c0 : c0 + step] = codes.astype(np.float64) @ s.weight
-    return 0.5 * out
+    if not np.all(s.weight == spacing):
+        raise ValueError("the grid score's samples must each stand for the same wall length (Samples.along)")
+    ox, oy = index.frame.origin
+    frame = (float(ox), float(oy), index.frame.resolution, index.period, CHANNELS)
+    counts = code_sums(index.code, s.points, s.direction, t, RANK_ROTATION_STEP, frame)
+    return 0.5 * (counts * spacing)
 
 
 def _lookups(index: MapIndex, s: Samples, t: Array, solid: bool = False) -> tuple[Array, Array]:
@@ -421,9 +380,9 @@ PARALLEL_FROM = 4096
 def _both_ways(ab: Callable[[], T], ba: Callable[[], T], n: int) -> tuple[T, T]:
     """``ab()`` and ``ba()``, the first on a second thread where the machine has a second core.
 
-    The lookups are numpy operations on arrays of up to CHUNK points, which release the GIL, so
-    the two directions of a grid score run side by side: about 1.7 times as fast on 2 cores (the
-    merge's largest cost), and the same arithmetic, so the same result to the bit. The pool
+    The lookups (numpy operations on arrays of up to CHUNK points, and the compiled loop of
+    :mod:`~fleetmap.shared.core.gridlookup`) release the GIL, so the two directions of a grid score
+    run side by side, with the same arithmetic, so the same result to the bit. The pool
     belongs to the process that made it (a forked worker makes its own: threads do not survive
     a fork)."""
     global _pool

@@ -65,6 +65,7 @@ def test_a_joined_pair_whose_registration_near_the_join_fails_is_integrated_pose
     dt, dr = edge.transform.distance(truth)
     assert dt < 0.10 and math.degrees(dr) < 2.0, f"pose-free: {dt:.2f} m, {math.degrees(dr):.1f} deg off"
     assert not schedule.queue, "tried pose-free once"
+    assert schedule.stats.retried == 1, "the retry is counted (fleetmap map's join_pairs_retried)"
 
 
 def test_a_pair_within_reach_whose_registration_fails_is_not_tried_again() -> None:
@@ -76,6 +77,7 @@ def test_a_pair_within_reach_whose_registration_fails_is_not_tried_again() -> No
     edge = graph.edge(*pair)
     assert edge is not None and not edge.valid
     assert not schedule.queue, "only a pair the join can have put beyond reach is tried again"
+    assert schedule.stats.retried == 0
 
 
 @pytest.mark.parametrize(("heading_sigma", "beyond"), [(0.001, False), (0.05, True)])

@@ -49,12 +49,12 @@ def test_ranking_puts_the_true_transformation_first_and_scores_it_as_the_grid_sc
     assert ranked[100] > 0.9 * total
 
 
-def test_ranking_scores_are_whole_samples_and_do_not_depend_on_how_candidates_are_chunked(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+def test_ranking_scores_are_whole_samples_and_do_not_depend_on_the_candidates_order() -> None:
     # Each sample that lands on a wall counts its spacing, one in free space twice that against:
     # a score is a whole number of half spacings, summed exactly, so equal alignments tie exactly
     # (the stable sort keeps the candidates' order) whatever a BLAS does with float sums, and a
-    # replay on another machine ranks the same. Large rankings go in chunks, each with its own
-    # rotation groups: the scores must not depend on where the chunks fall.
+    # replay on another machine ranks the same. The candidates are scored by rotation group: a
+    # candidate's score must not depend on the others beside it, nor on their order.
     a = _index(WALLS)
     b = _index(Transform2D(0.4, 0.2, 0.3).apply(WALLS))
     rng = np.random.default_rng(9)
@@ -67,9 +67,8 @@ def test_ranking_scores_are_whole_samples_and_do_not_depend_on_how_candidates_ar
     assert np.array_equal(scores, counts * half)
     assert len(set(scores.tolist())) < len(scores)  # there are ties to break
     assert np.array_equal(mapgrid._ranking_lookups(a, samples, t[:9]), scores[:9])
-    for points_per_chunk in (7 * len(samples.points), 50 * len(samples.points) + 3):
-        monkeypatch.setattr(mapgrid, "CHUNK", points_per_chunk)
-        assert np.array_equal(mapgrid._ranking_lookups(a, samples, t), scores)
+    shuffled = rng.permutation(len(t))
+    assert np.array_equal(mapgrid._ranking_lookups(a, samples, t[shuffled]), scores[shuffled])
 
 
 def _forked_scores(args: tuple[object, object, np.ndarray]) -> np.ndarray:
