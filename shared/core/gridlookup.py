@@ -14,15 +14,23 @@ call, so a process that never ranks maps never pays for it.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import numpy as np
 from fleetmap.shared.core.geometry import Array
 
 _kernel: Callable[..., None] | None = None
+_compiling = threading.Lock()
+"""The two directions of a grid score call the loop at once, on two threads (``mapgrid._both_ways``)."""
 
 
 def _compiled() -> Callable[..., None]:
+    with _compiling:
+        return _kernel or _compile()
+
+
+def _compile() -> Callable[..., None]:
     global _kernel
     if _kernel is None:
         import numba
