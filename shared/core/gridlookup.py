@@ -75,9 +75,10 @@ def code_sums(
     origin y, resolution, period of a direction, CHANNELS)``; cell coordinates are clipped into the
     grid (its border cells, one deep, are all zero). Integers: exact.
 
-    The arithmetic is numpy's (:func:`fleetmap.shared.core.mapgrid._channel`, cell coordinates in
-    single precision: a ten-thousandth of a cell on a grid a thousand cells wide, and half the
-    memory traffic), the points of each rotation group turned once."""
+    The arithmetic is the numpy loop's it replaced, so the scores are that loop's to the bit: the
+    layer as :func:`fleetmap.shared.core.mapgrid._channel` takes it, cosines and sines from numpy,
+    cell coordinates in single precision (a ten-thousandth of a cell on a grid a thousand cells
+    wide). The points of each rotation group are turned once."""
     out = np.zeros(len(t), np.int64)
     if len(t) == 0 or len(points) == 0:
         return out
