@@ -440,6 +440,7 @@ def test_a_graph_grown_submap_by_submap_carries_its_forest_on_and_ends_where_a_w
     _solves_as_a_whole(source, grown.solve())
 
 
+@pytest.mark.slow  # runs three agents and the merger on a scenario (about 20 s; shares the fleet)
 def test_a_quiet_solve_looks_at_no_edge_yet_sees_every_integration_added_after_it(fleet: Fleet) -> None:
     # issue 49: a solve whose graph gained no link or integration since the last one (new
     # versions at most) carries the last one on without a look at every edge; an integration
