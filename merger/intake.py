@@ -376,6 +376,7 @@ class Intake:
             self._pending.pop(key, None)
             s.scheduled.pop(key, None)
             s.far_tries.pop(key, None)
+            s.far_rank.forget(key)
             self._key_scans.pop(key, None)
         self._held.pop(robot, None)
         if self.budget is not None:

@@ -13,11 +13,12 @@ of one robot's submaps in one step), searches once the next solve has placed its
   :data:`NEAR_CANDIDATES`, registered near that prediction
   (:meth:`~fleetmap.merger.posegraph.PoseGraph.align_pair`), as Cartographer's constraint builder
   searches near a trajectory;
-- *far*: the submaps of the other components most like it (the cosine of pairwise geometric
-  histograms of the walls, the cheap descriptor), at most :data:`FAR_CANDIDATES`, by the
-  paper's pose-free integration; every :data:`LOOP_SWEEP_EVERY`-th final
-  submap also tries the most similar submap of its own component beyond its reach (a loop its
-  drift hides from the near search);
+- *far*: the submaps of the other components that can share most wall with it, at most
+  :data:`FAR_CANDIDATES`, by the paper's pose-free integration: the cheap descriptor (the cosine
+  of pairwise geometric histograms of the walls) shortlists, the integration's coarse grid score
+  orders the shortlist, which widens with every try (:mod:`fleetmap.merger.farrank`); every
+  :data:`LOOP_SWEEP_EVERY`-th final submap also tries the most similar submap of its own
+  component beyond its reach (a loop its drift hides from the near search);
 - *joined*: when a solve joins groups of epochs that were apart, the final submaps of the groups
   whose walls now meet, registered near where the join puts them (at most :data:`NEAR_CANDIDATES`
   a submap): the near search of a submap that arrived before the join only saw its own group;
@@ -42,6 +43,7 @@ from collections.abc import Callable
 
 import numpy as np
 from fleetmap.merger.executor import PairJob
+from fleetmap.merger.farrank import FarRanking
 from fleetmap.merger.outputs import Placement, epoch_of
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.stats import MergerStats
@@ -109,6 +111,8 @@ class PairSchedule:
         """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
         self.far_tries: dict[str, int] = {}
         """Pose-free integrations queued for each submap with other components' submaps."""
+        self.far_rank = FarRanking(graph, stats)
+        """The far search's order (:mod:`fleetmap.merger.farrank`)."""
         self.finished_epochs: set[str] = set()
         """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
         self.idle: set[Pair] = set()
@@ -419,7 +423,7 @@ class PairSchedule:
         here = self._predicted(key, p)
         if here is None or p.result is None:
             return []
-        radius = self._radius(key)
+        radius = _radius(self.graph, key)
         out = []
         for other in sorted(mine):
             if other == key or _neighbours(key, other):
@@ -428,7 +432,7 @@ class PairSchedule:
             if there is None:
                 continue
             distance = math.hypot(here.x - there.x, here.y - there.y)
-            if distance <= radius + self._radius(other):
+            if distance <= radius + _radius(self.graph, other):
                 out.append((distance, other, there.inverse().compose(here)))
         out.sort(key=lambda x: (x[0], x[1]))
         return [(other, predicted) for _, other, predicted in out]
@@ -453,16 +457,10 @@ class PairSchedule:
         drift = self.graph.tree_drift(self._placed_as(a, p), self._placed_as(b, p))
         return drift is not None and _reaches(drift)
 
-    def _radius(self, key: str) -> float:
-        """How far a submap's walls reach from its frame (m)."""
-        seg = self.graph.map_of(key).segments
-        if len(seg) == 0:
-            return 0.0
-        return float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max())
-
     def _far(self, key: str, mine: set[str], p: Placement, within: bool) -> list[str]:
-        """Submaps most like ``key`` (pairwise geometric histograms), of the other components, or of its
-        own beyond its reach (``within``), most similar first."""
+        """Submaps most like ``key`` (pairwise geometric histograms), of its own component beyond its
+        reach (``within``), most similar first; or of the other components, in the far search's order
+        for its next try (:class:`~fleetmap.merger.farrank.FarRanking`)."""
         h = self.graph.descriptor(key)
         here = self._predicted(key, p)
         candidates = []
@@ -471,15 +469,25 @@ class PairSchedule:
                 continue
             if within and here is not None and p.result is not None:
                 there = p.result.poses.get(other)
-                if there is not None and math.hypot(here.x - there.x, here.y - there.y) <= self._radius(
-                    key
-                ) + self._radius(other):
+                reach = _radius(self.graph, key) + _radius(self.graph, other)
+                if there is not None and math.hypot(here.x - there.x, here.y - there.y) <= reach:
                     continue  # within reach: the near search's
             if not self.graph.seen_enough(key, other) or self.graph.is_current(*ordered(other, key)):
                 continue
             candidates.append((-similarity(self.graph.descriptor(other), h), other))
         candidates.sort()
-        return [other for _, other in candidates]
+        partners = [other for _, other in candidates]
+        if within:
+            return partners
+        return self.far_rank.order(key, partners, self.far_tries.get(key, 0) + FAR_CANDIDATES)
+
+
+def _radius(graph: PoseGraph, key: str) -> float:
+    """How far a submap's walls reach from its frame (m)."""
+    seg = graph.map_of(key).segments
+    if len(seg) == 0:
+        return 0.0
+    return float(np.hypot(seg[:, 0::2], seg[:, 1::2]).max())
 
 
 def _reaches(drift: tuple[float, float]) -> bool:

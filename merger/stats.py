@@ -36,6 +36,8 @@ class MergerStats:
     retried: int = 0
     """... and those of them integrated again pose-free, their registration not valid where the
     chains' drift may have carried them beyond its reach (docs/decisions/028)."""
+    far_scored: int = 0
+    """Pairs of submaps scored for the far search's order (:mod:`fleetmap.merger.farrank`)."""
     exhausted: int = 0
     """Integrations stopped at ``merge.max_integration_work`` (not valid; logged)."""
     failed: int = 0
@@ -65,6 +67,7 @@ class MergerStats:
             "idle": self.idle,
             "join_pairs": self.join_pairs,
             "retried": self.retried,
+            "far_scored": self.far_scored,
             "exhausted": self.exhausted,
             "failed": self.failed,
             "poses_dropped": self.poses_dropped,

@@ -357,6 +357,7 @@ def _summary(
         "integrations_idle": merger.stats.idle,
         "join_pairs": merger.stats.join_pairs,
         "join_pairs_retried": merger.stats.retried,
+        "far_scored": merger.stats.far_scored,
         "key_scans": merger.stats.key_scans,
         "scan_constraints": merger.stats.scan_constraints,
         "duration_s": duration,

@@ -1,0 +1,60 @@
+"""The order in which the far search tries the other components' submaps for one of its own.
+
+The descriptor's order (:func:`~fleetmap.shared.core.descriptor.similarity`) is cheap and whole-map:
+a partner that shares only a part of a submap's walls ranks low, often beyond the far search's
+budget (:data:`~fleetmap.merger.schedule.FAR_BUDGET`). The coarse grid score of the paper's
+candidates (:func:`~fleetmap.shared.core.overlap.overlap_score`) ranks such partners first, but
+costs about a quarter of a pose-free integration, so each try pays for :data:`FAR_SCORED` of them:
+a submap's n-th try ranks by that score the first ``FAR_SCORED * n`` partners in the descriptor's
+order (the window widens with every try and reaches past what the descriptor ranks high), then the
+rest in the descriptor's order. The order is a function of the graph and the tries alone (the
+scores are kept only so that each pair of versions is scored once), so a merger restored from its
+state, or a replay, orders alike.
+"""
+
+from __future__ import annotations
+
+from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.stats import MergerStats
+from fleetmap.shared.core.overlap import overlap_score
+
+FAR_SCORED = 4
+"""Partners a far try ranks by their overlap score: their cost is about that of one pose-free
+integration (36 ms each against 0.15 s, docs/decisions/031), so ranking at most doubles what the far
+search costs a submap, however many submaps the other components hold."""
+
+
+class FarRanking:
+    """Overlap scores of pairs of submaps (each pair of versions once), and the far search's order."""
+
+    def __init__(self, graph: PoseGraph, stats: MergerStats) -> None:
+        self.graph = graph
+        self.stats = stats
+        self._scores: dict[tuple[str, str], tuple[int, int, float]] = {}
+
+    def order(self, key: str, partners: list[str], turns: int) -> list[str]:
+        """``partners`` (the descriptor's order) for ``key``'s ``turns``-th try (the first is 1): the
+        first ``FAR_SCORED * turns`` by their overlap score, best first (ties: the descriptor's
+        order), then the rest."""
+        window = partners[: FAR_SCORED * max(turns, 0)]
+        ranked = sorted(window, key=lambda other: -self.score(key, other))
+        return ranked + partners[len(window) :]
+
+    def score(self, a: str, b: str) -> float:
+        """The overlap score of two submaps at their current versions (one way: the first key in
+        sorted order is searched on, as the pair is integrated)."""
+        a, b = (a, b) if a < b else (b, a)
+        va, vb = self.graph.version_of(a), self.graph.version_of(b)
+        known = self._scores.get((a, b))
+        if known is not None and known[:2] == (va, vb):
+            return known[2]
+        (m1, i1), (m2, i2) = self.graph.searched(a), self.graph.searched(b)
+        value = overlap_score(m1, m2, i1, i2, self.graph.integration)
+        self._scores[(a, b)] = (va, vb, value)
+        self.stats.far_scored += 1
+        return value
+
+    def forget(self, key: str) -> None:
+        """Drop the scores of a submap that left the graph."""
+        for pair in [pair for pair in self._scores if key in pair]:
+            del self._scores[pair]

@@ -1,0 +1,60 @@
+"""The far search's order: the overlap score ranks a partner that shares part of a submap's walls
+first, within a window of the descriptor's order that widens with every try (docs/decisions/031)."""
+
+from __future__ import annotations
+
+import pytest
+from fleetmap.merger.farrank import FAR_SCORED, FarRanking
+from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.stats import MergerStats
+from fleetmap.shared.core.segmap import SegmentMap
+
+from tests.helpers import true_local_map
+
+QUERY = ("r1", 28, 33)
+"""The short last stretch of a robot's tour (the department, scans at their true poses) ..."""
+PARTNER = ("r2", 4, 10)
+"""... the one stretch of another robot's that drives the same corridor (1.3 m from it) ..."""
+OTHERS = [("r2", 12, 18), ("r2", 16, 22), ("r2", 20, 26), ("r2", 24, 30), ("r3", 24, 30), ("r3", 30, 36)]
+"""... and stretches 6-16 m away, elsewhere in the building."""
+
+
+def _key(stretch: tuple[str, int, int]) -> str:
+    robot, start, _ = stretch
+    return f"{robot}/{start}/0"
+
+
+@pytest.fixture(scope="module")
+def graph() -> PoseGraph:
+    graph = PoseGraph()
+    for stretch in (QUERY, PARTNER, *OTHERS):
+        m, _ = true_local_map("department", *stretch)
+        graph.put_map(_key(stretch), SegmentMap(m.segments, ordered=False, oriented=True))
+    return graph
+
+
+def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(graph: PoseGraph) -> None:
+    ranking = FarRanking(graph, MergerStats())
+    scores = {_key(s): ranking.score(_key(QUERY), _key(s)) for s in (PARTNER, *OTHERS)}
+    best = max(scores, key=lambda k: scores[k])
+    assert best == _key(PARTNER), f"scores {scores}"
+    assert scores[best] > 1.5 * max(v for k, v in scores.items() if k != best), f"no clear margin: {scores}"
+
+
+def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(graph: PoseGraph) -> None:
+    stats = MergerStats()
+    ranking = FarRanking(graph, stats)
+    query = _key(QUERY)
+    # the descriptor put the partner after every other stretch: beyond the first try's window
+    partners = [_key(s) for s in OTHERS] + [_key(PARTNER)]
+    assert len(OTHERS) >= FAR_SCORED
+    first = ranking.order(query, partners, 1)
+    assert first[FAR_SCORED:] == partners[FAR_SCORED:], "beyond the window, the descriptor's order"
+    assert sorted(first[:FAR_SCORED]) == sorted(partners[:FAR_SCORED])
+    assert stats.far_scored == FAR_SCORED, "one try scores FAR_SCORED pairs"
+    later = ranking.order(query, partners, 2)
+    assert later[0] == _key(PARTNER), f"the window reached the partner: {later}"
+    assert sorted(later) == sorted(partners), "nothing lost, nothing added"
+    assert stats.far_scored == len(partners), "pairs scored before are not scored again"
+    ranking.order(query, partners, 2)
+    assert stats.far_scored == len(partners)
