@@ -27,6 +27,9 @@ DISTINCT_ROTATION = 0.035
 """... and this (rad, 2 degrees) of a better one are the same transformation: the few refined are
 different transformations, not one found twice."""
 
+SUPPORT_CELL = (0.1, 0.05)
+"""A candidate's support is the number of candidates in its cell of this size (m, rad)."""
+
 AUTO_ORDER = ("consecutive", "histogram", "random", "alignments", "all")
 """What auto tries: the paper's heuristics, fleetmap's segment alignments (for corridors, which
 have no angles), and all pairs while the maps are small enough for that to stay cheap."""
@@ -67,22 +70,22 @@ def distinct_candidates(t: Array, labels: IntArray, params: IntegrationParams) -
     if len(t) == 0:
         return t, labels
     q = params.point_distance_tolerance
-    _, first = np.unique(_cell_keys(t, q, 0.005), return_index=True)
-    _, cell, support = np.unique(_cell_keys(t, 0.1, 0.05), return_inverse=True, return_counts=True)
+    _, first = np.unique(cell_keys(t, q, 0.005), return_index=True)
+    _, cell, support = np.unique(cell_keys(t, *SUPPORT_CELL), return_inverse=True, return_counts=True)
     keep = np.sort(first)
     order = np.lexsort((keep, -support[cell.ravel()[keep]]))
     chosen = keep[order]
     return t[chosen], labels[chosen]
 
 
-def _cell_keys(t: Array, step: float, angle_step: float) -> IntArray:
+def cell_keys(t: Array, step: float, angle_step: float) -> IntArray:
     """One integer per candidate naming its (step, step, angle_step) cell: a 1-D key sorts far
     faster than ``np.unique(..., axis=0)`` on the three cell indices."""
-    cells = np.column_stack([np.round(t[:, 0] / step), np.round(t[:, 1] / step), np.round(t[:, 2] / angle_step)])
-    cells = cells.astype(np.int64)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    x, y, a = (np.round(t[:, i] / s).astype(np.int64) for i, s in enumerate((step, step, angle_step)))
+    x -= x.min()
+    y -= y.min()
+    a -= a.min()
+    return (x * (y.max() + 1) + y) * (a.max() + 1) + a
 
 
 def _in_window(t: Array, labels: IntArray, window: Window | None) -> tuple[Array, IntArray]:
