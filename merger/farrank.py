@@ -4,7 +4,7 @@ The descriptor's order (:func:`~fleetmap.shared.core.descriptor.similarity`) is 
 a partner that shares only a part of a submap's walls ranks low, often beyond the far search's
 budget (:data:`~fleetmap.merger.schedule.FAR_BUDGET`). The coarse grid score of the paper's
 candidates (:func:`~fleetmap.shared.core.overlap.overlap_score`) ranks such partners first, but
-costs about a quarter of a pose-free integration, so each try pays for :data:`FAR_SCORED` of them:
+costs about a seventh of a pose-free integration, so each try pays for :data:`FAR_SCORED` of them:
 a submap's n-th try ranks by that score the first ``FAR_SCORED * n`` partners in the descriptor's
 order (the window widens with every try and reaches past what the descriptor ranks high), then the
 rest in the descriptor's order. The order is a function of the graph and the tries alone (the
@@ -19,8 +19,8 @@ from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.core.overlap import overlap_score
 
 FAR_SCORED = 4
-"""Partners a far try ranks by their overlap score: their cost is about that of one pose-free
-integration (36 ms each against 0.15 s, docs/decisions/031), so ranking at most doubles what the far
+"""Partners a far try ranks by their overlap score: they cost about half a pose-free integration
+(21 ms each against 0.15 s, docs/decisions/031), so ranking adds at most half to what the far
 search costs a submap, however many submaps the other components hold."""
 
 
