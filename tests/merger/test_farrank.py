@@ -33,6 +33,7 @@ def graph() -> PoseGraph:
     return graph
 
 
+@pytest.mark.slow  # tracks nothing, but builds seven submaps from the department's scans (shared)
 def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(graph: PoseGraph) -> None:
     ranking = FarRanking(graph, MergerStats())
     scores = {_key(s): ranking.score(_key(QUERY), _key(s)) for s in (PARTNER, *OTHERS)}
@@ -41,6 +42,7 @@ def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(graph: Pose
     assert scores[best] > 1.5 * max(v for k, v in scores.items() if k != best), f"no clear margin: {scores}"
 
 
+@pytest.mark.slow  # shares the submaps of the test above
 def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(graph: PoseGraph) -> None:
     stats = MergerStats()
     ranking = FarRanking(graph, stats)
