@@ -327,10 +327,11 @@ class PairSchedule:
 
     def idle_pairs(self, p: Placement) -> int:
         """With nothing else to do: one more pose-free pair for a submap of each component apart
-        from the global map (:meth:`idle_candidates`: robots not in it yet), its next most
-        similar submap of another component not tried yet, up to :data:`FAR_BUDGET` tries a submap;
-        how many were queued. Every submap's candidates are tried in turn: in a building where
-        most views look alike (racks), the descriptor ranks the right partner anywhere."""
+        from the global map (:meth:`idle_candidates`: robots not in it yet), its next submap of
+        another component not tried yet in the far search's order (:meth:`_far`), up to
+        :data:`FAR_BUDGET` tries a submap; how many were queued. Every submap's candidates are tried
+        in turn: in a building where most views look alike (racks), the descriptor ranks the right
+        partner anywhere."""
         if p.result is None or len(p.groups) < 2:
             return 0
         budget = FAR_BUDGET
@@ -463,14 +464,15 @@ class PairSchedule:
         for its next try (:class:`~fleetmap.merger.farrank.FarRanking`)."""
         h = self.graph.descriptor(key)
         here = self._predicted(key, p)
+        radius = _radius(self.graph, key) if within else 0.0
         candidates = []
         for other in self.graph.keys:
             if other == key or (other in mine) != within or _neighbours(key, other):
                 continue
             if within and here is not None and p.result is not None:
                 there = p.result.poses.get(other)
-                reach = _radius(self.graph, key) + _radius(self.graph, other)
-                if there is not None and math.hypot(here.x - there.x, here.y - there.y) <= reach:
+                gap = math.inf if there is None else math.hypot(here.x - there.x, here.y - there.y)
+                if gap <= radius + _radius(self.graph, other):
                     continue  # within reach: the near search's
             if not self.graph.seen_enough(key, other) or self.graph.is_current(*ordered(other, key)):
                 continue
