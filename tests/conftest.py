@@ -21,16 +21,28 @@ def data_dir() -> Path | None:
     return None
 
 
+FLEETS = (
+    "tests/live/",
+    "tests/shared/test_bus.py",
+    "tests/agents/test_process.py",
+    "tests/merger/test_executor.py",
+    "tests/merger/test_recorder.py",
+    "tests/test_agent_processes.py",
+)
+"""The modules whose slow tests run fleets of processes that wait on each other (zenoh sessions
+between processes, worker pools a test kills)."""
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The slow tests (real zenoh sessions, maps of many scans) run one after another on one xdist worker.
-
-    Two fleets of processes at once on a two-core machine would time each other out; the fast tests
-    share the other workers.
-    """
+    """The slow tests that run fleets of processes (:data:`FLEETS`) run one after another on one
+    xdist worker: two fleets at once on a two-core machine would each wait on processes the other
+    starves. The other slow tests (maps of many scans, a command in a process of its own) share the
+    workers with the fast ones: they wait on nothing but their own work."""
     for item in items:
-        if item.get_closest_marker("slow"):
-            item.add_marker(pytest.mark.xdist_group("slow"))
+        path = item.path.resolve().relative_to(Path(__file__).resolve().parents[1]).as_posix()
+        if item.get_closest_marker("slow") and path.startswith(FLEETS):
+            item.add_marker(pytest.mark.xdist_group("fleet"))
 
 
 @pytest.fixture(scope="session")

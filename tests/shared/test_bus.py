@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import Bus, BusError
+from fleetmap.shared.io.bus import FLUSH_TIMEOUT, Bus, BusError
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.memory_bus import InMemoryBus
 from fleetmap.shared.io.zenoh_bus import ZenohBus
@@ -412,7 +412,9 @@ def test_a_session_whose_barrier_never_answers_does_not_hold_up_the_closing_of_a
             leaving.publish(KEYS.events, b"last words")
             started = time.monotonic()
             leaving.close()
-            assert time.monotonic() - started < 1.0, "close waited for the session that never answers"
+            # held up, it waits two flush timeouts; answered by its router alone, a fraction of a
+            # second (a busy machine stretches that, never to a whole flush timeout)
+            assert time.monotonic() - started < FLUSH_TIMEOUT, "close waited for the session that never answers"
             assert inbox.wait_for(1), "what the closing client published was lost"
             assert held, "the mute session was asked (the test would prove nothing otherwise)"
         assert router.stats.callback_errors == 0
