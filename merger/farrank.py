@@ -21,7 +21,9 @@ from fleetmap.shared.core.overlap import overlap_score
 FAR_SCORED = 4
 """Partners a far try ranks by their overlap score: they cost about half a pose-free integration
 (21 ms each against 0.15 s, docs/decisions/031), so ranking adds at most half to what the far
-search costs a submap, however many submaps the other components hold."""
+search costs a submap, however many submaps the other components hold. 2 and 8 make the same joins
+on the rows the ranking changed (edmonton-c K = 4, belgioioso-c K = 8); a wider window spends fewer
+integrations (docs/decisions/031, "FAR_SCORED at 2, 4 and 8")."""
 
 
 class FarRanking:
