@@ -14,9 +14,12 @@ state, or a replay, orders alike.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.core.overlap import overlap_score
+from fleetmap.shared.io.messages import LocalMap
 
 FAR_SCORED = 4
 """Partners a far try ranks by their overlap score: they cost about half a pose-free integration
@@ -29,18 +32,30 @@ integrations (docs/decisions/031, "FAR_SCORED at 2, 4 and 8")."""
 class FarRanking:
     """Overlap scores of pairs of submaps (each pair of versions once), and the far search's order."""
 
-    def __init__(self, graph: PoseGraph, stats: MergerStats) -> None:
+    def __init__(self, graph: PoseGraph, stats: MergerStats, submaps: Mapping[str, LocalMap]) -> None:
         self.graph = graph
         self.stats = stats
+        self.submaps = submaps
+        """The submaps as received: which are final."""
         self._scores: dict[tuple[str, str], tuple[int, int, float]] = {}
 
     def order(self, key: str, partners: list[str], turns: int) -> list[str]:
         """``partners`` (the descriptor's order) for ``key``'s ``turns``-th try (the first is 1): the
-        first ``FAR_SCORED * turns`` by their overlap score, best first (ties: the descriptor's
-        order), then the rest."""
-        window = partners[: FAR_SCORED * max(turns, 0)]
+        first ``FAR_SCORED * turns`` final ones by their overlap score, best first (ties: the
+        descriptor's order), then the rest in the descriptor's order. A submap still growing is
+        neither scored nor scores: its next version, a few scans on, would need its scores again
+        (live, a fleet of robots not yet placed grows dozens of submaps a second; scoring each
+        version's partners fell twenty seconds behind the robots, docs/decisions/031)."""
+        if not self._final(key):
+            return partners
+        window = [other for other in partners if self._final(other)][: FAR_SCORED * max(turns, 0)]
         ranked = sorted(window, key=lambda other: -self.score(key, other))
-        return ranked + partners[len(window) :]
+        chosen = set(ranked)
+        return ranked + [other for other in partners if other not in chosen]
+
+    def _final(self, key: str) -> bool:
+        m = self.submaps.get(key)
+        return m is not None and m.final
 
     def score(self, a: str, b: str) -> float:
         """The overlap score of two submaps at their current versions (one way: the first key in

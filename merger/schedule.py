@@ -111,7 +111,7 @@ class PairSchedule:
         """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
         self.far_tries: dict[str, int] = {}
         """Pose-free integrations queued for each submap with other components' submaps."""
-        self.far_rank = FarRanking(graph, stats)
+        self.far_rank = FarRanking(graph, stats, submaps)
         """The far search's order (:mod:`fleetmap.merger.farrank`)."""
         self.finished_epochs: set[str] = set()
         """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""

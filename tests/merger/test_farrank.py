@@ -3,11 +3,14 @@ first, within a window of the descriptor's order that widens with every try (doc
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 from fleetmap.merger.farrank import FAR_SCORED, FarRanking
 from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.core.segmap import SegmentMap
+from fleetmap.shared.io.messages import LocalMap
 
 from tests.helpers import true_local_map
 
@@ -25,17 +28,27 @@ def _key(stretch: tuple[str, int, int]) -> str:
 
 
 @pytest.fixture(scope="module")
-def graph() -> PoseGraph:
+def maps() -> dict[str, LocalMap]:
+    """The stretches as final submaps."""
+    return {
+        _key(stretch): dataclasses.replace(true_local_map("department", *stretch)[0], final=True)
+        for stretch in (QUERY, PARTNER, *OTHERS)
+    }
+
+
+@pytest.fixture(scope="module")
+def graph(maps: dict[str, LocalMap]) -> PoseGraph:
     graph = PoseGraph()
-    for stretch in (QUERY, PARTNER, *OTHERS):
-        m, _ = true_local_map("department", *stretch)
-        graph.put_map(_key(stretch), SegmentMap(m.segments, ordered=False, oriented=True))
+    for key, m in maps.items():
+        graph.put_map(key, SegmentMap(m.segments, ordered=False, oriented=True))
     return graph
 
 
 @pytest.mark.slow  # tracks nothing, but builds seven submaps from the department's scans (shared)
-def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(graph: PoseGraph) -> None:
-    ranking = FarRanking(graph, MergerStats())
+def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(
+    graph: PoseGraph, maps: dict[str, LocalMap]
+) -> None:
+    ranking = FarRanking(graph, MergerStats(), maps)
     scores = {_key(s): ranking.score(_key(QUERY), _key(s)) for s in (PARTNER, *OTHERS)}
     best = max(scores, key=lambda k: scores[k])
     assert best == _key(PARTNER), f"scores {scores}"
@@ -43,9 +56,11 @@ def test_the_overlap_score_ranks_the_stretch_that_shares_walls_first(graph: Pose
 
 
 @pytest.mark.slow  # shares the submaps of the test above
-def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(graph: PoseGraph) -> None:
+def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(
+    graph: PoseGraph, maps: dict[str, LocalMap]
+) -> None:
     stats = MergerStats()
-    ranking = FarRanking(graph, stats)
+    ranking = FarRanking(graph, stats, maps)
     query = _key(QUERY)
     # the descriptor put the partner after every other stretch: beyond the first try's window
     partners = [_key(s) for s in OTHERS] + [_key(PARTNER)]
@@ -60,3 +75,22 @@ def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(
     assert stats.far_scored == len(partners), "pairs scored before are not scored again"
     ranking.order(query, partners, 2)
     assert stats.far_scored == len(partners)
+
+
+@pytest.mark.slow  # shares the submaps of the tests above
+def test_a_growing_submap_keeps_the_descriptors_order_and_is_not_scored(
+    graph: PoseGraph, maps: dict[str, LocalMap]
+) -> None:
+    # its next version, a few scans on, would need its scores again: live, scoring each version of
+    # a fleet's growing submaps fell twenty seconds behind the robots
+    query = _key(QUERY)
+    partners = [_key(s) for s in OTHERS] + [_key(PARTNER)]
+    growing = {**maps, query: dataclasses.replace(maps[query], final=False)}
+    stats = MergerStats()
+    assert FarRanking(graph, stats, growing).order(query, partners, 5) == partners
+    assert stats.far_scored == 0
+    # a growing partner is left out of the window, the final ones ranked
+    growing = {**maps, _key(PARTNER): dataclasses.replace(maps[_key(PARTNER)], final=False)}
+    order = FarRanking(graph, stats, growing).order(query, partners, 5)
+    assert order[-1] == _key(PARTNER) and sorted(order) == sorted(partners)
+    assert stats.far_scored == len(OTHERS)
