@@ -7,9 +7,10 @@ candidates (:func:`~fleetmap.shared.core.overlap.overlap_score`) ranks such part
 costs about a seventh of a pose-free integration, so each try pays for :data:`FAR_SCORED` of them:
 a submap's n-th try ranks by that score the first ``FAR_SCORED * n`` partners in the descriptor's
 order (the window widens with every try and reaches past what the descriptor ranks high), then the
-rest in the descriptor's order. The order is a function of the graph and the tries alone (the
-scores are kept only so that each pair of versions is scored once), so a merger restored from its
-state, or a replay, orders alike.
+rest in the descriptor's order. Only final submaps are scored: a growing one keeps the descriptor's
+order. The order is a function of the graph, the submaps' finality and the tries alone (the scores
+are kept only so that each pair is scored once), so a merger restored from its state, or a replay,
+orders alike.
 """
 
 from __future__ import annotations
@@ -44,8 +45,8 @@ class FarRanking:
         first ``FAR_SCORED * turns`` final ones by their overlap score, best first (ties: the
         descriptor's order), then the rest in the descriptor's order. A submap still growing is
         neither scored nor scores: its next version, a few scans on, would need its scores again
-        (live, a fleet of robots not yet placed grows dozens of submaps a second; scoring each
-        version's partners fell twenty seconds behind the robots, docs/decisions/031)."""
+        (live, scoring every version of a 16-robot fleet's growing submaps fell twenty seconds
+        behind the robots, docs/decisions/031)."""
         if not self._final(key):
             return partners
         window = [other for other in partners if self._final(other)][: FAR_SCORED * max(turns, 0)]
