@@ -40,8 +40,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     starves. The other slow tests (maps of many scans, a command in a process of its own) share the
     workers with the fast ones: they wait on nothing but their own work."""
     for item in items:
-        path = item.path.resolve().relative_to(Path(__file__).resolve().parents[1]).as_posix()
-        if item.get_closest_marker("slow") and path.startswith(FLEETS):
+        if item.get_closest_marker("slow") and item.nodeid.startswith(FLEETS):  # (relative to the project)
             item.add_marker(pytest.mark.xdist_group("fleet"))
 
 
