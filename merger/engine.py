@@ -195,6 +195,7 @@ class Merger(Intake):
         if not queue and not refuse:
             self.schedule.idle_pairs(self.placement)
         new_edges, taken = self._integrate(limit, enough)
+        self.schedule.behind = bool(queue)  # (before the solve queues the joins' pairs: new work)
         self.seq += 1
         self.stats.steps += 1
         self.stats.integrations += len(new_edges)
@@ -363,6 +364,7 @@ class Merger(Intake):
             finals=s.finals,
             far_tries=s.far_tries,
             last_out=self._last_out,
+            behind=s.behind,
         )
         write_state(path, state)
 
@@ -385,7 +387,7 @@ class Merger(Intake):
         s = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse)
         s.finished_epochs = fresh.schedule.finished_epochs
         s.queue = {(a, b): t for (a, b), t in state.queue.items() if a in self.graph and b in self.graph}
-        s.scheduled, s.finals, s.far_tries = state.scheduled, state.finals, state.far_tries
+        s.scheduled, s.finals, s.far_tries, s.behind = state.scheduled, state.finals, state.far_tries, state.behind
         self.schedule = s
         self._pending = {m.submap_key: m for m in state.pending}
         if len(self.graph):

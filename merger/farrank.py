@@ -8,9 +8,14 @@ costs about a seventh of a pose-free integration, so each try pays for :data:`FA
 a submap's n-th try ranks by that score the first ``FAR_SCORED * n`` partners in the descriptor's
 order (the window widens with every try and reaches past what the descriptor ranks high), then the
 rest in the descriptor's order. Only final submaps are scored: a growing one keeps the descriptor's
-order. The order is a function of the graph, the submaps' finality and the tries alone (the scores
-are kept only so that each pair is scored once), so a merger restored from its state, or a replay,
-orders alike.
+order. A merger behind its robots (its last step stopped at its time budget with pairs still
+queued: :attr:`~fleetmap.merger.schedule.PairSchedule.behind`) takes the descriptor's order too:
+live, scoring every final submap on arrival in the merger's step kept it behind (16 robots, inline:
+latency 8.6-10.2 s against 1.7-1.9 s without the scores, docs/decisions/032); offline, each step
+integrates all it queued, and every final submap's search is ranked. The order is a function of the
+graph, the submaps' finality, the tries and whether the merger is behind (the scores are kept only
+so that each pair is scored once), so a merger restored from its state, or a replay, orders
+alike.
 """
 
 from __future__ import annotations

@@ -113,6 +113,8 @@ class PairSchedule:
         """Pose-free integrations queued for each submap with other components' submaps."""
         self.far_rank = FarRanking(graph, stats, submaps)
         """The far search's order (:mod:`fleetmap.merger.farrank`)."""
+        self.behind = False
+        """Whether the last step left pairs queued (live, at its time budget): no far scores then (:meth:`_far`)."""
         self.finished_epochs: set[str] = set()
         """Epochs (``robot/epoch``) with a final submap: from then on their final submaps search."""
         self.idle: set[Pair] = set()
@@ -461,7 +463,7 @@ class PairSchedule:
     def _far(self, key: str, mine: set[str], p: Placement, within: bool) -> list[str]:
         """Submaps most like ``key`` (pairwise geometric histograms), of its own component beyond its
         reach (``within``), most similar first; or of the other components, in the far search's order
-        for its next try (:class:`~fleetmap.merger.farrank.FarRanking`)."""
+        for its next try (:class:`~fleetmap.merger.farrank.FarRanking`; :attr:`behind`: the descriptor's)."""
         h = self.graph.descriptor(key)
         here = self._predicted(key, p)
         radius = _radius(self.graph, key) if within else 0.0
@@ -479,7 +481,7 @@ class PairSchedule:
             candidates.append((-similarity(self.graph.descriptor(other), h), other))
         candidates.sort()
         partners = [other for _, other in candidates]
-        if within:
+        if within or self.behind:
             return partners
         return self.far_rank.order(key, partners, self.far_tries.get(key, 0) + FAR_CANDIDATES)
 

@@ -42,6 +42,8 @@ class MergerState:
     finals: int
     far_tries: dict[str, int]
     last_out: list[Outgoing]
+    behind: bool = False
+    """Whether the last step left pairs queued (:attr:`~fleetmap.merger.schedule.PairSchedule.behind`)."""
 
 
 def write_state(path: str | Path, state: MergerState) -> None:
@@ -59,6 +61,7 @@ def write_state(path: str | Path, state: MergerState) -> None:
         "scheduled": state.scheduled,
         "finals": state.finals,
         "far_tries": state.far_tries,
+        "behind": state.behind,
         "last_out": [[o.key, o.payload] for o in state.last_out],
     }
     p = Path(path)
@@ -107,6 +110,7 @@ def read_state(path: str | Path) -> MergerState:
             finals=int(state.get("finals", 0)),
             far_tries={str(k): int(v) for k, v in state.get("far_tries", {}).items()},
             last_out=[Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])],
+            behind=bool(state.get("behind", False)),
         )
     except (
         OSError,

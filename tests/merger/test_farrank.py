@@ -7,8 +7,11 @@ import dataclasses
 
 import pytest
 from fleetmap.merger.farrank import FAR_SCORED, FarRanking
+from fleetmap.merger.outputs import Placement
 from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.schedule import FAR_CANDIDATES, PairSchedule, ordered
 from fleetmap.merger.stats import MergerStats
+from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.io.messages import LocalMap
 
@@ -94,3 +97,30 @@ def test_a_growing_submap_keeps_the_descriptors_order_and_is_not_scored(
     order = FarRanking(graph, stats, growing).order(query, partners, 5)
     assert order[-1] == _key(PARTNER) and sorted(order) == sorted(partners)
     assert stats.far_scored == len(OTHERS)
+
+
+@pytest.mark.slow  # shares the submaps of the tests above
+def test_a_merger_behind_its_robots_searches_far_in_the_descriptors_order_and_scores_nothing(
+    graph: PoseGraph, maps: dict[str, LocalMap]
+) -> None:
+    # live, scoring 12 partners for each final submap on arrival, in the merger's step, kept a
+    # fleet of 16 robots behind (docs/decisions/032)
+    query = _key(QUERY)
+    arriving = dataclasses.replace(maps[query], epoch=QUERY[1])  # its key, as the graph holds it
+    assert arriving.submap_key == query
+    placement = Placement.of(graph.solve())
+    searched, scored = {}, {}
+    for behind in (True, False):
+        stats = MergerStats()
+        schedule = PairSchedule(graph, dict(maps), FleetmapConfig(), stats, lambda *_: None)
+        schedule.behind = behind
+        schedule.submap(arriving, True, placement)
+        searched[behind] = sorted(b if a == query else a for a, b in schedule.queue)
+        scored[behind] = stats.far_scored
+    assert scored[True] == 0, "behind, nothing is scored"
+    everyone = sorted(k for k in maps if k != query)
+    assert scored[False] == min(FAR_SCORED * FAR_CANDIDATES, len(everyone)), "on time, the window is scored"
+    ranking = FarRanking(graph, MergerStats(), maps)
+    best = sorted(everyone, key=lambda k: -ranking.score(query, k))[:FAR_CANDIDATES]
+    assert searched[False] == sorted(best), "on time, the best scored are tried (the window holds them all)"
+    assert len(searched[True]) == FAR_CANDIDATES and searched[True] != searched[False]
