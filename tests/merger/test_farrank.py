@@ -9,7 +9,7 @@ import pytest
 from fleetmap.merger.farrank import FAR_SCORED, FarRanking
 from fleetmap.merger.outputs import Placement
 from fleetmap.merger.posegraph import PoseGraph
-from fleetmap.merger.schedule import FAR_CANDIDATES, PairSchedule, ordered
+from fleetmap.merger.schedule import FAR_CANDIDATES, PairSchedule
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.segmap import SegmentMap
