@@ -33,6 +33,11 @@ from fleetmap.shared.core.pivotmap import WITNESS_TRANSLATION
 
 log = logging.getLogger(__name__)
 
+MISFIT_PRIOR = 1.0
+"""How many readings' worth of belief that a reading at a stamp the clock does not trust is off by the
+whole of the robot's motion over the stamp's error, before the walls have measured any
+(:meth:`Predictor.measure_misfit`)."""
+
 Placed = tuple[float, Transform2D, int]
 """Stamp, epoch-frame pose and sequence number of a robot's last placed scan."""
 
@@ -80,6 +85,14 @@ class Predictor:
         """:attr:`reversed_odometry` as the robot reached its last stop."""
         self.bad_odometry = 0
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
+        self.exact = True
+        """Whether the scan's reading is the one taken where it was (not spread within a burst)."""
+        self.misfit = (MISFIT_PRIOR, MISFIT_PRIOR)
+        """What the exact readings at stamps the clock does not trust missed the walls by: the sum
+        of each miss squared, beyond the odometry's own uncertainty, as a share of the motion over
+        the stamp's error squared, and how many (:meth:`measure_misfit`)."""
+        self._widened: tuple[float, float] | None = None
+        """The last prediction's motion over the stamp's error and its own uncertainty (m), if widened by it."""
 
     def restart(self, odometry: Transform2D | None) -> None:
         """An epoch begins at a scan with this odometry reading: nothing is known of the motion."""
@@ -107,7 +120,8 @@ class Predictor:
         or turns where constant velocity goes on). The time since the last scan is the clock's
         (:class:`ScanClock`): the stamps while they agree with the motion, else the scans' sequence.
         Odometry read at a stamp the clock does not trust is as wrong as the stamp: its uncertainty
-        then grows by the motion over the stamp's error, and the first start is the two models
+        then grows by the motion over the stamp's error, as far as the exact readings were measured
+        to miss (:meth:`measure_misfit`), and the first start is the two models
         fused by their information; readings shown to be the scans' own (:attr:`own_readings`) are
         not read at a stamp, and stay as sure as on a true clock."""
         integration = self.config.integration
@@ -172,17 +186,42 @@ class Predictor:
         prediction = self.odometry_step = from_odometry(increment)
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
+        self._widened = None
         if not self.clock.trusted and not self.own_readings:
             # read at a wrong stamp, the odometry is off by the robot's motion over the
-            # stamp's error: the stamps' interval less the sequence's, a period at least
+            # stamp's error (the stamps' interval less the sequence's, a period at least), as far
+            # as the exact readings' misfits so far say (covariance matching: Mehra 1970); a
+            # reading spread within a burst, by all of it
             error = max(self.clock.period, abs(seconds - elapsed))
             step = self.velocity * error
+            bound = math.hypot(step[0], step[1])
+            share = math.sqrt(self.misfit[0] / self.misfit[1]) if self.exact else 1.0
+            if self.exact:
+                self._widened = (bound, prediction.sigma_translation)
             prediction = replace(
                 prediction,
-                sigma_translation=prediction.sigma_translation + math.hypot(step[0], step[1]),
-                sigma_rotation=prediction.sigma_rotation + abs(float(step[2])),
+                sigma_translation=prediction.sigma_translation + share * bound,
+                sigma_rotation=prediction.sigma_rotation + share * abs(float(step[2])),
             )
         return prediction
+
+    def measure_misfit(self, moved: Transform2D) -> None:
+        """The walls placed the last scan ``moved`` on from the one before: what its exact reading,
+        widened for a clock not trusted, missed that by (beyond the odometry's own uncertainty),
+        as a share of the widening, adds to :attr:`misfit`. A log whose readings are their scans'
+        own, whatever the stamps say, measures them right and keeps them as sure as on a true
+        clock; one whose readings are read at the wrong stamps measures them off (aces with a
+        repeated stamp: the widened prior let registration slide along corridors, 96.9 -> 95.4 %)."""
+        widened, step = self._widened, self.odometry_step
+        self._widened = None
+        if widened is None or step is None or widened[0] <= 0.0:
+            return
+        bound, own = widened
+        increment = step.increment
+        sign = -1.0 if self.reversed_odometry > 0.5 else 1.0
+        miss = math.hypot(moved.x - sign * increment.x, moved.y - sign * increment.y)
+        excess = max(miss * miss - own * own, 0.0)
+        self.misfit = (self.misfit[0] + excess / (bound * bound), self.misfit[1] + 1.0)
 
     def reach(self, last: Placed | None, seq: int, stamp: float) -> float:
         """How far (m) the robot can have driven since its ``last`` placed scan."""

@@ -227,6 +227,7 @@ class Tracker:
             # (a turn in place is not even: a spread heading can be 50 degrees off)
             at, reading = self._anchor
             self.motion.odometry = reading.compose(at.inverse()).compose(self._pose)
+        self.motion.exact = self.exact
         predictions = self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)
         fit = self._fit(taken, predictions)
         odometry_predicts = "odometry" in predictions[0].source
@@ -281,6 +282,7 @@ class Tracker:
         if before is None or self._pose is None or not self.exact:
             return
         if not spread:
+            self.motion.measure_misfit(before.inverse().compose(self._pose))
             self.motion.judge_odometry_sign(before.inverse().compose(self._pose))
         elif anchor is not None and odometry is not None:
             at, reading = anchor

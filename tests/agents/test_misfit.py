@@ -1,0 +1,60 @@
+"""Odometry read at stamps the clock does not trust is widened by what the exact readings were
+measured to miss, not by the whole motion over a stamp's error (covariance matching:
+:meth:`fleetmap.agents.prediction.Predictor.measure_misfit`; docs/decisions/033)."""
+
+from __future__ import annotations
+
+import numpy as np
+from fleetmap.agents.prediction import Predictor
+from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.motion import Prediction
+
+STEP = 0.1
+"""The robot drives this far a scan (m), a scan every 0.2 s: 0.5 m/s."""
+PERIOD = 0.2
+OWN = 0.05 + 0.1 * STEP
+"""The odometry's own uncertainty for such a step (m; :mod:`fleetmap.shared.core.motion`)."""
+
+
+def _widened_after(scans: int, miss: float, spread_last: bool = False) -> tuple[float, float]:
+    """A robot whose clock repeated a stamp (not trusted from then on) drives ``scans`` scans, the
+    walls placing each ``miss`` m from where its reading put it: the odometry prediction's
+    translation uncertainty at the first scan and at the last (m). ``spread_last``: the last scan's
+    reading was spread within a burst, not taken where the scan was."""
+    p = Predictor(FleetmapConfig())
+    for stamp in (0.0, PERIOD, PERIOD):  # a repeated stamp
+        p.clock.tick(stamp)
+    assert not p.clock.trusted
+    p.velocity, p.velocity_known = np.array([STEP / PERIOD, 0.0, 0.0]), True
+    p.odometry = Transform2D()
+    sigmas = []
+    for n in range(1, scans + 1):
+        p.exact = not (spread_last and n == scans)
+        stamp = (n + 1) * PERIOD
+        p.clock.tick(stamp)
+        reading = Transform2D(n * STEP, 0.0, 0.0)
+        predictions = p.predictions(n + 2, stamp, reading, stamp - PERIOD, n + 1)
+        odometry: Prediction = next(q for q in predictions if q.source == "odometry")
+        sigmas.append(odometry.sigma_translation)
+        p.measure_misfit(Transform2D(STEP + miss, 0.0, 0.0))
+        p.judge_odometry_sign(Transform2D(STEP + miss, 0.0, 0.0))
+        p.odometry = reading
+    return sigmas[0], sigmas[-1]
+
+
+def test_exact_readings_the_walls_bear_out_are_as_sure_as_on_a_true_clock() -> None:
+    first, last = _widened_after(30, miss=0.0)
+    assert first > OWN + 0.5 * STEP, f"before any is measured, the motion over a period: {first:.3f} m"
+    assert last < OWN + 0.2 * STEP, f"measured right 30 times, still {last:.3f} m against {OWN:.3f} m"
+
+
+def test_readings_off_by_the_motion_over_a_period_stay_widened() -> None:
+    _, last = _widened_after(30, miss=STEP)
+    assert last > OWN + 0.8 * STEP, f"measured off by a period's motion, narrowed to {last:.3f} m"
+
+
+def test_a_reading_spread_within_a_burst_is_widened_by_the_whole_motion() -> None:
+    # after 29 exact readings borne out: the spread one is a guess between two readings
+    _, last = _widened_after(30, miss=0.0, spread_last=True)
+    assert last > OWN + 0.8 * STEP, f"a spread reading, narrowed to {last:.3f} m"
