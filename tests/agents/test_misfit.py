@@ -38,7 +38,6 @@ def _widened_after(scans: int, miss: float, spread_last: bool = False) -> tuple[
         odometry: Prediction = next(q for q in predictions if q.source == "odometry")
         sigmas.append(odometry.sigma_translation)
         p.measure_misfit(Transform2D(STEP + miss, 0.0, 0.0))
-        p.judge_odometry_sign(Transform2D(STEP + miss, 0.0, 0.0))
         p.odometry = reading
     return sigmas[0], sigmas[-1]
 
