@@ -14,56 +14,47 @@ call, so a process that never ranks maps never pays for it.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 
 import numpy as np
+from fleetmap.shared.core.compiled import Compiled
 from fleetmap.shared.core.geometry import Array
 
-_kernel: Callable[..., None] | None = None
-_compiling = threading.Lock()
-"""The two directions of a grid score call the loop at once, on two threads (``mapgrid._both_ways``)."""
 
+def _build() -> Callable[..., None]:
+    import numba
 
-def _compiled() -> Callable[..., None]:
-    with _compiling:
-        return _kernel or _compile()
-
-
-def _compile() -> Callable[..., None]:
-    global _kernel
-    if _kernel is None:
-        import numba
-
-        @numba.njit(cache=True, nogil=True)
-        def scores(code, x, y, direction, turns, cos, sin, starts, order, move_x, move_y, frame, out):
-            ox, oy, res, period, channels, nx, ny = frame
-            n = len(x)
-            px = np.empty(n, np.float32)
-            py = np.empty(n, np.float32)
-            layer = np.empty(n, np.int64)
-            last_i, last_j = np.float32(nx - 1), np.float32(ny - 1)
-            plane = np.int64(nx) * np.int64(ny)
-            for k in range(len(turns)):
-                th = turns[k]
-                c, sn = cos[k], sin[k]
+    @numba.njit(cache=True, nogil=True)
+    def scores(code, x, y, direction, turns, cos, sin, starts, order, move_x, move_y, frame, out):
+        ox, oy, res, period, channels, nx, ny = frame
+        n = len(x)
+        px = np.empty(n, np.float32)
+        py = np.empty(n, np.float32)
+        layer = np.empty(n, np.int64)
+        last_i, last_j = np.float32(nx - 1), np.float32(ny - 1)
+        plane = np.int64(nx) * np.int64(ny)
+        for k in range(len(turns)):
+            th = turns[k]
+            c, sn = cos[k], sin[k]
+            for p in range(n):
+                px[p] = np.float32((c * x[p] - sn * y[p] - ox) / res + 1.0)
+                py[p] = np.float32((sn * x[p] + c * y[p] - oy) / res + 1.0)
+                layer[p] = (np.int64(np.floor((direction[p] + th) % period / period * channels)) % channels) * plane
+            for r in range(starts[k], starts[k + 1]):
+                i = order[r]
+                mx, my = move_x[i], move_y[i]
+                total = 0
                 for p in range(n):
-                    px[p] = np.float32((c * x[p] - sn * y[p] - ox) / res + 1.0)
-                    py[p] = np.float32((sn * x[p] + c * y[p] - oy) / res + 1.0)
-                    layer[p] = (np.int64(np.floor((direction[p] + th) % period / period * channels)) % channels) * plane
-                for r in range(starts[k], starts[k + 1]):
-                    i = order[r]
-                    mx, my = move_x[i], move_y[i]
-                    total = 0
-                    for p in range(n):
-                        # clipped, then truncated: the floor of the clipped coordinate (never negative)
-                        ci = min(max(px[p] + mx, np.float32(0.0)), last_i)
-                        cj = min(max(py[p] + my, np.float32(0.0)), last_j)
-                        total += code[layer[p] + np.int64(ci) * ny + np.int64(cj)]
-                    out[i] = total
+                    # clipped, then truncated: the floor of the clipped coordinate (never negative)
+                    ci = min(max(px[p] + mx, np.float32(0.0)), last_i)
+                    cj = min(max(py[p] + my, np.float32(0.0)), last_j)
+                    total += code[layer[p] + np.int64(ci) * ny + np.int64(cj)]
+                out[i] = total
 
-        _kernel = scores
-    return _kernel
+    return scores
+
+
+_scores = Compiled(_build)
 
 
 def code_sums(
@@ -89,7 +80,7 @@ def code_sums(
     starts = np.searchsorted(inverse.ravel()[order], np.arange(len(groups) + 1))
     nx, ny = code.shape[1:]
     turns = groups.astype(np.float64) * rotation_step
-    _compiled()(
+    _scores(
         code.reshape(-1),
         np.ascontiguousarray(points[:, 0], dtype=np.float64),
         np.ascontiguousarray(points[:, 1], dtype=np.float64),

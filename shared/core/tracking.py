@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from fleetmap.shared.config import TrackingParams
+from fleetmap.shared.core.beamkernel import HIT, NONE, THROUGH, beam_codes
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.rangescan import RangeScan
 from scipy.spatial import cKDTree
@@ -517,27 +518,10 @@ def beam_test(
     through, and which of those its beams return from (within the same margin: ``margin`` is its
     fixed part and its slope, :data:`SEE_THROUGH`). A reading beyond ``no_return_beyond`` counts as
     no return."""
-    ranges = np.asarray(scan.ranges, dtype=np.float64)
-    beams = len(ranges)
-    local = (points - (pose.x, pose.y)) @ _rotation(-pose.theta)
-    turned = normals @ _rotation(-pose.theta)
-    distance = np.hypot(local[:, 0], local[:, 1])
-    bearing = np.arctan2(local[:, 1], local[:, 0])
-    beam = np.rint((bearing - scan.angle_min) / scan.angle_increment).astype(np.int64)
-    # facing the laser: the normal points back towards it; cos of the incidence angle
-    cos_incidence = -(turned * local).sum(axis=1) / np.maximum(distance, 1e-9)
     reach = min(scan.range_max, max_range)
-    wide = support >= SEE_THROUGH_BEAMS * distance * abs(scan.angle_increment)
-    candidate = (cos_incidence > 0.0) & wide & (beam >= 0) & (beam < beams) & (distance < reach) & (distance > 0.05)
-    measured = ranges[np.clip(beam, 0, beams - 1)]
-    with np.errstate(invalid="ignore"):
-        returned = np.isfinite(measured) & (measured > 0) & (measured < scan.range_max) & (measured <= no_return_beyond)
-    visible = candidate & returned
-    cos_i = np.clip(cos_incidence, 1e-3, 1.0)
-    tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
-    beyond = margin[0] + margin[1] * distance * np.maximum(tan_incidence, 1.0)
-    through = visible & (measured > distance + beyond)
-    hit = visible & (np.abs(measured - distance) <= beyond)
+    row = (scan.ranges, pose.x, pose.y, pose.theta, scan.angle_min, scan.angle_increment, scan.range_max, reach)
+    codes = beam_codes(points, normals, support, SEE_THROUGH_BEAMS, [(*row, no_return_beyond)], margin)[0]
+    visible, through, hit = codes != NONE, codes == THROUGH, codes == HIT
     return visible, through, hit
 
 
@@ -562,10 +546,24 @@ def wall_evidence(
     owner, support = samples.segment, samples.support
     if owner is None or support is None:  # pragma: no cover - sample_segments gives both
         raise RuntimeError("the wall samples do not say which wall each lies on")
-    for scan, pose in scans:
-        _, passed, hit = beam_test(
-            samples.points, samples.normals, support, scan, pose, max_range, no_return_beyond, margin
+    rows = [
+        (
+            scan.ranges,
+            pose.x,
+            pose.y,
+            pose.theta,
+            scan.angle_min,
+            scan.angle_increment,
+            scan.range_max,
+            reach,
+            no_return_beyond,
         )
+        for scan, pose in scans
+        for reach in [min(scan.range_max, max_range)]
+    ]
+    codes = beam_codes(samples.points, samples.normals, support, SEE_THROUGH_BEAMS, rows, margin)
+    for code in codes:  # scan by scan: a wall seen as often as seen through is kept, to the bit
+        hit, passed = code == HIT, code == THROUGH
         seen += np.bincount(owner[hit], weights=samples.weights[hit], minlength=len(seg))
         through += np.bincount(owner[passed], weights=samples.weights[passed], minlength=len(seg))
     return seen, through

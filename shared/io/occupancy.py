@@ -23,13 +23,13 @@ grid (docs/decisions/011-occupancy-from-the-beams.md).
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from fleetmap.shared.core.beammarch import beam_passes
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths
 from scipy.ndimage import binary_dilation
 
@@ -122,13 +122,11 @@ def occupancy_grid(scans: Iterable[Beams], walls: Array, resolution: float = 0.0
     start, end = start[on_wall], end[on_wall]
     row, col, _ = grid.cell_of(end)
     hits = np.bincount(row * shape[1] + col, minlength=grid.cells.size)
-    passes = np.zeros(grid.cells.size, dtype=np.float64)
     start, end, repeats = _distinct_beams(grid, start, end)
     # each distinct beam stands for beams that end anywhere in its last cell, up to half its
     # diagonal from the centre it is drawn to: none of them says anything of its last HIT_TOLERANCE
     short = HIT_TOLERANCE / resolution + math.sqrt(0.5)
-    for cells, owner in _along_beams(grid, start, end, short):
-        passes += np.bincount(cells, weights=repeats[owner], minlength=grid.cells.size)
+    passes = _along_beams(grid, start, end, short, repeats)
     log_odds = (hits * LOG_ODDS_HIT + passes * LOG_ODDS_PASS).reshape(shape)
     grid.cells[log_odds < 0] = FREE
     grid.cells[(log_odds > 0) | (on_walls & (log_odds >= 0))] = OCCUPIED
@@ -158,43 +156,21 @@ def _distinct_beams(grid: OccupancyGrid, start: Array, end: Array) -> tuple[Arra
     return centres[:, [1, 0]] + origin, centres[:, [3, 2]] + origin, repeats.astype(np.float64)
 
 
-def _along_beams(
-    grid: OccupancyGrid, start: Array, end: Array, short: float, points: int = 1 << 22
-) -> Iterable[tuple[Array, Array]]:
-    """The cells each beam passes through (flat indices into ``grid.cells``, each once per beam)
-    and the beam's index, from points every half cell along it up to ``short`` cells short of its
-    end (the inverse sensor model's half obstacle depth: an end within ``HIT_TOLERANCE`` of a wall
-    is a hit on it, so the beam's last ``HIT_TOLERANCE`` may be that wall's, at whatever angle it
-    meets it), about ``points`` points at a time. Worked in cell units, one coordinate array at a
-    time, in chunks that stay small: a long log's beams make a few hundred million points, and
-    arrays of a gigabyte each cost more to allocate than to fill."""
-    rows, cols = grid.cells.shape
+def _along_beams(grid: OccupancyGrid, start: Array, end: Array, short: float, repeats: Array) -> Array:
+    """For each cell (flat, as ``grid.cells``), the beams that pass through it, each counted
+    ``repeats`` times (:func:`_distinct_beams`): points every half cell along a beam up to ``short``
+    cells short of its end (the inverse sensor model's half obstacle depth: an end within
+    ``HIT_TOLERANCE`` of a wall is a hit on it, so the beam's last ``HIT_TOLERANCE`` may be that
+    wall's, at whatever angle it meets it), each cell counted once per beam. Worked in cell units,
+    each beam marched by one compiled loop (:func:`~fleetmap.shared.core.beammarch.beam_passes`):
+    a long log's beams make a few hundred million points."""
     origin = np.asarray(grid.origin)
     cell_start = (start - origin) / grid.resolution
     delta = (end - origin) / grid.resolution - cell_start
     length = np.hypot(delta[:, 0], delta[:, 1])
     count = np.maximum(np.floor((length - short) / 0.5).astype(np.int64) + 1, 0)
     step = delta * (0.5 / np.maximum(length, 1e-12))[:, None]
-    cuts = np.searchsorted(np.cumsum(count), np.arange(points, int(count.sum()), points), side="right")
-    for lo, hi in itertools.pairwise([0, *cuts.tolist(), len(count)]):
-        n = count[lo:hi]
-        total = int(n.sum())
-        if total == 0:
-            continue
-        owner = np.repeat(np.arange(lo, hi, dtype=np.int64), n)
-        k = np.arange(total, dtype=np.float64)
-        k -= np.repeat((np.cumsum(n) - n).astype(np.float64), n)
-        x = cell_start[:, 0][owner]  # gathered from contiguous columns, added and floored in place
-        x += k * step[:, 0][owner]
-        y = cell_start[:, 1][owner]
-        y += k * step[:, 1][owner]
-        col = np.floor(x, out=x).astype(np.int64)
-        row = np.floor(y, out=y).astype(np.int64)
-        flat = row * cols + col
-        # a straight beam's points in one cell follow each other: the first of each run counts
-        keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        keep[1:] &= (flat[1:] != flat[:-1]) | (owner[1:] != owner[:-1])
-        yield flat[keep], owner[keep]
+    return beam_passes(cell_start, step, count, repeats, grid.cells.shape)
 
 
 def _along_walls(walls: Array, resolution: float) -> Iterable[Array]:

@@ -144,3 +144,19 @@ def test_a_wall_mapped_a_little_apart_is_not_in_seen_free_space_but_one_well_ins
     assert violation(1.75, clearance=0.3) == 0.0  # what refuses an alignment: nothing
     assert violation(1.75, clearance=0.3, solid=False) >= 5.0  # the score still counts it
     assert violation(1.0, clearance=0.3) >= 10.0  # a wall where the corridor was seen free
+
+
+def test_distinct_viewpoints_skips_one_near_a_kept_one_across_a_cell_border_and_keeps_one_turned() -> None:
+    # 0.45 and 0.55 lie in two cells of VIEWPOINT_SPACING (0.5 m), 0.1 m apart: the second adds nothing
+    vp = np.array(
+        [
+            [0.45, 0.0, 0.0, -1.0, 1.0],
+            [0.55, 0.0, 0.05, -1.0, 1.0],  # near the first, hardly turned: skipped
+            [0.55, 0.0, 1.0, -1.0, 1.0],  # near it, turned a radian: kept
+            [1.2, 0.0, 0.0, -1.0, 1.0],  # 0.75 m from the first: kept
+            [-0.04, 0.0, 0.0, -1.0, 1.0],  # 0.49 m behind the first, in the cell before the one beside it
+        ]
+    )
+    kept = mapgrid.distinct_viewpoints(vp)
+    assert kept[:, 0].tolist() == [0.45, 0.55, 1.2]
+    assert kept[:, 2].tolist() == [0.0, 1.0, 0.0]

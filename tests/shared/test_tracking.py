@@ -195,3 +195,33 @@ def test_point_to_line_registers_walls_bent_to_a_30_cm_radius_without_bias(monke
     reg = register(scan, reference, start, start, np.zeros((3, 3)), PARAMS)
     dt, dr = reg.pose.distance(truth)
     assert reg.converged and dt < 1e-4 and dr < math.radians(0.005), (dt, math.degrees(dr))
+
+
+def test_the_beam_test_tells_a_wall_passed_through_from_one_hit_one_hidden_and_one_out_of_sight():
+    from fleetmap.shared.core.rangescan import RangeScan
+
+    # a wall 2 m ahead of the laser at the origin, facing it, 5 m long: 9 samples
+    points = np.column_stack([np.full(9, 2.0), np.linspace(-0.2, 0.2, 9)])
+    normals = np.tile([-1.0, 0.0], (9, 1))
+    support = np.full(9, 5.0)
+
+    def scan(reading: float) -> RangeScan:
+        return RangeScan(0.0, -math.pi / 2, math.pi / 180, 30.0, np.full(181, reading))
+
+    here = Transform2D(0.0, 0.0, 0.0)
+    for reading, expected in ((3.0, "through"), (2.05, "hit"), (1.0, "visible"), (math.nan, "none")):
+        visible, through, hit = tracking.beam_test(points, normals, support, scan(reading), here, 20.0)
+        said = "through" if through.all() else "hit" if hit.all() else "visible" if visible.all() else "none"
+        assert said == expected and (visible.all() or not visible.any()), (reading, visible, through, hit)
+    # from behind the wall, looking back at it, its face is turned away: out of sight
+    visible, _, _ = tracking.beam_test(points, normals, support, scan(3.0), Transform2D(4.0, 0.0, math.pi), 20.0)
+    assert not visible.any()
+    # beyond the laser's reach, or beyond the caller's max range, nothing is seen
+    visible, _, _ = tracking.beam_test(points, normals, support, scan(3.0), here, 1.5)
+    assert not visible.any()
+    # a wall 0.4 m long, hit by one scan and passed through by two: 0.4 m seen, 0.8 m through
+    # (a wall segment faces the side its normal is on: left of its direction)
+    seen, passed = tracking.wall_evidence(
+        np.array([[2.0, -0.2, 2.0, 0.2]]), [(scan(r), here) for r in (3.0, 2.05, 3.0)], 20.0
+    )
+    assert seen.tolist() == pytest.approx([0.4]) and passed.tolist() == pytest.approx([0.8])
