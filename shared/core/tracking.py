@@ -41,8 +41,8 @@ import numpy as np
 from fleetmap.shared.config import TrackingParams
 from fleetmap.shared.core.beamkernel import HIT, NONE, THROUGH, beam_codes
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.nearest import CellIndex
 from fleetmap.shared.core.rangescan import RangeScan
-from scipy.spatial import cKDTree
 
 SAMPLE_SPACING = 0.10
 """Metres between the points sampled along a scan's segments for registration: two of the
@@ -156,8 +156,8 @@ class ReferenceMap:
 
     Each occupied cell keeps the mean of the points that fell in it and the mean of their normals
     (normals that cancel, a thin wall's two sides in one cell, leave the cell without a usable
-    normal; it is kept but matches nothing). Inserting is cheap; the KD-tree over the cells is
-    rebuilt on the next query after an insertion.
+    normal; it is kept but matches nothing). Inserting is cheap; the cells' index
+    (:class:`~fleetmap.shared.core.nearest.CellIndex`) is rebuilt on the next query after one.
     """
 
     def __init__(self, voxel_size: float) -> None:
@@ -170,7 +170,7 @@ class ReferenceMap:
         self._weight = np.zeros(0)
         self._count = np.zeros(0)
         self._support = np.zeros(0)
-        self._tree: cKDTree | None = None
+        self._cells: CellIndex | None = None
         self._points = np.zeros((0, 2))
         self._normals = np.zeros((0, 2))
         self._valid = np.zeros(0, dtype=bool)
@@ -207,17 +207,17 @@ class ReferenceMap:
         np.add.at(self._count, slots, 1.0)
         if samples.support is not None:
             np.maximum.at(self._support, slots, samples.support)
-        self._tree = None
+        self._cells = None
 
     def _refresh(self) -> None:
-        if self._tree is not None:
+        if self._cells is not None:
             return
         self._points = self._sum / self._weight[:, None]
         norm = np.hypot(self._normal_sum[:, 0], self._normal_sum[:, 1])
         # a cell whose normals mostly cancel (both sides of a thin wall) has no side
         self._valid = norm > 0.5 * self._weight
         self._normals = self._normal_sum / np.maximum(norm, 1e-12)[:, None]
-        self._tree = cKDTree(self._points)
+        self._cells = CellIndex(self._points, self._valid, self.voxel_size)
 
     @property
     def points(self) -> Array:
@@ -245,14 +245,10 @@ class ReferenceMap:
         self._refresh()
         if len(self._weight) == 0 or len(points) == 0:
             return np.full(len(points), -1, dtype=np.int64), np.full(len(points), math.inf)
-        tree = self._tree
-        if tree is None:  # pragma: no cover - _refresh built it
+        cells = self._cells
+        if cells is None:  # pragma: no cover - _refresh built it
             raise RuntimeError("the reference map has no index")
-        distance, index = tree.query(points, distance_upper_bound=radius)
-        found = np.isfinite(distance)
-        index = np.where(found, index, -1)
-        index[found] = np.where(self._valid[index[found]], index[found], -1)
-        return index.astype(np.int64), distance
+        return cells.query(points, radius)
 
 
 @dataclass(frozen=True)
