@@ -30,6 +30,7 @@ import numpy as np
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.candidates import IntArray, ragged_ranges
 from fleetmap.shared.core.geometry import Array, lengths, matching_value, orientations
+from fleetmap.shared.core.pairkernel import near_matching_values
 from fleetmap.shared.core.work import PAIR_FOUND, PAIR_VALUED, SELF_CROSSING, Work
 from scipy.spatial import cKDTree
 
@@ -387,16 +388,11 @@ def matched_pairs(prep: PreparedPairs, t: Array, params: IntegrationParams) -> t
             np.abs(_wrapped(prep.phi1[i] - prep.phi2[k] - theta, prep.period)) <= PAIR_ANGLE_LIMIT
         )
         i, k = i[parallel], k[parallel]
-    dx = prep.mid1[i, 0] - mid2[k, 0]
-    dy = prep.mid1[i, 1] - mid2[k, 1]
-    reach = prep.half1[i] + prep.half2[k] + d_max
-    near = dx * dx + dy * dy <= reach * reach
-    i, k = i[near], k[near]
-    mv = matching_value(
-        prep.s1[i], bt[k], params.point_distance_tolerance, params.segment_distance_threshold, params.penalization_base
+    p = params
+    return near_matching_values(
+        *(prep.s1, bt, prep.mid1, prep.half1, mid2, prep.half2, i, k, d_max),
+        *(p.point_distance_tolerance, p.segment_distance_threshold, p.penalization_base),
     )
-    keep = mv > 0
-    return i[keep].astype(np.int64), k[keep].astype(np.int64), mv[keep]
 
 
 SORT_AFTER = 8
