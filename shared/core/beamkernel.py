@@ -49,7 +49,7 @@ def _build() -> Callable[..., None]:
                 beam = np.int64(np.rint((np.arctan2(ly, lx) - angle_min) / increment))
                 cos_incidence = -(tx * lx + ty * ly) / max(distance, 1e-9)
                 wide = support[p] >= wide_per_metre * distance * abs(increment)
-                out[s, p] = 0
+                out[s, p] = NONE
                 if not (cos_incidence > 0.0 and wide and beam >= 0 and beam < beams):
                     continue
                 if not (distance < reach and distance > 0.05):
@@ -63,11 +63,11 @@ def _build() -> Callable[..., None]:
                 tan_incidence = np.sqrt(1.0 - cos_i**2) / cos_i
                 beyond = margin[0] + margin[1] * distance * max(tan_incidence, 1.0)
                 if measured > distance + beyond:
-                    out[s, p] = 2
+                    out[s, p] = THROUGH
                 elif abs(measured - distance) <= beyond:
-                    out[s, p] = 3
+                    out[s, p] = HIT
                 else:
-                    out[s, p] = 1
+                    out[s, p] = VISIBLE
 
     return codes
 

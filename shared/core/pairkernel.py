@@ -22,31 +22,8 @@ from fleetmap.shared.core.geometry import Array
 
 
 def _build() -> Callable[..., int]:
+    # one function, calling no other built here (:mod:`fleetmap.shared.core.compiled`)
     import numba
-
-    @numba.njit(cache=True, nogil=True)
-    def overlap(ux, uy, length, p1x, p1y, p2x, p2y):
-        t1 = p1x * ux + p1y * uy
-        t2 = p2x * ux + p2y * uy
-        lo = max(min(t1, t2), 0.0)
-        hi = min(max(t1, t2), length)
-        return max(hi - lo, 0.0)
-
-    @numba.njit(cache=True, nogil=True)
-    def orient(px, py, qx, qy, rx, ry):
-        return np.sign((qx - px) * (ry - py) - (qy - py) * (rx - px))
-
-    @numba.njit(cache=True, nogil=True)
-    def intersect(a0, a1, a2, a3, b0, b1, b2, b3):
-        o1 = orient(a0, a1, a2, a3, b0, b1)
-        o2 = orient(a0, a1, a2, a3, b2, b3)
-        o3 = orient(b0, b1, b2, b3, a0, a1)
-        o4 = orient(b0, b1, b2, b3, a2, a3)
-        if o1 == 0 and o2 == 0:
-            overlap_x = min(max(a0, a2), max(b0, b2)) >= max(min(a0, a2), min(b0, b2))
-            overlap_y = min(max(a1, a3), max(b1, b3)) >= max(min(a1, a3), min(b1, b3))
-            return overlap_x and overlap_y
-        return o1 * o2 <= 0 and o3 * o4 <= 0
 
     @numba.njit(cache=True, nogil=True)
     def values(s1, bt, mid1, half1, mid2, half2, i, k, d_max, tolerance, threshold, base, out_i, out_k, out_mv):
@@ -69,13 +46,22 @@ def _build() -> Callable[..., int]:
             c3, c4 = dxb * a1y - dyb * a1x, dxb * a2y - dyb * a2x
             d = min(max(abs(c1) / la, abs(c2) / la), max(abs(c3) / lb, abs(c4) / lb))
             ratio = d / tolerance
-            mv = 0.5 * (
-                overlap(dxa / la, dya / la, la, b1x, b1y, b2x, b2y)
-                + overlap(dxb / lb, dyb / lb, lb, a1x, a1y, a2x, a2y)
-            )
+            # the common part of each segment with the other's projection on its line
+            ux, uy = dxa / la, dya / la
+            t1, t2 = b1x * ux + b1y * uy, b2x * ux + b2y * uy
+            common_a = max(min(max(t1, t2), la) - max(min(t1, t2), 0.0), 0.0)
+            ux, uy = dxb / lb, dyb / lb
+            t1, t2 = a1x * ux + a1y * uy, a2x * ux + a2y * uy
+            common_b = max(min(max(t1, t2), lb) - max(min(t1, t2), 0.0), 0.0)
+            mv = 0.5 * (common_a + common_b)
             o1, o2, o3, o4 = np.sign(c1), np.sign(c2), np.sign(c3), np.sign(c4)
-            collinear = o1 == 0 and o2 == 0  # then only their extents say whether they meet
-            meet = intersect(a0, a1, a2, a3, b0, b1, b2, b3) if collinear else o1 * o2 <= 0 and o3 * o4 <= 0
+            if o1 == 0 and o2 == 0:
+                # collinear: only their extents say whether they meet (geometry.segments_intersect)
+                meet = min(max(a0, a2), max(b0, b2)) >= max(min(a0, a2), min(b0, b2)) and min(
+                    max(a1, a3), max(b1, b3)
+                ) >= max(min(a1, a3), min(b1, b3))
+            else:
+                meet = o1 * o2 <= 0 and o3 * o4 <= 0
             penalty = 1.0 if meet else base**ratio
             value = 0.0 if ratio > threshold else mv * penalty
             if value > 0:
