@@ -33,11 +33,6 @@ from fleetmap.shared.core.pivotmap import WITNESS_TRANSLATION
 
 log = logging.getLogger(__name__)
 
-MISFIT_PRIOR = 1.0
-"""How many readings' worth of belief that a reading at a stamp the clock does not trust is off by the
-whole of the robot's motion over the stamp's error, before the walls have measured any
-(:meth:`Predictor.measure_misfit`)."""
-
 Placed = tuple[float, Transform2D, int]
 """Stamp, epoch-frame pose and sequence number of a robot's last placed scan."""
 
@@ -87,7 +82,7 @@ class Predictor:
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
         self.exact = True
         """Whether the scan's reading is the one taken where it was (not spread within a burst)."""
-        self.misfit = (MISFIT_PRIOR, MISFIT_PRIOR)
+        self.misfit = (0.0, 0.0)
         """What the exact readings at stamps the clock does not trust missed the walls by: the sum
         of each miss squared, beyond the odometry's own uncertainty, as a share of the motion over
         the stamp's error squared, and how many (:meth:`measure_misfit`)."""
@@ -195,7 +190,9 @@ class Predictor:
             error = max(self.clock.period, abs(seconds - elapsed))
             step = self.velocity * error
             bound = math.hypot(step[0], step[1])
-            share = math.sqrt(self.misfit[0] / self.misfit[1]) if self.exact else 1.0
+            # until the walls have measured a reading, it is off by the whole of that motion
+            measured = self.exact and self.misfit[1] > 0
+            share = math.sqrt(self.misfit[0] / self.misfit[1]) if measured else 1.0
             if self.exact:
                 self._widened = (bound, prediction.sigma_translation, prediction.increment)
             prediction = replace(

@@ -48,6 +48,13 @@ def test_exact_readings_the_walls_bear_out_are_as_sure_as_on_a_true_clock() -> N
     assert last < OWN + 0.2 * STEP, f"measured right 30 times, still {last:.3f} m against {OWN:.3f} m"
 
 
+def test_the_widening_is_what_the_readings_measured_and_nothing_else() -> None:
+    # no prior belief weighed in once a reading is measured: 0.5 and 4 readings' worth of one
+    # changed no figure beyond draw noise on aces and the corrected logs (docs/decisions/035)
+    _, second = _widened_after(2, miss=0.0)
+    assert second < OWN + 0.05 * STEP, f"one reading measured right, the next still {second:.3f} m wide"
+
+
 def test_readings_off_by_the_motion_over_a_period_stay_widened() -> None:
     _, last = _widened_after(30, miss=STEP)
     assert last > OWN + 0.8 * STEP, f"measured off by a period's motion, narrowed to {last:.3f} m"
