@@ -70,7 +70,8 @@ def measure(
             fields = _stat(pid)
             if fields is not None:
                 cpu = (int(fields[11]) + int(fields[12])) / TICK
-                seen[pid] = (seen[pid][0] if pid in seen else _name(pid), max(cpu, seen.get(pid, ("", 0.0))[1]))
+                name, before = seen.get(pid) or (_name(pid), 0.0)
+                seen[pid] = (name, max(cpu, before))
         samples.append((time.perf_counter() - started, sum(c for _, c in seen.values())))
         time.sleep(every)
     if child.returncode != 0:
