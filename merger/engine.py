@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.merger.budget import SubmapBudget
-from fleetmap.merger.executor import Executor, InlineExecutor, PairJob
+from fleetmap.merger.executor import Executor, InlineExecutor, PairJob, pair_result
 from fleetmap.merger.executor import Handle as JobHandle
 from fleetmap.merger.graph import Component as GraphComponent
 from fleetmap.merger.graph import Edge, MergeResult
@@ -94,7 +94,7 @@ class Merger(Intake):
         self.stamp = 0.0
         self.submaps: dict[str, LocalMap] = {}
         """The version of every submap in the graph, by submap key."""
-        self.schedule = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse)
+        self.schedule = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse, self.executor)
         """Which pairs to integrate (:mod:`fleetmap.merger.schedule`)."""
         self.placement = Placement()
         """Where the last solve put every submap and epoch."""
@@ -242,7 +242,11 @@ class Merger(Intake):
             # as many in flight as the executor keeps busy; results taken in the queue's order, so
             # the graph is the same whichever executor ran them (a pair whose two submaps are in
             # flight already waits for that result: whether it is due depends on it)
-            while queue and len(running) < self.executor.capacity:
+            # a step with no bound keeps a second job queued for each worker: one that ends before
+            # the oldest in flight starts the next at once (a near registration takes a tenth of a
+            # pose-free integration); a bounded step keeps one each, so it stops soon after its time
+            depth = self.executor.capacity * (2 if limit is None and enough is None else 1)
+            while queue and len(running) < depth:
                 if (limit is not None and taken >= limit) or (
                     limit is None and enough is not None and taken and enough()
                 ):
@@ -259,7 +263,7 @@ class Merger(Intake):
                 break
             job, handle = running.popleft()
             try:
-                result = handle.result()
+                result = pair_result(handle)
             except Exception as exc:  # a job that failed where it ran: the merger goes on without it
                 self.stats.failed += 1
                 log.error("integrating %s and %s failed (%s: %s); dropped", job.a, job.b, type(exc).__name__, exc)
@@ -384,7 +388,7 @@ class Merger(Intake):
         for name, r in self._robots.items():
             r.epochs = {parse_submap_key(k)[1] for k in self.submaps if parse_submap_key(k)[0] == name}
         self.seq, self.stamp, self._last_out = state.seq, state.stamp, state.last_out
-        s = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse)
+        s = PairSchedule(self.graph, self.submaps, self.config, self.stats, self._refuse, self.executor)
         s.finished_epochs = fresh.schedule.finished_epochs
         s.queue = {(a, b): t for (a, b), t in state.queue.items() if a in self.graph and b in self.graph}
         s.scheduled, s.finals, s.far_tries, s.behind = state.scheduled, state.finals, state.far_tries, state.behind

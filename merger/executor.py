@@ -18,6 +18,9 @@ is the same whichever executor ran them, bit for bit (the same numpy code on the
 A job carries the search indexes the graph built already, and a worker sends back the ones it
 built (the graph keeps them); a worker also keeps those it saw (by key, version and the map's
 fingerprint), so each submap is indexed once.
+
+The far search's overlap scores (:class:`ScoreJob`, :mod:`fleetmap.merger.farrank`) run on the
+same executors (:func:`run_job` takes either kind): they too need two maps and nothing else.
 """
 
 from __future__ import annotations
@@ -34,13 +37,14 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.integration import Integration, index_for, integrate, takes_large_path
 from fleetmap.shared.core.near import align_near
+from fleetmap.shared.core.overlap import overlap_score
 from fleetmap.shared.core.pivotmap import WITNESS_ROTATION, WITNESS_TRANSLATION
 from fleetmap.shared.core.refine import fit_information, refine_transform
 from fleetmap.shared.core.segmap import SegmentMap
@@ -104,6 +108,32 @@ class PairResult:
     """Indexes a worker built that the job did not give (the caller keeps them: each is built once)."""
 
 
+@dataclass(frozen=True)
+class ScoreJob:
+    """The far search's overlap score of b's walls on a's (:func:`~fleetmap.shared.core.overlap.overlap_score`),
+    on the maps a pose-free integration searches (``work_*``), at their versions."""
+
+    a: str
+    b: str
+    versions: tuple[int, int]
+    work_a: SegmentMap
+    work_b: SegmentMap
+    integration: IntegrationParams
+    given: dict[str, Any] = field(default_factory=dict)
+    """The grid indexes the caller built already (``index_a``, ``index_b``)."""
+
+
+@dataclass(frozen=True)
+class ScoreResult:
+    value: float
+    built: dict[str, Any] = field(default_factory=dict)
+    """Indexes a worker built that the job did not give (the caller keeps them)."""
+
+
+Job = PairJob | ScoreJob
+Outcome = PairResult | ScoreResult
+
+
 class Indexes:
     """Search indexes and registration grids of submaps, by key, version and what they are built
     from (``content``: the map's fingerprint and the parameters), the newest ``size`` kept."""
@@ -153,20 +183,11 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     path where a map is large; a valid result fitted on the full maps (:func:`fitted`). The whole
     of it within ``merge.max_integration_work`` (:mod:`fleetmap.shared.core.work`): past it, the
     result is not valid and ``exhausted``."""
-    cache = _WORKER_INDEXES if indexes is None else indexes
     a, b, (va, vb) = job.a, job.b, job.versions
     p = job.integration
-    built: dict[str, Any] = {}
+    need = _Needs(job.given, indexes, p)
+    built = need.built
     work = Work(job.merge.max_integration_work)
-
-    def need(name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
-        value = job.given.get(name)
-        if value is None:
-            params = VOXEL_SIZE if kind == "reference" else p
-            value = cache.get(key, version, kind, build, (fingerprint(m), params) if indexes is None else None)
-            if indexes is None:
-                built[name] = value  # a worker's: the caller keeps it
-        return value
 
     if job.predicted is not None:
         r = align_near(
@@ -199,6 +220,41 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
     return PairResult(replace(r, work=work.spent), transform, information, built)
 
 
+def run_score(job: ScoreJob, indexes: Indexes | None = None) -> ScoreResult:
+    """The overlap score of a pair (pure but for ``indexes``, a cache, as :func:`run_pair`)."""
+    p = job.integration
+    need = _Needs(job.given, indexes, p)
+    index_a = need("index_a", job.a, job.versions[0], "index", lambda: index_for(job.work_a, p), job.work_a)
+    index_b = need("index_b", job.b, job.versions[1], "index", lambda: index_for(job.work_b, p), job.work_b)
+    return ScoreResult(overlap_score(job.work_a, job.work_b, index_a, index_b, p), need.built)
+
+
+def run_job(job: Job, indexes: Indexes | None = None) -> Outcome:
+    """:func:`run_pair` or :func:`run_score`, by the job's kind (what every executor runs)."""
+    return run_score(job, indexes) if isinstance(job, ScoreJob) else run_pair(job, indexes)
+
+
+class _Needs:
+    """A job's indexes: the ones it was given, else from ``indexes`` (the caller's, in its
+    process), else built or kept by this worker (:data:`_WORKER_INDEXES`) and noted in
+    :attr:`built` for the caller to keep."""
+
+    def __init__(self, given: dict[str, Any], indexes: Indexes | None, p: IntegrationParams) -> None:
+        self.given, self.indexes, self.p = given, indexes, p
+        self.built: dict[str, Any] = {}
+
+    def __call__(self, name: str, key: str, version: int, kind: str, build: Callable[[], Any], m: SegmentMap) -> Any:
+        value = self.given.get(name)
+        if value is None:
+            if self.indexes is None:
+                params = VOXEL_SIZE if kind == "reference" else self.p
+                value = _WORKER_INDEXES.get(key, version, kind, build, (fingerprint(m), params))
+                self.built[name] = value  # a worker's: the caller keeps it
+            else:
+                value = self.indexes.get(key, version, kind, build, None)
+        return value
+
+
 def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Transform2D, tuple[float, ...] | None]:
     """A valid edge's transform and how firmly the walls fix it, on the two maps as they are:
     where either was integrated simplified, ``t`` fitted again by least squares
@@ -219,19 +275,30 @@ def fitted(job: PairJob, t: Transform2D, work: Work | None = None) -> tuple[Tran
 
 
 class Handle(Protocol):
-    def result(self) -> PairResult: ...
+    def result(self) -> Outcome: ...
+
+
+def pair_result(handle: Handle) -> PairResult:
+    """A :class:`PairJob`'s handle's result (:func:`run_job` gives a job's own kind)."""
+    return cast(PairResult, handle.result())
+
+
+def score_result(handle: Handle) -> ScoreResult:
+    """A :class:`ScoreJob`'s handle's result."""
+    return cast(ScoreResult, handle.result())
 
 
 class Executor(Protocol):
-    """Runs :class:`PairJob` s; :attr:`capacity` jobs in flight keep every worker busy (one each:
-    a step past its time waits for those in flight, so no more)."""
+    """Runs jobs (:func:`run_job`); :attr:`capacity` jobs in flight keep every worker busy (one
+    each: a step past its time waits for those in flight, so no more; a step with no time keeps
+    two each, :meth:`~fleetmap.merger.engine.Merger._integrate`)."""
 
     name: str
 
     @property
     def capacity(self) -> int: ...
 
-    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+    def submit(self, job: Job, here: Indexes | None = None) -> Handle:
         """Start a job; ``here`` is the caller's cache of indexes, for a job run in its process."""
         ...
 
@@ -239,13 +306,13 @@ class Executor(Protocol):
 
 
 class _Deferred:
-    def __init__(self, job: PairJob, indexes: Indexes) -> None:
+    def __init__(self, job: Job, indexes: Indexes) -> None:
         self._job, self._indexes = job, indexes
-        self._result: PairResult | None = None
+        self._result: Outcome | None = None
 
-    def result(self) -> PairResult:
+    def result(self) -> Outcome:
         if self._result is None:
-            self._result = run_pair(self._job, self._indexes)
+            self._result = run_job(self._job, self._indexes)
         return self._result
 
 
@@ -261,7 +328,7 @@ class InlineExecutor:
     def capacity(self) -> int:
         return 1
 
-    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+    def submit(self, job: Job, here: Indexes | None = None) -> Handle:
         return _Deferred(job, here if here is not None else self.indexes)
 
     def close(self) -> None:
@@ -269,16 +336,16 @@ class InlineExecutor:
 
 
 class _Pooled:
-    def __init__(self, owner: LocalExecutor, job: PairJob) -> None:
+    def __init__(self, owner: LocalExecutor, job: Job) -> None:
         self._owner, self._job = owner, job
         try:
-            self._future: Future[PairResult] = owner._pool_submit(job)
+            self._future: Future[Outcome] = owner._pool_submit(job)
         except BrokenProcessPool as exc:  # said by result(), where the step takes failures
             self._future = Future()
             self._future.set_exception(exc)
         self._attempts = 1
 
-    def result(self) -> PairResult:
+    def result(self) -> Outcome:
         while True:
             try:
                 return self._future.result()
@@ -341,7 +408,7 @@ class LocalExecutor:
     def capacity(self) -> int:
         return self.workers
 
-    def _pool_submit(self, job: PairJob) -> Future[PairResult]:
+    def _pool_submit(self, job: Job) -> Future[Outcome]:
         """Hand a job to the pool, starting it (again, if a dead worker broke it) as needed."""
         for _ in range(MAX_ATTEMPTS):
             if self._pool is not None and getattr(self._pool, "_broken", False):
@@ -354,7 +421,7 @@ class LocalExecutor:
                     initargs=(os.getpid(),),
                 )
             try:
-                future = self._pool.submit(run_pair, job)
+                future = self._pool.submit(run_job, job)
             except BrokenProcessPool:  # a worker died since the last look (idle between steps)
                 self._restart()
                 continue
@@ -374,7 +441,7 @@ class LocalExecutor:
         processes = getattr(self._pool, "_processes", None) or {}
         return sorted(processes)
 
-    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+    def submit(self, job: Job, here: Indexes | None = None) -> Handle:
         return _Pooled(self, job)
 
     def close(self) -> None:
@@ -387,10 +454,10 @@ class _RayHandle:
     def __init__(self, ref: Any) -> None:
         self._ref = ref
 
-    def result(self) -> PairResult:
+    def result(self) -> Outcome:
         import ray
 
-        value: PairResult = ray.get(self._ref)
+        value: Outcome = ray.get(self._ref)
         return value
 
 
@@ -421,7 +488,7 @@ class RayExecutor:
                 where = "join the Ray cluster" if address is not None else "start a local Ray cluster"
                 raise BadInput(what, f"cannot {where}: {exc}") from exc
         try:
-            self._task = ray.remote(max_retries=MAX_ATTEMPTS, retry_exceptions=False)(run_pair)
+            self._task = ray.remote(max_retries=MAX_ATTEMPTS, retry_exceptions=False)(run_job)
             self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         except Exception:
             self.close()  # the cluster this started goes with it
@@ -431,7 +498,7 @@ class RayExecutor:
     def capacity(self) -> int:
         return self.workers
 
-    def submit(self, job: PairJob, here: Indexes | None = None) -> Handle:
+    def submit(self, job: Job, here: Indexes | None = None) -> Handle:
         return _RayHandle(self._task.remote(job))
 
     def close(self) -> None:

@@ -20,6 +20,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from fleetmap.merger.executor import Indexes, PairJob, PairResult, reference_of, run_pair
@@ -414,16 +415,21 @@ class MapGraph:
         na, nb = self._nodes.get(job.a), self._nodes.get(job.b)
         if na is not None and nb is not None and (na.version, nb.version) == job.versions:
             self._put_edge(e.key(), e)
-        # the indexes a worker built: kept, so that nothing builds them again
-        if na is not None and na.version == job.versions[0]:
-            if na.index is None and "index_a" in result.built:
-                na.index = result.built["index_a"]
-            held = self._references.get(job.a)
-            if "reference_a" in result.built and (held is None or held[0] != na.version):
-                self._references[job.a] = (na.version, result.built["reference_a"])
-        if nb is not None and nb.version == job.versions[1] and nb.index is None and "index_b" in result.built:
-            nb.index = result.built["index_b"]
+        self.keep_built(job.a, job.b, job.versions, result.built)
         return e
+
+    def keep_built(self, a: str, b: str, versions: tuple[int, int], built: dict[str, Any]) -> None:
+        """Keep the indexes a worker built for a job on ``a`` and ``b`` at ``versions`` (of the
+        versions the graph holds), so that nothing builds them again."""
+        na, nb = self._nodes.get(a), self._nodes.get(b)
+        if na is not None and na.version == versions[0]:
+            if na.index is None and "index_a" in built:
+                na.index = built["index_a"]
+            held = self._references.get(a)
+            if "reference_a" in built and (held is None or held[0] != na.version):
+                self._references[a] = (na.version, built["reference_a"])
+        if nb is not None and nb.version == versions[1] and nb.index is None and "index_b" in built:
+            nb.index = built["index_b"]
 
     @property
     def indexes(self) -> Indexes:

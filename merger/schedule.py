@@ -42,7 +42,7 @@ from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
-from fleetmap.merger.executor import PairJob
+from fleetmap.merger.executor import Executor, PairJob
 from fleetmap.merger.farrank import FarRanking
 from fleetmap.merger.outputs import Placement, epoch_of
 from fleetmap.merger.posegraph import PoseGraph
@@ -95,13 +95,10 @@ class PairSchedule:
         config: FleetmapConfig,
         stats: MergerStats,
         refuse: Callable[[str, int, str], None],
+        executor: Executor | None = None,
     ) -> None:
         """``refuse(limit, value, what)`` counts and logs a pair :data:`MAX_QUEUED_PAIRS` refused."""
-        self.graph = graph
-        self.submaps = submaps
-        self.config = config
-        self.stats = stats
-        self._refuse = refuse
+        self.graph, self.submaps, self.config, self.stats, self._refuse = graph, submaps, config, stats, refuse
         self.queue: dict[Pair, Transform2D | None] = {}
         """Pairs to integrate, oldest first: (a, b) with b's predicted pose in a (near), or None
         (pose-free)."""
@@ -111,8 +108,8 @@ class PairSchedule:
         """Final submaps of placed robots scheduled so far (every loop_sweep_every-th sweeps)."""
         self.far_tries: dict[str, int] = {}
         """Pose-free integrations queued for each submap with other components' submaps."""
-        self.far_rank = FarRanking(graph, stats, submaps)
-        """The far search's order (:mod:`fleetmap.merger.farrank`)."""
+        self.far_rank = FarRanking(graph, stats, submaps, executor)
+        """The far search's order (:mod:`fleetmap.merger.farrank`; its scores run on ``executor``)."""
         self.behind = False
         """Whether the last step left pairs queued (live, at its time budget): no far scores then (:meth:`_far`)."""
         self.finished_epochs: set[str] = set()

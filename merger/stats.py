@@ -41,8 +41,8 @@ class MergerStats:
     exhausted: int = 0
     """Integrations stopped at ``merge.max_integration_work`` (not valid; logged)."""
     failed: int = 0
-    """Integrations that failed where they ran (a worker that died more often than it is retried,
-    a Ray task's error): logged and dropped, the merger goes on."""
+    """Integrations and far scores that failed where they ran (a worker that died more often than it
+    is retried, a Ray task's error): logged and dropped, the merger goes on."""
     poses_dropped: int = 0
     """Scans the pose thread had no room for (it keeps ``POSE_QUEUE`` waiting)."""
     key_scans: int = 0

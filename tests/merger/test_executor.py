@@ -82,13 +82,13 @@ def test_a_process_pool_merges_to_the_inline_poses_even_when_a_worker_dies(
 
 
 def _ray_workers_running_a_job() -> list[int]:
-    """Ray names a worker process after the task it runs (``ray::run_pair``)."""
+    """Ray names a worker process after the task it runs (``ray::run_job``)."""
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
             try:
                 with open(f"/proc/{pid}/cmdline", "rb") as fh:
-                    if fh.read().startswith(b"ray::run_pair"):
+                    if fh.read().startswith(b"ray::run_job"):
                         out.append(int(pid))
             except OSError:
                 continue

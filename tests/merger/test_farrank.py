@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+from fleetmap.merger.executor import LocalExecutor
 from fleetmap.merger.farrank import FAR_SCORED, FarRanking
 from fleetmap.merger.outputs import Placement
 from fleetmap.merger.posegraph import PoseGraph
@@ -39,12 +40,16 @@ def maps() -> dict[str, LocalMap]:
     }
 
 
-@pytest.fixture(scope="module")
-def graph(maps: dict[str, LocalMap]) -> PoseGraph:
+def _graph_of(maps: dict[str, LocalMap]) -> PoseGraph:
     graph = PoseGraph()
     for key, m in maps.items():
         graph.put_map(key, SegmentMap(m.segments, ordered=False, oriented=True))
     return graph
+
+
+@pytest.fixture(scope="module")
+def graph(maps: dict[str, LocalMap]) -> PoseGraph:
+    return _graph_of(maps)
 
 
 @pytest.mark.slow  # tracks nothing, but builds seven submaps from the department's scans (shared)
@@ -78,6 +83,26 @@ def test_each_try_ranks_more_of_the_descriptors_order_and_scores_each_pair_once(
     assert stats.far_scored == len(partners), "pairs scored before are not scored again"
     ranking.order(query, partners, 2)
     assert stats.far_scored == len(partners)
+
+
+@pytest.mark.slow  # shares the submaps of the tests above, and starts a process pool
+def test_a_tries_scores_run_side_by_side_on_the_merger_executor_and_rank_as_in_process(
+    graph: PoseGraph, maps: dict[str, LocalMap]
+) -> None:
+    query = _key(QUERY)
+    partners = [_key(s) for s in OTHERS] + [_key(PARTNER)]
+    here = FarRanking(graph, MergerStats(), maps)
+    executor = LocalExecutor(2)
+    try:
+        pooled = FarRanking(_graph_of(maps), MergerStats(), maps, executor)
+        order = pooled.order(query, partners, 2)
+        assert executor.submitted == len(partners), "each pair scored once, in the pool"
+        scores = {other: pooled.score(query, other) for other in partners}
+        assert executor.submitted == len(partners), "a score known is not asked for again"
+    finally:
+        executor.close()
+    assert order == here.order(query, partners, 2)
+    assert scores == {other: here.score(query, other) for other in partners}, "the same scores to the bit"
 
 
 @pytest.mark.slow  # shares the submaps of the tests above
