@@ -72,6 +72,11 @@ runs on is a bug to report, not to retry for ever)."""
 CACHE_SIZE = 64
 """Submaps' indexes a worker keeps (by key and version)."""
 
+WORKER_NICENESS = 10
+"""A local pool's workers yield the CPU to the robots' tracking on the same machine (``nice``): the
+merger's work must not starve the agents. On a machine with fewer cores than busy processes, the
+scheduler gives a worker a tenth of an agent's share."""
+
 
 @dataclass(frozen=True)
 class PairJob:
@@ -363,6 +368,13 @@ class _Pooled:
                 self._future = self._owner._pool_submit(self._job)
 
 
+def _start_worker(owner: int) -> None:
+    """A pool worker's start: it ends with its owner (:func:`_end_with`) and yields the CPU to the
+    agents (:data:`WORKER_NICENESS`)."""
+    _end_with(owner)
+    os.nice(WORKER_NICENESS)
+
+
 def _end_with(owner: int) -> None:
     """In a pool worker: end when the process that owns the pool ends, however it ended. A worker
     of a killed merger would otherwise wait on its queue for ever (and keep the forkserver alive:
@@ -417,7 +429,7 @@ class LocalExecutor:
                 self._pool = ProcessPoolExecutor(
                     self.workers,
                     mp_context=multiprocessing.get_context("forkserver"),
-                    initializer=_end_with,
+                    initializer=_start_worker,
                     initargs=(os.getpid(),),
                 )
             try:
