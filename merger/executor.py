@@ -73,9 +73,11 @@ CACHE_SIZE = 64
 """Submaps' indexes a worker keeps (by key and version)."""
 
 WORKER_NICENESS = 10
-"""A local pool's workers yield the CPU to the robots' tracking on the same machine (``nice``): the
-merger's work must not starve the agents. On a machine with fewer cores than busy processes, the
-scheduler gives a worker a tenth of an agent's share."""
+"""``fleetmap map``'s pool workers yield the CPU to its agents' tracking (``nice``; a tenth of an
+agent's share where they contend): the merger's work must not starve the agents (aces cut in 8:
+tracking 76-85 s beside workers at the agents' priority, 62-66 s beside ones that yield). A live
+merger's workers keep its priority: its robots track elsewhere, and a fleet simulated on the
+merger's machine (benchmarks/live.py) took its pool's share (16 robots: latency 5.7 -> 13.6 s)."""
 
 
 @dataclass(frozen=True)
@@ -368,11 +370,10 @@ class _Pooled:
                 self._future = self._owner._pool_submit(self._job)
 
 
-def _start_worker(owner: int) -> None:
-    """A pool worker's start: it ends with its owner (:func:`_end_with`) and yields the CPU to the
-    agents (:data:`WORKER_NICENESS`)."""
+def _start_worker(owner: int, niceness: int) -> None:
+    """A pool worker's start: it ends with its owner (:func:`_end_with`), ``niceness`` below it."""
     _end_with(owner)
-    os.nice(WORKER_NICENESS)
+    os.nice(niceness)
 
 
 def _end_with(owner: int) -> None:
@@ -405,11 +406,13 @@ class LocalExecutor:
 
     name = "local"
 
-    def __init__(self, workers: int | None = None) -> None:
+    def __init__(self, workers: int | None = None, niceness: int = 0) -> None:
+        """``niceness``: how far below this process its workers run (:data:`WORKER_NICENESS`)."""
         n = workers if workers is not None else (os.cpu_count() or 1)
         if n < 1:
             raise BadInput("--workers", f"needs at least one worker, got {n}")
         self.workers = n
+        self.niceness = niceness
         self._pool: ProcessPoolExecutor | None = None
         self.restarts = 0
         """How often a dead worker broke the pool and it was started again."""
@@ -430,7 +433,7 @@ class LocalExecutor:
                     self.workers,
                     mp_context=multiprocessing.get_context("forkserver"),
                     initializer=_start_worker,
-                    initargs=(os.getpid(),),
+                    initargs=(os.getpid(), self.niceness),
                 )
             try:
                 future = self._pool.submit(run_job, job)
@@ -518,12 +521,15 @@ class RayExecutor:
             self._ray.shutdown()
 
 
-def make_executor(kind: str = "inline", workers: int | None = None, address: str | None = None) -> Executor:
-    """The executor a command line asks for (``--executor``, ``--workers``, ``--ray-address``)."""
+def make_executor(
+    kind: str = "inline", workers: int | None = None, address: str | None = None, niceness: int = 0
+) -> Executor:
+    """The executor a command line asks for (``--executor``, ``--workers``, ``--ray-address``);
+    ``niceness``: a local pool's workers' (:data:`WORKER_NICENESS`)."""
     if kind == "inline":
         return InlineExecutor()
     if kind == "local":
-        return LocalExecutor(workers)
+        return LocalExecutor(workers, niceness)
     if kind == "ray":
         return RayExecutor(address, workers)
     raise BadInput("--executor", f"expected one of {', '.join(EXECUTORS)}, got {kind!r}")

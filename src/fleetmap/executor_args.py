@@ -43,7 +43,8 @@ def _workers(text: str) -> int:
     return n
 
 
-def executor_from_args(args: argparse.Namespace) -> Executor:
+def executor_from_args(args: argparse.Namespace, niceness: int = 0) -> Executor:
+    """``niceness``: a local pool's workers' (:data:`~fleetmap.merger.executor.WORKER_NICENESS`)."""
     if args.ray_address is not None and args.executor != "ray":
         raise SystemExit(f"fleetmap: --ray-address needs --executor ray (got --executor {args.executor})")
-    return make_executor(args.executor, args.workers, args.ray_address)
+    return make_executor(args.executor, args.workers, args.ray_address, niceness)

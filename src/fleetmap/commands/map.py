@@ -10,6 +10,7 @@ from typing import Any
 from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.executor_args import add_executor_arguments, executor_from_args
+from fleetmap.merger.executor import WORKER_NICENESS
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.startposes import read_start_poses
 
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         bar.n = done  # type: ignore[attr-defined]
         bar.refresh()  # type: ignore[attr-defined]
 
-    executor = executor_from_args(args)
+    executor = executor_from_args(args, WORKER_NICENESS)  # the agents track beside its workers
     try:
         result = map_logs(pieces, out, config, progress, executor, start_poses=start_poses)
     finally:
