@@ -309,10 +309,6 @@ class MapGraph:
         tol = SIMPLIFY_TOLERANCE
         return simplify(m, tol) if tol > 0 and not m.ordered else m
 
-    def searched(self, key: str) -> tuple[SegmentMap, MapIndex]:
-        """The map a pose-free integration searches (its version, simplified) and its grid index."""
-        return self._nodes[key].work, self._index(key)
-
     def _index(self, key: str) -> MapIndex:
         node = self._nodes[key]
         if node.index is None:
