@@ -369,6 +369,7 @@ class Merger(Intake):
             far_tries=s.far_tries,
             last_out=self._last_out,
             behind=s.behind,
+            windows=s.windows,
         )
         write_state(path, state)
 
@@ -392,6 +393,7 @@ class Merger(Intake):
         s.finished_epochs = fresh.schedule.finished_epochs
         s.queue = {(a, b): t for (a, b), t in state.queue.items() if a in self.graph and b in self.graph}
         s.scheduled, s.finals, s.far_tries, s.behind = state.scheduled, state.finals, state.far_tries, state.behind
+        s.windows = {pair: w for pair, w in state.windows.items() if pair in s.queue}
         self.schedule = s
         self._pending = {m.submap_key: m for m in state.pending}
         if len(self.graph):

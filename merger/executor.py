@@ -42,7 +42,7 @@ from typing import Any, Protocol, cast
 import numpy as np
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.integration import Integration, index_for, integrate, takes_large_path
+from fleetmap.shared.core.integration import Integration, Window, index_for, integrate, takes_large_path
 from fleetmap.shared.core.near import align_near
 from fleetmap.shared.core.overlap import overlap_score
 from fleetmap.shared.core.pivotmap import WITNESS_ROTATION, WITNESS_TRANSLATION
@@ -101,6 +101,8 @@ class PairJob:
     given: dict[str, Any] = field(default_factory=dict)
     """Indexes the caller built already (``index_a``, ``index_b``, ``reference_a``): a worker takes
     them rather than build them again (unpickling one costs a hundredth of building it)."""
+    window: Window | None = None
+    """A pose-free integration's search window (None: the whole map)."""
 
 
 @dataclass(frozen=True)
@@ -216,6 +218,7 @@ def run_pair(job: PairJob, indexes: Indexes | None = None) -> PairResult:
             p,
             index1=need("index_a", a, va, "index", lambda: index_for(job.work_a, p), job.work_a) if large else None,
             index2=need("index_b", b, vb, "index", lambda: index_for(job.work_b, p), job.work_b) if large else None,
+            window=job.window,
             work=work,
         )
     if not r.valid:

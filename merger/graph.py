@@ -27,7 +27,7 @@ from fleetmap.merger.executor import Indexes, PairJob, PairResult, reference_of,
 from fleetmap.shared.config import IntegrationParams, MergeParams, TrackingParams
 from fleetmap.shared.core.descriptor import pairwise_histogram, similarity
 from fleetmap.shared.core.geometry import Array, Transform2D
-from fleetmap.shared.core.integration import index_for
+from fleetmap.shared.core.integration import Window, index_for
 from fleetmap.shared.core.mapgrid import MapIndex, viewpoints_of
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.simplify import SIMPLIFY_TOLERANCE, simplify
@@ -357,10 +357,10 @@ class MapGraph:
         job = self.pair_job(a, b)
         return self.take(job, run_pair(job, self.indexes))
 
-    def pair_job(self, a: str, b: str, predicted: Transform2D | None = None) -> PairJob:
+    def pair_job(self, a: str, b: str, predicted: Transform2D | None = None, window: Window | None = None) -> PairJob:
         """The integration of b on a at their current versions, near ``predicted`` (b's frame in
-        a's) or pose-free, as a job any executor runs (:mod:`fleetmap.merger.executor`), with the
-        indexes of the two maps the graph holds already."""
+        a's) or pose-free (within ``window``, if given), as a job any executor runs
+        (:mod:`fleetmap.merger.executor`), with the indexes of the two maps the graph holds already."""
         na, nb = self._nodes[a], self._nodes[b]
         given: dict[str, object] = {}
         if na.index is not None:
@@ -372,7 +372,7 @@ class MapGraph:
             given["reference_a"] = reference[1]
         return PairJob(
             a, b, (na.version, nb.version), na.map, nb.map, na.work, nb.work, predicted, self.integration,
-            self.tracking, self.merge, given,
+            self.tracking, self.merge, given, window,
         )  # fmt: skip
 
     def align_pair(self, a: str, b: str, predicted: Transform2D) -> Edge:
@@ -456,13 +456,13 @@ class MapGraph:
         job = self.job_once(x, y)
         return None if job is None else self.take(job, run_pair(job, self.indexes))
 
-    def job_once(self, x: str, y: str) -> PairJob | None:
-        """:meth:`integrate_pair_once` as a job for an executor; None if the pair's edge is already
-        known at these versions."""
+    def job_once(self, x: str, y: str, window: Window | None = None) -> PairJob | None:
+        """:meth:`integrate_pair_once` as a job for an executor (within ``window``, for the pair one
+        way round, if given); None if the pair's edge is already known at these versions."""
         if self.is_current(x, y):
             return None
         a, b = (x, y) if x < y else (y, x)  # one way, as _oriented_pair
-        return self.pair_job(a, b)
+        return self.pair_job(a, b, window=window)
 
     def seen_enough(self, a: str, b: str) -> bool:
         """Whether two maps can merge at all (see :meth:`_too_few_places`)."""

@@ -383,6 +383,7 @@ class Intake:
             self.budget.forget(robot)
         gone = set(mine)
         s.queue = {pair: t for pair, t in s.queue.items() if gone.isdisjoint(pair)}
+        s.windows = {pair: w for pair, w in s.windows.items() if gone.isdisjoint(pair)}
         s.finished_epochs = {e for e in s.finished_epochs if parse_map_key(e)[0] != robot}
         self._forgotten = bool(mine) or self._forgotten
         if gone & self.placement.where.keys():  # the last solve's components name them: solve without

@@ -79,8 +79,6 @@ class PoseGraph(RefinedGraph):
         self._walls_now: dict[tuple[object, ...], tuple[tuple[SegmentMap, ...], Array]] = {}
         """The walls of each component of the last solve, with its maps (:meth:`_walls`)."""
         self._last_walls = self._walls_now
-        self._kept: KeptForest | None = None
-        """The last solve's forest, for the next to carry on (:meth:`_kept_solve`)."""
         self._with_walls_now: dict[int, tuple[Component, Component]] = {}
         """Each component of the last solve with its walls, by the component without (:meth:`_fused`)."""
         self._with_walls = self._with_walls_now
@@ -91,14 +89,6 @@ class PoseGraph(RefinedGraph):
         """Solves of the whole graph, and solves that carried the last one on."""
         self._settled = -1
         """The :attr:`edits` when the last solve's forest held every edge (none changed since: no second look)."""
-
-    def remove_map(self, key: str) -> None:
-        super().remove_map(key)
-        self._kept = None
-
-    def tree_drift(self, a: str, b: str) -> tuple[float, float] | None:
-        """:meth:`~fleetmap.merger.forest.RootedForest.spread` in the last solve's forest."""
-        return None if self._kept is None else self._kept.forest.spread(a, b)
 
     def _work(self, key: str, m: SegmentMap) -> SegmentMap:
         # a submap's walls are already one segment per stretch of wall (fleetmap.shared.core.walls);

@@ -23,7 +23,8 @@ of one robot's submaps in one step), searches once the next solve has placed its
   whose walls now meet, registered near where the join puts them (at most :data:`NEAR_CANDIDATES`
   a submap): the near search of a submap that arrived before the join only saw its own group;
   where the forest's path between the two can have drifted beyond registration's reach and the
-  registration fails, the pair is integrated again pose-free (:meth:`PairSchedule.registered`);
+  registration fails, the pair is integrated again by the paper's search, within the window where
+  an integration can close its cycle with the forest (:meth:`PairSchedule.registered`);
 - *idle*: with nothing else due, one more pose-free try for a submap of each component apart from
   the global map, up to :data:`FAR_BUDGET` tries a submap.
 
@@ -46,10 +47,12 @@ from fleetmap.merger.executor import Executor, PairJob
 from fleetmap.merger.farrank import FarRanking
 from fleetmap.merger.outputs import Placement, epoch_of
 from fleetmap.merger.posegraph import PoseGraph
+from fleetmap.merger.searchwindow import placed_as, predicted_pose, search_window, window_in
 from fleetmap.merger.stats import MergerStats
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.descriptor import similarity
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Window
 from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
 from fleetmap.shared.io.keys import parse_submap_key
 from fleetmap.shared.io.messages import LocalMap
@@ -118,12 +121,14 @@ class PairSchedule:
         """Queued pairs that :meth:`idle_pairs` chose."""
         self.joined: set[Pair] = set()
         """Pairs :meth:`queue_joined` queued (each once: a pair that did not register stays so)."""
-        self.wide: set[Pair] = set()
-        """Joined pairs registered near the join where the drift of the forest's path between them
-        may have carried them beyond registration's reach (:meth:`_tie_within_reach`): pose-free if the
-        registration is not valid (:meth:`registered`)."""
+        self.wide: dict[Pair, Transform2D] = {}
+        """Joined pairs registered near the join (their prediction) where the drift of the forest's
+        path between them may have carried them beyond registration's reach
+        (:meth:`_tie_within_reach`): searched again if the registration is not valid (:meth:`registered`)."""
         self.retry: set[Pair] = set()
         """Pairs queued pose-free again after their registration near a prediction failed."""
+        self.windows: dict[Pair, Window] = {}
+        """Where a queued pose-free pair of one component searches (:mod:`~fleetmap.merger.searchwindow`)."""
         self.unplaced: set[str] = set()
         """Final submaps scheduled before any solve saw them or their chain: their searches wait for
         one (:meth:`placed`)."""
@@ -180,21 +185,25 @@ class PairSchedule:
         if predicted is not None:
             self.stats.near += 1
             return self.graph.pair_job(a, b, predicted)
+        window = self.windows.pop(pair, None)
         if pair in self.retry:  # (its edge is current: the registration's, which failed)
             self.retry.discard(pair)
             self.stats.retried += 1
-            return self.graph.pair_job(*ordered(a, b))
-        return self.graph.job_once(a, b)
+            return self.graph.pair_job(a, b, window=window)
+        return self.graph.job_once(a, b, window)
 
     def registered(self, pair: Pair, edge_valid: bool) -> None:
         """A pair integrated: one of :attr:`wide` whose registration near the join is not valid is
-        queued again pose-free (the paper's integration, whose search window is the whole map:
-        infinite-corridor-c cut in 2 had its one wrong relation where two robots' submaps, 2.2 m
-        from where the join put them, were registered there and slid; docs/decisions/028)."""
-        if pair in self.wide:
-            self.wide.discard(pair)
-            if not edge_valid and self.enqueue(pair, None):
-                self.retry.add(pair)
+        queued again for the paper's integration (infinite-corridor-c cut in 2 had its one wrong
+        relation where two robots' submaps, 2.2 m from where the join put them, were registered
+        there and slid; docs/decisions/028), searched around the join's prediction
+        (:func:`~fleetmap.merger.searchwindow.search_window`)."""
+        near = self.wide.pop(pair, None)
+        if near is not None and not edge_valid and self.enqueue(pair, None):
+            self.retry.add(pair)
+            window = search_window(self.graph, *pair, near, *pair)
+            if window is not None:
+                self.windows[pair] = window
 
     def submap(self, m: LocalMap, current: bool, p: Placement) -> None:
         """Queue the integrations a submap version is due (see the module docstring); ``current``:
@@ -213,7 +222,7 @@ class PairSchedule:
         if not (final or searching):
             return
         self.scheduled[key] = m.version
-        if final and self._placed_as(key, p) not in p.where:
+        if final and placed_as(self.graph, key, p) not in p.where:
             self.unplaced.add(key)  # no solve has seen it or its chain yet: it searches after one
             return
         if final:
@@ -237,8 +246,8 @@ class PairSchedule:
             if (key, other) in self.queue:
                 continue  # (a flood's submaps search each other: one way is enough, one edge a pair)
             # registered near the prediction where the robot's own drift between the two
-            # cannot have carried it out of registration's reach; else pose-free (a loop
-            # after a long way round: the search window as wide as the uncertainty), the
+            # cannot have carried it out of registration's reach; else by the paper's search (a
+            # loop after a long way round: the search window as wide as the uncertainty), the
             # most similar such submap only: the paper's integration costs ten registrations
             if self._within_reach(other, key, p):
                 self.enqueue((other, key), predicted)
@@ -247,11 +256,19 @@ class PairSchedule:
         if beyond:
             h = self.graph.descriptor(key)
             best = max(beyond, key=lambda k: (similarity(self.graph.descriptor(k), h), k))
-            self.enqueue(ordered(best, key), None)
+            self._queue_loop(best, key, p)
         self.finals += 1
         if LOOP_SWEEP_EVERY > 0 and self.finals % LOOP_SWEEP_EVERY == 0:
             for other in self._far(key, mine, p, within=True)[:1]:
-                self.enqueue(ordered(other, key), None)
+                self._queue_loop(other, key, p)
+
+    def _queue_loop(self, x: str, y: str, p: Placement) -> None:
+        """Queue a pose-free pair of one component, searched around where the last solve puts
+        them (:mod:`~fleetmap.merger.searchwindow`)."""
+        pair = ordered(x, y)
+        window = window_in(self.graph, *pair, p)
+        if self.enqueue(pair, None) and window is not None:
+            self.windows[pair] = window
 
     def placed(self, p: Placement) -> None:
         """After a solve: the searches of each final submap that no solve had seen, nor its chain,
@@ -315,9 +332,10 @@ class PairSchedule:
                 if count[a] >= limit or count[b] >= limit:
                     continue
                 self._owner = parse_submap_key(b)[0]
-                if self.enqueue((a, b), at[a].inverse().compose(at[b])):
+                predicted = at[a].inverse().compose(at[b])
+                if self.enqueue((a, b), predicted):
                     if not self._tie_within_reach(a, b, p):
-                        self.wide.add((a, b))
+                        self.wide[(a, b)] = predicted
                     self.joined.add((a, b))
                     count[a] += 1
                     count[b] += 1
@@ -371,37 +389,15 @@ class PairSchedule:
             out += finals or list(members)
         return out
 
-    def _predicted(self, key: str, p: Placement) -> Transform2D | None:
-        """Where the graph puts a submap in its component's frame: its refined pose, or its
-        predecessor's composed with its link."""
-        if p.result is None:
-            return None
-        pose = p.result.poses.get(key)
-        if pose is not None:
-            return pose
-        link = self.graph.link_to(key)
-        if link is not None and p.result.poses.get(link.a) is not None:
-            before = p.result.poses[link.a]
-            return before.compose(link.transform) if before is not None else None
-        return None
-
     def _in_global_map(self, key: str, p: Placement) -> bool:
         """Whether a submap (or its predecessor, for a new one) is in the global map, placed there
         with another epoch by integrations (:attr:`Placement.global_group`; not by a known start
         pose alone, :mod:`fleetmap.merger.startposes`)."""
-        return self._placed_as(key, p) in p.global_group
-
-    def _placed_as(self, key: str, p: Placement) -> str:
-        """The submap whose place stands for ``key``'s: itself, or for a new one its predecessor
-        on its robot's chain."""
-        link = self.graph.link_to(key)
-        if key in p.where or link is None or link.a.split("/", 1)[0] != key.split("/", 1)[0]:
-            return key
-        return link.a
+        return placed_as(self.graph, key, p) in p.global_group
 
     def _group_members(self, key: str, p: Placement) -> set[str]:
         """The submaps the last solve's integrations place with ``key`` (:meth:`Placement.group_of`)."""
-        return {key, *(p.group_of(self._placed_as(key, p)) or ())}
+        return {key, *(p.group_of(placed_as(self.graph, key, p)) or ())}
 
     def _queue_far(self, key: str, other: str) -> None:
         if self.enqueue(ordered(other, key), None):
@@ -420,7 +416,7 @@ class PairSchedule:
     def _near(self, key: str, mine: set[str], p: Placement) -> list[tuple[str, Transform2D]]:
         """Submaps of ``key``'s component within reach of where the graph puts it, nearest first,
         with the predicted pose of ``key`` in each; not its neighbours on its own chain."""
-        here = self._predicted(key, p)
+        here = predicted_pose(self.graph, key, p)
         if here is None or p.result is None:
             return []
         radius = _radius(self.graph, key)
@@ -454,7 +450,7 @@ class PairSchedule:
         drift of the links on the forest's path between them
         (:meth:`~fleetmap.merger.posegraph.PoseGraph.tree_drift`) is within the tracking's
         correspondence distance and 5 degrees, as :meth:`_within_reach` for one robot's chain."""
-        drift = self.graph.tree_drift(self._placed_as(a, p), self._placed_as(b, p))
+        drift = self.graph.tree_drift(placed_as(self.graph, a, p), placed_as(self.graph, b, p))
         return drift is not None and _reaches(drift)
 
     def _far(self, key: str, mine: set[str], p: Placement, within: bool) -> list[str]:
@@ -462,7 +458,7 @@ class PairSchedule:
         reach (``within``), most similar first; or of the other components, in the far search's order
         for its next try (:class:`~fleetmap.merger.farrank.FarRanking`; :attr:`behind`: the descriptor's)."""
         h = self.graph.descriptor(key)
-        here = self._predicted(key, p)
+        here = predicted_pose(self.graph, key, p)
         radius = _radius(self.graph, key) if within else 0.0
         candidates = []
         for other in self.graph.keys:

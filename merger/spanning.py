@@ -49,10 +49,27 @@ class ForestBuilder(ConsistencyJudge):
         super().__init__(*args, **kwargs)
         self._ambiguity: dict[tuple[str, str], tuple[Edge, int, int, bool]] = {}
         """Each invalid integration's :meth:`_ambiguous` at its two submaps' versions."""
+        self._kept: KeptForest | None = None
+        """The last solve's forest, for the next to carry on
+        (:meth:`~fleetmap.merger.posegraph.PoseGraph._kept_solve`)."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
         self._ambiguity = {k: v for k, v in self._ambiguity.items() if key not in k}
+        self._kept = None
+
+    def tree_drift(self, a: str, b: str) -> tuple[float, float] | None:
+        """:meth:`~fleetmap.merger.forest.RootedForest.spread` in the last solve's forest."""
+        return None if self._kept is None else self._kept.forest.spread(a, b)
+
+    def tree_tolerance(self, a: str, b: str) -> tuple[float, float] | None:
+        """How far (m, rad) an integration of a and b may lie from where the last solve's forest
+        puts b on a and still close its cycle (:meth:`_tolerance_between`: the base tolerance of
+        each integration on the forest's path and of the new one, and its links' drift); an
+        integration beyond it is a conflict. None if they are not in one tree."""
+        if self._kept is None or self._kept.forest.spread(a, b) is None:
+            return None
+        return self._tolerance_between(self._kept.forest, a, b)
 
     def _forest(self, links: list[Edge], valid: list[Edge], priors: Sequence[Edge] = ()) -> KeptForest:
         """The spanning forest (links first, ``priors`` last), its loop closures, and the integrations rejected: by

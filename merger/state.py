@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ import numpy as np
 from fleetmap.merger.graph import Edge
 from fleetmap.merger.outputs import Outgoing, Robot
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Window
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.messages import BadMessage, LocalMap, decode
 
@@ -44,6 +45,8 @@ class MergerState:
     last_out: list[Outgoing]
     behind: bool = False
     """Whether the last step left pairs queued (:attr:`~fleetmap.merger.schedule.PairSchedule.behind`)."""
+    windows: dict[tuple[str, str], Window] = field(default_factory=dict)
+    """Where queued pose-free pairs search (:attr:`~fleetmap.merger.schedule.PairSchedule.windows`)."""
 
 
 def write_state(path: str | Path, state: MergerState) -> None:
@@ -62,6 +65,9 @@ def write_state(path: str | Path, state: MergerState) -> None:
         "finals": state.finals,
         "far_tries": state.far_tries,
         "behind": state.behind,
+        "windows": [
+            [a, b, w.centre.x, w.centre.y, w.centre.theta, w.radius, w.rotation] for (a, b), w in state.windows.items()
+        ],
         "last_out": [[o.key, o.payload] for o in state.last_out],
     }
     p = Path(path)
@@ -111,6 +117,10 @@ def read_state(path: str | Path) -> MergerState:
             far_tries={str(k): int(v) for k, v in state.get("far_tries", {}).items()},
             last_out=[Outgoing(str(key), bytes(payload)) for key, payload in state.get("last_out", [])],
             behind=bool(state.get("behind", False)),
+            windows={
+                (str(a), str(b)): Window(Transform2D(float(x), float(y), float(t)), float(r), float(q))
+                for a, b, x, y, t, r, q in state.get("windows", [])
+            },
         )
     except (
         OSError,

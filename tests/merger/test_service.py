@@ -20,6 +20,7 @@ from fleetmap.merger.engine import Merger
 from fleetmap.scenarios.metrics import pose_error, world_from_global
 from fleetmap.shared.config import FleetmapConfig, MergeParams
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.integration import Window
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import (
@@ -122,6 +123,20 @@ def test_a_restored_state_continues_exactly_like_the_original(maps, tmp_path) ->
     a = _feed(original, [maps["r3"][0]])
     b = _feed(restored, [maps["r3"][0]])
     assert [m.to_msgpack() for m in a] == [m.to_msgpack() for m in b]
+
+
+def test_a_restored_merger_searches_its_queued_loops_where_the_original_would(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    small = {r: true_local_map("department", r, 0, 8)[0] for r in ("r1", "r2")}
+    original = Merger(KEYS)
+    _feed(original, [small["r1"], small["r2"]])
+    pair = tuple(sorted(m.submap_key for m in small.values()))
+    window = Window(Transform2D(1.5, -0.5, 0.3), 0.8, 0.2)
+    original.schedule.queue[pair] = None  # a loop queued at the last step, not yet integrated
+    original.schedule.windows[pair] = window
+    original.save_state(tmp_path / "merger.state")
+    restored = Merger(KEYS)
+    restored.load_state(tmp_path / "merger.state")
+    assert restored.schedule.windows == {pair: window}, "a restored merger would search the whole map"
 
 
 def test_a_merger_killed_before_publishing_its_step_says_where_it_stands_when_restored(tmp_path) -> None:  # type: ignore[no-untyped-def]
