@@ -4,14 +4,14 @@ still close its cycle.
 
 The merger's cycle check takes an integration of two submaps of one component as a loop when it
 lies within the tolerance of the forest's path between them
-(:meth:`~fleetmap.merger.posegraph.PoseGraph.tree_tolerance`: the base tolerance of each
+(:meth:`~fleetmap.merger.spanning.ForestBuilder.tree_tolerance`: the base tolerance of each
 integration on the path and of the new one, and the drift its links allow); beyond it, the
 integration is a conflict. Searching farther finds nothing the map can use, only aliases: a
 corridor's walls match all along it. Cartographer searches a trajectory's own loop closures in a
 window around where the trajectory puts them, and the whole map only between trajectories nothing
 connects yet; the same here, with the window the graph's own uncertainty. On fr079, mit-csail and
 aces whole, every valid loop the whole map's search found within the window was found in it,
-for 41-64 % less time (docs/decisions/037).
+for half to a third of the CPU (docs/decisions/037).
 """
 
 from __future__ import annotations
