@@ -266,9 +266,10 @@ class PairSchedule:
         """Queue a pose-free pair of one component, searched around where the last solve puts
         them (:mod:`~fleetmap.merger.searchwindow`)."""
         pair = ordered(x, y)
-        window = window_in(self.graph, *pair, p)
-        if self.enqueue(pair, None) and window is not None:
-            self.windows[pair] = window
+        if self.enqueue(pair, None):
+            window = window_in(self.graph, *pair, p)
+            if window is not None:
+                self.windows[pair] = window
 
     def placed(self, p: Placement) -> None:
         """After a solve: the searches of each final submap that no solve had seen, nor its chain,
