@@ -52,17 +52,18 @@ def plot_merged(
         handles.append(Line2D([], [], color="0.85", linewidth=4.0, label="true walls"))
     unplaced: list[str] = []
     counts: dict[str, int] = dict.fromkeys(names, 0)
+    drawn: dict[str, list[Array]] = {}
     for name, segments in maps.items():
         pose = poses.get(name)
         if pose is None:
             unplaced.append(name)
             continue
         counts[group[name]] += 1
-        moved = pose.apply(np.asarray(segments))
-        drawn = LineCollection(
-            list(moved.reshape(-1, 2, 2)), colors=[colour[group[name]]], linewidths=1.6, alpha=0.45, zorder=2
+        drawn.setdefault(group[name], []).append(pose.apply(np.asarray(segments)).reshape(-1, 2, 2))
+    for g, parts in drawn.items():  # one collection per robot: a thousand submaps draw as fast as ten
+        ax.add_collection(
+            LineCollection(list(np.concatenate(parts)), colors=[colour[g]], linewidths=1.6, alpha=0.45, zorder=2)
         )
-        ax.add_collection(drawn)
     for g, xy in (paths or {}).items():
         xy = np.asarray(xy).reshape(-1, 2)
         if len(xy):

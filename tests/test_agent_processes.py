@@ -1,4 +1,4 @@
-"""fleetmap map's agents in worker processes: the same map as in line, and a worker that fails or
+"""fleetmap map's agents in worker processes: the same map (and files) as in line, and a worker that fails or
 dies is an error in the caller, not a run that waits for ever."""
 
 from __future__ import annotations
@@ -33,6 +33,10 @@ def test_agents_in_worker_processes_map_as_agents_in_line(
     apart = map_logs(pieces, tmp_path / "apart", preset("offline"), tracking_processes=2)
     assert len(in_line.poses) > 300
     assert apart.poses == in_line.poses
+    # the session's files, written by a process of their own beside the key scans' refinement
+    for name in ("global_map.json", "map.pgm", "map.yaml"):
+        assert (tmp_path / "apart" / name).read_bytes() == (csail_in_line[1] / name).read_bytes(), name
+    assert (tmp_path / "apart" / "global_map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     for a, b in zip(apart.report["map"]["robots"], in_line.report["map"]["robots"], strict=True):
         assert (a["robot"], a["epochs"], a["scans_placed"], a["clock"]) == (
             b["robot"],

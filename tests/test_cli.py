@@ -41,6 +41,7 @@ def write_map(path: Path, segments: list[list[float]], **extra: object) -> str:
     return str(path)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_integrate_json_prints_the_contract_fields_and_recovers_the_example() -> None:
     r = fleetmap("integrate", str(EXAMPLES / "scan_a.json"), str(EXAMPLES / "scan_b.json"), "--json")
     assert r.returncode == 0, r.stderr
@@ -67,6 +68,7 @@ def test_integrate_with_the_ransac_aligner_recovers_the_example(
     assert abs(r["theta"] - 0.9) < math.radians(0.5) and r["valid"] is True
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_integrate_batch_answers_every_line_in_order(tmp_path: Path) -> None:
     a = json.loads((EXAMPLES / "scan_a.json").read_text())
     b = json.loads((EXAMPLES / "scan_b.json").read_text())
@@ -115,11 +117,13 @@ def test_bad_map_files_exit_2_with_one_line_naming_the_file(
     assert out == ""
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_a_missing_file_exits_2_naming_it(tmp_path: Path) -> None:
     r = fleetmap("integrate", str(tmp_path / "nope.json"), str(EXAMPLES / "scan_a.json"))
     assert r.returncode == 2 and "nope.json: no such file" in r.stderr
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_a_bad_batch_line_exits_2_naming_line_and_id(tmp_path: Path) -> None:
     a = json.loads((EXAMPLES / "scan_a.json").read_text())
     batch = tmp_path / "pairs.jsonl"

@@ -68,6 +68,7 @@ def test_the_core_is_every_algorithm_module() -> None:
     assert {f"fleetmap.shared.core.{m}" for m in expected} <= set(CORE)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_the_core_imports_no_io_and_the_logic_neither_zenoh_nor_mcap() -> None:
     argv = [sys.executable, "-c", CHECK, ",".join(CORE), ",".join(LOGIC)]
     done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)

@@ -142,3 +142,8 @@ class Component:
         field.assign(self, "members", members)
         field.assign(self, "poses", types.MappingProxyType(poses))
         field.assign(self, "segments", field.segments(s, "segments", self.segments))
+
+    def __reduce__(self) -> tuple[object, ...]:
+        """Pickled as its fields, ``poses`` as a dict (a mapping proxy does not pickle): a session's
+        log goes to the process that writes its files (:class:`fleetmap.mapping._Files`)."""
+        return (Component, (self.anchor, self.members, dict(self.poses), self.segments))

@@ -78,6 +78,7 @@ def test_a_robot_with_drifting_odometry_is_tracked_within_5cm_over_its_whole_pat
     assert odometry.distance(true)[0] > 0.3
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_without_odometry_constant_velocity_tracks_the_robot_too(office_r3):
     # (along the office corridor, constant velocity is all that fixes the robot's progress: the
     # error there grows to 4-5 cm, where odometry's stays at 1-2)

@@ -195,6 +195,7 @@ def _solves_as_a_whole(graph: PoseGraph, solved: MergeResult) -> None:
             assert dt < 0.001 and dr < 1e-4, f"{key}: {dt:.4f} m, {np.degrees(dr):.3f} deg"
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_a_robot_never_integrated_stays_apart_with_no_pose() -> None:
     # r2 and r3 map the same stretch of the department; r9 drives past a box in an open field:
     # three linked submaps that match nobody's walls.

@@ -57,6 +57,7 @@ def test_each_method_reproduces_the_trajectory_within_5cm_and_1deg(method: str) 
     assert len(result.map) < sum(len(s) for s in SCANS) / 2
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_integration_counts_are_the_papers() -> None:
     n = len(SCANS)
     assert merged("sequential").integrations == n - 1

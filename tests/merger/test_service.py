@@ -269,6 +269,7 @@ def test_an_old_version_is_stale_and_a_newer_one_replaces_the_map(maps) -> None:
     assert next(m for m in out if isinstance(m, MergerStep)).versions == (1,)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_a_lost_robot_is_unknown_until_relocalized(maps) -> None:  # type: ignore[no-untyped-def]
     merger = Merger(KEYS)
     _feed(merger, [maps["r1"][0], maps["r2"][0]])
@@ -372,6 +373,7 @@ def _live(max_robots: int = 256) -> Merger:
     return merger
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_fake_robots_without_tokens_or_gone_unplaced_take_no_room(maps, tmp_path) -> None:  # type: ignore[no-untyped-def]
     # 1000 ids' valid maps before the robots started filled the 256-robot limit for good, the
     # state file too: the real robots' messages were all refused

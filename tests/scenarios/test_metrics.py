@@ -53,6 +53,7 @@ def test_walls_shifted_by_5_cm_give_a_mean_error_of_5_cm(department: tuple[np.nd
     assert errors == sorted(errors) and errors[0] < 1e-12 and errors[-1] > 0.15
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
 def test_the_aligned_error_leaves_out_the_frame_not_the_shape(department: tuple[np.ndarray, np.ndarray]) -> None:
     walls, _ = department
     # the true map placed by a submap whose heading was half a degree off, 20 m from its far end:

@@ -621,3 +621,17 @@ def test_messages_as_sent_decode_within_their_budget():
     for payload in (global_map, step):
         assert len(payload) > 100_000
         assert decode(payload).to_msgpack() == payload
+
+
+def test_a_global_map_pickles_to_the_same_map() -> None:
+    # a session's log goes to the process that writes its files (fleetmap map): its components'
+    # poses (a read-only mapping) come back as the same poses, still read-only
+    import pickle
+
+    before = global_map()
+    after = pickle.loads(pickle.dumps(before))
+    assert [c.poses for c in after.components] == [dict(c.poses) for c in before.components]
+    assert [c.members for c in after.components] == [c.members for c in before.components]
+    assert all(np.array_equal(a.segments, b.segments) for a, b in zip(after.components, before.components, strict=True))
+    with pytest.raises(TypeError):
+        after.components[0].poses["r9/0"] = Transform2D()
