@@ -85,6 +85,7 @@ def test_scans_placed_while_seeding_a_new_epoch_are_recorded_in_it(sparse_r2_str
     assert (said[s[3].index], said[s[4].index]) == (0, 2)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_the_epochs_are_read_only_and_change_no_message(sparse_r2_stream):
     scans = sparse_r2_stream[:5]
     quiet = PivotFrontEnd("r1")

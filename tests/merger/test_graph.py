@@ -59,6 +59,7 @@ def test_the_same_maps_in_any_order_give_the_same_poses() -> None:
             assert dt < 0.01 and dr < math.radians(0.1)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_the_anchor_a_merger_happens_to_get_does_not_move_the_maps_relative_to_each_other() -> None:
     # The same maps; the anchor is the first map to arrive (a restarted merger may get another).
     # Refined over the cycles (the integrations disagree a little, as measured ones do), the

@@ -101,6 +101,7 @@ def test_a_scan_farther_than_the_motion_bound_is_not_placed() -> None:
     assert dt < 0.05 and dr < math.radians(1.0)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_stamps_that_do_not_advance_bound_nothing() -> None:
     # A log whose stamps lost their precision (MIT CSAIL's corrected log: every stamp the same).
     builder = PivotMapBuilder()
@@ -225,6 +226,7 @@ def test_bad_input_is_refused() -> None:
         sequential([SCANS[0], SegmentMap(np.zeros((0, 4)))])
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_a_map_fused_at_known_poses_is_the_one_the_builder_builds_and_its_frame_is_the_first_scans() -> None:
     # The merge benchmark's reference local maps (--local-maps truth): the scans fused at their
     # true poses, as the builder fuses them at the poses it finds.

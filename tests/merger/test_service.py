@@ -77,6 +77,7 @@ def test_three_robots_are_merged_and_placed(maps) -> None:  # type: ignore[no-un
         assert e.translation_m < 0.10 and e.rotation_deg < 1.0, f"{robot}: {e}"
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_a_flood_of_malformed_messages_is_counted_and_changes_nothing(maps) -> None:  # type: ignore[no-untyped-def]
     clean, noisy = Merger(KEYS), Merger(KEYS)
     rng = np.random.default_rng(0)
@@ -475,6 +476,7 @@ def test_robots_take_turns_at_integration_so_a_flood_delays_only_its_robot(maps)
     assert [sorted({e.a.split("/")[0], e.b.split("/")[0]}) for e in edges][1] == ["f", "r1"]  # r1's turn came second
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_the_global_map_is_the_component_of_the_most_robots_not_of_one_robot_s_many_epochs(maps) -> None:  # type: ignore[no-untyped-def]
     # a robot flooding its own key with epochs of one shape made their component the "largest": no
     # real robot was placed any more

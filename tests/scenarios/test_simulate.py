@@ -47,6 +47,7 @@ def test_simulate_writes_scans_segments_truth_and_config(tmp_path: Path, capsys:
     assert load_config(out / "config.toml").extraction.tau == 0.2
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_simulate_segments_are_what_extract_gives_for_the_scans(tmp_path: Path) -> None:
     out = tmp_path / "sim"
     assert main(["simulate", "office", "--out", str(out), "--kappa", "0.03"]) == 0

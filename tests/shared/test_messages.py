@@ -609,6 +609,7 @@ def test_a_payload_packing_millions_of_items_decodes_into_a_bounded_multiple_of_
     assert reason.startswith(refused), reason
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (1.1-1.5 s): CI runs it with the slow ones
 def test_messages_as_sent_decode_within_their_budget():
     rng = np.random.default_rng(3)
     members = [f"r{i}/{e}" for i in range(100) for e in range(200)]
