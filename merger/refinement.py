@@ -4,11 +4,14 @@ Links weigh as their covariance says, integrations by how firmly their walls fix
 of their value in every direction) through a Cauchy loss, the component's anchor fixed
 (:meth:`RefinedGraph.edge_noise`, :meth:`RefinedGraph._optimized`). The refinement starts where the
 last solve left each submap if it hangs from the same anchor by the same integrations
-(:meth:`RefinedGraph._initial_poses`), and a component whose submaps and edges are as the last
-solve had them keeps its poses. An integration the refined poses disagree with by more than one
-integration's base tolerance is handed back, for the solve to leave out. The same graph at the
-refined poses gives each submap's pose covariance (:meth:`RefinedGraph.pose_covariances`), with
-which the global map's walls may be fused (Ballesta et al. 2009, Section 4).
+(:meth:`RefinedGraph._initial_poses`); where the descent from there leaves a link bent beyond its
+covariance's chi-square bound (a fold the last solve left, which the descent cannot undo), it is
+made from the spanning tree's poses too, and the one that ends lower is kept. A component whose
+submaps and edges are as the last solve had them keeps its poses. An integration the refined poses
+disagree with by more than one integration's base tolerance is handed back, for the solve to leave
+out. The same graph at the refined poses gives each submap's pose covariance
+(:meth:`RefinedGraph.pose_covariances`), with which the global map's walls may be fused (Ballesta et
+al. 2009, Section 4).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from fleetmap.merger.consistency import CONSISTENT_CHI2
 from fleetmap.merger.graph import (
     EDGE_SIGMA_ROTATION,
     EDGE_SIGMA_TRANSLATION,
@@ -124,12 +128,46 @@ class RefinedGraph(ForestBuilder):
         paths = _joins_above(anchor, order, adjacency)
         poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
         if cycles:
+            tree = _tree_poses(anchor, order, adjacency)
+            warm = any(not _same_pose(poses[k], tree[k]) for k in order)
             poses = self._optimized(anchor, poses, edges)
+            if warm and self._folded_link(poses, edges):
+                # a start from the last solve can hold a fold that the tree's poses do not: the
+                # descent that ends lower, from either start (docs/decisions/039)
+                fresh = self._optimized(anchor, tree, edges)
+                lower, held = self._objective(anchor, fresh, edges), self._objective(anchor, poses, edges)
+                log.debug(
+                    "component of %s: a link bent beyond its covariance from the last solve's poses"
+                    " (objective %.1f); from the tree's, %.1f",
+                    *(anchor, held, lower),
+                )
+                if lower < held:
+                    poses = fresh
             tol_t, tol_r = self._tolerance(1)
             disagreeing = [e for e in edges if not e.link and not self._agrees(e, poses, tol_t, tol_r)]
         for k in order:
             self._solution[k] = (anchor, paths[k], poses[k])
         return poses, disagreeing
+
+    def _folded_link(self, poses: dict[str, Transform2D], edges: list[Edge]) -> bool:
+        """Whether the refined poses bend a link beyond :data:`CONSISTENT_CHI2` of its covariance
+        (its squared Mahalanobis distance): a link the tracking measured that far off is not a
+        drift a loop corrects, but a descent that settled in another minimum."""
+        for e in edges:
+            if not e.link or e.information is None:
+                continue
+            factor = gtsam.BetweenFactorPose2(0, 1, _pose2(e.transform), self.edge_noise(e, robust=False))
+            values = gtsam.Values()
+            values.insert(0, _pose2(poses[e.a]))
+            values.insert(1, _pose2(poses[e.b]))
+            if 2.0 * factor.error(values) > CONSISTENT_CHI2:  # gtsam's error: half the squared distance
+                return True
+        return False
+
+    def _objective(self, anchor: str, poses: dict[str, Transform2D], edges: list[Edge]) -> float:
+        """The refinement's last, robust round's objective at ``poses``."""
+        ids, values = _ids_and_values(poses)
+        return float(self._factor_graph(anchor, poses, ids, edges, robust=True).error(values))
 
     @staticmethod
     def _agrees(e: Edge, poses: dict[str, Transform2D], tol_t: float, tol_r: float) -> bool:
@@ -231,6 +269,20 @@ class RefinedGraph(ForestBuilder):
             turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             out[k] = turn @ marginals.marginalCovariance(i) @ turn.T
         return out
+
+
+def _tree_poses(anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, Transform2D]:
+    """Each submap's pose along the spanning tree from the anchor (``order``: breadth first)."""
+    poses = {anchor: Transform2D.identity()}
+    for k in order:
+        for e in adjacency[k]:
+            if e.b not in poses:
+                poses[e.b] = poses[k].compose(e.transform)
+    return poses
+
+
+def _same_pose(a: Transform2D, b: Transform2D) -> bool:
+    return a.x == b.x and a.y == b.y and a.theta == b.theta
 
 
 def _ids_and_values(poses: dict[str, Transform2D]) -> tuple[dict[str, int], gtsam.Values]:
