@@ -31,7 +31,7 @@ from fleetmap.merger.graph import (
     _bfs_order,
     _disagreement,
 )
-from fleetmap.merger.spanning import ForestBuilder
+from fleetmap.merger.spanning import ForestBuilder, _tree_poses
 from fleetmap.shared.core.geometry import Array, Transform2D, pose_information_in_own_frame
 
 log = logging.getLogger(__name__)
@@ -128,8 +128,8 @@ class RefinedGraph(ForestBuilder):
         paths = _joins_above(anchor, order, adjacency)
         poses, disagreeing = self._initial_poses(anchor, order, adjacency, paths), []
         if cycles:
-            tree = _tree_poses(anchor, order, adjacency)
-            warm = any(not _same_pose(poses[k], tree[k]) for k in order)
+            tree = _tree_poses([anchor], adjacency)
+            warm = any(poses[k] != tree[k] for k in order)
             poses = self._optimized(anchor, poses, edges)
             if warm and self._folded_link(poses, edges):
                 # a start from the last solve can hold a fold that the tree's poses do not: the
@@ -269,20 +269,6 @@ class RefinedGraph(ForestBuilder):
             turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             out[k] = turn @ marginals.marginalCovariance(i) @ turn.T
         return out
-
-
-def _tree_poses(anchor: str, order: list[str], adjacency: dict[str, list[Edge]]) -> dict[str, Transform2D]:
-    """Each submap's pose along the spanning tree from the anchor (``order``: breadth first)."""
-    poses = {anchor: Transform2D.identity()}
-    for k in order:
-        for e in adjacency[k]:
-            if e.b not in poses:
-                poses[e.b] = poses[k].compose(e.transform)
-    return poses
-
-
-def _same_pose(a: Transform2D, b: Transform2D) -> bool:
-    return a.x == b.x and a.y == b.y and a.theta == b.theta
 
 
 def _ids_and_values(poses: dict[str, Transform2D]) -> tuple[dict[str, int], gtsam.Values]:

@@ -160,6 +160,7 @@ def test_extract_writes_one_line_per_scan_in_order(tmp_path: Path) -> None:
     assert all(x["ordered"] is True and len(x["segments"]) >= 4 for x in rows)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (about 1 s): CI runs it with the slow ones
 def test_extract_reads_carmen_and_rejects_garbage(tmp_path: Path) -> None:
     log = tmp_path / "run.clf"
     ranges = " ".join(["2.0"] * 181)

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 from fleetmap.shared.core.geometry import Transform2D
 
+pytestmark = pytest.mark.slow  # the fast suite's slowest module fixture (a log read, 1.3 s): CI runs it
+
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 

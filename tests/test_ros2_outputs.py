@@ -86,6 +86,7 @@ def _scan(index: int, pose: Transform2D | None, submap: int | None = 0) -> Scan:
     return Scan("r1", 0, index, 0.2 * index, np.zeros((0, 4)), ranges, submap, pose)
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (about 1 s): CI runs it with the slow ones
 def test_the_grid_holds_the_ranges_of_key_scans_only_so_a_long_session_stays_bounded():
     keys = FleetKeys("t")
     with (

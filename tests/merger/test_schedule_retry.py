@@ -50,6 +50,7 @@ def _integrated(schedule: PairSchedule) -> tuple[tuple[str, str], bool]:
     return pair, predicted is None
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (about 1 s): CI runs it with the slow ones
 def test_a_joined_pair_whose_registration_near_the_join_fails_is_integrated_pose_free_and_found() -> None:
     graph, submaps, truth = _pair()
     schedule = _schedule(graph, submaps)

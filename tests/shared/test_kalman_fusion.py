@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.kalman_fusion import fuse, offset_information, segment_estimate
 from fleetmap.shared.core.walls import WallMap
@@ -29,6 +30,7 @@ def off_wall(segments: np.ndarray) -> float:
     return float(np.mean(out))
 
 
+@pytest.mark.slow  # one of the fast suite's slowest (about 1 s): CI runs it with the slow ones
 def test_kalman_fusion_of_two_noisy_copies_lands_closer_to_the_wall_than_either_and_than_unweighted() -> None:
     rng = np.random.default_rng(5)
     errors: dict[str, list[float]] = {k: [] for k in ("first", "second", "kalman", "unweighted", "weighted walls")}
