@@ -133,7 +133,7 @@ class Predictor:
         out = []
         self.odometry_step = self._widened = None
         if self.use_odometry and odometry is not None:
-            odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed)
+            odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed, velocity)
             if odometry_prediction is not None:
                 out.append(odometry_prediction)
         if self.clock.trusted or self.own_readings or not out:
@@ -168,9 +168,12 @@ class Predictor:
             ]
         return out
 
-    def _by_odometry(self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float) -> Prediction | None:
+    def _by_odometry(
+        self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float, velocity: Prediction
+    ) -> Prediction | None:
         """The odometry's prediction (its sign as believed, :meth:`judge_odometry_sign`); None, with
-        a warning, for a reading that is not finite or jumps farther than the robot can drive."""
+        a warning, for a reading that is not finite or jumps farther than the robot can drive.
+        ``velocity``: constant velocity's prediction of the same step."""
         integration = self.config.integration
         increment, why = odometry_increment(self.odometry, odometry, elapsed, integration.motion.max_speed)
         if increment is None:
@@ -182,11 +185,24 @@ class Predictor:
         prediction = self.odometry_step = from_odometry(increment)
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
+        if not self.clock.trusted and not self.own_readings and not self.exact and self.velocity_known:
+            # A reading spread within a burst is a guess that the robot kept its pace between the
+            # burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where the
+            # robot did not, by about as far as the guess and the pace the walls last measured
+            # (constant velocity) part: driven evenly down a corridor they agree, and the guess
+            # holds the robot where the walls cannot; on a turn or a stop within the burst they
+            # part, and the walls decide (docs/decisions/040).
+            apart = prediction.increment.as_array() - velocity.increment.as_array()
+            return replace(
+                prediction,
+                sigma_translation=prediction.sigma_translation + math.hypot(apart[0], apart[1]),
+                sigma_rotation=prediction.sigma_rotation + abs(math.remainder(apart[2], 2 * math.pi)),
+            )
         if not self.clock.trusted and not self.own_readings:
             # read at a wrong stamp, the odometry is off by the robot's motion over the
             # stamp's error (the stamps' interval less the sequence's, a period at least), as far
             # as the exact readings' misfits so far say (covariance matching: Mehra 1970); a
-            # reading spread within a burst, by all of it
+            # reading spread within a burst before the walls measured the robot's pace, by all of it
             error = max(self.clock.period, abs(seconds - elapsed))
             step = self.velocity * error
             bound = math.hypot(step[0], step[1])
