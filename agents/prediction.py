@@ -185,20 +185,20 @@ class Predictor:
         prediction = self.odometry_step = from_odometry(increment)
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
-        if not self.clock.trusted and not self.own_readings and not self.exact and self.velocity_known:
-            # A reading spread within a burst is a guess that the robot kept its pace between the
-            # burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where the
-            # robot did not, by about as far as the guess and the pace the walls last measured
-            # (constant velocity) part: driven evenly down a corridor they agree, and the guess
-            # holds the robot where the walls cannot; on a turn or a stop within the burst they
-            # part, and the walls decide (docs/decisions/040).
-            apart = prediction.increment.as_array() - velocity.increment.as_array()
-            return replace(
-                prediction,
-                sigma_translation=prediction.sigma_translation + math.hypot(apart[0], apart[1]),
-                sigma_rotation=prediction.sigma_rotation + abs(math.remainder(apart[2], 2 * math.pi)),
-            )
         if not self.clock.trusted and not self.own_readings:
+            if not self.exact and self.velocity_known:
+                # A reading spread within a burst is a guess that the robot kept its pace between
+                # the burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where
+                # the robot did not, by about as far as the guess and the pace the walls last
+                # measured (constant velocity) part: driven evenly down a corridor they agree, and
+                # the guess holds the robot where the walls cannot; on a turn or a stop within the
+                # burst they part, and the walls decide (docs/decisions/040).
+                apart = prediction.increment.as_array() - velocity.increment.as_array()
+                return replace(
+                    prediction,
+                    sigma_translation=prediction.sigma_translation + math.hypot(apart[0], apart[1]),
+                    sigma_rotation=prediction.sigma_rotation + abs(math.remainder(apart[2], 2 * math.pi)),
+                )
             # read at a wrong stamp, the odometry is off by the robot's motion over the
             # stamp's error (the stamps' interval less the sequence's, a period at least), as far
             # as the exact readings' misfits so far say (covariance matching: Mehra 1970); a
