@@ -20,6 +20,8 @@ For each scan (:meth:`Tracker.add`):
    :meth:`Tracker._reachable_fit`), then **re-acquired** with the paper's pose-free integration of
    the scan on the submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
    :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
+   Where the odometry measured the step, the fit from where the robot stood must lie within the
+   odometry's 99 % gate (:func:`_explained`): the wheels measure standing still too.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
    moved ``INSERT_DISTANCE`` or turned ``INSERT_ROTATION`` since the last inserted one (or
    ``INSERT_INTERVAL`` has passed) (:mod:`fleetmap.agents.submap`). The motion between placed
@@ -67,7 +69,7 @@ from fleetmap.agents.fitcheck import (
     turned_fits,
     window_fit,
 )
-from fleetmap.agents.prediction import Predictor, within_gate
+from fleetmap.agents.prediction import Predictor, explains, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
@@ -369,7 +371,10 @@ class Tracker:
             if any(same_start(predicted, other) for other in tried):
                 continue
             tried.append(predicted)
-            fits.append(self._registered(taken, submap, predicted, predicted, prediction))
+            fit = self._registered(taken, submap, predicted, predicted, prediction)
+            if prediction is standing and self.exact:  # (the wheels measure standing still too)
+                fit = _explained(fit, predictions[0], submap.origin, self._pose or Transform2D())
+            fits.append(fit)
         best = best_fit(fits, apart)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
@@ -532,3 +537,14 @@ class Tracker:
             t = h.taken
             steps += self._track(t.seq, t.index, t.stamp, t.scan, t.segments, t.odometry)
         return steps
+
+
+def _explained(fit: Fit, prediction: Prediction, origin: Transform2D, last: Transform2D) -> Fit:
+    """The fit from where the robot stood, on a submap whose frame is ``origin``, refused and
+    counted as a dispute of the prediction where the odometry measured the step from the robot's
+    ``last`` pose and does not explain it (:func:`~fleetmap.agents.prediction.explains`)."""
+    if not fit.good or prediction.source != "odometry":
+        return fit
+    if explains(prediction, last, origin.compose(fit.registration.pose)):
+        return fit
+    return replace(fit, good=False, why="a fit beyond the odometry's 99 % gate", disputed=True)
