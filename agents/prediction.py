@@ -337,7 +337,7 @@ def explains(prediction: Prediction, last: Transform2D, placed: Transform2D) -> 
     standing still as they measure a turn. At an epoch's first scans no typical fit bounds a poor
     one: the standing start found 1.8 m of wall 104 degrees from the 62-degree turn the wheels
     measured (csail-corrected cut in 8, robot 2's scan 53), and its first two scans came out
-    104-111 degrees from the rest of its chain (50 wrong relations). Refused, the odometry's own
+    104-111 degrees from the rest of its chain (25 wrong relations). Refused, the odometry's own
     fit, itself refused for the little wall it matched, carries the scan.
 
     The other motion models' fits are not asked: a real robot's odometry lags on a fast turn and
