@@ -350,3 +350,15 @@ def test_a_log_stamped_before_its_start_and_then_never_again_maps_with_its_own_s
         if a is not None and b is not None:
             errors.append(math.hypot(*Transform2D(x, y, yaw).inverse().compose(a.inverse().compose(b)).as_array()[:2]))
     assert len(errors) > 50 and np.mean(errors) < 0.10, errors
+
+
+def test_a_long_named_log_cut_into_pieces_names_them_1_to_k(csail_start: Path, tmp_path: Path) -> None:
+    from fleetmap.mapping import read_inputs
+
+    # robot ids keep a file name's first 24 characters; the piece's number used to be cut off
+    # with the rest, so a long name's four pieces were named -2 to -5
+    long = tmp_path / "freiburg-campus-corrected.clf"
+    long.symlink_to(csail_start)
+    names = [p.robot for p in read_inputs([str(long), str(csail_start)], 4)]
+    assert names[:4] == [f"freiburg-campus-correcte-{k}" for k in (1, 2, 3, 4)]
+    assert names[4:] == [f"csail-start-{k}" for k in (1, 2, 3, 4)]

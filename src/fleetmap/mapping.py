@@ -52,13 +52,16 @@ from fleetmap.shared.io.sources import SourceScan, open_input
 MAX_SPLIT = 64
 
 
-def robot_name(path: str | Path, taken: set[str]) -> str:
-    """A robot id from an input's file name (``aces.clf.gz`` -> ``aces``), unique among ``taken``."""
+def robot_name(path: str | Path, taken: set[str], piece: int | None = None) -> str:
+    """A robot id from an input's file name (``aces.clf.gz`` -> ``aces``), unique among ``taken``;
+    ``piece``: the number of one of its pieces (``--split``), kept after the name's first 24
+    characters (cut off with them, a long name's pieces were numbered from 2, each after the last:
+    ``freiburg-campus-correcte-2`` to ``-5`` for four)."""
     stem = Path(path).name.split(".")[0].lower()
     name = re.sub(r"[^a-z0-9_-]+", "-", stem).strip("-_") or "robot"
     if not name[0].isalpha():
         name = "r" + name
-    name = name[:24]
+    name = name[:24] + ("" if piece is None else f"-{piece}")
     out, n = name, 2
     while out in taken:
         out, n = f"{name}-{n}", n + 1
@@ -105,7 +108,7 @@ def read_inputs(
         base = robot_name(path, taken)
         cuts = np.array_split(np.arange(len(scans)), split)
         for k, cut in enumerate(cuts):
-            robot = base if split == 1 else robot_name(f"{base}-{k + 1}", taken)
+            robot = base if split == 1 else robot_name(base, taken, k + 1)
             part = scans[int(cut[0]) : int(cut[-1]) + 1]
             given = {s.index: s.stamp if s.given is None else s.given for s in part}
             pieces.append(Piece(robot, str(path), part, source.has_odometry, given))
