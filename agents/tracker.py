@@ -69,7 +69,7 @@ from fleetmap.agents.fitcheck import (
     turned_fits,
     window_fit,
 )
-from fleetmap.agents.prediction import Predictor, explains, within_gate
+from fleetmap.agents.prediction import OTHER_SIGN, Predictor, explains, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
@@ -341,11 +341,12 @@ class Tracker:
         The first prediction's fit is taken when it is good and typical: its score at least
         ``TYPICAL_SCORE_SHARE`` of the median of the robot's recent fits (a fit that suddenly
         supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
-        the other predictions, and the robot standing still, are tried too, and the pose-free
+        the other predictions and the robot standing still are tried too, and the pose-free
         integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
-        only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (where the walls leave a
-        direction free, as along a corridor, the fits score alike and the first prediction's
-        stands: :func:`~fleetmap.agents.fitcheck.best_fit`). Failing all, the first fit, not good."""
+        only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (along a corridor the fits
+        score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`).
+        The odometry's other sign, in doubt, is always tried, and weighed by score alone
+        (:func:`_either_sign`). Failing all, the first fit, not good."""
         submap = self.chain.active[0]
         share = TYPICAL_SCORE_SHARE
         floor = self._typical_floor()
@@ -353,18 +354,12 @@ class Tracker:
         fits: list[Fit] = []
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
         standing = self.motion.standing
-        # Two motion models that disagree on the heading by more than the first one's uncertainty:
-        # one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one fast
-        # turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
-        # fix the heading everywhere, so both are registered and the better fit by score is taken.
-        apart = (
-            len(predictions) > 1
-            and abs(float(wrap_angle(predictions[1].increment.theta - predictions[0].increment.theta)))
-            > predictions[0].sigma_rotation
-        )
+        apart = _apart(predictions)
+        signed: Fit | None = None  # the fit from the odometry's other sign, in doubt
         for n, prediction in enumerate([*predictions, standing]):
-            if n and fits and fits[0].good and fits[0].registration.score >= floor and not (apart and n == 1):
-                break
+            typical = fits and fits[0].good and fits[0].registration.score >= floor
+            if n and typical and not (apart and n == 1) and prediction.source != OTHER_SIGN:
+                continue  # (the odometry's other sign, in doubt, is registered: the walls weigh it)
             # the robot standing still where it was last placed; the models from its last pose
             base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
             predicted = submap.origin.inverse().compose(base)
@@ -374,8 +369,11 @@ class Tracker:
             fit = self._registered(taken, submap, predicted, predicted, prediction)
             if prediction is standing and self.exact:  # (the wheels measure standing still too)
                 fit = _explained(fit, predictions[0], submap.origin, self._pose or Transform2D())
+            if prediction.source == OTHER_SIGN:
+                signed = fit
+                continue
             fits.append(fit)
-        best = best_fit(fits, apart)
+        best = _either_sign(best_fit(fits, apart), signed)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
             # prediction's own, which the pose-free integration below may still replace
@@ -537,6 +535,28 @@ class Tracker:
             t = h.taken
             steps += self._track(t.seq, t.index, t.stamp, t.scan, t.segments, t.odometry)
         return steps
+
+
+def _apart(predictions: list[Prediction]) -> bool:
+    """Whether the first two motion models disagree on the heading by more than the first one's
+    uncertainty: one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one
+    fast turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
+    fix the heading everywhere, so both are registered and the better fit by score is taken."""
+    return (
+        len(predictions) > 1
+        and abs(float(wrap_angle(predictions[1].increment.theta - predictions[0].increment.theta)))
+        > predictions[0].sigma_rotation
+    )
+
+
+def _either_sign(best: Fit | None, other: Fit | None) -> Fit | None:
+    """The better of the best fit and the fit from the odometry's other sign, by score: two motion
+    models in doubt, weighed by the walls alike (:data:`~fleetmap.agents.prediction.SIGN_DOUBT`)."""
+    if other is None or not other.good:
+        return best
+    if best is None or other.registration.score > best.registration.score:
+        return other
+    return best
 
 
 def _explained(fit: Fit, prediction: Prediction, origin: Transform2D, last: Transform2D) -> Fit:

@@ -289,6 +289,19 @@ def test_a_robot_whose_wheels_measured_a_turn_is_not_placed_where_it_would_have_
     assert len(poses) >= 18 and not off, f"wrong relations (scan, scan, degrees off): {off}"
 
 
+@pytest.mark.slow  # tracks 40 scans of a real log (about 2 s)
+def test_a_robot_that_turned_in_place_drives_on_the_way_its_wheels_say(datasets: Path) -> None:
+    # freiburg-campus-corrected cut in 4: robot 4 starts at scan 1506, turns in place at scans
+    # 1521-1526 (its first stop: either sign of the odometry as likely), then drives a metre a
+    # scan along a row of posts. A 7 cm step read as the other sign, the odometry's reversed
+    # prediction settled on the posts 2 m back, and eight scans went backwards: 8 m off.
+    poses, truth = campus_stretch(datasets, 1506, 1546)
+    steps = [(i, truth[i].inverse().compose(truth[i + 1])) for i in range(1506, 1545) if i in poses and i + 1 in poses]
+    errors = {i: relation.inverse().compose(poses[i].inverse().compose(poses[i + 1])) for i, relation in steps}
+    off = {i: round(math.hypot(e.x, e.y), 2) for i, e in errors.items() if math.hypot(e.x, e.y) > 0.3}
+    assert len(poses) >= 36 and not off, f"steps off (scan: metres): {off}"
+
+
 @pytest.mark.slow  # tracks 70 scans of a real log (about 2 s)
 def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datasets: Path) -> None:
     # freiburg-campus-corrected, scans 880-950 (about 3 s): outdoors, a scan a metre, most beams
@@ -296,10 +309,7 @@ def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datas
     # against the odometry there, only nothing for it: the robot is carried by its odometry, not
     # kidnapped (this stretch started 18 epochs when every scan that fitted nothing counted
     # towards a kidnap)
-    path = datasets / "corrected" / "freiburg-campus-corrected.log.gz"
-    truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), 950)]
-    agent, poses = track_stretch(path, 880, 950)
-    assert agent.counts.epochs == 1
+    poses, truth = campus_stretch(datasets, 880, 950)
     assert len(poses) >= 60, f"{len(poses)} of 70 scans placed"
     first = min(poses)
     off = {
@@ -307,6 +317,15 @@ def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datas
         for i, p in poses.items()
     }
     assert max(off.values()) < 3.0, off  # about 70 m driven, odometry's drift where nothing fixes the pose
+
+
+def campus_stretch(datasets: Path, start: int, stop: int) -> tuple[dict[int, Transform2D], list[Transform2D]]:
+    """The epoch poses of :func:`track_stretch` on freiburg-campus-corrected, tracked as one epoch,
+    and the log's corrected poses up to ``stop``."""
+    path = datasets / "corrected" / "freiburg-campus-corrected.log.gz"
+    agent, poses = track_stretch(path, start, stop)
+    assert agent.counts.epochs == 1
+    return poses, [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), stop)]
 
 
 def track_stretch(path: Path, start: int, stop: int) -> tuple[Agent, dict[int, Transform2D]]:
