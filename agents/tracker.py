@@ -554,7 +554,8 @@ def _either_sign(best: Fit | None, other: Fit | None) -> Fit | None:
     models in doubt, weighed by the walls alike (:data:`~fleetmap.agents.prediction.SIGN_DOUBT`).
     Two fits within registration's reach of each other are one minimum, found first by the best
     (:func:`~fleetmap.agents.fitcheck.same_start`; aces with jittered stamps: 4 of 10 such pairs
-    scored a hair apart, and taking the other turned nothing but the track's later rounding)."""
+    scored a hair apart, and taking the other moved the log's short relations within 0.10 m, 2
+    degrees from 96.5 to 96.1 %, record 043)."""
     if other is None or not other.good:
         return best
     if best is None:
