@@ -344,7 +344,8 @@ class Tracker:
         the other predictions and the robot standing still are tried too, and the pose-free
         integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
         only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (along a corridor the fits
-        score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`).
+        score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
+        unless the walls refused it: the models left, as unsure as each other, weigh by score.
         The odometry's other sign, in doubt, is always tried, and weighed by score alone
         (:func:`_either_sign`). Failing all, the first fit, not good."""
         submap = self.chain.active[0]
@@ -352,6 +353,7 @@ class Tracker:
         floor = self._typical_floor()
         tried: list[Transform2D] = []
         fits: list[Fit] = []
+        priors: list[Prediction] = []  # each fit's motion model
         last = self._good[1] if self._good is not None else self._pose or Transform2D()
         standing = self.motion.standing
         apart = _apart(predictions)
@@ -373,7 +375,8 @@ class Tracker:
                 signed = fit
                 continue
             fits.append(fit)
-        best = _either_sign(best_fit(fits, apart), signed)
+            priors.append(prediction)
+        best = _either_sign(best_fit(fits, apart, priors), signed)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
             # prediction's own, which the pose-free integration below may still replace
