@@ -15,7 +15,7 @@ scans are held until one fits again or ``kidnap_after`` of them make a new epoch
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +24,6 @@ from fleetmap.shared.core.correlative import window_support
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import CHI2_1DOF_99, Prediction
 from fleetmap.shared.core.rangescan import RangeScan
-from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
     MAX_CORRESPONDENCE,
     MIN_CORRESPONDENCE,
@@ -54,6 +53,14 @@ TYPICAL_SCORE_SHARE = 0.5
 """A fit scoring below this share of the robot's recent fits' median is checked against the other
 motion models and pose-free integration, and the best taken; a later start's fit must score over
 its inverse times as much to replace the first's."""
+
+
+def typical_floor(scores: Iterable[float]) -> float:
+    """The score below which a fit is not typical of the robot's recent ones, ``scores``
+    (:data:`TYPICAL_SCORE_SHARE` of their median; none below three of them)."""
+    recent = list(scores)
+    return TYPICAL_SCORE_SHARE * float(np.median(recent)) if len(recent) >= 3 else 0.0
+
 
 KIDNAP_REASON = (
     "{n} scans that the submap's walls contradict fit neither the submap nor, by pose-free "
@@ -223,15 +230,6 @@ def turned_fits(
             if fits[-1].good and fits[-1].registration.score >= floor:
                 return fits
     return fits
-
-
-def near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:
-    """The segments of ``m`` with an end within ``radius`` (box) of ``pose``."""
-    seg = m.segments
-    close = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
-        axis=1
-    )
-    return SegmentMap(seg[close], ordered=False, oriented=m.oriented)
 
 
 def window_fit(

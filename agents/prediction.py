@@ -281,6 +281,30 @@ class Predictor:
             return off <= 0.5 * integration.motion.max_acceleration * seconds * seconds + margin
         return True
 
+    def judge_placed(
+        self,
+        before: Transform2D | None,
+        after: Transform2D | None,
+        anchor: tuple[Transform2D, Transform2D] | None,
+        spread: bool,
+        odometry: Transform2D | None,
+    ) -> None:
+        """The step just placed, from ``before`` to ``after``, measures the odometry's misfit
+        (:meth:`measure_misfit`) and judges its sign (:meth:`judge_odometry_sign`) where the step
+        is a measurement: a reading spread within a burst is a guess between two readings (a turn
+        in place spread as a share of the burst's drive reads as a step forward the walls did not
+        see, or a stop), so only a reading taken where its scan was is judged, from the last such
+        scan as placed (``anchor``: its pose and reading) when spread ones came between."""
+        if before is None or after is None or not self.exact:
+            return
+        if not spread:
+            self.measure_misfit(before.inverse().compose(after))
+            self.judge_odometry_sign(before.inverse().compose(after))
+        elif anchor is not None and odometry is not None:
+            at, reading = anchor
+            measured = from_odometry(reading.inverse().compose(odometry))
+            self.judge_odometry_sign(at.inverse().compose(after), measured)
+
     def judge_odometry_sign(self, moved: Transform2D, step: Prediction | None = None) -> None:
         """Update the belief that the odometry's translation has lost its sign, from the motion the
         scan was placed with: a two-state hidden Markov model (the wheels' speed signed, or not),

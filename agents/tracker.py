@@ -11,6 +11,10 @@ For each scan (:meth:`Tracker.add`):
    velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
    :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md),
    its minima weighed by the prediction (docs/decisions/023-the-window-weighed-by-its-prior.md).
+   Before that, such a scan is integrated pose-free on the last placed scan, as the pivot method
+   places each scan (paper IV-C), and registered from there: that step, where its fit is good and
+   typical, is the scan's (:meth:`Tracker._stepped`, :mod:`fleetmap.agents.pose_free`;
+   docs/decisions/045-the-step-a-sparse-log-measures-itself.md).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
@@ -50,7 +54,6 @@ The tracker is pure: scans and odometry in, poses and submaps out; no clock, no 
 from __future__ import annotations
 
 import logging
-import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -64,19 +67,18 @@ from fleetmap.agents.fitcheck import (
     Fit,
     best_fit,
     judge,
-    near,
     same_start,
     turned_fits,
+    typical_floor,
     window_fit,
 )
+from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION, loose, reacquired, stepped
 from fleetmap.agents.prediction import OTHER_SIGN, Predictor, explains, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
-from fleetmap.shared.core.integration import Window, integrate
-from fleetmap.shared.core.motion import Prediction, from_odometry
+from fleetmap.shared.core.motion import Prediction
 from fleetmap.shared.core.rangescan import RangeScan
-from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.tracking import (
     MAX_CORRESPONDENCE,
     SAMPLE_SPACING,
@@ -164,6 +166,9 @@ class Tracker:
         """The last scan's number in the robot's sequence of scans (from 1)."""
         self._good: tuple[float, Transform2D, int] | None = None
         """Stamp, epoch-frame pose and sequence number of the last placed scan."""
+        self._previous: tuple[Array, Transform2D] | None = None
+        """The segments and epoch-frame pose of the last placed scan (:meth:`_stepped`)."""
+        self._step: Prediction | None = None  # the scan pair's step, where the walls said nothing against it
         self._held: list[_Held] = []
         self.exact = True
         """Whether the next scan's reading is where it was taken (:mod:`fleetmap.agents.bursts`)."""
@@ -254,10 +259,13 @@ class Tracker:
             status = "tracked" if fit.why == "" else fit.why
             before, anchor = self._pose, self._anchor
             step = self._place(taken, fit, status)
-            self._judge_sign(before, anchor, spread, odometry)
+            self.motion.judge_placed(before, self._pose, anchor, spread, odometry)
             return [step]
         if not fit.contradicted and odometry_predicts:
             return [self._carried(taken, fit, predictions[0])]
+        if self._step is not None:  # measured by the scan pair, as the odometry would have
+            self.motion.step_variance = (LOOSE_TRANSLATION**2, LOOSE_ROTATION**2)
+            return [self._carried(taken, fit, self._step)]
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
         self.motion.odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)
@@ -268,28 +276,6 @@ class Tracker:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
-
-    def _judge_sign(
-        self,
-        before: Transform2D | None,
-        anchor: tuple[Transform2D, Transform2D] | None,
-        spread: bool,
-        odometry: Transform2D | None,
-    ) -> None:
-        """The odometry's sign judged on the step just placed (:meth:`Predictor.judge_odometry_sign`),
-        where the step is a measurement: a reading spread within a burst is a guess between two
-        readings (a turn in place spread as a share of the burst's drive reads as a step forward the
-        walls did not see, or a stop), so only a reading taken where its scan was is judged, from
-        the last such scan as placed (``anchor``) when spread ones came between."""
-        if before is None or self._pose is None or not self.exact:
-            return
-        if not spread:
-            self.motion.measure_misfit(before.inverse().compose(self._pose))
-            self.motion.judge_odometry_sign(before.inverse().compose(self._pose))
-        elif anchor is not None and odometry is not None:
-            at, reading = anchor
-            measured = from_odometry(reading.inverse().compose(odometry))
-            self.motion.judge_odometry_sign(at.inverse().compose(self._pose), measured)
 
     def _carried(self, taken: _ScanIn, fit: Fit, prediction: Prediction) -> TrackStep:
         """No evidence either way (open space, a few metres of wall, a person in front of the
@@ -314,12 +300,6 @@ class Tracker:
         self.motion.carry()  # the walls did not check this step: its uncertainty adds to the next ones'
         self.motion.track_drift = self.motion.drift
         return step
-
-    def _typical_floor(self) -> float:
-        """The score below which a fit is not typical of the robot's recent ones (:meth:`_fit`)."""
-        if len(self._scores) < 3:
-            return 0.0
-        return TYPICAL_SCORE_SHARE * float(np.median(self._scores))
 
     def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
         base = self._pose if self._pose is not None else Transform2D()
@@ -348,9 +328,13 @@ class Tracker:
         unless the walls refused it: the models left, as unsure as each other, weigh by score.
         The odometry's other sign, in doubt, is always tried, and weighed by score alone
         (:func:`_either_sign`). Failing all, the first fit, not good."""
+        measured = self._stepped(taken, predictions[0])
+        if measured is not None:
+            self._scores.append(measured.registration.score)
+            return measured
         submap = self.chain.active[0]
         share = TYPICAL_SCORE_SHARE
-        floor = self._typical_floor()
+        floor = typical_floor(self._scores)
         tried: list[Transform2D] = []
         fits: list[Fit] = []
         priors: list[Prediction] = []  # each fit's motion model
@@ -409,8 +393,7 @@ class Tracker:
         scan step, is wider than registration's reach. The odometry's prediction is never searched,
         however wide: its prior is evidence along a corridor that the walls' support is not (a
         burst's spread readings, searched, placed aces-corrected's robot up to 6 m backwards)."""
-        last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
-        radius = min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
+        radius = self._radius(taken, prediction)
         if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
             return best
         submap = self.chain.active[0]
@@ -424,6 +407,37 @@ class Tracker:
             prediction,
             lambda start: self._registered(taken, submap, start, mean, prediction),
         )
+
+    def _radius(self, taken: _ScanIn, prediction: Prediction) -> float:
+        """How far from the prediction the scan may be: two sigma, within the robot's reach."""
+        last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
+        return min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
+
+    def _stepped(self, taken: _ScanIn, prediction: Prediction) -> Fit | None:
+        """Where the motion model measures nothing (no odometry; constant velocity wider than
+        registration's reach), the step measured by the scan's pose-free integration on the last
+        placed scan (:func:`~fleetmap.agents.pose_free.stepped`), registered from there on the
+        submap: its fit when good and typical, else None (the motion models are tried then)."""
+        self._step = None
+        if (
+            self._previous is None
+            or "odometry" in prediction.source
+            or self._radius(taken, prediction) <= MAX_CORRESPONDENCE
+        ):
+            return None
+        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
+        step = stepped(self._previous[0], taken.segments, reach, self.config.integration)
+        if step is None:
+            return None
+        placed = self._previous[1].compose(step)
+        increment = (self._pose or Transform2D()).inverse().compose(placed)
+        measured = Prediction(increment, LOOSE_TRANSLATION, LOOSE_ROTATION, "integration")
+        start = self.chain.active[0].origin.inverse().compose(placed)
+        fit = self._registered(taken, self.chain.active[0], start, start, measured)
+        if fit.good and fit.registration.score >= typical_floor(self._scores):
+            return fit
+        self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
+        return None
 
     def _turned_fits(self, taken: _ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
@@ -467,24 +481,13 @@ class Tracker:
         clock trusted or not read at its stamps), that is also within its 99 % gate (a log without
         a clock bounds no reach: infinite-corridor-corrected's scan 151 was re-acquired 15.6 m and
         88 degrees from its odometry, and the rest of the map turned with it)."""
-        built = submap.segment_map()
-        if len(built) == 0:
-            return None
         reach = self.motion.reach(self._good, taken.seq, taken.stamp)
         last = submap.origin.inverse().compose(self._good[1] if self._good is not None else self._pose or Transform2D())
-        close = near(built, last, reach + self.config.extraction.max_range)
-        if len(close) == 0:
+        max_range = self.config.extraction.max_range
+        start = reacquired(submap.segment_map(), taken.segments, last, reach, max_range, self.config.integration)
+        if start is None:
             return None
-        window = Window(last, reach, math.pi)
-        found = integrate(
-            close, SegmentMap(taken.segments, ordered=True, oriented=True), self.config.integration, window=window
-        )
-        if not found.valid:
-            return None
-        start = found.transform
-        # the prior is the integration's pose, loosely: the walls decide
-        loose = np.diag([1.0 / 0.25**2, 1.0 / 0.25**2, 1.0 / 0.1**2])
-        reg = register(taken.samples, submap.reference, start, start, loose, self.params)
+        reg = register(taken.samples, submap.reference, start, start, loose(), self.params)
         why, _ = self._judge(reg, taken, submap)
         placed = submap.origin.compose(reg.pose)
         if why != "" or not self.motion.reachable(self._good, placed, taken.seq, taken.stamp):
@@ -505,6 +508,7 @@ class Tracker:
             check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
             self.motion.moved(self._good, pose, seq, stamp)
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
+        self._previous = (taken.segments, pose)
         self.motion.drift = self.motion.track_drift = (0.0, 0.0)
         # a scan without odometry breaks its chain: the next increment is measured from the next
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
@@ -521,6 +525,7 @@ class Tracker:
         seq, index, stamp = taken.seq, taken.index, taken.stamp
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
+        self._previous = (taken.segments, Transform2D())
         self.motion.restart(taken.odometry)
         self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []

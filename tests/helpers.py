@@ -6,13 +6,15 @@ import functools
 import itertools
 import math
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import numpy as np
+from fleetmap.agents.agent import Agent
 from fleetmap.scenarios.laser import LaserParams, simulate_scan
-from fleetmap.shared.config import ExtractionParams
+from fleetmap.shared.config import ExtractionParams, FleetmapConfig
 from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
@@ -137,3 +139,15 @@ def scenario_scans(name: str, robot: str, stop: int) -> list[tuple[float, Segmen
         m = SegmentMap(extract_segments(s.scan, ExtractionParams()), ordered=True, oriented=True)
         out.append((s.stamp, m, s.pose))
     return out
+
+
+def tracked(scans: Iterable[Any], odometry: bool = True) -> tuple[Agent, dict[int, Transform2D]]:
+    """Scans (each with ``index``, ``stamp``, ``scan``, ``odometry``) through one agent with the
+    default config (reading their odometry unless not ``odometry``), finished: the agent, and the
+    epoch poses of the scans it placed, by index."""
+    agent = Agent("r1", FleetmapConfig(), odometry=odometry)
+    poses: dict[int, Transform2D] = {}
+    for s in [*scans, None]:
+        agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        poses.update({index: pose for index, _epoch, pose in agent.tracked if pose is not None})
+    return agent, poses

@@ -17,6 +17,8 @@ from fleetmap.shared.io.logs import read_carmen
 from fleetmap.shared.io.messages import Scan
 from fleetmap.shared.io.sources import CarmenSource
 
+from tests.helpers import tracked
+
 
 def driven(n: int) -> list[Transform2D]:
     """A robot driving a metre a scan while turning 2 degrees a scan: at constant speed and turn
@@ -160,11 +162,7 @@ def test_a_spread_reading_short_of_a_turn_is_searched_across_its_heading_uncerta
     path = datasets / "corrected" / "acapulco-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
     given = list(break_clock(list(CarmenSource(path, range_max=math.inf, stop=131)), "burst", seed=0))
-    agent = Agent("r1", FleetmapConfig())
-    poses: dict[int, Transform2D] = {}
-    for s in [*given, None]:
-        agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        poses.update({index: pose for index, _epoch, pose in agent.tracked if pose is not None})
+    agent, poses = tracked(given)
     assert agent.counts.epochs == 1
     turned = {}
     for i in range(110, 131):
@@ -195,11 +193,7 @@ def test_a_log_without_a_clock_is_tracked_on_its_scans_own_odometry(datasets: Pa
     # its odometry's prediction.
     path = datasets / "corrected" / "infinite-corridor-corrected.log.gz"
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
-    agent = Agent("r1", FleetmapConfig())
-    poses: dict[int, Transform2D] = {}
-    for s in [*CarmenSource(path, range_max=math.inf, stop=161), None]:
-        agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        poses.update({index: pose for index, _epoch, pose in agent.tracked if pose is not None})
+    agent, poses = tracked(CarmenSource(path, range_max=math.inf, stop=161))
     assert agent.counts.epochs == 1 and agent.clock is not None and not agent.clock.trusted
     errors = []
     for i in range(160):

@@ -19,6 +19,7 @@ from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.config_args import preset
 from fleetmap.mapping import Piece, map_logs, read_inputs
+from tests.helpers import tracked
 
 TURN = (1134865028.0, 1134865040.0)
 """mit-csail's last turn (about 90 degrees a second), where one scan's odometry is 14 degrees off."""
@@ -318,6 +319,49 @@ def test_where_the_odometry_fits_nothing_the_other_motion_models_are_weighed_by_
     assert not off, f"steps off (scan: metres): {off}"
 
 
+@pytest.mark.slow  # tracks 16 scans of a real log (about 2 s)
+def test_down_a_corridor_logged_a_scan_every_metres_the_scans_own_integration_measures_the_step(
+    datasets: Path,
+) -> None:
+    # orebro-corrected, scans 22-37, no odometry: a corridor logged a scan every 1-3 m. Constant
+    # velocity is a guess 1.5 m wide there, and registration from it slid to where the robot had
+    # stood (2-4.5 m short a step at scans 27-36); the velocity it measured then predicted the next
+    # step short too. Each scan integrated on the one before measures the step (the pivot method's).
+    # One pair is wrong and valid: 27 -> 28 integrates 1.7 m behind the robot, its value 12.45
+    # against 9.46 where the robot drove, 3 m ahead, and nothing in the two scans says otherwise
+    path = datasets / "corrected" / "orebro-corrected.log.gz"
+    agent, poses = track_stretch(path, 22, 38, odometry=False)
+    truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), 38)]
+    assert agent.counts.epochs == 1
+    off = {}
+    for i in range(26, 37):
+        assert i in poses and i + 1 in poses, f"scan {i} or {i + 1} not placed"
+        step = truth[i].inverse().compose(truth[i + 1])
+        error = step.distance(poses[i].inverse().compose(poses[i + 1]))[0]
+        if error > 0.3:
+            off[i] = round(error, 2)
+    assert set(off) <= {27}, f"steps off (scan: metres): {off}"
+
+
+@pytest.mark.slow  # tracks a real log of 237 scans with people in view (about 15 s)
+def test_a_step_the_scan_pair_measured_carries_the_robot_where_people_hide_the_walls(datasets: Path) -> None:
+    # orebro-corrected with five people walking past its robot (odometry on 18 of its 237 scans):
+    # where the people hide the walls the submap's fit is no evidence either way, but the scan still
+    # integrates on the one before. Its step carries the robot, as odometry would have; dropped, the
+    # robot was predicted by constant velocity, fitted nothing for five scans and started over
+    path = datasets / "corrected" / "orebro-corrected.log.gz"
+    scans = list(walk_people(CarmenSource(path, range_max=math.inf), 5))
+    truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
+    agent, poses = tracked(scans)
+    assert agent.counts.epochs == 1
+    steps = [i for i in range(len(truth) - 1) if i in poses and i + 1 in poses]
+    assert len(steps) > 0.9 * (len(truth) - 1), f"{len(steps)} of {len(truth) - 1} steps placed"
+    errors = [
+        truth[i].inverse().compose(truth[i + 1]).distance(poses[i].inverse().compose(poses[i + 1]))[0] for i in steps
+    ]
+    assert np.median(errors) < 0.10, np.median(errors)
+
+
 @pytest.mark.slow  # tracks 70 scans of a real log (about 2 s)
 def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datasets: Path) -> None:
     # freiburg-campus-corrected, scans 880-950 (about 3 s): outdoors, a scan a metre, most beams
@@ -344,15 +388,10 @@ def campus_stretch(datasets: Path, start: int, stop: int) -> tuple[dict[int, Tra
     return poses, [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), stop)]
 
 
-def track_stretch(path: Path, start: int, stop: int) -> tuple[Agent, dict[int, Transform2D]]:
-    """Scans ``start:stop`` of a SLAM-corrected log through an agent with odometry: the agent, and
-    the epoch poses of the scans it placed, by index."""
-    agent = Agent("r1", FleetmapConfig(), odometry=True)
-    poses: dict[int, Transform2D] = {}
-    for s in [*itertools.islice(CarmenSource(path, range_max=math.inf), start, stop), None]:
-        agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
-        poses.update({index: pose for index, _, pose in agent.tracked if pose is not None})
-    return agent, poses
+def track_stretch(path: Path, start: int, stop: int, odometry: bool = True) -> tuple[Agent, dict[int, Transform2D]]:
+    """Scans ``start:stop`` of a SLAM-corrected log through an agent (with its odometry unless not
+    ``odometry``): the agent, and the epoch poses of the scans it placed, by index."""
+    return tracked(itertools.islice(CarmenSource(path, range_max=math.inf), start, stop), odometry)
 
 
 @pytest.mark.slow  # tracks 400 scans of a real log twice (about 10 s)
