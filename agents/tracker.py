@@ -6,7 +6,8 @@ For each scan (:meth:`Tracker.add`):
    odometry, else constant velocity (:mod:`fleetmap.shared.core.motion`), with that model's
    uncertainty (:mod:`fleetmap.agents.prediction`, which also judges the odometry's sign).
 2. **Register** it on the matching submap by robust point-to-line ICP, the prediction as prior
-   (:func:`fleetmap.shared.core.tracking.register`).
+   (:func:`fleetmap.shared.core.tracking.register`; the search for a fit, steps 2-4, is
+   :mod:`fleetmap.agents.fitting`).
    A prediction that measures nothing and is wider than registration's reach (constant
    velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
    :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md),
@@ -25,7 +26,7 @@ For each scan (:meth:`Tracker.add`):
    the scan on the submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
    :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
    Where the odometry measured the step, the fit from where the robot stood must lie within the
-   odometry's 99 % gate (:func:`_explained`): the wheels measure standing still too.
+   odometry's 99 % gate (:func:`fleetmap.agents.fitting._explained`): the wheels measure standing still too.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
    moved ``INSERT_DISTANCE`` or turned ``INSERT_ROTATION`` since the last inserted one (or
    ``INSERT_INTERVAL`` has passed) (:mod:`fleetmap.agents.submap`). The motion between placed
@@ -40,7 +41,10 @@ For each scan (:meth:`Tracker.add`):
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
-   the others are tracked into it.
+   the others are tracked into it. A kidnap concluded on stamps the motion has not yet refuted is
+   a conclusion about the clock too: the first held scan is tracked again with its time by the
+   scans' sequence, and where it is placed then, the stamps were wrong, not the robot's place
+   (:meth:`Tracker._untimed`).
 
 **Submaps** (Cartographer's scheme, :mod:`fleetmap.agents.submap`): two are active at a time, and
 every inserted scan goes into both; a scan is registered on, and placed by, the older one.
@@ -53,40 +57,24 @@ The tracker is pure: scans and odometry in, poses and submaps out; no clock, no 
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
-from functools import partial
 
 import numpy as np
-from fleetmap.agents.clock_evidence import check_motion, check_order
-from fleetmap.agents.fitcheck import (
-    KIDNAP_REASON,
-    TYPICAL_SCORE_SHARE,
-    Fit,
-    best_fit,
-    judge,
-    same_start,
-    turned_fits,
-    typical_floor,
-    window_fit,
-)
-from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION, loose, reacquired, stepped
-from fleetmap.agents.prediction import OTHER_SIGN, Predictor, explains, within_gate
+from fleetmap.agents.clock_evidence import check_motion, check_order, say_distrusted
+from fleetmap.agents.fitcheck import KIDNAP_REASON, Fit
+from fleetmap.agents.fitting import FitSearch, ScanIn
+from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
+from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import Prediction
 from fleetmap.shared.core.rangescan import RangeScan
-from fleetmap.shared.core.tracking import (
-    MAX_CORRESPONDENCE,
-    SAMPLE_SPACING,
-    Registration,
-    ScanSamples,
-    register,
-    sample_segments,
-)
+from fleetmap.shared.core.tracking import SAMPLE_SPACING, Registration, sample_segments
 
 __all__ = ["KIDNAP_REASON", "PlacedScan", "Submap", "TrackStep", "Tracker"]
 
@@ -120,30 +108,28 @@ class TrackStep:
 
 
 @dataclass(frozen=True)
-class _ScanIn:
-    """A scan as the tracker takes it (:meth:`Tracker.add`), with its number in the robot's sequence
-    of scans and its samples."""
-
-    seq: int
-    index: int
-    stamp: float
-    scan: RangeScan
-    segments: Array
-    samples: ScanSamples
-    odometry: Transform2D | None
-
-
-@dataclass(frozen=True)
 class _Held:
     """A scan that did not fit, kept until the robot finds its place again or starts an epoch."""
 
-    taken: _ScanIn
+    taken: ScanIn
     counts: bool
     """It counts towards a kidnap: the walls dispute every start tried, or it fits beyond the
     motion model's gate (:meth:`Tracker._track`)."""
 
 
-class Tracker:
+@dataclass(frozen=True)
+class _Before:
+    """What the tracker was before a scan: its pose, the last scan's stamp and number, its motion
+    models and whether the last reading was spread (:meth:`Tracker._untimed`)."""
+
+    pose: Transform2D | None
+    stamp: float | None
+    seq: int
+    motion: Predictor
+    spread: bool
+
+
+class Tracker(FitSearch):
     """One robot's tracking: :meth:`add` each scan in order."""
 
     def __init__(self, config: FleetmapConfig | None = None, odometry: bool = True) -> None:
@@ -168,8 +154,11 @@ class Tracker:
         """Stamp, epoch-frame pose and sequence number of the last placed scan."""
         self._previous: tuple[Array, Transform2D] | None = None
         """The segments and epoch-frame pose of the last placed scan (:meth:`_stepped`)."""
-        self._step: Prediction | None = None  # the scan pair's step, where the walls said nothing against it
+        self._step: Prediction | None = None
+        """The step the scan pair measured, where the walls said nothing against it (:meth:`_stepped`)."""
         self._held: list[_Held] = []
+        self._unheld: _Before | None = None
+        """The tracker as it was before the first held scan (:meth:`_untimed`)."""
         self.exact = True
         """Whether the next scan's reading is where it was taken (:mod:`fleetmap.agents.bursts`)."""
         self._anchor: tuple[Transform2D, Transform2D] | None = None
@@ -224,9 +213,11 @@ class Tracker:
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
             return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None)]
-        taken = _ScanIn(seq, index, stamp, scan, segments, samples, odometry)
+        taken = ScanIn(seq, index, stamp, scan, segments, samples, odometry)
         if self.epoch < 0:
             return [self._start_epoch(taken, new=False)]
+        if not self._held:
+            self._unheld = _Before(self._pose, self._stamp, self._seq, copy.copy(self.motion), self._spread)
         spread, self._spread = self._spread, not self.exact
         if spread and self.exact and odometry is not None and self._anchor is not None and self._pose is not None:
             # a reading where the scan was taken, after readings spread within a burst: the
@@ -277,7 +268,7 @@ class Tracker:
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         return self._lost()
 
-    def _carried(self, taken: _ScanIn, fit: Fit, prediction: Prediction) -> TrackStep:
+    def _carried(self, taken: ScanIn, fit: Fit, prediction: Prediction) -> TrackStep:
         """No evidence either way (open space, a few metres of wall, a person in front of the
         laser): the walls neither place the scan nor say it was taken elsewhere. The robot is where
         its odometry takes it (a fit the walls refused may have slid). Constant velocity does not
@@ -301,10 +292,6 @@ class Tracker:
         self.motion.track_drift = self.motion.drift
         return step
 
-    def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
-        base = self._pose if self._pose is not None else Transform2D()
-        return base.compose(prediction.increment)
-
     def _advance_blind(self, seq: int, stamp: float, odometry: Transform2D | None) -> None:
         """A scan with nothing to track: the pose moves by odometry (or velocity) alone."""
         if self._pose is not None and self._stamp is not None:
@@ -315,189 +302,7 @@ class Tracker:
             if not self._held:
                 self.motion.track_drift = self.motion.drift
 
-    def _fit(self, taken: _ScanIn, predictions: list[Prediction]) -> Fit:
-        """The scan's fit on the matching submap.
-
-        The first prediction's fit is taken when it is good and typical: its score at least
-        ``TYPICAL_SCORE_SHARE`` of the median of the robot's recent fits (a fit that suddenly
-        supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
-        the other predictions and the robot standing still are tried too, and the pose-free
-        integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
-        only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (along a corridor the fits
-        score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
-        unless the walls refused it: the models left, as unsure as each other, weigh by score.
-        The odometry's other sign, in doubt, is always tried, and weighed by score alone
-        (:func:`_either_sign`). Failing all, the first fit, not good."""
-        measured = self._stepped(taken, predictions[0])
-        if measured is not None:
-            self._scores.append(measured.registration.score)
-            return measured
-        submap = self.chain.active[0]
-        share = TYPICAL_SCORE_SHARE
-        floor = typical_floor(self._scores)
-        tried: list[Transform2D] = []
-        fits: list[Fit] = []
-        priors: list[Prediction] = []  # each fit's motion model
-        last = self._good[1] if self._good is not None else self._pose or Transform2D()
-        standing = self.motion.standing
-        apart = _apart(predictions)
-        signed: Fit | None = None  # the fit from the odometry's other sign, in doubt
-        for n, prediction in enumerate([*predictions, standing]):
-            typical = fits and fits[0].good and fits[0].registration.score >= floor
-            if n and typical and not (apart and n == 1) and prediction.source != OTHER_SIGN:
-                continue  # (the odometry's other sign, in doubt, is registered: the walls weigh it)
-            # the robot standing still where it was last placed; the models from its last pose
-            base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
-            predicted = submap.origin.inverse().compose(base)
-            if any(same_start(predicted, other) for other in tried):
-                continue
-            tried.append(predicted)
-            fit = self._registered(taken, submap, predicted, predicted, prediction)
-            if prediction is standing and self.exact:  # (the wheels measure standing still too)
-                fit = _explained(fit, predictions[0], submap.origin, self._pose or Transform2D())
-            if prediction.source == OTHER_SIGN:
-                signed = fit
-                continue
-            fits.append(fit)
-            priors.append(prediction)
-        best = _either_sign(best_fit(fits, apart, priors), signed)
-        if best is None or best.registration.score < floor:
-            # only a typical fit from a turned start: an atypical one is no better than the
-            # prediction's own, which the pose-free integration below may still replace
-            turned = self._turned_fits(taken, predictions[0], floor, tried)
-            fits += turned
-            if turned and turned[-1].good and turned[-1].registration.score >= floor:
-                best = turned[-1]
-            elif best is None:
-                best = self._reachable_fit(taken, turned)
-        if best is None or best.registration.score < floor:
-            # a scan re-acquired by pose-free integration must fit as well as the robot's scans
-            # usually do: one that explains a fraction of what they did matched a look-alike (a
-            # carried robot's view of one corridor on another)
-            again = self._reacquire(taken, submap, predictions[0])
-            if (
-                again is not None
-                and again.registration.score >= floor
-                and (best is None or again.registration.score * share >= best.registration.score)
-            ):
-                best = again
-        if best is not None:
-            best = self._searched(taken, predictions[0], best)
-            self._scores.append(best.registration.score)
-            return best
-        return replace(fits[0], everywhere=all(f.disputed for f in fits))
-
-    def _searched(self, taken: _ScanIn, prediction: Prediction, best: Fit) -> Fit:
-        """``best``, or a better fit from the prediction's window (:func:`window_fit`) where the
-        prediction is constant velocity and its two sigma, no farther than the robot drives in one
-        scan step, is wider than registration's reach. The odometry's prediction is never searched,
-        however wide: its prior is evidence along a corridor that the walls' support is not (a
-        burst's spread readings, searched, placed aces-corrected's robot up to 6 m backwards)."""
-        radius = self._radius(taken, prediction)
-        if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
-            return best
-        submap = self.chain.active[0]
-        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        return window_fit(
-            best,
-            submap,
-            taken.samples,
-            mean,
-            radius,
-            prediction,
-            lambda start: self._registered(taken, submap, start, mean, prediction),
-        )
-
-    def _radius(self, taken: _ScanIn, prediction: Prediction) -> float:
-        """How far from the prediction the scan may be: two sigma, within the robot's reach."""
-        last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
-        return min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
-
-    def _stepped(self, taken: _ScanIn, prediction: Prediction) -> Fit | None:
-        """Where the motion model measures nothing (no odometry; constant velocity wider than
-        registration's reach), the step measured by the scan's pose-free integration on the last
-        placed scan (:func:`~fleetmap.agents.pose_free.stepped`), registered from there on the
-        submap: its fit when good and typical, else None (the motion models are tried then)."""
-        self._step = None
-        if (
-            self._previous is None
-            or "odometry" in prediction.source
-            or self._radius(taken, prediction) <= MAX_CORRESPONDENCE
-        ):
-            return None
-        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
-        step = stepped(self._previous[0], taken.segments, reach, self.config.integration)
-        if step is None:
-            return None
-        placed = self._previous[1].compose(step)
-        increment = (self._pose or Transform2D()).inverse().compose(placed)
-        measured = Prediction(increment, LOOSE_TRANSLATION, LOOSE_ROTATION, "integration")
-        start = self.chain.active[0].origin.inverse().compose(placed)
-        fit = self._registered(taken, self.chain.active[0], start, start, measured)
-        if fit.good and fit.registration.score >= typical_floor(self._scores):
-            return fit
-        self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
-        return None
-
-    def _turned_fits(self, taken: _ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
-        """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
-        submap = self.chain.active[0]
-        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
-        return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
-
-    def _reachable_fit(self, taken: _ScanIn, fits: list[Fit]) -> Fit | None:
-        """No start of the motion models placed the scan: the best good fit from a turned start
-        (:func:`best_fit`) where the robot can have driven, as a re-acquired one must be, however
-        little of the scan the submap holds yet (a turn into new space: acapulco-corrected without
-        odometry, scan 77, a fit at half the robot's typical score, 0.04 m from the truth). One
-        that slid beyond that lies where no start searched (scan 161: 5.7 m along a corridor)."""
-        origin, last, seq, stamp = self.chain.active[0].origin, self._good, taken.seq, taken.stamp
-        reachable = [f for f in fits if self.motion.reachable(last, origin.compose(f.registration.pose), seq, stamp)]
-        best = best_fit(reachable, False)
-        if best is not None:
-            log.debug("scan %d fits from a turned start alone (score %.2f)", taken.index, best.registration.score)
-        return best
-
-    def _registered(
-        self, taken: _ScanIn, submap: Submap, start: Transform2D, mean: Transform2D, prediction: Prediction
-    ) -> Fit:
-        """The scan registered on ``submap`` from ``start``, pulled towards the prediction's
-        ``mean`` with its information, and checked (:meth:`_judge`)."""
-        reg = register(taken.samples, submap.reference, start, mean, prediction.information(), self.params)
-        why, (contradicted, disputed) = self._judge(reg, taken, submap)
-        return Fit(reg, why == "", why, contradicted, disputed)
-
-    def _judge(self, reg: Registration, taken: _ScanIn, submap: Submap) -> tuple[str, tuple[bool, bool]]:
-        """The fit check (:func:`~fleetmap.agents.fitcheck.judge`), its beam test excusing the
-        uncertainty of the track the robot is carried on."""
-        max_range = self.config.extraction.max_range
-        return judge(reg, taken.scan, taken.segments, submap, max_range, self.motion.track_drift)
-
-    def _reacquire(self, taken: _ScanIn, submap: Submap, prediction: Prediction) -> Fit | None:
-        """The paper's pose-free integration of the scan on the submap, within the robot's reach of
-        its last placed scan (any heading), then registered and checked: a fit where the robot can
-        have driven, or None. Where the odometry measured the step (the scan's own reading, on a
-        clock trusted or not read at its stamps), that is also within its 99 % gate (a log without
-        a clock bounds no reach: infinite-corridor-corrected's scan 151 was re-acquired 15.6 m and
-        88 degrees from its odometry, and the rest of the map turned with it)."""
-        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
-        last = submap.origin.inverse().compose(self._good[1] if self._good is not None else self._pose or Transform2D())
-        max_range = self.config.extraction.max_range
-        start = reacquired(submap.segment_map(), taken.segments, last, reach, max_range, self.config.integration)
-        if start is None:
-            return None
-        reg = register(taken.samples, submap.reference, start, start, loose(), self.params)
-        why, _ = self._judge(reg, taken, submap)
-        placed = submap.origin.compose(reg.pose)
-        if why != "" or not self.motion.reachable(self._good, placed, taken.seq, taken.stamp):
-            return None
-        measured = prediction.source == "odometry" and self.exact  # not a mistimed or spread reading
-        if measured and not within_gate(placed, self._pose_in_epoch(prediction), prediction):
-            return None
-        return Fit(reg, True, "reacquired")
-
-    def _place(self, taken: _ScanIn, fit: Fit, status: str) -> TrackStep:
+    def _place(self, taken: ScanIn, fit: Fit, status: str) -> TrackStep:
         """Place the scan by its fit on the matching submap; insert it when due."""
         seq, index, stamp, odometry = taken.seq, taken.index, taken.stamp, taken.odometry
         submap = self.chain.active[0]
@@ -520,7 +325,7 @@ class Tracker:
             self.chain.insert(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
 
-    def _start_epoch(self, taken: _ScanIn, new: bool) -> TrackStep:
+    def _start_epoch(self, taken: ScanIn, new: bool) -> TrackStep:
         """Begin an epoch whose frame is this scan's pose."""
         seq, index, stamp = taken.seq, taken.index, taken.stamp
         self.epoch = max(self.epoch + 1, self.first_epoch)
@@ -536,6 +341,8 @@ class Tracker:
     def _lost(self) -> list[TrackStep]:
         """``kidnap_after`` scans the walls contradict, with none placed between: a new epoch from the first of them."""
         held, self._held = self._held, []
+        if self.clock.trusted and (steps := self._untimed(held)):
+            return steps
         first = held[0].taken
         log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))
         steps = [self._start_epoch(first, new=True)]
@@ -544,43 +351,33 @@ class Tracker:
             steps += self._track(t.seq, t.index, t.stamp, t.scan, t.segments, t.odometry)
         return steps
 
-
-def _apart(predictions: list[Prediction]) -> bool:
-    """Whether the first two motion models disagree on the heading by more than the first one's
-    uncertainty: one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one
-    fast turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
-    fix the heading everywhere, so both are registered and the better fit by score is taken."""
-    return (
-        len(predictions) > 1
-        and abs(float(wrap_angle(predictions[1].increment.theta - predictions[0].increment.theta)))
-        > predictions[0].sigma_rotation
-    )
-
-
-def _either_sign(best: Fit | None, other: Fit | None) -> Fit | None:
-    """The better of the best fit and the fit from the odometry's other sign, by score: two motion
-    models in doubt, weighed by the walls alike (:data:`~fleetmap.agents.prediction.SIGN_DOUBT`).
-    Two fits within registration's reach of each other are one minimum, found first by the best
-    (:func:`~fleetmap.agents.fitcheck.same_start`; aces with jittered stamps: 4 of 10 such pairs
-    scored a hair apart, and taking the other moved the log's short relations within 0.10 m, 2
-    degrees from 96.5 to 96.1 %, record 043)."""
-    if other is None or not other.good:
-        return best
-    if best is None:
-        return other
-    if other.registration.score > best.registration.score and not same_start(
-        other.registration.pose, best.registration.pose
-    ):
-        return other
-    return best
-
-
-def _explained(fit: Fit, prediction: Prediction, origin: Transform2D, last: Transform2D) -> Fit:
-    """The fit from where the robot stood, on a submap whose frame is ``origin``, refused and
-    counted as a dispute of the prediction where the odometry measured the step from the robot's
-    ``last`` pose and does not explain it (:func:`~fleetmap.agents.prediction.explains`)."""
-    if not fit.good or prediction.source != "odometry":
-        return fit
-    if explains(prediction, last, origin.compose(fit.registration.pose)):
-        return fit
-    return replace(fit, good=False, why="a fit beyond the odometry's 99 % gate", disputed=True)
+    def _untimed(self, held: list[_Held]) -> list[TrackStep]:
+        """A kidnap concluded on the stamps' word is a conclusion about the clock too: the first
+        held scan is tracked again from where the robot was before it, its time by the scans'
+        sequence at the log's mean period (a logger that stamps bursts at receipt shrinks a second
+        to milliseconds, and with it the robot's reach). Placed, the stamps were wrong, not the
+        robot's place: said once, and the held scans tracked on. Else nothing changes ([])."""
+        kept = _Before(self._pose, self._stamp, self._seq, self.motion, self._spread)
+        before = self._unheld or kept
+        self._pose, self._stamp, self._seq, self._spread = before.pose, before.stamp, before.seq, before.spread
+        self.motion, self.clock.trusted = copy.copy(before.motion), False
+        first = held[0].taken
+        steps = self._track(first.seq, first.index, first.stamp, first.scan, first.segments, first.odometry)
+        if steps[0].status == "unplaced":
+            self._pose, self._stamp, self._seq, self.motion, self._spread = (
+                kept.pose,
+                kept.stamp,
+                kept.seq,
+                kept.motion,
+                kept.spread,
+            )
+            self.clock.trusted, self._held = True, []
+            return []
+        self.clock.distrust()
+        say_distrusted(
+            self.clock, f"scans {first.index}-{held[-1].taken.index} fit only in the time their sequence takes"
+        )
+        for h in held[1:]:
+            t = h.taken
+            steps += self._track(t.seq, t.index, t.stamp, t.scan, t.segments, t.odometry)
+        return steps

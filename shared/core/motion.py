@@ -180,7 +180,7 @@ class ScanClock:
                 self.repeated += 1
             else:
                 self.backwards += 1
-            self._distrust()
+            self.distrust()
         elif self.previous is not None:
             self.advances += 1
         self.first = stamp if self.first is None else min(self.first, stamp)
@@ -210,7 +210,7 @@ class ScanClock:
         excess = distance - self.max_speed * max(seconds, 0.0)
         if excess > 0 and excess * excess > CHI2_1DOF_99 * sigma * sigma:
             self.too_fast += 1
-            self._distrust()
+            self.distrust()
         return self.trusted
 
     def bunched(self, size: int) -> None:
@@ -219,9 +219,11 @@ class ScanClock:
         scan was taken before the first stamp: the log's span leaves it out (:attr:`period`)."""
         if self.scans == 0:
             self.before_first = size - 1
-        self._distrust()
+        self.distrust()
 
-    def _distrust(self) -> None:
+    def distrust(self) -> None:
+        """Trust the stamps no more (the evidence: :meth:`tick`, :meth:`check`, :meth:`bunched`, or a
+        kidnap that only the stamps' time concluded, :meth:`fleetmap.agents.tracker.Tracker._untimed`)."""
         if self.trusted:
             self.trusted = False
             self.distrusted_at = self.scans

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 from fleetmap.agents.agent import Agent
 from fleetmap.agents.bursts import BurstOdometry, Timed
 from fleetmap.scenarios.clocks import break_clock
+from fleetmap.scenarios.crowd import walk_people
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.logs import read_carmen
@@ -203,3 +205,24 @@ def test_a_log_without_a_clock_is_tracked_on_its_scans_own_odometry(datasets: Pa
     worst = max(range(160), key=lambda i: errors[i][0])
     assert within >= 145, f"{within} of 160 steps within 0.10 m, 2 deg"
     assert errors[worst][0] < 0.5 and max(r for _, r in errors) < 10.0, f"step {worst + 1}: {errors[worst]}"
+
+
+def test_a_kidnap_only_the_stamps_concluded_is_a_clock_found_wrong(datasets: Path, caplog) -> None:
+    # freiburg-101-corrected's first 30 scans (a scan every metre or so) in bursts, five people
+    # walking past, no odometry. Scans 8-13 fit nothing within the reach their stamps allow (a
+    # burst's milliseconds), with people hiding the walls: on the stamps' word, a kidnap. Tracked
+    # again by the scans' sequence at the log's mean period, scan 8 is placed: the stamps were
+    # wrong, not the robot's place, and the robot is tracked on from scan 7 as the walls place it
+    path = datasets / "corrected" / "freiburg-101-corrected.log.gz"
+    truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
+    scans = list(walk_people(CarmenSource(path, range_max=math.inf, stop=30), 5))
+    with caplog.at_level(logging.WARNING, logger="fleetmap.agents.clock_evidence"):
+        agent, poses = tracked(break_clock(scans, "burst", seed=0), odometry=False)
+    assert agent.counts.epochs == 1
+    said = [r.getMessage() for r in caplog.records if "the stamps are not the scans' times" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("scans 8-13 fit only in the time their sequence takes"), said
+    off = {
+        i: round(truth[7].inverse().compose(truth[i]).distance(poses[7].inverse().compose(poses[i]))[0], 2)
+        for i in range(13, 30)
+    }
+    assert max(off.values()) < 0.3, off

@@ -1,0 +1,298 @@
+"""Where a scan fits on the matching submap: every start the motion models, the scan pair and
+the walls suggest, registered and checked, and the one taken (step 2 of
+:mod:`fleetmap.agents.tracker`'s walk-through; :meth:`FitSearch._fit`).
+
+:class:`FitSearch` is the tracker's search for a fit, apart from what the tracker then does with
+it (place the scan, carry the robot, hold the scan towards a kidnap): it reads the tracker's state
+(the last placed scan, the robot's recent scores, the motion models, the active submap) and
+changes nothing but the step the scan pair measured (``_step``) and the recent scores.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, replace
+from functools import partial
+
+from fleetmap.agents.fitcheck import (
+    TYPICAL_SCORE_SHARE,
+    Fit,
+    best_fit,
+    judge,
+    same_start,
+    turned_fits,
+    typical_floor,
+    window_fit,
+)
+from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION, loose, reacquired, stepped
+from fleetmap.agents.prediction import OTHER_SIGN, Predictor, explains, within_gate
+from fleetmap.agents.submap import Submap, SubmapChain
+from fleetmap.shared.config import FleetmapConfig, TrackingParams
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
+from fleetmap.shared.core.motion import Prediction
+from fleetmap.shared.core.rangescan import RangeScan
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, Registration, ScanSamples, register
+
+__all__ = ["FitSearch", "ScanIn"]
+
+log = logging.getLogger("fleetmap.agents.tracker")  # (its messages are the tracker's)
+
+
+@dataclass(frozen=True)
+class ScanIn:
+    """A scan as the tracker takes it (:meth:`Tracker.add`), with its number in the robot's sequence
+    of scans and its samples."""
+
+    seq: int
+    index: int
+    stamp: float
+    scan: RangeScan
+    segments: Array
+    samples: ScanSamples
+    odometry: Transform2D | None
+
+
+class FitSearch:
+    """The search for a scan's fit (the module docstring); :class:`~fleetmap.agents.tracker.Tracker`
+    is one."""
+
+    config: FleetmapConfig
+    params: TrackingParams
+    chain: SubmapChain
+    motion: Predictor
+    exact: bool
+    _pose: Transform2D | None
+    _stamp: float | None
+    _seq: int
+    _good: tuple[float, Transform2D, int] | None
+    _previous: tuple[Array, Transform2D] | None
+    _step: Prediction | None
+    _scores: deque[float]
+
+    def _pose_in_epoch(self, prediction: Prediction) -> Transform2D:
+        base = self._pose if self._pose is not None else Transform2D()
+        return base.compose(prediction.increment)
+
+    def _fit(self, taken: ScanIn, predictions: list[Prediction]) -> Fit:
+        """The scan's fit on the matching submap.
+
+        The first prediction's fit is taken when it is good and typical: its score at least
+        ``TYPICAL_SCORE_SHARE`` of the median of the robot's recent fits (a fit that suddenly
+        supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
+        the other predictions and the robot standing still are tried too, and the pose-free
+        integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
+        only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (along a corridor the fits
+        score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
+        unless the walls refused it: the models left, as unsure as each other, weigh by score.
+        The odometry's other sign, in doubt, is always tried, and weighed by score alone
+        (:func:`_either_sign`). Failing all, the first fit, not good."""
+        measured = self._stepped(taken, predictions[0])
+        if measured is not None:
+            self._scores.append(measured.registration.score)
+            return measured
+        submap = self.chain.active[0]
+        share = TYPICAL_SCORE_SHARE
+        floor = typical_floor(self._scores)
+        tried: list[Transform2D] = []
+        fits: list[Fit] = []
+        priors: list[Prediction] = []  # each fit's motion model
+        last = self._good[1] if self._good is not None else self._pose or Transform2D()
+        standing = self.motion.standing
+        apart = _apart(predictions)
+        signed: Fit | None = None  # the fit from the odometry's other sign, in doubt
+        for n, prediction in enumerate([*predictions, standing]):
+            typical = fits and fits[0].good and fits[0].registration.score >= floor
+            if n and typical and not (apart and n == 1) and prediction.source != OTHER_SIGN:
+                continue  # (the odometry's other sign, in doubt, is registered: the walls weigh it)
+            # the robot standing still where it was last placed; the models from its last pose
+            base = last.compose(prediction.increment) if prediction is standing else self._pose_in_epoch(prediction)
+            predicted = submap.origin.inverse().compose(base)
+            if any(same_start(predicted, other) for other in tried):
+                continue
+            tried.append(predicted)
+            fit = self._registered(taken, submap, predicted, predicted, prediction)
+            if prediction is standing and self.exact:  # (the wheels measure standing still too)
+                fit = _explained(fit, predictions[0], submap.origin, self._pose or Transform2D())
+            if prediction.source == OTHER_SIGN:
+                signed = fit
+                continue
+            fits.append(fit)
+            priors.append(prediction)
+        best = _either_sign(best_fit(fits, apart, priors), signed)
+        if best is None or best.registration.score < floor:
+            # only a typical fit from a turned start: an atypical one is no better than the
+            # prediction's own, which the pose-free integration below may still replace
+            turned = self._turned_fits(taken, predictions[0], floor, tried)
+            fits += turned
+            if turned and turned[-1].good and turned[-1].registration.score >= floor:
+                best = turned[-1]
+            elif best is None:
+                best = self._reachable_fit(taken, turned)
+        if best is None or best.registration.score < floor:
+            # a scan re-acquired by pose-free integration must fit as well as the robot's scans
+            # usually do: one that explains a fraction of what they did matched a look-alike (a
+            # carried robot's view of one corridor on another)
+            again = self._reacquire(taken, submap, predictions[0])
+            if (
+                again is not None
+                and again.registration.score >= floor
+                and (best is None or again.registration.score * share >= best.registration.score)
+            ):
+                best = again
+        if best is not None:
+            best = self._searched(taken, predictions[0], best)
+            self._scores.append(best.registration.score)
+            return best
+        return replace(fits[0], everywhere=all(f.disputed for f in fits))
+
+    def _searched(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
+        """``best``, or a better fit from the prediction's window (:func:`window_fit`) where the
+        prediction is constant velocity and its two sigma, no farther than the robot drives in one
+        scan step, is wider than registration's reach. The odometry's prediction is never searched,
+        however wide: its prior is evidence along a corridor that the walls' support is not (a
+        burst's spread readings, searched, placed aces-corrected's robot up to 6 m backwards)."""
+        radius = self._radius(taken, prediction)
+        if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
+            return best
+        submap = self.chain.active[0]
+        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        return window_fit(
+            best,
+            submap,
+            taken.samples,
+            mean,
+            radius,
+            prediction,
+            lambda start: self._registered(taken, submap, start, mean, prediction),
+        )
+
+    def _radius(self, taken: ScanIn, prediction: Prediction) -> float:
+        """How far from the prediction the scan may be: two sigma, within the robot's reach."""
+        last = (self._stamp if self._stamp is not None else taken.stamp, self._pose or Transform2D(), self._seq)
+        return min(2.0 * prediction.sigma_translation, self.motion.reach(last, taken.seq, taken.stamp))
+
+    def _stepped(self, taken: ScanIn, prediction: Prediction) -> Fit | None:
+        """Where the motion model measures nothing (no odometry; constant velocity wider than
+        registration's reach), the step measured by the scan's pose-free integration on the last
+        placed scan (:func:`~fleetmap.agents.pose_free.stepped`), registered from there on the
+        submap: its fit when good and typical, else None (the motion models are tried then)."""
+        self._step = None
+        if (
+            self._previous is None
+            or "odometry" in prediction.source
+            or self._radius(taken, prediction) <= MAX_CORRESPONDENCE
+        ):
+            return None
+        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
+        step = stepped(self._previous[0], taken.segments, reach, self.config.integration)
+        if step is None:
+            return None
+        placed = self._previous[1].compose(step)
+        increment = (self._pose or Transform2D()).inverse().compose(placed)
+        measured = Prediction(increment, LOOSE_TRANSLATION, LOOSE_ROTATION, "integration")
+        start = self.chain.active[0].origin.inverse().compose(placed)
+        fit = self._registered(taken, self.chain.active[0], start, start, measured)
+        if fit.good and fit.registration.score >= typical_floor(self._scores):
+            return fit
+        self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
+        return None
+
+    def _turned_fits(self, taken: ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
+        """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
+        submap = self.chain.active[0]
+        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
+        return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
+
+    def _reachable_fit(self, taken: ScanIn, fits: list[Fit]) -> Fit | None:
+        """No start of the motion models placed the scan: the best good fit from a turned start
+        (:func:`best_fit`) where the robot can have driven, as a re-acquired one must be, however
+        little of the scan the submap holds yet (a turn into new space: acapulco-corrected without
+        odometry, scan 77, a fit at half the robot's typical score, 0.04 m from the truth). One
+        that slid beyond that lies where no start searched (scan 161: 5.7 m along a corridor)."""
+        origin, last, seq, stamp = self.chain.active[0].origin, self._good, taken.seq, taken.stamp
+        reachable = [f for f in fits if self.motion.reachable(last, origin.compose(f.registration.pose), seq, stamp)]
+        best = best_fit(reachable, False)
+        if best is not None:
+            log.debug("scan %d fits from a turned start alone (score %.2f)", taken.index, best.registration.score)
+        return best
+
+    def _registered(
+        self, taken: ScanIn, submap: Submap, start: Transform2D, mean: Transform2D, prediction: Prediction
+    ) -> Fit:
+        """The scan registered on ``submap`` from ``start``, pulled towards the prediction's
+        ``mean`` with its information, and checked (:meth:`_judge`)."""
+        reg = register(taken.samples, submap.reference, start, mean, prediction.information(), self.params)
+        why, (contradicted, disputed) = self._judge(reg, taken, submap)
+        return Fit(reg, why == "", why, contradicted, disputed)
+
+    def _judge(self, reg: Registration, taken: ScanIn, submap: Submap) -> tuple[str, tuple[bool, bool]]:
+        """The fit check (:func:`~fleetmap.agents.fitcheck.judge`), its beam test excusing the
+        uncertainty of the track the robot is carried on."""
+        max_range = self.config.extraction.max_range
+        return judge(reg, taken.scan, taken.segments, submap, max_range, self.motion.track_drift)
+
+    def _reacquire(self, taken: ScanIn, submap: Submap, prediction: Prediction) -> Fit | None:
+        """The paper's pose-free integration of the scan on the submap, within the robot's reach of
+        its last placed scan (any heading), then registered and checked: a fit where the robot can
+        have driven, or None. Where the odometry measured the step (the scan's own reading, on a
+        clock trusted or not read at its stamps), that is also within its 99 % gate (a log without
+        a clock bounds no reach: infinite-corridor-corrected's scan 151 was re-acquired 15.6 m and
+        88 degrees from its odometry, and the rest of the map turned with it)."""
+        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
+        last = submap.origin.inverse().compose(self._good[1] if self._good is not None else self._pose or Transform2D())
+        max_range = self.config.extraction.max_range
+        start = reacquired(submap.segment_map(), taken.segments, last, reach, max_range, self.config.integration)
+        if start is None:
+            return None
+        reg = register(taken.samples, submap.reference, start, start, loose(), self.params)
+        why, _ = self._judge(reg, taken, submap)
+        placed = submap.origin.compose(reg.pose)
+        if why != "" or not self.motion.reachable(self._good, placed, taken.seq, taken.stamp):
+            return None
+        measured = prediction.source == "odometry" and self.exact  # not a mistimed or spread reading
+        if measured and not within_gate(placed, self._pose_in_epoch(prediction), prediction):
+            return None
+        return Fit(reg, True, "reacquired")
+
+
+def _apart(predictions: list[Prediction]) -> bool:
+    """Whether the first two motion models disagree on the heading by more than the first one's
+    uncertainty: one of them is wrong (a real robot's odometry can be off by 10-25 degrees on one
+    fast turn), and a registration started ten degrees off may settle in a wrong minimum. The walls
+    fix the heading everywhere, so both are registered and the better fit by score is taken."""
+    return (
+        len(predictions) > 1
+        and abs(float(wrap_angle(predictions[1].increment.theta - predictions[0].increment.theta)))
+        > predictions[0].sigma_rotation
+    )
+
+
+def _either_sign(best: Fit | None, other: Fit | None) -> Fit | None:
+    """The better of the best fit and the fit from the odometry's other sign, by score: two motion
+    models in doubt, weighed by the walls alike (:data:`~fleetmap.agents.prediction.SIGN_DOUBT`).
+    Two fits within registration's reach of each other are one minimum, found first by the best
+    (:func:`~fleetmap.agents.fitcheck.same_start`; aces with jittered stamps: 4 of 10 such pairs
+    scored a hair apart, and taking the other moved the log's short relations within 0.10 m, 2
+    degrees from 96.5 to 96.1 %, record 043)."""
+    if other is None or not other.good:
+        return best
+    if best is None:
+        return other
+    if other.registration.score > best.registration.score and not same_start(
+        other.registration.pose, best.registration.pose
+    ):
+        return other
+    return best
+
+
+def _explained(fit: Fit, prediction: Prediction, origin: Transform2D, last: Transform2D) -> Fit:
+    """The fit from where the robot stood, on a submap whose frame is ``origin``, refused and
+    counted as a dispute of the prediction where the odometry measured the step from the robot's
+    ``last`` pose and does not explain it (:func:`~fleetmap.agents.prediction.explains`)."""
+    if not fit.good or prediction.source != "odometry":
+        return fit
+    if explains(prediction, last, origin.compose(fit.registration.pose)):
+        return fit
+    return replace(fit, good=False, why="a fit beyond the odometry's 99 % gate", disputed=True)
