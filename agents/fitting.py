@@ -66,7 +66,7 @@ class FitSearch:
     _stamp: float | None
     _seq: int
     _good: tuple[float, Transform2D, int] | None
-    _previous: tuple[Array, Transform2D] | None
+    _previous: tuple[Array, tuple[float, Transform2D, int]] | None
     _step: Prediction | None
     _scores: deque[float]
 
@@ -175,7 +175,8 @@ class FitSearch:
     def _stepped(self, taken: ScanIn, prediction: Prediction) -> Fit | None:
         """Where the motion model measures nothing (no odometry; constant velocity wider than
         registration's reach), the step measured by the scan's pose-free integration on the last
-        placed scan (:func:`~fleetmap.agents.pose_free.stepped`), registered from there on the
+        scan the walls placed (not a carried one: :func:`~fleetmap.agents.pose_free.stepped`;
+        record 045), within the robot's reach since that scan, registered from there on the
         submap: its fit when good and typical, else None (the motion models are tried then)."""
         self._step = None
         if (
@@ -184,11 +185,13 @@ class FitSearch:
             or self._radius(taken, prediction) <= MAX_CORRESPONDENCE
         ):
             return None
-        reach = self.motion.reach(self._good, taken.seq, taken.stamp)
-        step = stepped(self._previous[0], taken.segments, reach, self.config.integration)
+        segments, last = self._previous
+        step = stepped(
+            segments, taken.segments, self.motion.reach(last, taken.seq, taken.stamp), self.config.integration
+        )
         if step is None:
             return None
-        placed = self._previous[1].compose(step)
+        placed = last[1].compose(step)
         increment = (self._pose or Transform2D()).inverse().compose(placed)
         measured = Prediction(increment, LOOSE_TRANSLATION, LOOSE_ROTATION, "integration")
         start = self.chain.active[0].origin.inverse().compose(placed)

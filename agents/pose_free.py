@@ -3,7 +3,8 @@
 Registration finds the nearest minimum of the walls to where it starts; pose-free integration
 (paper III-E, Algorithm 1) finds where a scan fits whatever the start. The tracker uses it twice:
 
-- **the step from the last placed scan** (:func:`stepped`): where the motion model measures nothing
+- **the step from the last scan the walls placed** (:func:`stepped`; a carried scan's view fixed
+  nothing, and its pose is a guess): where the motion model measures nothing
   (no odometry, and constant velocity over a sparse log's second between scans is a guess 1.5 m
   wide), the scan integrated on the previous placed scan measures the step, as the pivot method
   places each scan on the one before it (paper IV-C, Algorithm 6). Down a corridor logged a scan

@@ -12,7 +12,7 @@ For each scan (:meth:`Tracker.add`):
    velocity a second or more between scans) has its window searched too (:meth:`Tracker._searched`,
    :func:`fleetmap.agents.fitcheck.window_fit`; docs/decisions/017-a-prior-that-measures-nothing-is-searched.md),
    its minima weighed by the prediction (docs/decisions/023-the-window-weighed-by-its-prior.md).
-   Before that, such a scan is integrated pose-free on the last placed scan, as the pivot method
+   Before that, such a scan is integrated pose-free on the last scan the walls placed, as the pivot method
    places each scan (paper IV-C), and registered from there: that step, where its fit is good and
    typical, is the scan's (:meth:`Tracker._stepped`, :mod:`fleetmap.agents.pose_free`;
    docs/decisions/045-the-step-a-sparse-log-measures-itself.md).
@@ -152,8 +152,9 @@ class Tracker(FitSearch):
         """The last scan's number in the robot's sequence of scans (from 1)."""
         self._good: tuple[float, Transform2D, int] | None = None
         """Stamp, epoch-frame pose and sequence number of the last placed scan."""
-        self._previous: tuple[Array, Transform2D] | None = None
-        """The segments and epoch-frame pose of the last placed scan (:meth:`_stepped`)."""
+        self._previous: tuple[Array, tuple[float, Transform2D, int]] | None = None
+        """The segments, and the stamp, epoch-frame pose and sequence number, of the last scan the
+        walls placed (:meth:`_stepped`; not a carried one)."""
         self._step: Prediction | None = None
         """The step the scan pair measured, where the walls said nothing against it (:meth:`_stepped`)."""
         self._held: list[_Held] = []
@@ -313,7 +314,8 @@ class Tracker(FitSearch):
             check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
             self.motion.moved(self._good, pose, seq, stamp)
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
-        self._previous = (taken.segments, pose)
+        if status != "carried":  # (a carried scan's pose is the motion model's guess, its view poor)
+            self._previous = (taken.segments, (stamp, pose, seq))
         self.motion.drift = self.motion.track_drift = (0.0, 0.0)
         # a scan without odometry breaks its chain: the next increment is measured from the next
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
@@ -330,7 +332,7 @@ class Tracker(FitSearch):
         seq, index, stamp = taken.seq, taken.index, taken.stamp
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
-        self._previous = (taken.segments, Transform2D())
+        self._previous = (taken.segments, (stamp, Transform2D(), seq))
         self.motion.restart(taken.odometry)
         self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []
