@@ -29,7 +29,7 @@ from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.integration import Window, integrate
 from fleetmap.shared.core.segmap import SegmentMap
 
-__all__ = ["LOOSE_ROTATION", "LOOSE_TRANSLATION", "loose", "near", "reacquired", "stepped"]
+__all__ = ["LOOSE_ROTATION", "LOOSE_TRANSLATION", "loose", "reacquired", "stepped"]
 
 LOOSE_TRANSLATION = 0.25
 """Standard deviation (m) of a start found by pose-free integration, as a prior: a quarter of
@@ -61,7 +61,7 @@ def stepped(previous: Array, segments: Array, reach: float, params: IntegrationP
     return found.transform if found.valid else None
 
 
-def near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:
+def _near(m: SegmentMap, pose: Transform2D, radius: float) -> SegmentMap:
     """The segments of ``m`` with an end within ``radius`` (box) of ``pose``."""
     seg = m.segments
     close = (np.abs(seg[:, 0:4:2] - pose.x) <= radius).any(axis=1) & (np.abs(seg[:, 1:4:2] - pose.y) <= radius).any(
@@ -78,7 +78,7 @@ def reacquired(
     placed pose, the submap's frame), within ``reach`` (m, any heading), or None where it is not valid."""
     if len(built) == 0:
         return None
-    close = near(built, last, reach + max_range)
+    close = _near(built, last, reach + max_range)
     if len(close) == 0:
         return None
     found = integrate(close, _scan_map(segments), params, window=Window(last, reach, math.pi))

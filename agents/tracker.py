@@ -217,7 +217,7 @@ class Tracker(FitSearch):
         taken = ScanIn(seq, index, stamp, scan, segments, samples, odometry)
         if self.epoch < 0:
             return [self._start_epoch(taken, new=False)]
-        if not self._held:
+        if not self._held and self.clock.trusted:  # (only a trusted clock's kidnap is tried again)
             self._unheld = _Before(self._pose, self._stamp, self._seq, copy.copy(self.motion), self._spread)
         spread, self._spread = self._spread, not self.exact
         if spread and self.exact and odometry is not None and self._anchor is not None and self._pose is not None:
@@ -359,8 +359,10 @@ class Tracker(FitSearch):
         sequence at the log's mean period (a logger that stamps bursts at receipt shrinks a second
         to milliseconds, and with it the robot's reach). Placed, the stamps were wrong, not the
         robot's place: said once, and the held scans tracked on. Else nothing changes ([])."""
+        before = self._unheld
+        if before is None:
+            return []
         kept = _Before(self._pose, self._stamp, self._seq, self.motion, self._spread)
-        before = self._unheld or kept
         self._pose, self._stamp, self._seq, self._spread = before.pose, before.stamp, before.seq, before.spread
         self.motion, self.clock.trusted = copy.copy(before.motion), False
         first = held[0].taken

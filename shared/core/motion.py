@@ -222,8 +222,8 @@ class ScanClock:
         self.distrust()
 
     def distrust(self) -> None:
-        """Trust the stamps no more (the evidence: :meth:`tick`, :meth:`check`, :meth:`bunched`, or a
-        kidnap that only the stamps' time concluded, :meth:`fleetmap.agents.tracker.Tracker._untimed`)."""
+        """Trust the stamps no more: the evidence is :meth:`tick`'s, :meth:`check`'s or
+        :meth:`bunched`'s, or the caller's (a kidnap that only the stamps' time concluded)."""
         if self.trusted:
             self.trusted = False
             self.distrusted_at = self.scans

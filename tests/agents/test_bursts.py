@@ -207,6 +207,7 @@ def test_a_log_without_a_clock_is_tracked_on_its_scans_own_odometry(datasets: Pa
     assert errors[worst][0] < 0.5 and max(r for _, r in errors) < 10.0, f"step {worst + 1}: {errors[worst]}"
 
 
+@pytest.mark.slow  # tracks 30 real scans with people in view (about 6 s)
 def test_a_kidnap_only_the_stamps_concluded_is_a_clock_found_wrong(datasets: Path, caplog) -> None:
     # freiburg-101-corrected's first 30 scans (a scan every metre or so) in bursts, five people
     # walking past, no odometry. Scans 8-13 fit nothing within the reach their stamps allow (a
