@@ -369,39 +369,17 @@ def test_the_step_is_measured_from_a_scan_the_walls_placed_not_one_carried(datas
     # round (135 degrees against the true -46, valid within the robot's reach, and the submap's
     # walls bear it out at a typical score), and the robot was tracked 180 degrees off from there.
     # Integrated on scan 170, the last scan the walls placed, it is right
-    off = orebro_steps_off(datasets, 119, 180, 150)
-    assert not off, f"steps off (scan: metres, degrees): {off}"
-
-
-@pytest.mark.slow  # tracks 21 scans of a real log (about 3 s)
-def test_a_weak_fit_from_a_turned_start_does_not_overrule_the_step_the_scan_pair_measured(datasets: Path) -> None:
-    # orebro-corrected from scan 45: scan 59 turns 30 degrees into a room a second after 58, its
-    # odometry chain broken there. The scan pair measures the turn within 0.15 m and a degree, but
-    # the submap holds only 2 m of the room's wall, too little to place the scan. A start turned
-    # 92 degrees from it found 2.7 m of wall (a typical fit here finds 4 m or more), and was taken:
-    # the rest of the map ran turned by as much (a loop of relations 30 m and 90 degrees wrong)
-    off = orebro_steps_off(datasets, 45, 66, 58)
-    assert not off, f"steps off (scan: metres, degrees): {off}"
-
-
-def orebro_steps_off(datasets: Path, start: int, stop: int, first: int) -> dict[int, tuple[float, float] | str]:
-    """orebro-corrected's scans ``start:stop`` tracked as one robot with its odometry (one epoch):
-    the steps between consecutive scans from ``first`` on 0.3 m or 3 degrees or more off its
-    corrected poses' (m, deg), or not placed, by the later scan."""
     path = datasets / "corrected" / "orebro-corrected.log.gz"
-    agent, poses = track_stretch(path, start, stop)
+    agent, poses = track_stretch(path, 119, 180)
+    truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), 180)]
     assert agent.counts.epochs == 1
-    truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), stop)]
-    scans = range(first, stop)
-    off: dict[int, tuple[float, float] | str] = {}
-    for i in scans[1:]:
-        if i - 1 not in poses or i not in poses:
-            off[i] = "not placed"
-            continue
-        dt, dr = truth[i - 1].inverse().compose(truth[i]).distance(poses[i - 1].inverse().compose(poses[i]))
+    off = {}
+    for i in range(150, 179):
+        assert i in poses and i + 1 in poses, f"scan {i} or {i + 1} not placed"
+        dt, dr = truth[i].inverse().compose(truth[i + 1]).distance(poses[i].inverse().compose(poses[i + 1]))
         if dt > 0.3 or math.degrees(dr) > 3.0:
             off[i] = (round(dt, 2), round(math.degrees(dr), 1))
-    return off
+    assert not off, f"steps off (scan: metres, degrees): {off}"
 
 
 @pytest.mark.slow  # tracks 70 scans of a real log (about 2 s)
