@@ -16,12 +16,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from fleetmap.agents.submap import Submap
 from fleetmap.shared.core.correlative import window_support
-from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D, wrap_scalar
 from fleetmap.shared.core.motion import CHI2_1DOF_99, Prediction
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.tracking import (
@@ -85,6 +85,9 @@ class Fit:
     scan, whatever they agree on."""
     everywhere: bool = False
     """(A refused scan's first fit) the walls dispute every start tried, not only this one."""
+    spread: Array | None = None
+    """(A fit chosen from a window of several good minima: :func:`window_fit`) their covariance
+    about this one (the submap's frame): how far the walls leave the choice open."""
 
 
 def judge(
@@ -264,6 +267,7 @@ def window_fit(
         submap.reference, samples, center, radius, MIN_CORRESPONDENCE, MIN_CORRESPONDENCE
     )
     tried = [best.registration.pose]
+    goods = [best]
     for k in np.argsort(-support, kind="stable").tolist():
         start = Transform2D(float(positions[k, 0]), float(positions[k, 1]), center.theta)
         if any(same_start(start, other) for other in tried):
@@ -272,9 +276,30 @@ def window_fit(
             break
         tried.append(start)
         fit = registered(start)
+        if fit.good and not any(same_start(fit.registration.pose, g.registration.pose) for g in goods):
+            goods.append(fit)
         if fit.good and weighed(fit, mean, prediction) > weighed(best, mean, prediction):
             best = fit
-    return best
+    if len(goods) < 2:
+        return best
+    return replace(best, spread=minima_spread(best, goods, [weighed(g, mean, prediction) for g in goods]))
+
+
+def minima_spread(chosen: Fit, fits: list[Fit], weights: list[float]) -> Array:
+    """The covariance about ``chosen`` of the window's good minima ``fits``, each weighed as the
+    search weighed it (its posterior: :func:`weighed`). The correlative matcher's covariance is the
+    moment of its whole posterior over the window, not the curvature at its peak (Olson, ICRA
+    2009, Section III-C): along a corridor whose doors repeat, each minimum is as sharp as the
+    right one, and the choice between them is what is uncertain (docs/decisions/048)."""
+    w = np.asarray(weights, dtype=np.float64)
+    c = chosen.registration.pose
+    d = np.array(
+        [
+            [f.registration.pose.x - c.x, f.registration.pose.y - c.y, wrap_scalar(f.registration.pose.theta - c.theta)]
+            for f in fits
+        ]
+    )
+    return (d * (w / w.sum())[:, None]).T @ d
 
 
 def weighed(fit: Fit, mean: Transform2D, prediction: Prediction) -> float:

@@ -91,6 +91,10 @@ class Submap:
     placed: list[PlacedScan] = field(default_factory=list)
     """The scans this submap placed (registered on it while it was the matching submap)."""
     path_length: float = 0.0
+    path_spread: Array = field(default_factory=lambda: np.zeros((3, 3)))
+    """What the walls left open of the steps placed since its frame (the epoch's frame): the sum of
+    their window's spread (:attr:`~fleetmap.agents.fitcheck.Fit.spread`). Its successor's link
+    carries it."""
     inserted: int = 0
     finished: bool = False
     _last_insert: Transform2D | None = None
@@ -205,7 +209,11 @@ class SubmapChain:
         link = covariance = None
         if previous is not None:
             link = previous.origin.inverse().compose(pose)
-            covariance = link_covariance(reg) + drift_covariance(previous.path_length)
+            covariance = (
+                link_covariance(reg)
+                + drift_covariance(previous.path_length)
+                + rotated(previous.path_spread, -previous.origin.theta)
+            )
         walls = WallMap(SIMPLIFY_TOLERANCE)
         submap = Submap(
             epoch,
@@ -221,6 +229,12 @@ class SubmapChain:
         self.count += 1
         submap.insert(scan, samples, segments, Transform2D())
         self.active.append(submap)
+
+    def widen(self, spread: Array) -> None:
+        """A step placed with ``spread`` (a covariance in the epoch's frame) left open: every active
+        submap's successor link carries it."""
+        for submap in self.active:
+            submap.path_spread = submap.path_spread + spread
 
     def restart(
         self, epoch: int, index: int, stamp: float, scan: RangeScan, segments: Array, samples: ScanSamples
@@ -250,3 +264,10 @@ def link_covariance(reg: Registration | None) -> Array:
         return floor
     cov = 0.5 * (cov + cov.T) + floor
     return cov
+
+
+def rotated(covariance: Array, theta: float) -> Array:
+    """A pose covariance ``[x, y, theta]`` in a frame turned by ``theta``."""
+    c, s = math.cos(theta), math.sin(theta)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return r @ covariance @ r.T

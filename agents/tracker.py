@@ -69,7 +69,7 @@ from fleetmap.agents.fitcheck import KIDNAP_REASON, Fit
 from fleetmap.agents.fitting import FitSearch, ScanIn
 from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
 from fleetmap.agents.prediction import Predictor, within_gate
-from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain
+from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain, rotated
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import Prediction
@@ -323,6 +323,8 @@ class Tracker(FitSearch):
         self.motion.odometry = odometry
         self._anchor = (pose, odometry) if self.exact and odometry is not None else self._anchor
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
+        if fit.spread is not None:
+            self.chain.widen(rotated(fit.spread, submap.origin.theta))
         if self.chain.due(stamp, pose):
             self.chain.insert(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)

@@ -13,8 +13,10 @@ from fleetmap.agents.agent import Agent
 from fleetmap.scenarios.clocks import break_clock
 from fleetmap.scenarios.crowd import walk_people
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
+from fleetmap.shared.core.motion import CHI2_3DOF_99
 from fleetmap.shared.io.logs import read_carmen
+from fleetmap.shared.io.messages import LocalMap
 from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.config_args import preset
@@ -441,3 +443,28 @@ def test_people_walking_past_a_real_robot_are_no_kidnap_and_cost_no_relation(dat
         assert len(errors) > 200
         within[name] = float(np.mean(errors))
     assert within["people"] >= within["alone"] - 0.01, within
+
+
+@pytest.mark.slow  # tracks 40 scans of a real log (about 4 s)
+def test_a_link_across_a_corridor_whose_walls_leave_the_step_open_covers_its_error(datasets: Path) -> None:
+    # orebro-corrected, scans 0-40, as `fleetmap map` tracks it: down a corridor logged a scan every
+    # 1-3 m, scan 29's window holds minima metres apart along it that the walls support alike, and
+    # the tracker may take the wrong one (it slid 4.7 m). The link that spans it must say so: its
+    # covariance is the window's spread over those minima, not the peak's curvature (a few cm), so
+    # the back end can weigh it against cross-robot evidence (docs/decisions/048)
+    path = datasets / "corrected" / "orebro-corrected.log.gz"
+    agent, _ = track_stretch(path, 0, 40)
+    truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), 40)]
+    maps = {(m.epoch, m.submap): m for m in agent.republish() if isinstance(m, LocalMap)}
+    uncovered = {}
+    for (epoch, number), submap in maps.items():
+        previous = maps.get((epoch, number - 1))
+        if submap.link is None or previous is None:
+            continue
+        link, true = submap.link.transform, truth[previous.frame_scan].inverse().compose(truth[submap.frame_scan])
+        error = np.array([link.x - true.x, link.y - true.y, wrap_scalar(link.theta - true.theta)])
+        mahalanobis2 = float(error @ np.linalg.solve(np.reshape(submap.link.covariance, (3, 3)), error))
+        if mahalanobis2 > CHI2_3DOF_99:
+            uncovered[(previous.frame_scan, submap.frame_scan)] = round(mahalanobis2, 1)
+    assert len(maps) >= 6, f"{len(maps)} submaps"
+    assert not uncovered, f"links whose error is outside their covariance's 99 % (scans: Mahalanobis^2): {uncovered}"
