@@ -20,9 +20,13 @@ NaN, a stamp at or before the previous one on its topic: each is dropped and cou
 (:attr:`Ros2LiveSource.dropped`), and logged the first time it happens with the topic named. NaN
 readings among good ones are no return (REP 117: an invalid measurement), as in a bag.
 
-A scan waits for the odometry at its stamp up to :data:`ODOMETRY_WAIT` seconds (odometry usually
-comes at a higher rate and a little later); after that it goes without, which the tracker
-handles as for a scan outside a bag's odometry.
+A scan waits for the odometry at its stamp (odometry usually comes at a higher rate and a little
+later), as tf2's message filter holds a message until its transform comes: until the robot's own
+clock says the odometry is late (a later scan stamped :data:`ODOMETRY_WAIT` seconds after it, and
+still no reading at its stamp), or the robot has gone quiet for :data:`QUIET` seconds. Then it goes
+without, which the tracker handles as for a scan outside a bag's odometry. The agent's own wall
+clock does not decide: on a busy machine the odometry sample can sit behind the scan for longer
+than the robot took between them.
 """
 
 from __future__ import annotations
@@ -61,7 +65,11 @@ log = logging.getLogger(__name__)
 POLL = 0.05
 """Longest wait (s) before the source looks again at ``stop`` and at scans waiting for odometry."""
 ODOMETRY_WAIT = 0.5
-"""How long (s) a scan waits for an odometry reading at or after its stamp."""
+"""How long (s, the robot's clock: later scans' stamps) a scan waits for an odometry reading at or
+after its stamp."""
+QUIET = 5.0
+"""How long (s, wall clock) a scan waits when nothing after it comes (the robot stopped, or has no
+odometry and sent one scan)."""
 ODOMETRY_KEPT = 400
 """Odometry readings kept to interpolate in (seconds of it at any usual rate)."""
 NODE_NAME = "fleetmap_agent"
@@ -295,7 +303,8 @@ class Ros2LiveSource:
             arrived, scan, frame = self._pending[0]
             readings = self._odometry or self._tf_odometry
             caught_up = bool(readings) and readings[-1].stamp >= scan.stamp
-            if not caught_up and now - arrived < ODOMETRY_WAIT and not self.stop.is_set():
+            late = self._pending[-1][1].stamp - scan.stamp >= ODOMETRY_WAIT or now - arrived >= QUIET
+            if not caught_up and not late and not self.stop.is_set():
                 return
             self._pending.popleft()
             odometry = laser_odometry(self._track(frame), scan.stamp)

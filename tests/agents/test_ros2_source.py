@@ -169,6 +169,29 @@ def test_without_odometry_a_scan_goes_on_without_after_a_short_wait():
     assert got[0].odometry is None and got[0].stamp == 5.0
 
 
+def test_odometry_heard_late_on_a_busy_machine_still_goes_with_its_scan():
+    # the agent hears the robot's samples when its machine lets it: here the scan, then a second of
+    # its own time and another sample (a tf), and only then the odometry at the scan's stamp. The
+    # robot's clock has not moved on, so the odometry is not late: the scan waits and gets it
+    topics = Ros2Topics.of("r1", domain=3)
+    now = [100.0]
+    source = Ros2LiveSource(None, topics, threading.Event(), "r1", clock=lambda: now[0])  # type: ignore[arg-type]
+    attachment = wire.Attachment(1, 0, bytes(16)).pack()
+
+    def feed(topic: str, typename: str, message: object) -> list[SourceScan]:
+        return source.feed(topic, wire.data_key(3, topic, typename), wire.encode(message, typename), attachment)
+
+    assert feed(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181)) == []
+    now[0] += 1.0
+    assert feed(topics.tf, wire.TF_MESSAGE, T[wire.TF_MESSAGE]([])) == []
+    got = feed(topics.odom, wire.ODOMETRY, odometry(20.0, 1.0, 0.0))
+    assert len(got) == 1 and got[0].odometry is not None
+    # a robot whose odometry stopped: its next scans go without, once its own clock is past the wait
+    got = [s for t in (21.0, 21.2, 21.4, 21.6) for s in feed(topics.scan, wire.LASER_SCAN, laser_scan(t, [2.0] * 181))]
+    assert [s.stamp for s in got] == [21.0] and got[0].odometry is None
+    assert not source.dropped
+
+
 def test_topic_names_and_domains_arechecked_scan():
     t = Ros2Topics.of("/robot_a", "front/scan", "/odom", 3)
     assert (t.scan, t.odom, t.tf, t.tf_static) == ("/robot_a/front/scan", "/odom", "/robot_a/tf", "/robot_a/tf_static")
