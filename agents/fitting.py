@@ -213,9 +213,18 @@ class FitSearch:
         (:func:`best_fit`) where the robot can have driven, as a re-acquired one must be, however
         little of the scan the submap holds yet (a turn into new space: acapulco-corrected without
         odometry, scan 77, a fit at half the robot's typical score, 0.04 m from the truth). One
-        that slid beyond that lies where no start searched (scan 161: 5.7 m along a corridor)."""
+        that slid beyond that lies where no start searched (scan 161: 5.7 m along a corridor).
+        Where the scan pair measured the step (``_step``: the walls said nothing against it), a fit
+        this weak must lie within that step's 99 % gate, as one must within the odometry's: the
+        pair's integration is evidence, a turned start that a few metres of wall support is not
+        (orebro-corrected, scan 59: the pair measured the 30-degree turn within 0.1 m and a degree;
+        2.7 m of wall took a start 92 degrees from it, and the map after it ran turned by as much)."""
         origin, last, seq, stamp = self.chain.active[0].origin, self._good, taken.seq, taken.stamp
         reachable = [f for f in fits if self.motion.reachable(last, origin.compose(f.registration.pose), seq, stamp)]
+        step = self._step
+        if step is not None:
+            predicted = self._pose_in_epoch(step)
+            reachable = [f for f in reachable if within_gate(origin.compose(f.registration.pose), predicted, step)]
         best = best_fit(reachable, False)
         if best is not None:
             log.debug("scan %d fits from a turned start alone (score %.2f)", taken.index, best.registration.score)
