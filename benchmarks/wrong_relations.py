@@ -1,0 +1,223 @@
+"""Benchmark tool: where a corrected log's map is wrong, by scan, by robot and by the merger's own
+edges (run on demand, not in CI).
+
+A corrected log (``../shared/data/corrected``) is mapped as ``fleetmap map LOG --split K`` maps it
+(in this process, the default executor) and scored with its relations as
+``benchmarks/relations.py`` scores it. Then it prints:
+
+- the wrong relations (> 1 m or 10 degrees), counted by robot pair, and the stretches of scans
+  they hold (consecutive scans of one robot, gaps of up to 5), each with how many wrong
+  relations have a scan in it and their median error: where the map is wrong;
+- the merger's integrations against the corrected poses: those the last solve *accepted* (tree
+  or loop) that are wrong (> 1 m or 10 degrees), and the *valid* ones it *rejected* that are right
+  (within 0.3 m and 3 degrees): which joins went wrong and which were refused;
+- the robots' own links between consecutive submaps off by more than their own covariance says
+  (Mahalanobis^2 beyond chi-square's 99 % with 3 degrees of freedom) or by more than 1 m or
+  10 degrees: what tracking handed the merger wrong.
+
+A submap's true frame is taken from its scan nearest its origin: the scan's corrected pose times
+the inverse of its pose in the submap. The corrected poses are GMapping's, wrong at a few scans
+(``raw_truth.py``); a wrong relation the raw scans contradict is listed apart.
+
+    python benchmarks/wrong_relations.py corrected/freiburg-campus --split 6
+    python benchmarks/wrong_relations.py corrected/orebro --split 1 --odometry off
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import tempfile
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+from fleetmap.merger.executor import make_executor
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.logs import read_carmen
+
+from fleetmap.mapping import map_logs, read_inputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from raw_truth import RawTruth, beyond
+from relations import WRONG_DEG, WRONG_M, corrected_relations, map_config
+from tracking import CORRECTED, data_folder
+
+RIGHT_M, RIGHT_DEG = 0.3, 3.0
+"""An integration this close to the corrected poses counts as right (the corrected poses' own
+error is a few centimetres; their submaps' frames a little more)."""
+CHI2_3_99 = 11.345
+"""Chi-square's 99 % point with 3 degrees of freedom: a link's error beyond it is not covered by its
+covariance."""
+GAP = 5
+"""Scans of one robot this close in the log belong to one stretch of the listing."""
+
+
+def stretches(scans: dict[tuple[str, int], list[float]]) -> list[tuple[str, int, int, int, float]]:
+    """(robot, first scan, last scan, wrong relations, their median error in m) of each stretch of a
+    robot's consecutive scans (gaps up to :data:`GAP`), most wrong relations first."""
+    out = []
+    by_robot: dict[str, list[int]] = defaultdict(list)
+    for robot, i in scans:
+        by_robot[robot].append(i)
+    for robot, indices in by_robot.items():
+        indices.sort()
+        run = [indices[0]]
+        for i in [*indices[1:], None]:
+            if i is not None and i - run[-1] <= GAP:
+                run.append(i)
+                continue
+            errors = [e for j in run for e in scans[(robot, j)]]
+            out.append((robot, run[0], run[-1], len(errors), statistics.median(errors)))
+            if i is not None:
+                run = [i]
+    return sorted(out, key=lambda s: -s[3])
+
+
+def frame_truth(submap, truth: list[Transform2D]) -> Transform2D | None:
+    """The submap's frame in the corrected poses' frame, from its scan nearest its origin."""
+    if submap.scan_indices is None or len(submap.scan_indices) == 0:
+        return None
+    poses = np.asarray(submap.scan_poses)
+    k = int(np.argmin(np.hypot(poses[:, 0], poses[:, 1])))
+    index = int(submap.scan_indices[k])
+    if index >= len(truth):
+        return None
+    return truth[index].compose(Transform2D(*poses[k]).inverse())
+
+
+def _error(estimate: Transform2D, true: Transform2D) -> tuple[float, float]:
+    e = true.inverse().compose(estimate)
+    return math.hypot(e.x, e.y), math.degrees(abs(e.theta))
+
+
+def _span(submap) -> str:
+    s = submap.scan_indices
+    return f"{int(min(s))}-{int(max(s))}" if s is not None and len(s) else "-"
+
+
+def list_relations(result, relations, raw: RawTruth) -> None:
+    poses = {index: (robot, n, pose) for (robot, index), (n, pose) in result.by_index.items()}
+    wrong, contradicted = [], 0
+    for i, j, truth in relations:
+        a, b = poses.get(i), poses.get(j)
+        if a is None or b is None or a[1] != b[1]:
+            continue
+        estimate = a[2].inverse().compose(b[2])
+        error = truth.inverse().compose(estimate)
+        if not beyond(error, WRONG_M, WRONG_DEG):
+            continue
+        if raw.sides_with_map(i, j, truth, estimate, WRONG_M, WRONG_DEG):
+            contradicted += 1
+            continue
+        wrong.append((a[0], i, b[0], j, math.hypot(error.x, error.y), math.degrees(abs(error.theta))))
+    print(f"\n## Wrong relations: {len(wrong)} (+{contradicted} the raw scans contradict)\n")
+    pairs = Counter(tuple(sorted((ra, rb))) for ra, _, rb, _, _, _ in wrong)
+    for (ra, rb), n in pairs.most_common():
+        print(f"- {ra} with {rb}: {n}" + (" (own)" if ra == rb else " (cross-robot)"))
+    scans: dict[tuple[str, int], list[float]] = defaultdict(list)
+    for ra, i, rb, j, et, _ in wrong:
+        scans[(ra, i)].append(et)
+        scans[(rb, j)].append(et)
+    if scans:
+        print("\n| robot | scans | wrong relations with a scan here | median error |\n|---|---|---|---|")
+        for robot, first, last, n, med in stretches(scans)[:25]:
+            print(f"| {robot} | {first}-{last} | {n} | {med:.2f} m |")
+
+
+def list_edges(result, truth: list[Transform2D]) -> None:
+    merger = result.merger
+    solved = merger.result
+    if solved is None:
+        print("\nThe merger never solved.")
+        return
+    accepted = {e.key() for e in [*solved.tree, *solved.loops]}
+    rejected = {e.key() for e in solved.rejected}
+    frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
+    rows: dict[str, list[str]] = {"accepted wrong": [], "rejected right": []}
+    counts = Counter()
+    for e in merger.graph.edges:
+        if e.link or frames.get(e.a) is None or frames.get(e.b) is None:
+            continue
+        et, er = _error(e.transform, frames[e.a].inverse().compose(frames[e.b]))
+        right, bad = et < RIGHT_M and er < RIGHT_DEG, et > WRONG_M or er > WRONG_DEG
+        verdict = "accepted" if e.key() in accepted else "rejected" if e.key() in rejected else None
+        if verdict is None:
+            counts["valid, not in the last solve" if e.valid else "invalid"] += 1
+            continue
+        counts[f"{verdict} {'right' if right else 'wrong' if bad else 'between'}"] += 1
+        kind = f"{verdict} {'wrong' if verdict == 'accepted' else 'right'}"
+        if (verdict == "accepted" and bad) or (verdict == "rejected" and right):
+            sa, sb = merger.submaps[e.a], merger.submaps[e.b]
+            rows[kind].append(
+                f"| {e.a} ({_span(sa)}) | {e.b} ({_span(sb)}) | {et:.2f} m, {er:.1f} deg | {e.value:.1f} |"
+            )
+    print("\n## The merger's integrations against the corrected poses\n")
+    print(", ".join(f"{k}: {n}" for k, n in sorted(counts.items())))
+    for kind, lines in rows.items():
+        if lines:
+            print(f"\n{kind}:\n\n| a (scans) | b (scans) | error | value |\n|---|---|---|---|")
+            print("\n".join(lines))
+
+
+def list_links(result, truth: list[Transform2D]) -> None:
+    merger = result.merger
+    frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
+    by_place = {(m.robot, m.epoch, m.submap): k for k, m in merger.submaps.items()}
+    lines, n = [], 0
+    for k, m in merger.submaps.items():
+        if m.link is None:
+            continue
+        prev = by_place.get((m.robot, m.epoch, m.link.submap))
+        if prev is None or frames.get(prev) is None or frames.get(k) is None:
+            continue
+        n += 1
+        true = frames[prev].inverse().compose(frames[k])
+        e = true.inverse().compose(m.link.transform)
+        v = np.array([e.x, e.y, e.theta])
+        try:
+            d2 = float(v @ np.linalg.solve(m.link.covariance_matrix, v))
+        except np.linalg.LinAlgError:
+            d2 = math.inf
+        et, er = math.hypot(e.x, e.y), math.degrees(abs(e.theta))
+        if d2 > CHI2_3_99 or et > WRONG_M or er > WRONG_DEG:
+            sd = math.degrees(math.sqrt(max(m.link.covariance_matrix[2, 2], 0.0)))
+            lines.append(
+                f"| {prev} ({_span(merger.submaps[prev])}) | {k} ({_span(m)}) | {et:.2f} m, {er:.1f} deg "
+                f"| {sd:.1f} deg | {d2:.1f} |"
+            )
+    print(f"\n## Links not covered by their covariance: {len(lines)} of {n}\n")
+    if lines:
+        print("| from (scans) | to (scans) | error | heading's sd | Mahalanobis^2 |\n|---|---|---|---|---|")
+        print("\n".join(lines))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("log", help="a corrected log: corrected/NAME (" + ", ".join(CORRECTED) + ")")
+    ap.add_argument("--split", type=int, default=1, help="cut into K robots (default 1)")
+    args, extra = ap.parse_known_args()
+    name = args.log.removeprefix("corrected/")
+    if name not in CORRECTED:
+        raise SystemExit(f"unknown corrected log {args.log!r} (known: {', '.join(CORRECTED)})")
+    path = data_folder() / "corrected" / f"{name}-corrected.log.gz"
+    truth = [Transform2D(*s.odometry) for s in read_carmen(path) if s.odometry is not None]
+    executor = make_executor("local")
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            result = map_logs(
+                read_inputs([str(path)], args.split), Path(tmp) / "out", map_config(extra), executor=executor
+            )
+    finally:
+        executor.close()
+    print(f"# {args.log} cut in {args.split}: {len(result.merger.submaps)} submaps")
+    list_relations(result, corrected_relations(path), RawTruth(path))
+    list_edges(result, truth)
+    list_links(result, truth)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
