@@ -15,8 +15,7 @@ A corrected log (``../shared/data/corrected``) is mapped as ``fleetmap map LOG -
   (Mahalanobis^2 beyond chi-square's 99 % with 3 degrees of freedom) or by more than 1 m or
   10 degrees: what tracking handed the merger wrong.
 
-A submap's true frame is taken from its scan nearest its origin: the scan's corrected pose times
-the inverse of its pose in the submap. The corrected poses are GMapping's, wrong at a few scans
+A submap's true frame is its frame scan's corrected pose. The corrected poses are GMapping's, wrong at a few scans
 (``raw_truth.py``); a wrong relation the raw scans contradict is listed apart.
 
     python benchmarks/wrong_relations.py corrected/freiburg-campus --split 6
@@ -51,6 +50,9 @@ error is a few centimetres; their submaps' frames a little more)."""
 CHI2_3_99 = 11.345
 """Chi-square's 99 % point with 3 degrees of freedom: a link's error beyond it is not covered by its
 covariance."""
+LOOSE_DEG = 2.0
+"""A link whose heading's standard deviation is beyond this (degrees) is listed as loose: one that
+steps the walls did not check left open (a registration's is under a degree)."""
 GAP = 5
 """Scans of one robot this close in the log belong to one stretch of the listing."""
 
@@ -77,7 +79,10 @@ def stretches(scans: dict[tuple[str, int], list[float]]) -> list[tuple[str, int,
 
 
 def frame_truth(submap, truth: list[Transform2D]) -> Transform2D | None:
-    """The submap's frame in the corrected poses' frame, from its scan nearest its origin."""
+    """The submap's frame in the corrected poses' frame: its frame scan's corrected pose (else,
+    from a message without it, its placed scan nearest its origin)."""
+    if submap.frame_scan is not None:
+        return truth[submap.frame_scan] if submap.frame_scan < len(truth) else None
     if submap.scan_indices is None or len(submap.scan_indices) == 0:
         return None
     poses = np.asarray(submap.scan_poses)
@@ -101,8 +106,11 @@ def _span(submap) -> str:
 def list_relations(result, relations, raw: RawTruth) -> None:
     poses = {index: (robot, n, pose) for (robot, index), (n, pose) in result.by_index.items()}
     wrong, contradicted = [], 0
+    apart: Counter[tuple[str, str]] = Counter()
     for i, j, truth in relations:
         a, b = poses.get(i), poses.get(j)
+        if a is not None and b is not None and a[1] != b[1]:
+            apart[tuple(sorted((f"{a[0]} ({a[1]})", f"{b[0]} ({b[1]})")))] += 1
         if a is None or b is None or a[1] != b[1]:
             continue
         estimate = a[2].inverse().compose(b[2])
@@ -113,6 +121,16 @@ def list_relations(result, relations, raw: RawTruth) -> None:
             contradicted += 1
             continue
         wrong.append((a[0], i, b[0], j, math.hypot(error.x, error.y), math.degrees(abs(error.theta))))
+    components: dict[str, set[int]] = defaultdict(set)
+    for robot, n, _ in poses.values():
+        components[robot].add(n)
+    print("\n## Components by robot\n")
+    for robot in sorted(components):
+        print(f"- {robot}: {sorted(components[robot])}")
+    if apart:
+        print("\nRelations not joined (robot (component) with robot (component)):\n")
+        for (ra, rb), n in apart.most_common():
+            print(f"- {ra} with {rb}: {n}")
     print(f"\n## Wrong relations: {len(wrong)} (+{contradicted} the raw scans contradict)\n")
     pairs = Counter(tuple(sorted((ra, rb))) for ra, _, rb, _, _, _ in wrong)
     for (ra, rb), n in pairs.most_common():
@@ -127,46 +145,91 @@ def list_relations(result, relations, raw: RawTruth) -> None:
             print(f"| {robot} | {first}-{last} | {n} | {med:.2f} m |")
 
 
-def list_edges(result, truth: list[Transform2D]) -> None:
-    merger = result.merger
+def _solved(merger) -> dict[tuple[str, str], tuple[str, object]]:
+    """The last solve's integrations by key: ("accepted" or "rejected", the edge as the solve took
+    it). An ambiguous integration a cycle confirmed is there as the alignment the cycle took (one
+    of its rivals, perhaps), valid; the graph holds it as integrated."""
     solved = merger.result
     if solved is None:
+        return {}
+    out = {e.key(): ("accepted", e) for e in [*solved.tree, *solved.loops] if not e.link}
+    out.update({e.key(): ("rejected", e) for e in solved.rejected if not e.link})
+    return out
+
+
+def list_edges(result, truth: list[Transform2D]) -> None:
+    merger = result.merger
+    if merger.result is None:
         print("\nThe merger never solved.")
         return
-    accepted = {e.key() for e in [*solved.tree, *solved.loops]}
-    rejected = {e.key() for e in solved.rejected}
+    solved = _solved(merger)
     frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
     rows: dict[str, list[str]] = {"accepted wrong": [], "rejected right": []}
     counts = Counter()
     for e in merger.graph.edges:
         if e.link or frames.get(e.a) is None or frames.get(e.b) is None:
             continue
-        et, er = _error(e.transform, frames[e.a].inverse().compose(frames[e.b]))
-        right, bad = et < RIGHT_M and er < RIGHT_DEG, et > WRONG_M or er > WRONG_DEG
-        verdict = "accepted" if e.key() in accepted else "rejected" if e.key() in rejected else None
-        if verdict is None:
+        if e.key() not in solved:
             counts["valid, not in the last solve" if e.valid else "invalid"] += 1
             continue
+        verdict, taken = solved[e.key()]
+        if taken.a != e.a:
+            taken = taken.reversed()
+        et, er = _error(taken.transform, frames[e.a].inverse().compose(frames[e.b]))
+        right, bad = et < RIGHT_M and er < RIGHT_DEG, et > WRONG_M or er > WRONG_DEG
         counts[f"{verdict} {'right' if right else 'wrong' if bad else 'between'}"] += 1
+        counts[f"{verdict} as a rival the cycle confirmed"] += not e.valid
         kind = f"{verdict} {'wrong' if verdict == 'accepted' else 'right'}"
         if (verdict == "accepted" and bad) or (verdict == "rejected" and right):
             sa, sb = merger.submaps[e.a], merger.submaps[e.b]
             rows[kind].append(
-                f"| {e.a} ({_span(sa)}) | {e.b} ({_span(sb)}) | {et:.2f} m, {er:.1f} deg | {e.value:.1f} |"
+                f"| {e.a} ({_span(sa)}) | {e.b} ({_span(sb)}) | {et:.2f} m, {er:.1f} deg | {taken.value:.1f} |"
             )
     print("\n## The merger's integrations against the corrected poses\n")
-    print(", ".join(f"{k}: {n}" for k, n in sorted(counts.items())))
+    print(", ".join(f"{k}: {n}" for k, n in sorted(counts.items()) if n))
     for kind, lines in rows.items():
         if lines:
             print(f"\n{kind}:\n\n| a (scans) | b (scans) | error | value |\n|---|---|---|---|")
             print("\n".join(lines))
 
 
+def list_edges_of(result, truth: list[Transform2D], scans: list[int]) -> None:
+    """Every integration tried of the submaps that place any of ``scans``: its verdict in the last
+    solve and its error (as the solve took it, where it did)."""
+    merger = result.merger
+    solved = merger.result
+    verdicts = _solved(merger)
+    frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
+    keys = {
+        k
+        for k, m in merger.submaps.items()
+        if m.scan_indices is not None and set(map(int, m.scan_indices)) & set(scans)
+    }
+    for key in sorted(keys):
+        m = merger.submaps[key]
+        where = solved.poses.get(key) if solved else None
+        print(f"\n### {key} (scans {_span(m)}, frame scan {m.frame_scan}): placed {where}\n")
+        print("| with (scans) | valid | verdict | error | value | wall in free space (m) |\n|---|---|---|---|---|---|")
+        for e in merger.graph.edges:
+            if key not in (e.a, e.b):
+                continue
+            other = e.b if e.a == key else e.a
+            verdict, taken = verdicts.get(e.key(), ("-", e))
+            if taken.a != e.a:
+                taken = taken.reversed()
+            err = "-"
+            if frames.get(e.a) is not None and frames.get(e.b) is not None:
+                true = frames[e.a].inverse().compose(frames[e.b])
+                err = "{:.2f} m, {:.1f} deg".format(*_error(taken.transform, true))
+            cells = f"| {other} ({_span(merger.submaps[other])}) | {e.valid} | {verdict} | {err} "
+            print(cells + f"| {e.value:.1f} | {e.violation:.1f} |")
+
+
 def list_links(result, truth: list[Transform2D]) -> None:
     merger = result.merger
     frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
     by_place = {(m.robot, m.epoch, m.submap): k for k, m in merger.submaps.items()}
-    lines, n = [], 0
+    lines, loose, n = [], [], 0
     for k, m in merger.submaps.items():
         if m.link is None:
             continue
@@ -182,22 +245,27 @@ def list_links(result, truth: list[Transform2D]) -> None:
         except np.linalg.LinAlgError:
             d2 = math.inf
         et, er = math.hypot(e.x, e.y), math.degrees(abs(e.theta))
+        sd = math.degrees(math.sqrt(max(m.link.covariance_matrix[2, 2], 0.0)))
+        row = f"| {prev} ({_span(merger.submaps[prev])}) | {k} ({_span(m)}) | {et:.2f} m, {er:.1f} deg "
+        row += f"| {sd:.1f} deg | {d2:.1f} |"
         if d2 > CHI2_3_99 or et > WRONG_M or er > WRONG_DEG:
-            sd = math.degrees(math.sqrt(max(m.link.covariance_matrix[2, 2], 0.0)))
-            lines.append(
-                f"| {prev} ({_span(merger.submaps[prev])}) | {k} ({_span(m)}) | {et:.2f} m, {er:.1f} deg "
-                f"| {sd:.1f} deg | {d2:.1f} |"
-            )
-    print(f"\n## Links not covered by their covariance: {len(lines)} of {n}\n")
-    if lines:
-        print("| from (scans) | to (scans) | error | heading's sd | Mahalanobis^2 |\n|---|---|---|---|---|")
-        print("\n".join(lines))
+            lines.append(row)
+        if sd > LOOSE_DEG:
+            loose.append(row)
+    head = "| from (scans) | to (scans) | error | heading's sd | Mahalanobis^2 |\n|---|---|---|---|---|"
+    for title, rows in (("not covered by their covariance", lines), (f"looser than {LOOSE_DEG} degrees", loose)):
+        print(f"\n## Links {title}: {len(rows)} of {n}\n")
+        if rows:
+            print(head + "\n" + "\n".join(rows))
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("log", help="a corrected log: corrected/NAME (" + ", ".join(CORRECTED) + ")")
     ap.add_argument("--split", type=int, default=1, help="cut into K robots (default 1)")
+    ap.add_argument(
+        "--scans", default="", help="also list every integration of the submaps placing these scans (e.g. 1084,1086)"
+    )
     args, extra = ap.parse_known_args()
     name = args.log.removeprefix("corrected/")
     if name not in CORRECTED:
@@ -216,6 +284,8 @@ def main() -> int:
     list_relations(result, corrected_relations(path), RawTruth(path))
     list_edges(result, truth)
     list_links(result, truth)
+    if args.scans:
+        list_edges_of(result, truth, [int(i) for i in args.scans.split(",")])
     return 0
 
 
