@@ -1,0 +1,55 @@
+"""benchmarks/wrong_relations.py: wrong relations are listed by the stretches of scans they hold,
+and a submap's truth is its frame scan's corrected pose."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.io.messages import LocalMap
+
+pytestmark = pytest.mark.slow  # importing the tool imports the mapping and the benchmarks (2 s): CI runs it
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def tool():  # type: ignore[no-untyped-def]
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import wrong_relations
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return wrong_relations
+
+
+def test_wrong_relations_are_grouped_by_a_robots_consecutive_scans_most_first(tool) -> None:  # type: ignore[no-untyped-def]
+    scans = {
+        ("r1", 100): [2.0, 4.0],
+        ("r1", 103): [6.0],  # 3 scans on: the same stretch
+        ("r1", 200): [0.5],  # far on: another
+        ("r2", 101): [1.0],  # another robot's scan between: its own stretch
+    }
+    assert tool.stretches(scans) == [("r1", 100, 103, 3, 4.0), ("r1", 200, 200, 1, 0.5), ("r2", 101, 101, 1, 1.0)]
+
+
+def test_a_submaps_truth_is_its_frame_scans_corrected_pose(tool) -> None:  # type: ignore[no-untyped-def]
+    truth = [Transform2D(float(i), 0.0, 0.1 * i) for i in range(10)]
+    submap = LocalMap(
+        "r1",
+        0,
+        1,
+        0.0,
+        np.array([[0.0, 0.0, 1.0, 0.0]]),
+        3,
+        submap=2,
+        scan_indices=np.array([6, 7]),
+        scan_stamps=np.array([6.0, 7.0]),
+        scan_poses=np.array([[1.0, 0.0, 0.1], [2.0, 0.0, 0.2]]),
+        frame_scan=5,
+    )
+    assert tool.frame_truth(submap, truth) == truth[5], "the scan whose laser pose is the frame, not a placed one"
+    assert tool.frame_truth(LocalMap(**{**submap.__dict__, "frame_scan": 12}), truth) is None, "beyond the log"
