@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import (
     CHI2_3DOF_99,
     ODOMETRY_TRANSLATION_SIGMA,
@@ -60,6 +60,9 @@ class Predictor:
         """Per second of :attr:`clock` time, in the laser's frame."""
         self.velocity_known = False
         """Whether two placed scans of the epoch gave the velocity."""
+        self.velocity_sigma = math.inf
+        """How sure the velocity's translation is (m/s, the same in every direction): the last step's
+        own uncertainty as its placement measured it, over its time (inf: not measured)."""
         self.drift = (0.0, 0.0)
         """The motion model's variances (m^2, rad^2) added up over the steps since the last scan the
         walls placed: the prediction's uncertainty grows with every step they did not check
@@ -100,13 +103,25 @@ class Predictor:
         """An epoch begins at a scan with this odometry reading: nothing is known of the motion."""
         self.drift = self.track_drift = (0.0, 0.0)
         self.odometry = odometry
-        self.velocity, self.velocity_known = np.zeros(3), False
+        self.velocity, self.velocity_known, self.velocity_sigma = np.zeros(3), False, math.inf
 
-    def moved(self, last: Placed, pose: Transform2D, seq: int, stamp: float) -> None:
+    def moved(self, last: Placed, pose: Transform2D, seq: int, stamp: float, information: Array | None = None) -> None:
         """The walls placed a scan at ``pose`` (epoch frame) after the last placed scan: the velocity
-        between the two."""
+        between the two, as sure as the placement's ``information`` (the walls' and the prior's,
+        as registration measured them) makes the step: a Kalman filter's velocity, measured by the
+        step. Along a corridor whose walls fix nothing, the step is the prediction's, and so is the
+        velocity: a velocity not yet measured stays so there, rather than becoming the standing
+        start the prior was centred on (an epoch begun in such a corridor was placed 0.3 m short a
+        scan until three epochs had begun)."""
         seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
         self.velocity, self.velocity_known = velocity_between(last[1], pose, seconds), True
+        self.velocity_sigma = math.inf
+        if information is not None and seconds > 0:
+            try:
+                widest = float(np.linalg.eigvalsh(np.linalg.inv(information)[:2, :2]).max())
+            except np.linalg.LinAlgError:
+                return
+            self.velocity_sigma = math.sqrt(max(widest, 0.0)) / seconds
 
     def carry(self) -> None:
         """The scan just predicted was not placed by the walls: its step's uncertainty adds to the
@@ -130,11 +145,13 @@ class Predictor:
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
         elapsed = self.clock.elapsed(seconds, seq - last_seq)
         velocity = from_velocity(self.velocity, elapsed, integration.motion.max_acceleration)
-        if not self.velocity_known and integration.motion.max_speed > 0:
-            # no two placed scans have measured the motion yet: the robot may be driving at any
-            # speed it can, not standing still (an epoch begun in a corridor, whose walls fix
-            # nothing along it, was placed as standing, 0.3 m short a scan)
-            reach = integration.motion.max_speed * elapsed
+        if integration.motion.max_speed > 0:
+            # no two placed scans have measured the motion yet, or the walls did not fix the last
+            # step: the robot may be driving at any speed it can, or as fast as the step allows,
+            # not standing still (an epoch begun in a corridor, whose walls fix nothing along it,
+            # was placed as standing, 0.3 m short a scan)
+            sigma = integration.motion.max_speed if not self.velocity_known else self.velocity_sigma
+            reach = min(sigma, integration.motion.max_speed) * elapsed
             velocity = replace(velocity, sigma_translation=max(velocity.sigma_translation, reach))
         out = []
         self.odometry_step = self._widened = None

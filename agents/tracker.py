@@ -312,7 +312,7 @@ class Tracker(FitSearch):
         if self._good is not None:
             seconds = stamp - self._good[0]
             check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
-            self.motion.moved(self._good, pose, seq, stamp)
+            self.motion.moved(self._good, pose, seq, stamp, reg.information)
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
         if status != "carried":  # (a carried scan's pose is the motion model's guess, its view poor)
             self._previous = (taken.segments, (stamp, pose, seq))

@@ -251,3 +251,18 @@ def test_bad_parameters_are_refused_by_name(tracking, named):
 def test_an_epochs_event_says_why(carried_run):
     [detail] = [json.loads(m.detail) for m in carried_run.messages if isinstance(m, FleetEvent)]
     assert "fit neither the submap" in detail["reason"]
+
+
+@pytest.mark.slow  # a robot's 118 scans (about 2 s): CI runs it with the slow ones
+def test_without_odometry_a_corridor_that_fixes_nothing_along_it_leaves_the_robots_speed_unknown():
+    # department-16's r4 sets off without odometry down a corridor whose walls fix nothing along
+    # it. Its first step, placed where the standing prior put it, measured its speed as 0, and it
+    # was placed 0.3 m short every scan until three epochs had begun, with no kidnap. A step is
+    # as sure as its placement: along that corridor, as unsure as the prior, the speed unmeasured.
+    config = replace(FleetmapConfig(), tracking=TrackingParams(odometry="off"))
+    agent = Agent("r4", config)
+    stream = list(robot_stream(load_scenario("department-16"), "r4"))
+    for s in stream:
+        agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+    assert agent.counts.epochs == 1, "no epoch where no kidnap was"
+    assert agent.counts.placed == len(stream), "every scan placed"
