@@ -62,7 +62,8 @@ class Predictor:
         """Whether two placed scans of the epoch gave the velocity."""
         self.velocity_sigma = math.inf
         """How sure the velocity's translation is (m/s, the same in every direction): the last step's
-        own uncertainty as its placement measured it, over its time (inf: not measured)."""
+        own uncertainty as its placement measured it, over its time (inf: not measured, as before
+        two placed scans)."""
         self.drift = (0.0, 0.0)
         """The motion model's variances (m^2, rad^2) added up over the steps since the last scan the
         walls placed: the prediction's uncertainty grows with every step they did not check
@@ -105,7 +106,7 @@ class Predictor:
         self.odometry = odometry
         self.velocity, self.velocity_known, self.velocity_sigma = np.zeros(3), False, math.inf
 
-    def moved(self, last: Placed, pose: Transform2D, seq: int, stamp: float, information: Array | None = None) -> None:
+    def moved(self, last: Placed, pose: Transform2D, seq: int, stamp: float, information: Array) -> None:
         """The walls placed a scan at ``pose`` (epoch frame) after the last placed scan: the velocity
         between the two, as sure as the placement's ``information`` (the walls' and the prior's,
         as registration measured them) makes the step: a Kalman filter's velocity, measured by the
@@ -116,7 +117,7 @@ class Predictor:
         seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
         self.velocity, self.velocity_known = velocity_between(last[1], pose, seconds), True
         self.velocity_sigma = math.inf
-        if information is not None and seconds > 0:
+        if seconds > 0:
             try:
                 widest = float(np.linalg.eigvalsh(np.linalg.inv(information)[:2, :2]).max())
             except np.linalg.LinAlgError:
@@ -150,8 +151,7 @@ class Predictor:
             # step: the robot may be driving at any speed it can, or as fast as the step allows,
             # not standing still (an epoch begun in a corridor, whose walls fix nothing along it,
             # was placed as standing, 0.3 m short a scan)
-            sigma = integration.motion.max_speed if not self.velocity_known else self.velocity_sigma
-            reach = min(sigma, integration.motion.max_speed) * elapsed
+            reach = min(self.velocity_sigma, integration.motion.max_speed) * elapsed
             velocity = replace(velocity, sigma_translation=max(velocity.sigma_translation, reach))
         out = []
         self.odometry_step = self._widened = None

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 from fleetmap.merger.executor import make_executor
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.motion import CHI2_3DOF_99
 from fleetmap.shared.io.logs import read_carmen
 
 from fleetmap.mapping import map_logs, read_inputs
@@ -47,9 +48,6 @@ from tracking import CORRECTED, data_folder
 RIGHT_M, RIGHT_DEG = 0.3, 3.0
 """An integration this close to the corrected poses counts as right (the corrected poses' own
 error is a few centimetres; their submaps' frames a little more)."""
-CHI2_3_99 = 11.345
-"""Chi-square's 99 % point with 3 degrees of freedom: a link's error beyond it is not covered by its
-covariance."""
 LOOSE_DEG = 2.0
 """A link whose heading's standard deviation is beyond this (degrees) is listed as loose: one that
 steps the walls did not check left open (a registration's is under a degree)."""
@@ -79,18 +77,11 @@ def stretches(scans: dict[tuple[str, int], list[float]]) -> list[tuple[str, int,
 
 
 def frame_truth(submap, truth: list[Transform2D]) -> Transform2D | None:
-    """The submap's frame in the corrected poses' frame: its frame scan's corrected pose (else,
-    from a message without it, its placed scan nearest its origin)."""
-    if submap.frame_scan is not None:
-        return truth[submap.frame_scan] if submap.frame_scan < len(truth) else None
-    if submap.scan_indices is None or len(submap.scan_indices) == 0:
+    """The submap's frame in the corrected poses' frame: its frame scan's corrected pose (None:
+    beyond the log, or a submap that does not say its frame scan)."""
+    if submap.frame_scan is None or submap.frame_scan >= len(truth):
         return None
-    poses = np.asarray(submap.scan_poses)
-    k = int(np.argmin(np.hypot(poses[:, 0], poses[:, 1])))
-    index = int(submap.scan_indices[k])
-    if index >= len(truth):
-        return None
-    return truth[index].compose(Transform2D(*poses[k]).inverse())
+    return truth[submap.frame_scan]
 
 
 def _error(estimate: Transform2D, true: Transform2D) -> tuple[float, float]:
@@ -248,7 +239,7 @@ def list_links(result, truth: list[Transform2D]) -> None:
         sd = math.degrees(math.sqrt(max(m.link.covariance_matrix[2, 2], 0.0)))
         row = f"| {prev} ({_span(merger.submaps[prev])}) | {k} ({_span(m)}) | {et:.2f} m, {er:.1f} deg "
         row += f"| {sd:.1f} deg | {d2:.1f} |"
-        if d2 > CHI2_3_99 or et > WRONG_M or er > WRONG_DEG:
+        if d2 > CHI2_3DOF_99 or et > WRONG_M or er > WRONG_DEG:
             lines.append(row)
         if sd > LOOSE_DEG:
             loose.append(row)

@@ -4,6 +4,7 @@ and a submap's truth is its frame scan's corrected pose."""
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -52,4 +53,4 @@ def test_a_submaps_truth_is_its_frame_scans_corrected_pose(tool) -> None:  # typ
         frame_scan=5,
     )
     assert tool.frame_truth(submap, truth) == truth[5], "the scan whose laser pose is the frame, not a placed one"
-    assert tool.frame_truth(LocalMap(**{**submap.__dict__, "frame_scan": 12}), truth) is None, "beyond the log"
+    assert tool.frame_truth(replace(submap, frame_scan=12), truth) is None, "beyond the log"
