@@ -250,7 +250,9 @@ def _feed_scans(
 ) -> bool:
     """Step 3 of the module docstring: the scans to the agent at their stamps' pace, what it says
     published, requests answered between scans; whether ``stop`` ended the run before the source
-    did. ``said``: when the last status line was logged (the clock's time)."""
+    did. ``said``: when the last status line was logged (the clock's time). A source that ends
+    itself at ``stop`` (``ends_at_stop``: a live robot's) gives back the scans it held then, and
+    each is tracked; any other is cut at ``stop``."""
     first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
     for item in source:
         stamp = item.stamp
@@ -262,7 +264,7 @@ def _feed_scans(
                 out.answer_requests()
                 wait(min(left, POLL))
         out.answer_requests()
-        if stop.is_set():
+        if stop.is_set() and not getattr(source, "ends_at_stop", False):
             return True
         for epoch in out.requests.take_relocalized():
             agent.relocalized(epoch)

@@ -116,6 +116,10 @@ class Ros2LiveSource:
 
     has_odometry = True
     """The robot may publish odometry; a scan without any at its stamp goes without."""
+    ends_at_stop = True
+    """The source itself ends when ``stop`` is set, giving back first every scan it holds (heard
+    and not yet taken, or waiting for its odometry): :func:`~fleetmap.agents.process.run_agent`
+    tracks all it gives, so a SIGTERM loses no scan the robot sent before it."""
 
     def __init__(
         self,
@@ -185,6 +189,11 @@ class Ros2LiveSource:
                 with contextlib.suppress(queue.Empty):
                     self._take(*self._inbox.get(timeout=POLL))
                 yield from self._released()
+            # stopped: what was heard is taken, and every scan held goes (stop releases them all)
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    self._take(*self._inbox.get_nowait())
+            yield from self._released()
         finally:
             for handle in reversed(handles):
                 handle.undeclare()

@@ -9,16 +9,22 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from fleetmap.agents.agent import Agent
+from fleetmap.agents.process import run_agent
 from fleetmap.agents.ros2_source import Ros2LiveSource, Ros2Topics
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io import ros2_wire as wire
+from fleetmap.shared.io.keys import FleetKeys
+from fleetmap.shared.io.memory_bus import InMemoryBus
+from fleetmap.shared.io.messages import decode
 from fleetmap.shared.io.ros2_node import Ros2Node
 from fleetmap.shared.io.sources import SourceScan
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 
-from tests.bus_helpers import WAIT, open_zenoh_pair
+from tests.bus_helpers import WAIT, Inbox, open_zenoh_pair
 
 T = wire.typestore().types
+KEYS = FleetKeys("t")
 
 
 def header(t: float, frame: str) -> object:
@@ -190,6 +196,32 @@ def test_odometry_heard_late_on_a_busy_machine_still_goes_with_its_scan():
     got = [s for t in (21.0, 21.2, 21.4, 21.6) for s in feed(topics.scan, wire.LASER_SCAN, laser_scan(t, [2.0] * 181))]
     assert [s.stamp for s in got] == [21.0] and got[0].odometry is None
     assert not source.dropped
+
+
+def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_one_on_the_bus(monkeypatch):
+    # SIGTERM comes while the robot's last scans are in the agent: one waits for the odometry at
+    # its stamp, one is heard and not yet taken. Neither may be lost: the source gives them back as
+    # it ends, and the run tracks and publishes them before the final local maps
+    topics = Ros2Topics.of("r1", domain=4)
+    stop = threading.Event()
+    source = Ros2LiveSource(None, topics, stop, "r1", clock=lambda: 100.0)  # type: ignore[arg-type]
+    monkeypatch.setattr(source, "_declare", lambda: [])  # no session: samples come as below
+    attachment = wire.Attachment(1, 0, bytes(16)).pack()
+
+    def sample(topic: str, typename: str, message: object) -> tuple[str, str, bytes, bytes]:
+        return topic, wire.data_key(4, topic, typename), wire.encode(message, typename), attachment
+
+    assert source.feed(*sample(topics.odom, wire.ODOMETRY, odometry(19.9, 0.0, 0.0))) == []
+    assert source.feed(*sample(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181))) == []  # waits
+    source._inbox.put(sample(topics.scan, wire.LASER_SCAN, laser_scan(20.2, [2.0] * 181)))  # as a callback does
+    stop.set()
+    bus = InMemoryBus()
+    scans = Inbox()
+    bus.peer().subscribe(KEYS.scan("r1"), scans)
+    summary = run_agent(source, Agent("r1"), bus, KEYS, speed=0, stop=stop, start_after_known=False)
+    assert summary.stopped and summary.scans == 2
+    got = [decode(payload) for _, payload in scans.items]
+    assert [(m.index, m.stamp) for m in got] == [(0, 20.0), (1, 20.2)]  # type: ignore[attr-defined]
 
 
 def test_topic_names_and_domains_arechecked_scan():

@@ -602,9 +602,10 @@ def test_a_real_log_through_ros2_end_to_end_gives_the_map_fleetmap_map_makes(
             assert services.wait_until(lambda got: any("merger" in str(g) for g in got), WAIT)
             agent = procs.start(
                 "agent", "agent", "--robot", "r1", "--ros2", "--namespace", "r1", "--domain", str(domain),
-                *fleet_flags(router),
+                "--wait-for-listener", str(WAIT), *fleet_flags(router),
             )  # fmt: skip
             wait_for_subscription(bus, domain, "/r1/tf_static")
+            robot.wait_until_heard()
             robot.publish_mounting()
             robot.play(logged)
             assert scans.wait_for(len(logged), 120), f"{len(scans.items)} of {len(logged)} scans reached the bus"
