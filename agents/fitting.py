@@ -177,12 +177,18 @@ class FitSearch:
         registration's reach), the step measured by the scan's pose-free integration on the last
         scan the walls placed (not a carried one: :func:`~fleetmap.agents.pose_free.stepped`;
         record 045), within the robot's reach since that scan, registered from there on the
-        submap: its fit when good and typical, else None (the motion models are tried then)."""
+        submap: its fit when good and typical, else None (the motion models are tried then).
+
+        A reading spread within a burst (not :attr:`exact`) is a guess that the robot kept its pace
+        between the burst's two readings: registered from it, a scan slides to a look-alike of the
+        walls (freiburg-101-corrected in bursts: scan 150, its reading 0.8 m short, settled 1.8 m
+        on, where a corridor's walls repeat). The scan pair's step is then where registration
+        starts, the reading still its prior (record 052): along a corridor whose pair slides, the
+        reading holds the robot as it did."""
         self._step = None
-        if (
-            self._previous is None
-            or "odometry" in prediction.source
-            or self._radius(taken, prediction) <= MAX_CORRESPONDENCE
+        spread = "odometry" in prediction.source and not self.exact
+        if self._previous is None or (
+            not spread and ("odometry" in prediction.source or self._radius(taken, prediction) <= MAX_CORRESPONDENCE)
         ):
             return None
         segments, last = self._previous
@@ -194,8 +200,13 @@ class FitSearch:
         placed = last[1].compose(step)
         increment = (self._pose or Transform2D()).inverse().compose(placed)
         measured = Prediction(increment, LOOSE_TRANSLATION, LOOSE_ROTATION, "integration")
-        start = self.chain.active[0].origin.inverse().compose(placed)
-        fit = self._registered(taken, self.chain.active[0], start, start, measured)
+        submap = self.chain.active[0]
+        start = submap.origin.inverse().compose(placed)
+        if spread:
+            mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+            fit = self._registered(taken, submap, start, mean, prediction)
+        else:
+            fit = self._registered(taken, submap, start, start, measured)
         if fit.good and fit.registration.score >= typical_floor(self._scores):
             return fit
         self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
