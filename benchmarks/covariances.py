@@ -2,7 +2,7 @@
 
 Each corrected log (``../shared/data/corrected``: poses a SLAM system corrected, given to no
 algorithm) is mapped as ``fleetmap map LOG --split K`` maps it; then, against the corrected poses
-(each submap's true frame from a key scan it placed):
+(each submap's true frame its frame scan's corrected pose):
 
 - **links**: each robot's link between consecutive submaps, its error normalised by the link's
   covariance (the tracking's). Honest covariances give a chi-square with three degrees of freedom:
@@ -39,6 +39,7 @@ from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
 from fleetmap.shared.io.logs import read_carmen
 from results import markdown_table, write_result
 from tracking import CORRECTED, data_folder
+from wrong_relations import frame_truth
 
 from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
@@ -93,7 +94,8 @@ def run(job: tuple[str, int, Path]) -> list[str]:
     merger = result.merger
     assert merger is not None
     graph = merger.graph
-    at = {key: truth[held[0].index].compose(held[0].pose.inverse()) for key, held in merger.key_scans.items() if held}
+    frames = {key: frame_truth(m, truth) for key, m in merger.submaps.items()}
+    at = {key: t for key, t in frames.items() if t is not None}  # each submap's frame: its frame scan's truth
     links = [e for e in graph.links if e.a in at and e.b in at]
     covariances = graph._link_covariances
     link_nees = [_nees(_error(e.transform, at[e.a].inverse().compose(at[e.b])), covariances[(e.a, e.b)]) for e in links]
