@@ -41,8 +41,7 @@ For each scan (:meth:`Tracker.add`):
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
-   the others are tracked into it; a first that the scan after it does not agree with is skipped
-   instead (:meth:`Tracker._lost`). A kidnap concluded on stamps the motion has not yet refuted is
+   the others are tracked into it. A kidnap concluded on stamps the motion has not yet refuted is
    a conclusion about the clock too: the first held scan is tracked again with its time by the
    scans' sequence, and where it is placed then, the stamps were wrong, not the robot's place
    (:meth:`Tracker._untimed`).
@@ -68,7 +67,7 @@ import numpy as np
 from fleetmap.agents.clock_evidence import check_motion, check_order, say_distrusted
 from fleetmap.agents.fitcheck import KIDNAP_REASON, Fit
 from fleetmap.agents.fitting import FitSearch, ScanIn
-from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION, stepped
+from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
 from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain, rotated
 from fleetmap.shared.config import FleetmapConfig
@@ -344,24 +343,11 @@ class Tracker(FitSearch):
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
 
     def _lost(self) -> list[TrackStep]:
-        """``kidnap_after`` scans the walls contradict, with none placed between: a new epoch from
-        the first of them, if the scan after it agrees with it (their pose-free integration is
-        valid, within the robot's reach). One that agrees with no scan after it is skipped, and the
-        others stay held: it is its view (an open field, a hedge seen through) that nothing places,
-        not the robot's place, and an epoch begun there is lost again at once, scan after scan
-        (freiburg-campus-corrected without odometry: epochs from scans 462, 463, 464, 465 and 466,
-        and 18 from 917 to 943; record 052)."""
+        """``kidnap_after`` scans the walls contradict, with none placed between: a new epoch from the first of them."""
         held, self._held = self._held, []
         if self.clock.trusted and (steps := self._untimed(held)):
             return steps
         first = held[0].taken
-        if len(held) > 1:
-            after = held[1].taken
-            reach = self.motion.reach((first.stamp, Transform2D(), first.seq), after.seq, after.stamp)
-            if stepped(first.segments, after.segments, reach, self.config.integration) is None:
-                log.debug("scan %d agrees with no scan after it: skipped, no epoch begins there", first.index)
-                self._held = held[1:]
-                return [TrackStep("unplaced", self.epoch, None, None)]
         log.info("epoch %d from scan %d (%s)", self.epoch + 1, first.index, KIDNAP_REASON.format(n=len(held)))
         steps = [self._start_epoch(first, new=True)]
         for h in held[1:]:

@@ -440,18 +440,6 @@ def test_a_campus_stretch_with_little_wall_in_view_is_tracked_as_one_epoch(datas
     assert max(off.values()) < 3.0, off  # about 70 m driven, odometry's drift where nothing fixes the pose
 
 
-@pytest.mark.slow  # tracks 50 scans of a real log (about 3 s)
-def test_without_odometry_a_scan_no_later_one_agrees_with_starts_no_epoch(datasets: Path) -> None:
-    # freiburg-campus-corrected, scans 430-480 without odometry: the walls contradict scans
-    # 462-466 where the robot last was, and each, as an epoch's first, agrees with none of the
-    # scans after it: epochs began at 462, 463, 464, 465 and 466 (6 in all, 37 scans placed). An
-    # epoch begins at a scan that the next one agrees with (record 052)
-    path = datasets / "corrected" / "freiburg-campus-corrected.log.gz"
-    agent, poses = track_stretch(path, 430, 480, odometry=False)
-    assert agent.counts.epochs == 1
-    assert len(poses) >= 40, f"{len(poses)} of 50 scans placed"
-
-
 def campus_stretch(datasets: Path, start: int, stop: int) -> tuple[dict[int, Transform2D], list[Transform2D]]:
     """The epoch poses of :func:`track_stretch` on freiburg-campus-corrected, tracked as one epoch,
     and the log's corrected poses up to ``stop``."""
