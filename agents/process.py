@@ -171,6 +171,7 @@ def run_agent(
     sleep: Callable[[float], object] | None = None,
     wait_for_listener: float = 0.0,
     start_after_known: bool = True,
+    source_ends_at_stop: bool = False,
 ) -> AgentSummary:
     """Run ``agent`` on ``source`` over ``bus`` until the source ends or ``stop`` is set.
 
@@ -179,7 +180,10 @@ def run_agent(
     ``wait_for_listener`` > 0 the first scan waits up to that many seconds for something to
     subscribe to the robot's local maps (a merger or recorder starting at the same time). With
     ``start_after_known`` the run's first epoch follows the robot's epochs the merger holds
-    (:func:`first_epoch`).
+    (:func:`first_epoch`). A source that ends itself when ``stop`` is set, giving back first the
+    scans it holds (``source_ends_at_stop``: a live robot's, :class:`~fleetmap.agents.ros2_source.Ros2LiveSource`),
+    has every scan it gives tracked, so a SIGTERM loses none the robot sent before it; any other
+    is cut at ``stop``.
     """
     if not speed >= 0:
         raise BadInput("speed", f"must be 0 (as fast as possible) or positive, got {speed}")
@@ -195,7 +199,7 @@ def run_agent(
         handles.append(bus.subscribe(keys.events, requests.on_event))
         if wait_for_listener > 0 and not bus.wait_for_subscribers(keys.localmap(agent.robot), wait_for_listener):
             log.warning("%s: nobody listens to %s yet; going on", agent.robot, keys.localmap(agent.robot))
-        stopped = _feed_scans(source, agent, out, speed, stop, clock, wait, said)
+        stopped = _feed_scans(source, agent, out, speed, stop, clock, wait, said, source_ends_at_stop)
         stopped = stopped or stop.is_set()  # a live source ends when stop is set
         out.publish(agent.finish())
         out.answer_requests()
@@ -247,12 +251,12 @@ def _feed_scans(
     clock: Callable[[], float],
     wait: Callable[[float], object],
     said: float,
+    ends_at_stop: bool,
 ) -> bool:
     """Step 3 of the module docstring: the scans to the agent at their stamps' pace, what it says
     published, requests answered between scans; whether ``stop`` ended the run before the source
-    did. ``said``: when the last status line was logged (the clock's time). A source that ends
-    itself at ``stop`` (``ends_at_stop``: a live robot's) gives back the scans it held then, and
-    each is tracked; any other is cut at ``stop``."""
+    did. ``said``: when the last status line was logged (the clock's time); ``ends_at_stop``: the
+    source ends itself at ``stop`` (:func:`run_agent`)."""
     first: tuple[float, float] | None = None  # (stamp, clock) of the first scan
     for item in source:
         stamp = item.stamp
@@ -264,7 +268,7 @@ def _feed_scans(
                 out.answer_requests()
                 wait(min(left, POLL))
         out.answer_requests()
-        if stop.is_set() and not getattr(source, "ends_at_stop", False):
+        if stop.is_set() and not ends_at_stop:
             return True
         for epoch in out.requests.take_relocalized():
             agent.relocalized(epoch)

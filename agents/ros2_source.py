@@ -116,10 +116,6 @@ class Ros2LiveSource:
 
     has_odometry = True
     """The robot may publish odometry; a scan without any at its stamp goes without."""
-    ends_at_stop = True
-    """The source itself ends when ``stop`` is set, giving back first every scan it holds (heard
-    and not yet taken, or waiting for its odometry): :func:`~fleetmap.agents.process.run_agent`
-    tracks all it gives, so a SIGTERM loses no scan the robot sent before it."""
 
     def __init__(
         self,

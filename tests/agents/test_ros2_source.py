@@ -218,7 +218,9 @@ def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_on
     bus = InMemoryBus()
     scans = Inbox()
     bus.peer().subscribe(KEYS.scan("r1"), scans)
-    summary = run_agent(source, Agent("r1"), bus, KEYS, speed=0, stop=stop, start_after_known=False)
+    summary = run_agent(
+        source, Agent("r1"), bus, KEYS, speed=0, stop=stop, start_after_known=False, source_ends_at_stop=True
+    )  # as `fleetmap agent --ros2` runs it
     assert summary.stopped and summary.scans == 2
     got = [decode(payload) for _, payload in scans.items]
     assert [(m.index, m.stamp) for m in got] == [(0, 20.0), (1, 20.2)]  # type: ignore[attr-defined]

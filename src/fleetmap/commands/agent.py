@@ -160,7 +160,17 @@ def run_ros2(args: argparse.Namespace, robot: str, config: FleetmapConfig) -> in
         source = Ros2LiveSource(bus.session, topics, stop, robot)
         print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
         # live scans come at the robot's pace: no pacing by their stamps
-        summary = run_agent(source, agent, bus, options.keys, 0.0, stop, wait_for_listener=args.wait_for_listener)
+        # the source ends at stop, giving back the scans it holds: each is tracked
+        summary = run_agent(
+            source,
+            agent,
+            bus,
+            options.keys,
+            0.0,
+            stop,
+            wait_for_listener=args.wait_for_listener,
+            source_ends_at_stop=True,
+        )
     print(summary.line())
     dropped = sum(source.dropped.values())
     print(f"agent {robot}: {sum(source.received.values())} ROS 2 samples taken, {dropped} dropped")
