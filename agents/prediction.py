@@ -92,6 +92,8 @@ class Predictor:
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
         self.exact = True
         """Whether the scan's reading is the one taken where it was (not spread within a burst)."""
+        self.guessed_owner = False
+        """Whether that reading is a burst's, whose owner among the burst's scans was guessed."""
         self.misfit = (0.0, 0.0)
         """What the exact readings at stamps the clock does not trust missed the walls by: the sum
         of each miss squared, beyond the odometry's own uncertainty, as a share of the motion over
@@ -221,13 +223,17 @@ class Predictor:
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
         if not self.clock.trusted and not self.own_readings:
-            if not self.exact and self.velocity_known:
+            if (not self.exact or self.guessed_owner) and self.velocity_known:
                 # A reading spread within a burst is a guess that the robot kept its pace between
                 # the burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where
                 # the robot did not, by about as far as the guess and the pace the walls last
                 # measured (constant velocity) part: driven evenly down a corridor they agree, and
                 # the guess holds the robot where the walls cannot; on a turn or a stop within the
-                # burst they part, and the walls decide (docs/decisions/040).
+                # burst they part, and the walls decide (docs/decisions/040). So is the burst's own
+                # reading where the scan it was given to is a guess by the pace: given to the
+                # right one, it agrees with the pace and stays sure (not widened by a whole
+                # period's motion, which let registration slide along a corridor); given to the
+                # wrong one (a driver that repeated a stamp), it is a scan's step off (record 054).
                 apart = prediction.increment.as_array() - velocity.increment.as_array()
                 return replace(
                     prediction,
