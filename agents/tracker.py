@@ -17,7 +17,9 @@ For each scan (:meth:`Tracker.add`):
    typical, is the scan's (:meth:`Tracker._stepped`, :mod:`fleetmap.agents.pose_free`;
    docs/decisions/045-the-step-a-sparse-log-measures-itself.md). So is a scan whose odometry was
    spread within a burst (a guess of the robot's pace), registered from the pair's step with the
-   spread reading as its prior (docs/decisions/052-a-spread-reading-is-a-prior-not-a-start.md).
+   spread reading as its prior (docs/decisions/052-a-spread-reading-is-a-prior-not-a-start.md),
+   and one that got its burst's own reading by a guess of which scan it was read for
+   (docs/decisions/054-a-bursts-own-reading-is-as-sure-as-its-owner.md).
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
