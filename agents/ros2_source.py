@@ -23,10 +23,13 @@ readings among good ones are no return (REP 117: an invalid measurement), as in 
 A scan waits for the odometry at its stamp (odometry usually comes at a higher rate and a little
 later), as tf2's message filter holds a message until its transform comes: until the robot's own
 clock says the odometry is late (a later scan stamped :data:`ODOMETRY_WAIT` seconds after it, and
-still no reading at its stamp), or the robot has gone quiet for :data:`QUIET` seconds. Then it goes
-without, which the tracker handles as for a scan outside a bag's odometry. The agent's own wall
-clock does not decide: on a busy machine the odometry sample can sit behind the scan for longer
-than the robot took between them.
+still no reading at its stamp) and no reading has come since the scan did, or the robot has gone
+quiet for :data:`QUIET` seconds. Then it goes without, which the tracker handles as for a scan
+outside a bag's odometry. The agent's own wall clock does not decide: on a busy machine the
+odometry sample can sit behind the scan for longer than the robot took between them, and its
+readings still coming, older than the scan, say it is behind, not stopped (a robot played at five
+times its pace, on a machine running two other jobs: a scan went without its reading, 0.1 s of the
+agent's time behind the scan that came 0.5 s of the robot's after it).
 """
 
 from __future__ import annotations
@@ -130,6 +133,8 @@ class Ros2LiveSource:
         self.stop = stop
         self.robot = robot
         self.clock = clock
+        self._odometry_heard = -math.inf
+        """When (``clock``) the last odometry reading was heard."""
         self.name = f"ROS 2 {topics.scan} (domain {topics.domain})"
         self.dropped: Counter[tuple[str, str]] = Counter()
         """Samples dropped, by (topic, why)."""
@@ -277,6 +282,7 @@ class Ros2LiveSource:
             return
         self._base = self._base or str(msg.child_frame_id).lstrip("/")
         self._odometry.append(OdometryReading(len(self._odometry), stamp, pose))
+        self._odometry_heard = self.clock()
 
     def _on_tf(self, topic: str, msg: Any) -> None:
         for t in msg.transforms:
@@ -289,6 +295,7 @@ class Ros2LiveSource:
                 if self._tf_odometry and stamp <= self._tf_odometry[-1].stamp:
                     continue  # the same transform again (tf is often republished), or older
                 self._tf_odometry.append(OdometryReading(len(self._tf_odometry), stamp, planar))
+                self._odometry_heard = self.clock()
                 if not self._odometry:
                     self._base = child
 
@@ -308,7 +315,9 @@ class Ros2LiveSource:
             arrived, scan, frame = self._pending[0]
             readings = self._odometry or self._tf_odometry
             caught_up = bool(readings) and readings[-1].stamp >= scan.stamp
-            late = self._pending[-1][1].stamp - scan.stamp >= ODOMETRY_WAIT or now - arrived >= QUIET
+            behind = self._odometry_heard > arrived  # readings still coming since the scan: late, not stopped
+            waited = self._pending[-1][1].stamp - scan.stamp >= ODOMETRY_WAIT and not behind
+            late = waited or now - arrived >= QUIET
             if not caught_up and not late and not self.stop.is_set():
                 return
             self._pending.popleft()

@@ -198,6 +198,30 @@ def test_odometry_heard_late_on_a_busy_machine_still_goes_with_its_scan():
     assert not source.dropped
 
 
+def test_odometry_behind_the_scans_on_a_busy_machine_still_goes_with_its_scan():
+    # the robot publishes each scan's odometry just before it, at five times its pace; on a busy
+    # machine the agent hears the odometry topic behind the scan topic: the scan at 20.0, then
+    # scans 0.6 s of the robot's time on, while the readings still coming are older than the scan.
+    # The odometry is behind, not stopped: the scan waits for its reading
+    topics = Ros2Topics.of("r1", domain=3)
+    now = [100.0]
+    source = Ros2LiveSource(None, topics, threading.Event(), "r1", clock=lambda: now[0])  # type: ignore[arg-type]
+    attachment = wire.Attachment(1, 0, bytes(16)).pack()
+
+    def feed(topic: str, typename: str, message: object) -> list[SourceScan]:
+        now[0] += 0.01
+        return source.feed(topic, wire.data_key(3, topic, typename), wire.encode(message, typename), attachment)
+
+    assert feed(topics.odom, wire.ODOMETRY, odometry(19.6, 0.0, 0.0)) == []
+    got = feed(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181))
+    for t, behind in ((20.2, 19.7), (20.4, 19.8), (20.6, 19.9)):
+        got += feed(topics.scan, wire.LASER_SCAN, laser_scan(t, [2.0] * 181))
+        got += feed(topics.odom, wire.ODOMETRY, odometry(behind, 0.0, 0.0))
+    got += feed(topics.odom, wire.ODOMETRY, odometry(20.0, 1.0, 0.0))
+    assert [s.stamp for s in got][:1] == [20.0] and got[0].odometry is not None
+    assert abs(got[0].odometry.x - 1.0) < 1e-6
+
+
 def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_one_on_the_bus(monkeypatch):
     # SIGTERM comes while the robot's last scans are in the agent: one waits for the odometry at
     # its stamp, one is heard and not yet taken. Neither may be lost: the source gives them back as
