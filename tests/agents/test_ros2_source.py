@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import numpy as np
@@ -175,18 +175,28 @@ def test_without_odometry_a_scan_goes_on_without_after_a_short_wait():
     assert got[0].odometry is None and got[0].stamp == 5.0
 
 
-def test_odometry_heard_late_on_a_busy_machine_still_goes_with_its_scan():
-    # the agent hears the robot's samples when its machine lets it: here the scan, then a second of
-    # its own time and another sample (a tf), and only then the odometry at the scan's stamp. The
-    # robot's clock has not moved on, so the odometry is not late: the scan waits and gets it
+def clocked_source(
+    step: float,
+) -> tuple[Ros2Topics, Ros2LiveSource, Callable[[str, str, object], list[SourceScan]], list[float]]:
+    """A source without a session on a clock the test moves (``now[0]``), and ``feed(topic,
+    typename, message)``, which hands it a sample as the router would, ``step`` seconds after the last."""
     topics = Ros2Topics.of("r1", domain=3)
     now = [100.0]
     source = Ros2LiveSource(None, topics, threading.Event(), "r1", clock=lambda: now[0])  # type: ignore[arg-type]
     attachment = wire.Attachment(1, 0, bytes(16)).pack()
 
     def feed(topic: str, typename: str, message: object) -> list[SourceScan]:
+        now[0] += step
         return source.feed(topic, wire.data_key(3, topic, typename), wire.encode(message, typename), attachment)
 
+    return topics, source, feed, now
+
+
+def test_odometry_heard_late_on_a_busy_machine_still_goes_with_its_scan():
+    # the agent hears the robot's samples when its machine lets it: here the scan, then a second of
+    # its own time and another sample (a tf), and only then the odometry at the scan's stamp. The
+    # robot's clock has not moved on, so the odometry is not late: the scan waits and gets it
+    topics, source, feed, now = clocked_source(0.0)
     assert feed(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181)) == []
     now[0] += 1.0
     assert feed(topics.tf, wire.TF_MESSAGE, T[wire.TF_MESSAGE]([])) == []
@@ -203,15 +213,7 @@ def test_odometry_behind_the_scans_on_a_busy_machine_still_goes_with_its_scan():
     # machine the agent hears the odometry topic behind the scan topic: the scan at 20.0, then
     # scans 0.6 s of the robot's time on, while the readings still coming are older than the scan.
     # The odometry is behind, not stopped: the scan waits for its reading
-    topics = Ros2Topics.of("r1", domain=3)
-    now = [100.0]
-    source = Ros2LiveSource(None, topics, threading.Event(), "r1", clock=lambda: now[0])  # type: ignore[arg-type]
-    attachment = wire.Attachment(1, 0, bytes(16)).pack()
-
-    def feed(topic: str, typename: str, message: object) -> list[SourceScan]:
-        now[0] += 0.01
-        return source.feed(topic, wire.data_key(3, topic, typename), wire.encode(message, typename), attachment)
-
+    topics, _source, feed, _now = clocked_source(0.01)
     assert feed(topics.odom, wire.ODOMETRY, odometry(19.6, 0.0, 0.0)) == []
     got = feed(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181))
     for t, behind in ((20.2, 19.7), (20.4, 19.8), (20.6, 19.9)):
