@@ -200,7 +200,7 @@ class TrackingFrontEnd:
             clock.bunched(ready.burst)
             say_distrusted(clock, f"scan {ready.item[0]} arrived in a burst of {ready.burst} scans stamped together")
         self.tracker.exact = ready.exact
-        self.tracker.guessed_owner = ready.exact and ready.burst > 1
+        self.tracker.by_pace = not ready.exact or ready.burst > 1
         self.tracker.motion.own_readings = self.bursts.own_readings
         return self._add(ready.item[0], ready.stamp, ready.item[1], ready.odometry, ready.item[2])
 

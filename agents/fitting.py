@@ -62,7 +62,7 @@ class FitSearch:
     chain: SubmapChain
     motion: Predictor
     exact: bool
-    guessed_owner: bool
+    by_pace: bool
     _pose: Transform2D | None
     _stamp: float | None
     _seq: int
@@ -186,9 +186,9 @@ class FitSearch:
         on, where a corridor's walls repeat). The scan pair's step is then where registration
         starts, the reading still its prior (record 052): along a corridor whose pair slides, the
         reading holds the robot as it did. So for a burst's own reading given to a scan by the
-        robot's pace (:attr:`guessed_owner`; record 054)."""
+        robot's pace (:attr:`by_pace`; record 054)."""
         self._step = None
-        spread = "odometry" in prediction.source and (not self.exact or self.guessed_owner)
+        spread = "odometry" in prediction.source and self.by_pace
         if self._previous is None or (
             not spread and ("odometry" in prediction.source or self._radius(taken, prediction) <= MAX_CORRESPONDENCE)
         ):

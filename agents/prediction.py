@@ -92,8 +92,8 @@ class Predictor:
         """Odometry readings ignored (not finite, or a jump the robot cannot have driven)."""
         self.exact = True
         """Whether the scan's reading is the one taken where it was (not spread within a burst)."""
-        self.guessed_owner = False
-        """Whether that reading is a burst's, whose owner among the burst's scans was guessed."""
+        self.by_pace = False
+        """Whether that reading is the robot's pace's guess (:attr:`~fleetmap.agents.tracker.Tracker.by_pace`)."""
         self.misfit = (0.0, 0.0)
         """What the exact readings at stamps the clock does not trust missed the walls by: the sum
         of each miss squared, beyond the odometry's own uncertainty, as a share of the motion over
@@ -223,7 +223,7 @@ class Predictor:
         if self.reversed_odometry > 0.5:
             prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
         if not self.clock.trusted and not self.own_readings:
-            if (not self.exact or self.guessed_owner) and self.velocity_known:
+            if self.by_pace and self.velocity_known:
                 # A reading spread within a burst is a guess that the robot kept its pace between
                 # the burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where
                 # the robot did not, by about as far as the guess and the pace the walls last

@@ -166,10 +166,10 @@ class Tracker(FitSearch):
         """The tracker as it was before the first held scan (:meth:`_untimed`)."""
         self.exact = True
         """Whether the next scan's reading is where it was taken (:mod:`fleetmap.agents.bursts`)."""
-        self.guessed_owner = False
-        """Whether that reading is a burst's, given to the scan by the robot's pace: which of the
-        burst's scans it was read for is a guess (:meth:`~fleetmap.agents.bursts.BurstOdometry._owner`;
-        record 054)."""
+        self.by_pace = False
+        """Whether that reading is the robot's pace's guess: spread within a burst, or the burst's
+        own given to the scan by the pace (which of its scans it was read for,
+        :meth:`~fleetmap.agents.bursts.BurstOdometry._owner`; record 054)."""
         self._anchor: tuple[Transform2D, Transform2D] | None = None
         """The epoch pose and reading of the last placed scan whose reading was exact."""
         self._spread = False
@@ -235,7 +235,7 @@ class Tracker(FitSearch):
             at, reading = self._anchor
             self.motion.odometry = reading.compose(at.inverse()).compose(self._pose)
         self.motion.exact = self.exact
-        self.motion.guessed_owner = self.guessed_owner
+        self.motion.by_pace = self.by_pace
         predictions = self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)
         fit = self._fit(taken, predictions)
         odometry_predicts = "odometry" in predictions[0].source
