@@ -34,6 +34,7 @@ def _widened_after(
     sigmas = []
     for n in range(1, scans + 1):
         p.exact = not (spread_last and n == scans)
+        p.by_pace = not p.exact  # (a spread reading is the pace's guess)
         stamp = (n + 1) * PERIOD
         p.clock.tick(stamp)
         reading = Transform2D((n - 1) * STEP + (STEP if p.exact else spread_step), 0.0, 0.0)
