@@ -10,7 +10,9 @@ algorithm) is mapped as ``fleetmap map LOG --split K`` maps it; then, against th
 - **integrations**: every valid integration between two robots' submaps, wrong where it is more
   than 1 m or 10 degrees off (issue 49's bound), and the right ones' errors normalised by the
   cycle tolerance (its base, 0.30 m and 5 degrees, as three standard deviations: what
-  ``merger/consistency.py`` takes) and by the refinement's information (``merger/refinement.py``);
+  ``merger/consistency.py`` takes), by the refinement's information (``merger/refinement.py``), and
+  by that information's covariance plus half of each submap's tracking drift over its way (what
+  docs/decisions/055 found honest, and the merger does not weigh by yet);
 - **consistent sets**: for each two robots, the integrations between them, which pairs agree
   through the robots' links (``merger/consistency.py``), and whether the heaviest set that agrees
   holds a wrong integration.
@@ -27,6 +29,7 @@ import tempfile
 from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import networkx as nx
 import numpy as np
@@ -36,6 +39,8 @@ from fleetmap.merger.forest import RootedForest
 from fleetmap.merger.graph import EDGE_SIGMA_ROTATION, EDGE_SIGMA_TRANSLATION, Edge
 from fleetmap.merger.refinement import ISOTROPIC_SHARE
 from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
+from fleetmap.shared.core.mapgrid import viewpoints_of
+from fleetmap.shared.core.tracking import drift_covariance
 from fleetmap.shared.io.logs import read_carmen
 from results import markdown_table, write_result
 from tracking import CORRECTED, data_folder
@@ -52,6 +57,7 @@ HEADER = [
     "cross integrations (wrong)",
     "right NEES, cycle tolerance",
     "right NEES, refinement's information",
+    "right NEES, the same plus half each submap's drift",
     "robot pairs",
     "heaviest set holds a wrong one",
 ]
@@ -75,6 +81,17 @@ def _information_cov(e: Edge) -> np.ndarray:
         if np.isfinite(given).all() and np.linalg.eigvalsh(given).min() > 0:
             info = given
     return np.linalg.inv(info)
+
+
+def _drift_cov(e: Edge, graph: Any) -> np.ndarray:
+    """The refinement's covariance plus half of each submap's tracking drift over the way of its
+    viewpoints: what its walls may be bent by (docs/decisions/055; not what the merger weighs by)."""
+
+    def way(key: str) -> float:
+        vp = viewpoints_of(graph._nodes[key].map)
+        return float(np.hypot(*np.diff(vp[:, 0:2], axis=0).T).sum()) if len(vp) > 1 else 0.0
+
+    return _information_cov(e) + 0.5 * (drift_covariance(way(e.a)) + drift_covariance(way(e.b)))
 
 
 def _chain(key: str) -> str:
@@ -102,7 +119,7 @@ def run(job: tuple[str, int, Path]) -> list[str]:
     base_t, base_r = graph._tolerance(1)
     cycle_cov = np.diag([(base_t / 3) ** 2, (base_t / 3) ** 2, (base_r / 3) ** 2])
     by_pair: dict[tuple[str, str], list[tuple[Edge, bool]]] = defaultdict(list)
-    right_cycle, right_information = [], []
+    right_cycle, right_information, right_drift = [], [], []
     for e in graph.edges:
         if e.link or not e.valid or e.a not in at or e.b not in at or _chain(e.a) == _chain(e.b):
             continue
@@ -111,6 +128,7 @@ def run(job: tuple[str, int, Path]) -> list[str]:
         if not wrong:
             right_cycle.append(_nees(r, cycle_cov))
             right_information.append(_nees(r, _information_cov(e)))
+            right_drift.append(_nees(r, _drift_cov(e, graph)))
         f = e if _chain(e.a) < _chain(e.b) else e.reversed()
         by_pair[(_chain(f.a), _chain(f.b))].append((f, wrong))
     adjacency: dict[str, list[Edge]] = {k: [] for k in graph.keys}
@@ -145,6 +163,7 @@ def run(job: tuple[str, int, Path]) -> list[str]:
         f"{sum(len(c) for c in by_pair.values())} ({wrong})",
         median(right_cycle),
         median(right_information),
+        median(right_drift),
         str(len(by_pair)),
         str(held_wrong),
     ]
