@@ -29,7 +29,6 @@ import tempfile
 from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
 
 import networkx as nx
 import numpy as np
@@ -37,6 +36,7 @@ from fleetmap.merger.consistency import CONSISTENT_CHI2
 from fleetmap.merger.executor import make_executor
 from fleetmap.merger.forest import RootedForest
 from fleetmap.merger.graph import EDGE_SIGMA_ROTATION, EDGE_SIGMA_TRANSLATION, Edge
+from fleetmap.merger.posegraph import PoseGraph
 from fleetmap.merger.refinement import ISOTROPIC_SHARE
 from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
 from fleetmap.shared.core.mapgrid import viewpoints_of
@@ -83,7 +83,7 @@ def _information_cov(e: Edge) -> np.ndarray:
     return np.linalg.inv(info)
 
 
-def _drift_cov(e: Edge, graph: Any) -> np.ndarray:
+def _drift_cov(e: Edge, graph: PoseGraph) -> np.ndarray:
     """The refinement's covariance plus half of each submap's tracking drift over the way of its
     viewpoints: what its walls may be bent by (docs/decisions/055; not what the merger weighs by)."""
 
