@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -38,6 +39,11 @@ OTHER_SIGN = "odometry, the other sign"
 SIGN_DOUBT = 0.01
 """While the sign the odometry is not believed to have keeps at least this chance (the 1 % the
 99 % gates leave out), it is a motion model of its own (:meth:`Predictor.predictions`)."""
+
+MISFITS = 100
+"""The recent exact readings whose misses' median widens the next (:meth:`Predictor.measure_misfit`):
+a minute of a dense log, the last hundred metres of a sparse one, and bounded for a robot that runs
+for days."""
 
 Placed = tuple[float, Transform2D, int]
 """Stamp, epoch-frame pose and sequence number of a robot's last placed scan."""
@@ -94,10 +100,10 @@ class Predictor:
         """Whether the scan's reading is the one taken where it was (not spread within a burst)."""
         self.by_pace = False
         """Whether that reading is the robot's pace's guess (:attr:`~fleetmap.agents.tracker.Tracker.by_pace`)."""
-        self.misfit = (0.0, 0.0)
-        """What the exact readings at stamps the clock does not trust missed the walls by: the sum
-        of each miss squared, beyond the odometry's own uncertainty, as a share of the motion over
-        the stamp's error squared, and how many (:meth:`measure_misfit`)."""
+        self.misfits: deque[float] = deque(maxlen=MISFITS)
+        """What the recent exact readings at stamps the clock does not trust missed the walls by:
+        each miss squared, beyond the odometry's own uncertainty, as a share of the motion over the
+        stamp's error squared (:meth:`measure_misfit`)."""
         self._widened: tuple[float, float, Transform2D] | None = None
         """The last prediction's motion over the stamp's error, its own uncertainty (m) and its
         increment (the sign as believed), if widened by that motion."""
@@ -242,14 +248,15 @@ class Predictor:
                 )
             # read at a wrong stamp, the odometry is off by the robot's motion over the
             # stamp's error (the stamps' interval less the sequence's, a period at least), as far
-            # as the exact readings' misfits so far say (covariance matching: Mehra 1970); a
-            # reading spread within a burst before the walls measured the robot's pace, by all of it
+            # as the recent exact readings' misfits say (covariance matching: Mehra 1970, by their
+            # median: :meth:`measure_misfit`); a reading spread within a burst before the walls
+            # measured the robot's pace, by all of it
             error = max(self.clock.period, abs(seconds - elapsed))
             step = self.velocity * error
             bound = math.hypot(step[0], step[1])
             # until the walls have measured a reading, it is off by the whole of that motion
-            measured = self.exact and self.misfit[1] > 0
-            share = math.sqrt(self.misfit[0] / self.misfit[1]) if measured else 1.0
+            measured = self.exact and bool(self.misfits)
+            share = math.sqrt(max(float(np.median(self.misfits)), 0.0)) if measured else 1.0
             if self.exact:
                 self._widened = (bound, prediction.sigma_translation, prediction.increment)
             prediction = replace(
@@ -262,17 +269,22 @@ class Predictor:
     def measure_misfit(self, moved: Transform2D) -> None:
         """The walls placed the last scan ``moved`` on from the one before: what its exact reading,
         widened for a clock not trusted, missed that by (beyond the odometry's own uncertainty),
-        as a share of the widening, adds to :attr:`misfit`. A log whose readings are their scans'
+        as a share of the widening, joins :attr:`misfits`. A log whose readings are their scans'
         own, whatever the stamps say, measures them right and keeps them as sure as on a true
         clock; one whose readings are read at the wrong stamps measures them off (aces with a
-        repeated stamp: the widened prior let registration slide along corridors, 96.9 -> 95.4 %)."""
+        repeated stamp: the widened prior let registration slide along corridors, 96.9 -> 95.4 %).
+
+        The widening is the misses' median, not their mean (covariance matching's, Mehra 1970): a
+        miss is the walls' as much as the reading's, and one scan the walls placed wrong, or a
+        reading given to the wrong scan of a burst, in a turn in place (a widening of centimetres,
+        a miss of a metre) ruled the mean for the rest of the log and widened every right reading
+        after it (docs/decisions/056)."""
         widened, self._widened = self._widened, None
         if widened is None or widened[0] <= 0.0:
             return
         bound, own, increment = widened
         miss = math.hypot(moved.x - increment.x, moved.y - increment.y)
-        excess = max(miss * miss - own * own, 0.0)
-        self.misfit = (self.misfit[0] + excess / (bound * bound), self.misfit[1] + 1.0)
+        self.misfits.append((miss * miss - own * own) / (bound * bound))
 
     def reach(self, last: Placed | None, seq: int, stamp: float) -> float:
         """How far (m) the robot can have driven since its ``last`` placed scan."""

@@ -18,13 +18,14 @@ OWN = 0.05 + 0.1 * STEP
 
 
 def _widened_after(
-    scans: int, miss: float, spread_last: bool = False, spread_step: float = STEP
+    scans: int, miss: float, spread_last: bool = False, spread_step: float = STEP, first_miss: float | None = None
 ) -> tuple[float, float]:
     """A robot whose clock repeated a stamp (not trusted from then on) drives ``scans`` scans, the
     walls placing each ``miss`` m from where its reading put it: the odometry prediction's
     translation uncertainty at the first scan and at the last (m). ``spread_last``: the last scan's
     reading was spread within a burst, not taken where the scan was, ``spread_step`` m on from the
-    reading before (the robot drove ``STEP`` a scan until then)."""
+    reading before (the robot drove ``STEP`` a scan until then). ``first_miss``: the first scan's
+    miss, if not ``miss``."""
     p = Predictor(FleetmapConfig())
     for stamp in (0.0, PERIOD, PERIOD):  # a repeated stamp
         p.clock.tick(stamp)
@@ -41,7 +42,8 @@ def _widened_after(
         predictions = p.predictions(n + 2, stamp, reading, stamp - PERIOD, n + 1)
         odometry: Prediction = next(q for q in predictions if q.source == "odometry")
         sigmas.append(odometry.sigma_translation)
-        p.measure_misfit(Transform2D(STEP + miss, 0.0, 0.0))
+        off = first_miss if first_miss is not None and n == 1 else miss
+        p.measure_misfit(Transform2D(STEP + off, 0.0, 0.0))
         p.odometry = reading
     return sigmas[0], sigmas[-1]
 
@@ -57,6 +59,15 @@ def test_the_widening_is_what_the_readings_measured_and_nothing_else() -> None:
     # changed no figure beyond draw noise on aces and the corrected logs (docs/decisions/035)
     _, second = _widened_after(2, miss=0.0)
     assert second < OWN + 0.05 * STEP, f"one reading measured right, the next still {second:.3f} m wide"
+
+
+def test_one_reading_the_walls_placed_a_metre_off_does_not_widen_the_right_ones_after_it() -> None:
+    # a reading given to the wrong scan of a burst, or a scan the walls misplaced, in a turn in
+    # place: a widening of centimetres, a miss of a metre. Averaged, it widened every right reading
+    # for the rest of the log (aces-corrected, repeated stamps: 85.2 % of short relations within
+    # 0.10 m, 2 deg, against 88.2 % on the true clock); its median does not (docs/decisions/056)
+    _, last = _widened_after(30, miss=0.0, first_miss=10 * STEP)
+    assert last < OWN + 0.2 * STEP, f"29 readings measured right after one a metre off, still {last:.3f} m"
 
 
 def test_readings_off_by_the_motion_over_a_period_stay_widened() -> None:
