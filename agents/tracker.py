@@ -318,6 +318,7 @@ class Tracker(FitSearch):
         submap = self.chain.active[0]
         reg = fit.registration
         pose = submap.origin.compose(reg.pose)
+        own = self._own_reading(pose, odometry)
         if self._good is not None:
             seconds = stamp - self._good[0]
             check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
@@ -330,13 +331,38 @@ class Tracker(FitSearch):
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
         # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
         self.motion.odometry = odometry
-        self._anchor = (pose, odometry) if self.exact and odometry is not None else self._anchor
+        self._anchor = (pose, odometry) if own else self._anchor
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if fit.spread is not None:
             self.chain.widen(rotated(fit.spread, submap.origin.theta))
         if self.chain.due(stamp, pose):
             self.chain.insert(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
+
+    def _own_reading(self, pose: Transform2D, odometry: Transform2D | None) -> bool:
+        """Whether the scan about to be placed at ``pose`` (epoch frame) carries a reading known to
+        be its own, to measure the next readings from (:attr:`_anchor`). A reading spread within a
+        burst is not. A burst's own reading that the robot's pace gave to this scan
+        (:attr:`by_pace`) is, unless the walls placed the scan before it nearer where the reading
+        says (under the odometry's covariance): a driver that repeated a stamp read it for the scan
+        before, and given to the wrong scan it is a step off; measured from, it put the next scan
+        a step off too, at a clock whose readings were otherwise right (docs/decisions/057). Then
+        the next scan is measured from the last reading that was its scan's own, as after spread
+        ones."""
+        if not self.exact or odometry is None:
+            return False
+        if not self.by_pace:
+            return True
+        step, before = self.motion.odometry_step, self._pose
+        if step is None or before is None:
+            return True
+        if self.motion.reversed_odometry > 0.5:
+            inc = step.increment
+            step = replace(step, increment=Transform2D(-inc.x, -inc.y, inc.theta))
+        said = before.compose(step.increment)
+        own = step.distance2(said, pose) <= step.distance2(said, before)
+        self._spread = not own
+        return own
 
     def _start_epoch(self, taken: ScanIn, new: bool) -> TrackStep:
         """Begin an epoch whose frame is this scan's pose."""
