@@ -331,7 +331,7 @@ class Tracker(FitSearch):
         # reading, never across a stretch that no reading saw (a corrected log's scans with no
         # wheel reading between them, :func:`~fleetmap.shared.io.logs.read_carmen_odometry`)
         self.motion.odometry = odometry
-        self._anchor = (pose, odometry) if own else self._anchor
+        self._anchor = (pose, odometry) if own and odometry is not None else self._anchor
         submap.placed.append(PlacedScan(index, stamp, reg.pose))
         if fit.spread is not None:
             self.chain.widen(rotated(fit.spread, submap.origin.theta))
