@@ -225,9 +225,8 @@ class Predictor:
                 if self.bad_odometry <= 5 or self.bad_odometry % 100 == 0:
                     log.warning("odometry ignored at %.3f s (%s; %d so far)", stamp, why, self.bad_odometry)
             return None
-        prediction = self.odometry_step = from_odometry(increment)
-        if self.reversed_odometry > 0.5:
-            prediction = replace(prediction, increment=Transform2D(-increment.x, -increment.y, increment.theta))
+        self.odometry_step = from_odometry(increment)
+        prediction = self.believed(self.odometry_step)
         if not self.clock.trusted and not self.own_readings:
             if self.by_pace and self.velocity_known:
                 # A reading spread within a burst is a guess that the robot kept its pace between
@@ -265,6 +264,14 @@ class Predictor:
                 sigma_rotation=prediction.sigma_rotation + share * abs(float(step[2])),
             )
         return prediction
+
+    def believed(self, step: Prediction) -> Prediction:
+        """The odometry's ``step`` with the sign its translation is believed to have
+        (:meth:`judge_odometry_sign`)."""
+        if self.reversed_odometry <= 0.5:
+            return step
+        inc = step.increment
+        return replace(step, increment=Transform2D(-inc.x, -inc.y, inc.theta))
 
     def measure_misfit(self, moved: Transform2D) -> None:
         """The walls placed the last scan ``moved`` on from the one before: what its exact reading,

@@ -319,6 +319,8 @@ class Tracker(FitSearch):
         reg = fit.registration
         pose = submap.origin.compose(reg.pose)
         own = self._own_reading(pose, odometry)
+        if self.exact and odometry is not None and not own:
+            self._spread = True  # the next scan is measured from the last reading that was its own
         if self._good is not None:
             seconds = stamp - self._good[0]
             check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
@@ -356,13 +358,9 @@ class Tracker(FitSearch):
         step, before = self.motion.odometry_step, self._pose
         if step is None or before is None:
             return True
-        if self.motion.reversed_odometry > 0.5:
-            inc = step.increment
-            step = replace(step, increment=Transform2D(-inc.x, -inc.y, inc.theta))
+        step = self.motion.believed(step)
         said = before.compose(step.increment)
-        own = step.distance2(said, pose) <= step.distance2(said, before)
-        self._spread = not own
-        return own
+        return step.distance2(said, pose) <= step.distance2(said, before)
 
     def _start_epoch(self, taken: ScanIn, new: bool) -> TrackStep:
         """Begin an epoch whose frame is this scan's pose."""
