@@ -255,6 +255,7 @@ class Tracker(FitSearch):
             fit = replace(
                 fit, good=False, why="a fit beyond the motion model's 99 % gate", contradicted=True, everywhere=True
             )
+        fit = self._without_reading(taken, fit, predictions)
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
@@ -340,6 +341,30 @@ class Tracker(FitSearch):
         if self.chain.due(stamp, pose):
             self.chain.insert(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples, pose, reg)
         return TrackStep(status, self.epoch, submap.number, reg.pose, registration=reg)
+
+    def _without_reading(self, taken: ScanIn, fit: Fit, predictions: list[Prediction]) -> Fit:
+        """``fit``, or the scan registered again without its reading where that reading was the
+        burst's own, given to the scan by the robot's pace, and the walls placed the scan nearer
+        the scan before than where the reading says (:meth:`_own_reading`): the reading was the
+        scan before's (or after's), a step off, and registration started from it and was pulled
+        towards it by its prior. The other motion models (constant velocity, the robot standing
+        still, the scan pair's step where constant velocity measures nothing) place the scan then,
+        where one of them fits (docs/decisions/058)."""
+        odometry = taken.odometry
+        if not (fit.good and self.by_pace and self.exact and odometry is not None):
+            return fit
+        if self._own_reading(self.chain.active[0].origin.compose(fit.registration.pose), odometry):
+            return fit
+        others = [p for p in predictions if "odometry" not in p.source]
+        if not others:
+            return fit
+        scores, step = copy.copy(self._scores), self._step
+        self._scores.pop()  # (the first fit's, which this one replaces)
+        again = self._fit(taken, others)
+        if again.good:
+            return again
+        self._scores, self._step = scores, step
+        return fit
 
     def _own_reading(self, pose: Transform2D, odometry: Transform2D | None) -> bool:
         """Whether the scan about to be placed at ``pose`` (epoch frame) carries a reading known to
