@@ -27,7 +27,10 @@ Until a log shows its first burst only its first scan waits (for the second, whi
 they arrived together), so a robot whose stamps are its scans' times is tracked as it comes; from
 then on each scan waits for the next one (live, for the next burst, which arrives together
 anyway). The log's first burst has no reading before it: it waits for the next one, and its
-scans but the last are placed back from its reading at the next burst's pace.
+scans but the last are placed back from its reading at the next burst's pace. The first burst
+after that began with a scan already given back with the burst's reading as its own: the rest
+of it is given back as a burst that scan was one of, its reading's owner a guess, for the
+tracker's walls to judge (docs/decisions/058).
 """
 
 from __future__ import annotations
@@ -94,6 +97,9 @@ class BurstOdometry(Generic[T]):
         """The last scan added."""
         self._waiting: list[Timed[T]] = []
         """Scans after the last burst's owner (:meth:`_owner`): they wait for the next reading."""
+        self._late = False
+        """Whether the burst being held began with a scan already given back (the log's first burst
+        after its first scans: nothing waited then), with the burst's reading as its own."""
         self._paces: deque[float] = deque(maxlen=PACES)
         """The robot's recent drive per scan, between readings one scan apart (m)."""
         self.own_readings = False
@@ -127,6 +133,7 @@ class BurstOdometry(Generic[T]):
                         scan.stamp - last.stamp,
                         scan.stamp,
                     )
+            self._late = self._late or not self._run
             self._holding = True
             self._run.append(scan)
             return []
@@ -164,7 +171,9 @@ class BurstOdometry(Generic[T]):
             return self._before(first, None, None, 1) + [replace(s, odometry=None, exact=False) for s in waiting]
         reading, start = run[-1].odometry, self._anchor
         self._anchor = reading
+        late, self._late = self._late, False
         n = len(run)
+        size = n + late  # (a late burst's first scan was given back with the reading as its own)
         if n > 1 and start is None and reading is not None and not first:
             self._first = [replace(s, burst=n) for s in run]  # waits for the next burst's reading
             return [replace(s, odometry=None, exact=False) for s in waiting]
@@ -176,14 +185,14 @@ class BurstOdometry(Generic[T]):
         spread = waiting + run[:k]
         m = len(spread) + 1
         out = [
-            s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, i / m), n, False)
+            s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, i / m), size, False)
             for i, s in enumerate(spread, 1)
         ]
         self.spread += sum(s.odometry is not None for s in spread)
-        if m == 1:
+        if m == 1 and not late:
             self._paces.append(_drive(start, reading))
         self._waiting = run[k + 1 :]
-        return self._before(first, start, reading, n) + out + [replace(run[k], burst=n, exact=True)]
+        return self._before(first, start, reading, n) + out + [replace(run[k], burst=size, exact=True)]
 
     def _owner(self, waiting: int, n: int, start: Transform2D, reading: Transform2D) -> int:
         """Which of a burst's ``n`` scans its reading belongs to: the one whose place in the
