@@ -27,10 +27,9 @@ Until a log shows its first burst only its first scan waits (for the second, whi
 they arrived together), so a robot whose stamps are its scans' times is tracked as it comes; from
 then on each scan waits for the next one (live, for the next burst, which arrives together
 anyway). The log's first burst has no reading before it: it waits for the next one, and its
-scans but the last are placed back from its reading at the next burst's pace. The first burst
-after that began with a scan already given back with the burst's reading as its own: the rest
-of it is given back as a burst that scan was one of, its reading's owner a guess, for the
-tracker's walls to judge (docs/decisions/058).
+scans but the last are placed back from its reading at the next burst's pace. A first burst
+that begins with a scan already given back (its reading as its own) owes that scan its reading:
+the rest of it waits for the next one (docs/decisions/058).
 """
 
 from __future__ import annotations
@@ -173,7 +172,6 @@ class BurstOdometry(Generic[T]):
         self._anchor = reading
         late, self._late = self._late, False
         n = len(run)
-        size = n + late  # (a late burst's first scan was given back with the reading as its own)
         if n > 1 and start is None and reading is not None and not first:
             self._first = [replace(s, burst=n) for s in run]  # waits for the next burst's reading
             return [replace(s, odometry=None, exact=False) for s in waiting]
@@ -181,18 +179,23 @@ class BurstOdometry(Generic[T]):
             # no reading to spread the waiting scans towards: the one they carry is the last owner's
             stale = [replace(s, odometry=None, exact=False) for s in waiting]
             return self._before(first, start, reading, n) + stale + run
+        if late:
+            # the reading is the scan's already given back, read where that scan was (a repeated
+            # stamp's): the rest of its burst waits for the next reading, as a repeated scan does
+            self._waiting = waiting + run
+            return self._before(first, start, reading, n)
         k = self._owner(len(waiting), n, start, reading)
         spread = waiting + run[:k]
         m = len(spread) + 1
         out = [
-            s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, i / m), size, False)
+            s if s.odometry is None else Timed(s.item, s.stamp, between(start, reading, i / m), n, False)
             for i, s in enumerate(spread, 1)
         ]
         self.spread += sum(s.odometry is not None for s in spread)
-        if m == 1 and not late:
+        if m == 1:
             self._paces.append(_drive(start, reading))
         self._waiting = run[k + 1 :]
-        return self._before(first, start, reading, n) + out + [replace(run[k], burst=size, exact=True)]
+        return self._before(first, start, reading, n) + out + [replace(run[k], burst=n, exact=True)]
 
     def _owner(self, waiting: int, n: int, start: Transform2D, reading: Transform2D) -> int:
         """Which of a burst's ``n`` scans its reading belongs to: the one whose place in the

@@ -65,11 +65,9 @@ def test_a_repeated_stamps_reading_is_given_to_the_scan_it_was_read_for() -> Non
     out = given_back(runs, scans)
     assert [s.item for s in out] == list(range(40)), "every scan, once, in order"
     assert runs.bursts == 4
-    # the log's first repeat: the scan before it was given back before the log showed a burst
-    # (nothing waits until then), with the reading as its own; the repeated scan gets it too, as a
-    # burst's reading whose owner is a guess (the tracker's walls judge it: record 058)
-    assert out[5].burst == 2 and out[4].burst == 1
-    for s in out[10:]:
+    # the log's first repeat too: the scan before it was given back before the log showed a burst
+    # (nothing waits until then), with the reading as its own; the repeated scan waits (record 058)
+    for s in out:
         assert s.odometry is not None
         assert s.odometry.distance(truth[s.item])[0] < 1e-6, f"scan {s.item} read {s.odometry}, not {truth[s.item]}"
         assert s.exact == (s.item % 10 != 5), "the repeated scan's reading is spread, not its own"
@@ -246,12 +244,12 @@ def test_a_bursts_reading_the_walls_say_is_not_its_scans_is_no_prior_for_it(data
 
 
 @pytest.mark.slow  # tracks 12 real scans (about 1 s)
-def test_the_logs_first_repeated_stamp_is_a_burst_whose_reading_the_walls_judge(datasets: Path) -> None:
+def test_the_logs_first_repeated_stamp_is_the_reading_of_the_scan_already_given_back(datasets: Path) -> None:
     # aces-corrected with one stamp in ten repeated (seed 0): scans 2 and 3 share a stamp, the log's
     # first repeat. Scan 2 was given back before the log showed a burst, with its own reading;
-    # scan 3 got the same reading as its own too, a step behind it, unjudged: placed 91 degrees
-    # off, and scan 5 1.8 m off. It is a burst's reading whose owner is a guess: the walls judge
-    # it (records 057, 058)
+    # scan 3 got the same reading as its own too, a step behind it: placed 91 degrees off, and
+    # scan 5, measured from it, 1.8 m off. The reading is scan 2's: scan 3 waits for the next
+    # (record 058)
     truth, poses = tracked_in_bursts(datasets / "corrected" / "aces-corrected.log.gz", 12, clock="repeat")
     off = steps_off(truth, poses, range(1, 12))
     assert not off, f"steps off by more than 0.3 m or 5 degrees (m, deg): {off}"
