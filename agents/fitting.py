@@ -87,14 +87,15 @@ class FitSearch:
         score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
         unless the walls refused it: the models left, as unsure as each other, weigh by score.
         The odometry's other sign, in doubt, is always tried, and weighed by score alone
-        (:func:`_either_sign`). Failing all, the first fit, not good."""
-        measured = self._stepped(taken, predictions[0])
-        if measured is not None:
-            self._scores.append(measured.registration.score)
-            return measured
+        (:func:`_either_sign`). A burst's reading's fit from the scan pair's step, good but not
+        typical (:meth:`_stepped`), is the first of them. Failing all, the first fit, not good."""
         submap = self.chain.active[0]
         share = TYPICAL_SCORE_SHARE
         floor = typical_floor(self._scores)
+        measured = self._stepped(taken, predictions[0])
+        if measured is not None and measured.registration.score >= floor:
+            self._scores.append(measured.registration.score)
+            return measured
         tried: list[Transform2D] = []
         fits: list[Fit] = []
         priors: list[Prediction] = []  # each fit's motion model
@@ -121,6 +122,8 @@ class FitSearch:
             fits.append(fit)
             priors.append(prediction)
         best = _either_sign(best_fit(fits, apart, priors), signed)
+        if measured is not None and (best is None or best.registration.score * share < measured.registration.score):
+            best = measured  # (the pair's step is the reading's start: a later fit must outscore it)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
             # prediction's own, which the pose-free integration below may still replace
@@ -186,7 +189,12 @@ class FitSearch:
         on, where a corridor's walls repeat). The scan pair's step is then where registration
         starts, the reading still its prior (record 052): along a corridor whose pair slides, the
         reading holds the robot as it did. So for a burst's own reading given to a scan by the
-        robot's pace (:attr:`by_pace`; record 054)."""
+        robot's pace (:attr:`by_pace`; record 054). Such a fit, good but not typical (a turn,
+        little of the scan on the submap yet), is still returned: the pair's step is that
+        reading's start, and its fit stands as the first prediction's does, replaced only by a fit
+        scoring ``1 / TYPICAL_SCORE_SHARE`` times as much (:meth:`_fit`;
+        freiburg-101-corrected in bursts, scan 60: the pair's fit right, the prediction's that
+        replaced it 0.37 m and 5 degrees off; docs/decisions/060)."""
         self._step = None
         spread = "odometry" in prediction.source and self.by_pace
         if self._previous is None or (
@@ -212,7 +220,7 @@ class FitSearch:
         if fit.good and fit.registration.score >= typical_floor(self._scores):
             return fit
         self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
-        return None
+        return fit if spread and fit.good else None
 
     def _turned_fits(self, taken: ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
