@@ -87,8 +87,8 @@ class FitSearch:
         score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
         unless the walls refused it: the models left, as unsure as each other, weigh by score.
         The odometry's other sign, in doubt, is always tried, and weighed by score alone
-        (:func:`_either_sign`). A burst's reading's fit from the scan pair's step, good but not
-        typical (:meth:`_stepped`), is the first of them. Failing all, the first fit, not good."""
+        (:func:`_either_sign`). The scan pair's fit (:meth:`_stepped`), good but not typical, is
+        the first of them. Failing all, the first fit, not good."""
         submap = self.chain.active[0]
         share = TYPICAL_SCORE_SHARE
         floor = typical_floor(self._scores)
@@ -181,7 +181,13 @@ class FitSearch:
         registration's reach), the step measured by the scan's pose-free integration on the last
         scan the walls placed (not a carried one: :func:`~fleetmap.agents.pose_free.stepped`;
         record 045), within the robot's reach since that scan, registered from there on the
-        submap: its fit when good and typical, else None (the motion models are tried then).
+        submap: its fit when good, else None (the motion models are tried then). A typical fit is
+        taken at once; one that is not (a turn, little of the scan on the submap yet) is the first
+        of the fits (:meth:`_fit`), replaced only by one scoring ``1 / TYPICAL_SCORE_SHARE`` times
+        as much: the pair's step is where registration starts, as the first prediction's start is
+        elsewhere (freiburg-101-corrected, scans 60 and 93, with odometry in bursts and without
+        it: the pair's fits 0.01-0.03 m off the true step, the motion models' that replaced them
+        0.2-0.4 m and 5-7 degrees off; docs/decisions/060).
 
         A reading spread within a burst (not :attr:`exact`) is a guess that the robot kept its pace
         between the burst's two readings: registered from it, a scan slides to a look-alike of the
@@ -189,12 +195,7 @@ class FitSearch:
         on, where a corridor's walls repeat). The scan pair's step is then where registration
         starts, the reading still its prior (record 052): along a corridor whose pair slides, the
         reading holds the robot as it did. So for a burst's own reading given to a scan by the
-        robot's pace (:attr:`by_pace`; record 054). Such a fit, good but not typical (a turn,
-        little of the scan on the submap yet), is still returned: the pair's step is that
-        reading's start, and its fit stands as the first prediction's does, replaced only by a fit
-        scoring ``1 / TYPICAL_SCORE_SHARE`` times as much (:meth:`_fit`;
-        freiburg-101-corrected in bursts, scan 60: the pair's fit right, the prediction's that
-        replaced it 0.37 m and 5 degrees off; docs/decisions/060)."""
+        robot's pace (:attr:`by_pace`; record 054)."""
         self._step = None
         spread = "odometry" in prediction.source and self.by_pace
         if self._previous is None or (
@@ -220,7 +221,7 @@ class FitSearch:
         if fit.good and fit.registration.score >= typical_floor(self._scores):
             return fit
         self._step = None if fit.contradicted else measured  # (the walls say nothing against it)
-        return fit if spread and fit.good else None
+        return fit if fit.good else None
 
     def _turned_fits(self, taken: ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
