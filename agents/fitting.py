@@ -123,7 +123,7 @@ class FitSearch:
             priors.append(prediction)
         best = _either_sign(best_fit(fits, apart, priors), signed)
         if measured is not None and (best is None or best.registration.score * share < measured.registration.score):
-            best = measured  # (the pair's step is the reading's start: a later fit must outscore it)
+            best = measured  # (registration started from the pair's step: a later fit must outscore it)
         if best is None or best.registration.score < floor:
             # only a typical fit from a turned start: an atypical one is no better than the
             # prediction's own, which the pose-free integration below may still replace

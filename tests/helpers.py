@@ -151,3 +151,16 @@ def tracked(scans: Iterable[Any], odometry: bool = True) -> tuple[Agent, dict[in
         agent.finish() if s is None else agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
         poses.update({index: pose for index, _epoch, pose in agent.tracked if pose is not None})
     return agent, poses
+
+
+def steps_off(
+    truth: list[Transform2D], poses: dict[int, Transform2D], scans: range, metres: float = 0.3, degrees: float = 5.0
+) -> dict[int, tuple[float, float]]:
+    """The tracked steps into each of ``scans`` (from the scan before) off the corrected poses' by
+    more than ``metres`` or ``degrees``: (m, deg) by scan."""
+    off = {}
+    for i in scans:
+        error = truth[i - 1].inverse().compose(truth[i]).inverse().compose(poses[i - 1].inverse().compose(poses[i]))
+        if math.hypot(error.x, error.y) > metres or abs(math.degrees(error.theta)) > degrees:
+            off[i] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
+    return off

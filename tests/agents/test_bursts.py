@@ -19,7 +19,7 @@ from fleetmap.shared.io.logs import read_carmen
 from fleetmap.shared.io.messages import Scan
 from fleetmap.shared.io.sources import CarmenSource
 
-from tests.helpers import tracked
+from tests.helpers import steps_off, tracked
 
 
 def driven(n: int) -> list[Transform2D]:
@@ -165,19 +165,6 @@ def tracked_in_bursts(
     agent, poses = tracked(given)
     assert agent.counts.epochs == 1
     return truth, poses
-
-
-def steps_off(
-    truth: list[Transform2D], poses: dict[int, Transform2D], scans: range, metres: float = 0.3, degrees: float = 5.0
-) -> dict[int, tuple[float, float]]:
-    """The tracked steps into each of ``scans`` (from the scan before) off the corrected poses' by
-    more than ``metres`` or ``degrees``: (m, deg) by scan."""
-    off = {}
-    for i in scans:
-        error = truth[i - 1].inverse().compose(truth[i]).inverse().compose(poses[i - 1].inverse().compose(poses[i]))
-        if math.hypot(error.x, error.y) > metres or abs(math.degrees(error.theta)) > degrees:
-            off[i] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
-    return off
 
 
 @pytest.mark.slow  # tracks 131 real scans in bursts (about 4 s)

@@ -23,7 +23,7 @@ from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.config_args import preset
 from fleetmap.mapping import Piece, map_logs, read_inputs
-from tests.helpers import tracked
+from tests.helpers import steps_off, tracked
 
 TURN = (1134865028.0, 1134865040.0)
 """mit-csail's last turn (about 90 degrees a second), where one scan's odometry is 14 degrees off."""
@@ -519,9 +519,5 @@ def test_a_turn_without_odometry_is_placed_by_the_scan_pairs_fit_whatever_it_sco
     agent, poses = tracked(CarmenSource(path, range_max=math.inf, stop=100), odometry=False)
     truth = [Transform2D(*s.odometry) for s in itertools.islice(read_carmen(path), 100)]
     assert agent.counts.epochs == 1
-    off = {}
-    for i in range(50, 100):
-        error = truth[i - 1].inverse().compose(truth[i]).inverse().compose(poses[i - 1].inverse().compose(poses[i]))
-        if math.hypot(error.x, error.y) > 0.1 or abs(math.degrees(error.theta)) > 2.0:
-            off[i] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
+    off = steps_off(truth, poses, range(50, 100), 0.1, 2.0)
     assert not off, f"steps off by more than 0.1 m or 2 degrees (m, deg): {off}"
