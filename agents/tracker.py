@@ -46,7 +46,9 @@ For each scan (:meth:`Tracker.add`):
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
-   the others are tracked into it. A kidnap concluded on stamps the motion has not yet refuted is
+   the others are tracked into it. A scan with less wall than any fit must match
+   (``MIN_MATCHED_LENGTH``: a few posts in open ground) is no such evidence: the robot moves on by
+   its motion model, as over an empty scan. A kidnap concluded on stamps the motion has not yet refuted is
    a conclusion about the clock too: the first held scan is tracked again with its time by the
    scans' sequence, and where it is placed then, the stamps were wrong, not the robot's place
    (:meth:`Tracker._untimed`).
@@ -70,7 +72,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from fleetmap.agents.clock_evidence import check_motion, check_order, say_distrusted
-from fleetmap.agents.fitcheck import KIDNAP_REASON, Fit
+from fleetmap.agents.fitcheck import KIDNAP_REASON, MIN_MATCHED_LENGTH, Fit
 from fleetmap.agents.fitting import FitSearch, ScanIn
 from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
 from fleetmap.agents.prediction import Predictor, within_gate
@@ -269,6 +271,11 @@ class Tracker(FitSearch):
         if self._step is not None:  # measured by the scan pair, as the odometry would have
             self.motion.step_variance = (LOOSE_TRANSLATION**2, LOOSE_ROTATION**2)
             return [self._carried(taken, fit, self._step)]
+        if taken.samples.length < MIN_MATCHED_LENGTH:
+            # less wall than any fit must match: no start could have placed it, so its not fitting
+            # is no evidence of a kidnap (docs/decisions/061)
+            self._advance_blind(seq, stamp, odometry)
+            return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
         self.motion.odometry = odometry  # a scan without odometry breaks its chain (:meth:`_place`)

@@ -18,7 +18,7 @@ from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
 from fleetmap.shared.core.motion import CHI2_3DOF_99
 from fleetmap.shared.io.logs import read_carmen
-from fleetmap.shared.io.messages import LocalMap
+from fleetmap.shared.io.messages import LocalMap, Scan
 from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.config_args import preset
@@ -140,6 +140,20 @@ def test_a_turn_into_new_space_without_odometry_is_placed_where_a_turned_start_f
     assert agent.counts.epochs == 1
     assert 77 in poses and 78 in poses
     assert not off, f"steps 0.3 m or 3 degrees or more off their truth (m, deg), by scan: {off}"
+
+
+@pytest.mark.slow  # tracks 26 scans of a real log, searching wide windows (about 5 s)
+def test_scans_with_too_little_wall_to_be_placed_start_no_epoch_without_odometry(datasets: Path) -> None:
+    # freiburg-campus-corrected without odometry, scans 1040-1065: the robot crosses open ground,
+    # and 1051-1059 see 0.1-0.5 m of wall each, less than any fit must match. Held as scans that
+    # fit nowhere, they started ten epochs, each from a scan its successors could not fit on
+    path = datasets / "corrected" / "freiburg-campus-corrected.log.gz"
+    agent = Agent("r1", FleetmapConfig(), odometry=False)
+    published: dict[int, Scan] = {}
+    for s in CarmenSource(path, start=1040, stop=1066, range_max=math.inf):
+        published |= {m.index: m for m in agent.add_scan(s.index, s.stamp, s.scan, s.odometry) if isinstance(m, Scan)}
+    assert agent.counts.epochs == 1
+    assert all(published[i].pose is None and published[i].epoch == 0 for i in range(1051, 1060))
 
 
 @pytest.mark.slow  # tracks 25 scans of a real log, searching wide windows (about 3 s)
