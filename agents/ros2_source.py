@@ -29,7 +29,10 @@ outside a bag's odometry. The agent's own wall clock does not decide: on a busy 
 odometry sample can sit behind the scan for longer than the robot took between them, and its
 readings still coming, older than the scan, say it is behind, not stopped (a robot played at five
 times its pace, on a machine running two other jobs: a scan went without its reading, 0.1 s of the
-agent's time behind the scan that came 0.5 s of the robot's after it).
+agent's time behind the scan that came 0.5 s of the robot's after it). And every sample heard is
+taken before a scan goes: on a machine running four other jobs the agent found a scan, later
+scans and then the scan's odometry all waiting in its inbox, and, taking them one at a time, let
+the scan go without it.
 """
 
 from __future__ import annotations
@@ -187,8 +190,12 @@ class Ros2LiveSource:
         log.info("%s: listening on %s", self.robot, ", ".join(t for t, _, _ in self.topics.subscriptions()))
         try:
             while not self.stop.is_set():
+                # everything heard is taken before a scan is released: a scan whose odometry sits
+                # behind later scans in the inbox (a busy machine) is not taken for one without it
                 with contextlib.suppress(queue.Empty):
                     self._take(*self._inbox.get(timeout=POLL))
+                    while True:
+                        self._take(*self._inbox.get_nowait())
                 yield from self._released()
             # stopped: what was heard is taken, and every scan held goes (stop releases them all)
             with contextlib.suppress(queue.Empty):

@@ -224,18 +224,47 @@ def test_odometry_behind_the_scans_on_a_busy_machine_still_goes_with_its_scan():
     assert abs(got[0].odometry.x - 1.0) < 1e-6
 
 
+def inbox_source(
+    monkeypatch: pytest.MonkeyPatch, domain: int
+) -> tuple[Ros2Topics, threading.Event, Ros2LiveSource, Callable[[str, str, object], tuple[str, str, bytes, bytes]]]:
+    """A source without a session, iterated on its inbox (its stop event given), and ``sample(topic,
+    typename, message)``: the inbox entry the subscription's callback would make of a sample."""
+    topics = Ros2Topics.of("r1", domain=domain)
+    stop = threading.Event()
+    source = Ros2LiveSource(None, topics, stop, "r1", clock=lambda: 100.0)  # type: ignore[arg-type]
+    monkeypatch.setattr(source, "_declare", lambda: [])  # no session: samples come as the test puts them
+    attachment = wire.Attachment(1, 0, bytes(16)).pack()
+
+    def sample(topic: str, typename: str, message: object) -> tuple[str, str, bytes, bytes]:
+        return topic, wire.data_key(domain, topic, typename), wire.encode(message, typename), attachment
+
+    return topics, stop, source, sample
+
+
+def test_odometry_queued_behind_later_scans_still_goes_with_its_scan(monkeypatch):
+    # a busy machine: the agent's loop comes back to its inbox to find the scan at 20.0, scans
+    # 0.6 s of the robot's time after it, and only then the odometry at 20.0, all heard at once.
+    # Taken and released one sample at a time, the scan went without its reading (the robot's
+    # clock said the odometry was late); everything heard is taken first
+    topics, stop, source, sample = inbox_source(monkeypatch, 5)
+
+    def heard(topic: str, typename: str, message: object) -> None:  # as the subscription's callback
+        source._inbox.put(sample(topic, typename, message))
+
+    heard(topics.odom, wire.ODOMETRY, odometry(19.9, 0.0, 0.0))
+    for t in (20.0, 20.2, 20.4, 20.6):
+        heard(topics.scan, wire.LASER_SCAN, laser_scan(t, [2.0] * 181))
+    heard(topics.odom, wire.ODOMETRY, odometry(20.0, 1.0, 0.0))
+    first = next(iter(source))
+    stop.set()
+    assert first.stamp == 20.0 and first.odometry is not None and abs(first.odometry.x - 1.0) < 1e-6
+
+
 def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_one_on_the_bus(monkeypatch):
     # SIGTERM comes while the robot's last scans are in the agent: one waits for the odometry at
     # its stamp, one is heard and not yet taken. Neither may be lost: the source gives them back as
     # it ends, and the run tracks and publishes them before the final local maps
-    topics = Ros2Topics.of("r1", domain=4)
-    stop = threading.Event()
-    source = Ros2LiveSource(None, topics, stop, "r1", clock=lambda: 100.0)  # type: ignore[arg-type]
-    monkeypatch.setattr(source, "_declare", lambda: [])  # no session: samples come as below
-    attachment = wire.Attachment(1, 0, bytes(16)).pack()
-
-    def sample(topic: str, typename: str, message: object) -> tuple[str, str, bytes, bytes]:
-        return topic, wire.data_key(4, topic, typename), wire.encode(message, typename), attachment
+    topics, stop, source, sample = inbox_source(monkeypatch, 4)
 
     assert source.feed(*sample(topics.odom, wire.ODOMETRY, odometry(19.9, 0.0, 0.0))) == []
     assert source.feed(*sample(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181))) == []  # waits
