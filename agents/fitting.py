@@ -21,6 +21,7 @@ from fleetmap.agents.fitcheck import (
     best_fit,
     judge,
     same_start,
+    swept_fit,
     turned_fits,
     typical_floor,
     window_fit,
@@ -32,7 +33,7 @@ from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.motion import Prediction
 from fleetmap.shared.core.rangescan import RangeScan
-from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, Registration, ScanSamples, register
+from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION, Registration, ScanSamples, register
 
 __all__ = ["FitSearch", "ScanIn"]
 
@@ -133,6 +134,7 @@ class FitSearch:
                 best = turned[-1]
             elif best is None:
                 best = self._reachable_fit(taken, turned)
+                best = self._swept(taken, predictions[0], best) if best is not None else None
         if best is None or best.registration.score < floor:
             # a scan re-acquired by pose-free integration must fit as well as the robot's scans
             # usually do: one that explains a fraction of what they did matched a look-alike (a
@@ -161,15 +163,29 @@ class FitSearch:
             return best
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        return window_fit(
-            best,
-            submap,
-            taken.samples,
-            mean,
-            radius,
-            prediction,
-            lambda start: self._registered(taken, submap, start, mean, prediction),
-        )
+        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
+        return window_fit(best, submap, taken.samples, mean, radius, prediction, registered)
+
+    def _swept(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
+        """A fit from a turned start alone (:meth:`_reachable_fit`), or a better one from the
+        prediction's window searched at every heading it allows (:func:`swept_fit`), where the
+        prediction is constant velocity unsure of the heading beyond registration's reach and its
+        window wider than registration's reach, and no scan pair measured the step (its gate holds
+        a weak fit, as the odometry's does). A turned start searches only the predicted position:
+        a turn that also carried the robot a metre aside lies beyond it (orebro-corrected, scan
+        216; docs/decisions/062)."""
+        radius = self._radius(taken, prediction)
+        if (
+            radius <= MAX_CORRESPONDENCE
+            or prediction.sigma_rotation <= REACH_ROTATION
+            or "odometry" in prediction.source
+            or self._step is not None
+        ):
+            return best
+        submap = self.chain.active[0]
+        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
+        return swept_fit(best, submap, taken.samples, mean, radius, prediction, registered)
 
     def _radius(self, taken: ScanIn, prediction: Prediction) -> float:
         """How far from the prediction the scan may be: two sigma, within the robot's reach."""
