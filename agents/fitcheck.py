@@ -298,12 +298,13 @@ def swept_fit(
     prediction (:func:`weighed`), registered from the poses of the window ``radius`` around the
     prediction's ``mean``, at headings ``2 REACH_ROTATION`` apart across two sigma of its heading
     either side, whose support times the prediction's Gaussian is at least ``TYPICAL_SCORE_SHARE``
-    of the best pose's (each apart from the others by registration's reach). For a fit that is not typical where the
-    prediction knows the heading no better than the position (constant velocity over a sparse
-    log's second: 177 degrees): turned starts at the predicted position reach only what lies
-    within registration's reach of it, and a turn that also carried the robot a metre aside
-    is left unsearched. The real-time correlative matcher searches rotations as it searches
-    translations (Olson, ICRA 2009, Section III-A; Cartographer's ``RealTimeCorrelativeScanMatcher2D``).
+    of the best pose's (each apart from the others by registration's reach). For a fit found from
+    a turned start alone where the prediction knows the heading no better than the position
+    (constant velocity over a sparse log's second: 177 degrees): turned starts at the predicted
+    position reach only what lies within registration's reach of it, and a turn that also
+    carried the robot a metre aside is left unsearched. The real-time correlative matcher
+    searches rotations as it searches translations (Olson, ICRA 2009, Section III-A;
+    Cartographer's ``RealTimeCorrelativeScanMatcher2D``).
     orebro-corrected, scan 216: 1.9 m on and 24 degrees round, where the corrected pose's fit
     scores 2.6; from starts turned at the prediction the best was 128 degrees off (docs/decisions/062)."""
     step = 2.0 * REACH_ROTATION

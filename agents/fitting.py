@@ -134,7 +134,8 @@ class FitSearch:
                 best = turned[-1]
             elif best is None:
                 best = self._reachable_fit(taken, turned)
-                best = self._swept(taken, predictions[0], best) if best is not None else None
+                if best is not None:
+                    best = self._swept(taken, predictions[0], best)
         if best is None or best.registration.score < floor:
             # a scan re-acquired by pose-free integration must fit as well as the robot's scans
             # usually do: one that explains a fraction of what they did matched a look-alike (a
