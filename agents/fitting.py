@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 
@@ -162,9 +163,7 @@ class FitSearch:
         radius = self._radius(taken, prediction)
         if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
             return best
-        submap = self.chain.active[0]
-        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
+        submap, mean, registered = self._window(taken, prediction)
         return window_fit(best, submap, taken.samples, mean, radius, prediction, registered)
 
     def _swept(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
@@ -183,9 +182,7 @@ class FitSearch:
             or self._step is not None
         ):
             return best
-        submap = self.chain.active[0]
-        mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
+        submap, mean, registered = self._window(taken, prediction)
         return swept_fit(best, submap, taken.samples, mean, radius, prediction, registered)
 
     def _radius(self, taken: ScanIn, prediction: Prediction) -> float:
@@ -242,10 +239,17 @@ class FitSearch:
 
     def _turned_fits(self, taken: ScanIn, prediction: Prediction, floor: float, tried: list[Transform2D]) -> list[Fit]:
         """Fits from starts turned across the prediction's heading uncertainty (:func:`turned_fits`)."""
+        _submap, mean, registered = self._window(taken, prediction)
+        return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
+
+    def _window(
+        self, taken: ScanIn, prediction: Prediction
+    ) -> tuple[Submap, Transform2D, Callable[[Transform2D], Fit]]:
+        """What a search about the prediction needs: the matching submap, the prediction's mean in
+        its frame, and the scan registered on it from a start, pulled towards that mean."""
         submap = self.chain.active[0]
         mean = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
-        registered = partial(self._registered, taken, submap, mean=mean, prediction=prediction)
-        return turned_fits(mean, prediction.sigma_rotation, floor, tried, registered)
+        return submap, mean, partial(self._registered, taken, submap, mean=mean, prediction=prediction)
 
     def _reachable_fit(self, taken: ScanIn, fits: list[Fit]) -> Fit | None:
         """No start of the motion models placed the scan: the best good fit from a turned start

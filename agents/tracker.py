@@ -48,10 +48,10 @@ For each scan (:meth:`Tracker.add`):
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
    the others are tracked into it. A scan with less wall than any fit must match
    (``MIN_MATCHED_LENGTH``: a few posts in open ground) is no such evidence: the robot moves on by
-   its motion model, as over an empty scan. A kidnap concluded on stamps the motion has not yet refuted is
-   a conclusion about the clock too: the first held scan is tracked again with its time by the
-   scans' sequence, and where it is placed then, the stamps were wrong, not the robot's place
-   (:meth:`Tracker._untimed`).
+   its motion model, as over an empty scan (docs/decisions/061). A kidnap concluded on stamps the
+   motion has not yet refuted is a conclusion about the clock too: the first held scan is tracked
+   again with its time by the scans' sequence, and where it is placed then, the stamps were wrong,
+   not the robot's place (:meth:`Tracker._untimed`).
 
 **Submaps** (Cartographer's scheme, :mod:`fleetmap.agents.submap`): two are active at a time, and
 every inserted scan goes into both; a scan is registered on, and placed by, the older one.
