@@ -19,6 +19,7 @@ from functools import partial
 from fleetmap.agents.fitcheck import (
     TYPICAL_SCORE_SHARE,
     Fit,
+    beam_margin,
     best_fit,
     judge,
     same_start,
@@ -34,7 +35,14 @@ from fleetmap.shared.config import FleetmapConfig, TrackingParams
 from fleetmap.shared.core.geometry import Array, Transform2D, wrap_angle
 from fleetmap.shared.core.motion import Prediction
 from fleetmap.shared.core.rangescan import RangeScan
-from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION, Registration, ScanSamples, register
+from fleetmap.shared.core.tracking import (
+    MAX_CORRESPONDENCE,
+    REACH_ROTATION,
+    Registration,
+    ScanSamples,
+    beam_evidence,
+    register,
+)
 
 __all__ = ["FitSearch", "ScanIn"]
 
@@ -164,7 +172,8 @@ class FitSearch:
         if not best.good or radius <= MAX_CORRESPONDENCE or "odometry" in prediction.source:
             return best
         submap, mean, registered = self._window(taken, prediction)
-        return window_fit(best, submap, taken.samples, mean, radius, prediction, registered)
+        against = partial(self._against, taken, submap)
+        return window_fit(against(best), submap, taken.samples, mean, radius, prediction, _then(registered, against))
 
     def _swept(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
         """A fit from a turned start alone (:meth:`_reachable_fit`), or a better one from the
@@ -183,7 +192,8 @@ class FitSearch:
         ):
             return best
         submap, mean, registered = self._window(taken, prediction)
-        return swept_fit(best, submap, taken.samples, mean, radius, prediction, registered)
+        against = partial(self._against, taken, submap)
+        return swept_fit(against(best), submap, taken.samples, mean, radius, prediction, _then(registered, against))
 
     def _radius(self, taken: ScanIn, prediction: Prediction) -> float:
         """How far from the prediction the scan may be: two sigma, within the robot's reach."""
@@ -279,14 +289,25 @@ class FitSearch:
         """The scan registered on ``submap`` from ``start``, pulled towards the prediction's
         ``mean`` with its information, and checked (:meth:`_judge`)."""
         reg = register(taken.samples, submap.reference, start, mean, prediction.information(), self.params)
-        why, (contradicted, disputed) = self._judge(reg, taken, submap)
-        return Fit(reg, why == "", why, contradicted, disputed)
+        return self._judge(reg, taken, submap)
 
-    def _judge(self, reg: Registration, taken: ScanIn, submap: Submap) -> tuple[str, tuple[bool, bool]]:
+    def _judge(self, reg: Registration, taken: ScanIn, submap: Submap) -> Fit:
         """The fit check (:func:`~fleetmap.agents.fitcheck.judge`), its beam test excusing the
         uncertainty of the track the robot is carried on."""
         max_range = self.config.extraction.max_range
         return judge(reg, taken.scan, taken.segments, submap, max_range, self.motion.track_drift)
+
+    def _against(self, taken: ScanIn, submap: Submap, fit: Fit) -> Fit:
+        """A good fit with the submap's wall its beams pass through (:attr:`Fit.through`), for a
+        window search to weigh it (:func:`~fleetmap.agents.fitcheck.weighed`); the beam test's
+        margin excuses the uncertainty of the track the robot is carried on, as the fit check's."""
+        if not fit.good or fit.beams is not None:
+            return fit
+        margin = beam_margin(self.motion.track_drift)
+        beams = beam_evidence(
+            submap.reference, taken.scan, fit.registration.pose, self.config.extraction.max_range, margin
+        )
+        return replace(fit, beams=beams)
 
     def _reacquire(self, taken: ScanIn, submap: Submap, prediction: Prediction) -> Fit | None:
         """The paper's pose-free integration of the scan on the submap, within the robot's reach of
@@ -302,14 +323,19 @@ class FitSearch:
         if start is None:
             return None
         reg = register(taken.samples, submap.reference, start, start, loose(), self.params)
-        why, _ = self._judge(reg, taken, submap)
+        fit = self._judge(reg, taken, submap)
         placed = submap.origin.compose(reg.pose)
-        if why != "" or not self.motion.reachable(self._good, placed, taken.seq, taken.stamp):
+        if not fit.good or not self.motion.reachable(self._good, placed, taken.seq, taken.stamp):
             return None
         measured = prediction.source == "odometry" and self.exact  # not a mistimed or spread reading
         if measured and not within_gate(placed, self._pose_in_epoch(prediction), prediction):
             return None
-        return Fit(reg, True, "reacquired")
+        return replace(fit, why="reacquired")
+
+
+def _then(registered: Callable[[Transform2D], Fit], then: Callable[[Fit], Fit]) -> Callable[[Transform2D], Fit]:
+    """``registered``, each fit it gives passed on through ``then``."""
+    return lambda start: then(registered(start))
 
 
 def _apart(predictions: list[Prediction]) -> bool:
