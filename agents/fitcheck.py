@@ -102,11 +102,11 @@ def judge(
     max_range: float,
     track_drift: tuple[float, float],
 ) -> Fit:
-    """The fit check's verdict on a registration: good or why not ("" when it is), whether the walls
-    contradict it. The walls' evidence alone:
-    how far the robot can have driven does not judge a registration started near the prediction
-    (the clock may be wrong; the walls are not): it bounds only where the pose-free search looks
-    (:meth:`fleetmap.agents.tracker.Tracker.add`, step 4).
+    """The fit check's verdict on a registration: good or why not ("" when it is), and whether the
+    walls contradict it. The walls' evidence alone: how far the robot can have driven does not
+    judge a registration started near the prediction (the clock may be wrong; the walls are not):
+    it bounds only where the pose-free search looks (:meth:`fleetmap.agents.tracker.Tracker.add`,
+    step 4).
 
     For a refused fit, also what the walls say against it (:func:`contradicts`): too little of
     the scan on the submap's walls says only that they cannot place it (open space, a few

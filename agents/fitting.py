@@ -298,9 +298,10 @@ class FitSearch:
         return judge(reg, taken.scan, taken.segments, submap, max_range, self.motion.track_drift)
 
     def _against(self, taken: ScanIn, submap: Submap, fit: Fit) -> Fit:
-        """A good fit with the submap's wall its beams pass through (:attr:`Fit.through`), for a
-        window search to weigh it (:func:`~fleetmap.agents.fitcheck.weighed`); the beam test's
-        margin excuses the uncertainty of the track the robot is carried on, as the fit check's."""
+        """A good fit with the submap's wall its beams pass through and return from
+        (:attr:`~fleetmap.agents.fitcheck.Fit.beams`), for a window search to weigh it
+        (:func:`~fleetmap.agents.fitcheck.weighed`); the beam test's margin excuses the uncertainty
+        of the track the robot is carried on, as the fit check's does."""
         if not fit.good or fit.beams is not None:
             return fit
         margin = beam_margin(self.motion.track_drift)
