@@ -114,6 +114,22 @@ def _alike(t: Array, i: int, j: int) -> bool:
     return d < DISTINCT_TRANSLATION and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < DISTINCT_ROTATION
 
 
+def settled_ahead(t: Array, scores: list[float]) -> list[bool]:
+    """For each refined pick ``t`` (``(n, 3)``), whether a better-scoring one lies within
+    :data:`DISTINCT_TRANSLATION` and :data:`DISTINCT_ROTATION` of it: the first refinement steps
+    brought the two into one minimum, and refined on they would end as one transformation found
+    twice, so only the better one is
+    (docs/decisions/064-a-pick-settled-into-a-better-ones-minimum-is-not-refined-on.md)."""
+    kept: list[int] = []
+    ahead = [False] * len(scores)
+    for n in sorted(range(len(scores)), key=lambda m: -scores[m]):
+        if any(_alike(t, n, k) for k in kept):
+            ahead[n] = True
+        else:
+            kept.append(n)
+    return ahead
+
+
 def _also_by_value(t: Array, values: Array, picked: list[int], k: int, p: IntegrationParams) -> list[int]:
     """The k best-valued candidates apart from the ``picked`` ones and from each other.
 

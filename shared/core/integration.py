@@ -26,6 +26,7 @@ from fleetmap.shared.core.distinct import (
     _pick_distinct,
     distinct_candidates,
     gather_candidates,
+    settled_ahead,
 )
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths
 from fleetmap.shared.core.mapgrid import VIEWPOINTS, MapIndex, grid_scores, map_index, ranking_scores
@@ -461,8 +462,12 @@ def _choose(
     if REFINE:
         # Two stages: a few steps for every pick, then to convergence for those still in the race.
         finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse) for c in finals]
-        top = max((c.score for c in finals), default=0.0)
-        finals = [_refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top else c for c in finals]
+        top, scores = max((c.score for c in finals), default=0.0), [c.score for c in finals]
+        ahead = settled_ahead(np.array([c.transform.as_array() for c in finals]).reshape(-1, 3), scores)
+        finals = [
+            _refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top and not ahead[n] else c
+            for n, c in enumerate(finals)
+        ]
     best = finals[0] if finals else _Choice(Transform2D.identity(), 0.0, 0.0, 0)
     for choice in finals:
         if choice.score > best.score:
