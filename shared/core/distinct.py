@@ -114,20 +114,14 @@ def _alike(t: Array, i: int, j: int) -> bool:
     return d < DISTINCT_TRANSLATION and abs(math.remainder(t[i, 2] - t[j, 2], 2 * math.pi)) < DISTINCT_ROTATION
 
 
-def settled_ahead(t: Array, scores: list[float]) -> list[bool]:
-    """For each refined pick ``t`` (``(n, 3)``), whether a better-scoring one lies within
-    :data:`DISTINCT_TRANSLATION` and :data:`DISTINCT_ROTATION` of it: the first refinement steps
-    brought the two into one minimum, and refined on they would end as one transformation found
-    twice, so only the better one is
+def settled_ahead(t: Array, scores: Array, p: IntegrationParams) -> list[bool]:
+    """For each refined pick ``t`` (``(n, 3)``) that scores, whether a better-scoring one lies within
+    :data:`DISTINCT_TRANSLATION` and :data:`DISTINCT_ROTATION` of it (not among the distinct ones,
+    :func:`_pick_distinct`): the first refinement steps brought the two into one minimum, and
+    refined on they would end as one transformation found twice, so only the better one is
     (docs/decisions/064-a-pick-settled-into-a-better-ones-minimum-is-not-refined-on.md)."""
-    kept: list[int] = []
-    ahead = [False] * len(scores)
-    for n in sorted(range(len(scores)), key=lambda m: -scores[m]):
-        if any(_alike(t, n, k) for k in kept):
-            ahead[n] = True
-        else:
-            kept.append(n)
-    return ahead
+    kept = set(_pick_distinct(t, scores, len(scores), p))
+    return [n not in kept and float(scores[n]) > 0 for n in range(len(scores))]
 
 
 def _also_by_value(t: Array, values: Array, picked: list[int], k: int, p: IntegrationParams) -> list[int]:

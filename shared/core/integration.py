@@ -462,8 +462,8 @@ def _choose(
     if REFINE:
         # Two stages: a few steps for every pick, then to convergence for those still in the race.
         finals = [_refined(prep, free, c, p, REFINE_FIRST_STEPS, refuse) for c in finals]
-        top, scores = max((c.score for c in finals), default=0.0), [c.score for c in finals]
-        ahead = settled_ahead(np.array([c.transform.as_array() for c in finals]).reshape(-1, 3), scores)
+        top, scores = max((c.score for c in finals), default=0.0), np.array([c.score for c in finals])
+        ahead = settled_ahead(np.array([c.transform.as_array() for c in finals]).reshape(-1, 3), scores, p)
         finals = [
             _refined(prep, free, c, p, 12, refuse) if c.score >= REFINE_KEEP * top and not ahead[n] else c
             for n, c in enumerate(finals)

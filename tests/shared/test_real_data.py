@@ -139,7 +139,7 @@ def test_a_pick_settled_into_a_better_ones_minimum_is_not_refined_on_and_the_ans
 
     def counted(*args: object, **kwargs: object) -> object:
         calls["n"] += 1
-        return real(*args, **kwargs)  # type: ignore[arg-type]
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(integration, "refine_transform", counted)
 
@@ -149,7 +149,7 @@ def test_a_pick_settled_into_a_better_ones_minimum_is_not_refined_on_and_the_ans
 
     kept = answers()
     fewer, calls["n"] = calls["n"], 0
-    monkeypatch.setattr(integration, "settled_ahead", lambda t, scores: [False] * len(scores))
+    monkeypatch.setattr(integration, "settled_ahead", lambda t, scores, p: [False] * len(scores))
     every = answers()
     assert fewer < calls["n"], (fewer, calls["n"])
     for i, ((a, valid_a), (b, valid_b)) in enumerate(zip(kept, every, strict=True)):
