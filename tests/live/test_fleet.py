@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fleetmap.merger.recorder import wait_until_recorded
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.messages import FleetEvent, GlobalMap, decode
 from fleetmap.shared.io.recording_reader import RecordingReader
@@ -417,6 +418,9 @@ def test_an_agent_and_a_recorder_started_before_their_router_wait_for_it_and_the
             scans = Inbox()
             bus.subscribe(bus_keys().scan("r1"), scans)
             assert scans.wait_for(3, WAIT), log.read_text(errors="replace")
+            # the recorder retries on its own backoff, so it may reach the router after this bus did
+            recorded = wait_until_recorded(bus, bus_keys(), {bus_keys().scan("r1"): 1}, WAIT)
+            assert recorded, recorder_log.read_text(errors="replace")
         recorder.send_signal(signal.SIGTERM)
         assert recorder.wait(WAIT) == 0, recorder_log.read_text(errors="replace")
         assert "fleet/t/robots/r1/scan" in recorder_log.read_text(errors="replace")
