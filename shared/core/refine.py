@@ -15,6 +15,7 @@ import math
 import numpy as np
 from fleetmap.shared.config import IntegrationParams
 from fleetmap.shared.core.geometry import Array, Transform2D
+from fleetmap.shared.core.refinekernel import normal_equations
 from fleetmap.shared.core.transformation_value import PreparedPairs, matched_pairs
 
 SLACK_TRANSLATION = 0.10
@@ -25,34 +26,6 @@ SLACK_ROTATION = 0.035
 can score a little more than the least-squares pose (docs/decisions/005-parameters-beyond-the-paper.md)."""
 
 
-def pair_residuals(s1: Array, s2t: Array) -> tuple[Array, Array, Array, Array]:
-    """For each pair: the two points of s2^t bounding its overlap with s1, s1's unit normal and
-    a point of s1's line, and the overlap weight.
-
-    Returns ``points (m, 2, 2)``, ``normal (m, 2)`` with ``offset (m,)`` (so the residual of a
-    point q is ``normal . q - offset``), and ``weight (m,)``.
-    """
-    p = s1[:, 0:2]
-    u = s1[:, 2:4] - p
-    length = np.hypot(u[:, 0], u[:, 1])
-    u = u / length[:, None]
-    normal = np.column_stack([-u[:, 1], u[:, 0]])
-    qa, qb = s2t[:, 0:2], s2t[:, 2:4]
-    ta = np.einsum("ij,ij->i", qa - p, u)
-    tb = np.einsum("ij,ij->i", qb - p, u)
-    span = tb - ta
-    safe = np.where(np.abs(span) > 1e-12, span, 1e-12)
-    # Parameters along s2^t where its projection enters and leaves [0, length].
-    lam0 = np.clip((0.0 - ta) / safe, 0.0, 1.0)
-    lam1 = np.clip((length - ta) / safe, 0.0, 1.0)
-    lo, hi = np.minimum(lam0, lam1), np.maximum(lam0, lam1)
-    d = qb - qa
-    points = np.stack([qa + lo[:, None] * d, qa + hi[:, None] * d], axis=1)
-    weight = np.abs(span) * (hi - lo)
-    offset = np.einsum("ij,ij->i", normal, p)
-    return points, normal, offset, weight
-
-
 def _normal_equations(prep: PreparedPairs, t: Array, params: IntegrationParams) -> tuple[Array, Array] | None:
     """The Gauss-Newton normal matrix and gradient of the point-to-line residuals of the pairs
     matched at ``t`` (parameters x, y and heading of S2 in S1's frame; the heading about S2's
@@ -60,22 +33,10 @@ def _normal_equations(prep: PreparedPairs, t: Array, params: IntegrationParams) 
     i, k, _mv = matched_pairs(prep, t, params)
     if len(i) < 2:
         return None
-    s2t = Transform2D.from_array(t).apply(prep.s2[k])
-    s1 = prep.s1[i]
-    u1 = s1[:, 2:4] - s1[:, 0:2]
-    u2 = s2t[:, 2:4] - s2t[:, 0:2]
-    cos = np.einsum("ij,ij->i", u1, u2) / (np.hypot(*u1.T) * np.hypot(*u2.T))
-    parallel = np.abs(cos) >= math.cos(params.angle_difference_tolerance)
-    if parallel.sum() < 2:
-        return None
-    points, normal, offset, weight = pair_residuals(s1[parallel], s2t[parallel])
-    q = points.reshape(-1, 2)
-    n = np.repeat(normal, 2, axis=0)
-    r = np.einsum("ij,ij->i", n, q) - np.repeat(offset, 2)
-    w = np.repeat(weight, 2) * 0.5 / (1.0 + (r / params.point_distance_tolerance) ** 2)
-    rel = q - t[:2]
-    jac = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rel[:, 0] - n[:, 0] * rel[:, 1]])
-    return jac.T @ (jac * w[:, None]), jac.T @ (w * r)
+    h, g, parallel = normal_equations(
+        prep.s1, prep.s2, i, k, t, math.cos(params.angle_difference_tolerance), params.point_distance_tolerance
+    )
+    return None if parallel < 2 else (h, g)
 
 
 def refine_transform(
