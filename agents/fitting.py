@@ -98,10 +98,13 @@ class FitSearch:
         unless the walls refused it: the models left, as unsure as each other, weigh by score.
         The odometry's other sign, in doubt, is always tried, and weighed by score alone
         (:func:`_either_sign`). The scan pair's fit (:meth:`_stepped`), good but not typical, is
-        the first of them. Failing all, the first fit, not good."""
+        the first of them; a burst's reading that constant velocity agrees with needs no scan
+        pair (:meth:`_agreed`). Failing all, the first fit, not good."""
         submap = self.chain.active[0]
         share = TYPICAL_SCORE_SHARE
         floor = typical_floor(self._scores)
+        if (agreed := self._agreed(taken, predictions, floor)) is not None:
+            return agreed
         measured = self._stepped(taken, predictions[0])
         if measured is not None and measured.registration.score >= floor:
             self._scores.append(measured.registration.score)
@@ -161,6 +164,34 @@ class FitSearch:
             self._scores.append(best.registration.score)
             return best
         return replace(fits[0], everywhere=all(f.disputed for f in fits))
+
+    def _agreed(self, taken: ScanIn, predictions: list[Prediction], floor: float) -> Fit | None:
+        """Where a burst's reading (spread between the bursts' readings, or given to the scan by
+        the robot's pace) and constant velocity put the scan within registration's reach of each
+        other (:func:`~fleetmap.agents.fitcheck.same_start`), the first prediction's fit, if good
+        and typical: two motion models agree, one from the wheels and one from the scans placed
+        before, and the scan pair (:meth:`_stepped`), which says where registration starts when
+        the reading may be a step off, is not integrated. None otherwise. Integrating the pair at
+        every such scan cost aces in bursts 15 ms a scan, against 3 on its true clock, for the
+        same share of steps within 0.10 m and 2 degrees (docs/decisions/066)."""
+        if not ("odometry" in predictions[0].source and self.by_pace):
+            return None
+        reading = next((p for p in predictions if p.source == "odometry"), None)
+        velocity = next((p for p in predictions if p.source == "velocity"), None)
+        if reading is None or velocity is None:
+            return None
+        submap = self.chain.active[0]
+        a, b, start = (
+            submap.origin.inverse().compose(self._pose_in_epoch(p)) for p in (reading, velocity, predictions[0])
+        )
+        if not same_start(a, b):
+            return None
+        fit = self._registered(taken, submap, start, start, predictions[0])
+        if not (fit.good and fit.registration.score >= floor):
+            return None
+        self._step = None  # (no pair measured this step)
+        self._scores.append(fit.registration.score)
+        return fit
 
     def _searched(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
         """``best``, or a better fit from the prediction's window (:func:`window_fit`) where the
