@@ -169,12 +169,12 @@ class FitSearch:
         """Where a burst's reading (spread between the bursts' readings, or given to the scan by
         the robot's pace) and constant velocity, measured by two placed scans, put the scan within
         registration's reach of each other (:func:`~fleetmap.agents.fitcheck.same_start`), the
-        first prediction's fit, if good
-        and typical: two motion models agree, one from the wheels and one from the scans placed
-        before, and the scan pair (:meth:`_stepped`), which says where registration starts when
-        the reading may be a step off, is not integrated. None otherwise. Integrating the pair at
-        every such scan cost aces in bursts 15 ms a scan, against 3 on its true clock, for the
-        same share of steps within 0.10 m and 2 degrees (docs/decisions/066)."""
+        first prediction's fit, if good and typical: two motion models agree, one from the wheels
+        and one from the scans placed before, and the scan pair (:meth:`_stepped`), which says
+        where registration starts when the reading may be a step off, is not integrated. None
+        otherwise. Integrating the pair at every such scan cost aces in bursts 15 ms a scan,
+        against 3 on its true clock, for the same share of steps within 0.10 m and 2 degrees
+        (docs/decisions/066)."""
         if not ("odometry" in predictions[0].source and self.by_pace and self.motion.velocity_known):
             return None
         reading = next((p for p in predictions if p.source == "odometry"), None)
