@@ -92,7 +92,7 @@ class FitSearch:
         ``TYPICAL_SCORE_SHARE`` of the median of the robot's recent fits (a fit that suddenly
         supports a third of what the last ones did has likely slid into a wrong minimum). Otherwise
         the other predictions and the robot standing still are tried too, and the pose-free
-        integration (:meth:`_reacquire`) if none is typical; a later fit replaces an earlier good one
+        integration (:meth:`_reacquired`) if none is typical; a later fit replaces an earlier good one
         only if it scores over ``1 / TYPICAL_SCORE_SHARE`` times as much (along a corridor the fits
         score alike, and the first prediction's stands: :func:`~fleetmap.agents.fitcheck.best_fit`),
         unless the walls refused it: the models left, as unsure as each other, weigh by score.
@@ -149,21 +149,31 @@ class FitSearch:
                 if best is not None:
                     best = self._swept(taken, predictions[0], best)
         if best is None or best.registration.score < floor:
-            # a scan re-acquired by pose-free integration must fit as well as the robot's scans
-            # usually do: one that explains a fraction of what they did matched a look-alike (a
-            # carried robot's view of one corridor on another)
-            again = self._reacquire(taken, submap, predictions[0])
-            if (
-                again is not None
-                and again.registration.score >= floor
-                and (best is None or again.registration.score * share >= best.registration.score)
-            ):
-                best = again
+            best = self._reacquired(taken, submap, predictions[0], best, floor)
         if best is not None:
             best = self._searched(taken, predictions[0], best)
             self._scores.append(best.registration.score)
             return best
         return replace(fits[0], everywhere=all(f.disputed for f in fits))
+
+    def _reacquired(
+        self, taken: ScanIn, submap: Submap, prediction: Prediction, best: Fit | None, floor: float
+    ) -> Fit | None:
+        """``best`` (no start's fit typical), or the scan re-acquired by pose-free integration
+        (:meth:`_reacquire`). Where no start placed the scan, the re-acquired fit must fit as well
+        as the robot's scans usually do: one that explains a fraction of what they did matched a
+        look-alike (a carried robot's view of one corridor on another). Where a start's fit is no
+        typical one either, the re-acquired one is weighed as any later start's: scoring over
+        ``1 / TYPICAL_SCORE_SHARE`` times as much, it replaces it (edmonton-corrected without
+        odometry, scan 94: constant velocity's fit scored 1.86, 0.5 m off, the re-acquired one
+        4.49, 0.1 m off, the robot's floor 5.03; kept, the weak fit was searched about and slid
+        1.4 m along the corridor)."""
+        again = self._reacquire(taken, submap, prediction)
+        if again is None:
+            return best
+        if best is None:
+            return again if again.registration.score >= floor else None
+        return again if again.registration.score * TYPICAL_SCORE_SHARE >= best.registration.score else best
 
     def _agreed(self, taken: ScanIn, predictions: list[Prediction], floor: float) -> Fit | None:
         """Where a burst's reading (spread between the bursts' readings, or given to the scan by

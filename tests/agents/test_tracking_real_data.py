@@ -157,6 +157,20 @@ def test_scans_with_too_little_wall_to_be_placed_start_no_epoch_without_odometry
 
 
 @pytest.mark.slow  # tracks 25 scans of a real log, searching wide windows (about 3 s)
+def test_a_weak_fit_of_the_motion_models_gives_way_to_a_reacquired_one_that_outscores_it(datasets: Path) -> None:
+    # edmonton-corrected without odometry, scans 75-100: scan 94 turns 18 degrees a metre on;
+    # constant velocity's fit scores 1.86 (0.5 m off), under the robot's typical floor (5.03), and
+    # so does the scan re-acquired by pose-free integration (4.49, 0.1 m off). Kept because the
+    # re-acquired fit was not typical, the weak one was searched about and slid 1.4 m on
+    agent, poses, off = _first_scans_without_odometry(
+        datasets / "corrected" / "edmonton-corrected.log.gz", 100, start=75
+    )
+    assert agent.counts.epochs == 1
+    assert 94 in poses and 93 in poses
+    assert not off, f"steps 0.3 m or more off their truth (m, deg), by scan: {off}"
+
+
+@pytest.mark.slow  # tracks 25 scans of a real log, searching wide windows (about 3 s)
 def test_a_corridor_whose_doors_repeat_is_tracked_where_the_prediction_weighs_its_minima(datasets: Path) -> None:
     # orebro-corrected without odometry, scans 105-130: a corridor logged a scan a metre, whose
     # doors repeat about every two metres. The prediction's window holds two minima that support
