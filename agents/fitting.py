@@ -167,7 +167,9 @@ class FitSearch:
         ``1 / TYPICAL_SCORE_SHARE`` times as much, it replaces it (edmonton-corrected without
         odometry, scan 94: constant velocity's fit scored 1.86, 0.5 m off, the re-acquired one
         4.49, 0.1 m off, the robot's floor 5.03; kept, the weak fit was searched about and slid
-        1.4 m along the corridor)."""
+        1.4 m along the corridor). Where the stamps, still trusted, give the scan less time than
+        its sequence (:meth:`_stamps_shrink`), it is also re-acquired within the sequence's reach
+        (:meth:`_by_sequence`), and that fit is taken only if typical."""
         again = self._reacquire(taken, submap, prediction)
         if (again is None or again.registration.score < floor) and self._stamps_shrink(taken):
             untimed = self._by_sequence(partial(self._reacquire, taken, submap, prediction))

@@ -29,7 +29,8 @@ For each scan (:meth:`Tracker.add`):
    (:meth:`Tracker._turned_fits`; where only those fit, the best where the robot can have driven,
    :meth:`Tracker._reachable_fit`), then **re-acquired** with the paper's pose-free integration of
    the scan on the submap (Algorithms 1-4), within the reach of the robot (``max_speed``,
-   :meth:`~fleetmap.agents.prediction.Predictor.reachable`), then registered and checked again.
+   :meth:`~fleetmap.agents.prediction.Predictor.reachable`; timed by the scans' sequence too where
+   stamps still trusted give less time: docs/decisions/068), then registered and checked again.
    Where the odometry measured the step, the fit from where the robot stood must lie within the
    odometry's 99 % gate (:func:`fleetmap.agents.fitting._explained`): the wheels measure standing still too.
 5. A scan that fits is placed; it is **inserted** into the active submaps when the robot has
