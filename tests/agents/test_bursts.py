@@ -327,14 +327,14 @@ def test_a_full_rate_log_in_bursts_is_tracked_as_its_true_clock_without_a_scan_p
     source = list(CarmenSource(datasets / "aces" / "aces.clf.gz", range_max=50.0, stop=500))
     _, true_poses = tracked(source)
     pairs = 0
-    integrate_pair = fitting.stepped
+    integrate_pair = fitting.paired
 
     def counted(*args, **kwargs):  # type: ignore[no-untyped-def]
         nonlocal pairs
         pairs += 1
         return integrate_pair(*args, **kwargs)
 
-    monkeypatch.setattr(fitting, "stepped", counted)
+    monkeypatch.setattr(fitting, "paired", counted)
     agent, poses = tracked(break_clock(source, "burst", seed=0))
     assert agent.counts.epochs == 1
     assert pairs < len(source) // 4, f"{pairs} scan pairs integrated for {len(source)} scans"
