@@ -16,7 +16,9 @@ For each scan (:meth:`Tracker.add`):
    places each scan (paper IV-C), and registered from there: that step, where its fit is good and
    typical, is the scan's, and where good but not typical, the first of the fits the motion
    models must outscore (:meth:`Tracker._stepped`, :mod:`fleetmap.agents.pose_free`;
-   docs/decisions/045-the-step-a-sparse-log-measures-itself.md, docs/decisions/060). So is a
+   docs/decisions/045-the-step-a-sparse-log-measures-itself.md, docs/decisions/060), turned
+   starts too. A pair valid but for a rival nearly as good seeds the window search with its best
+   (docs/decisions/069). So is a
    scan whose odometry was spread within a burst (a guess of the robot's pace), registered from the pair's step with the
    spread reading as its prior (docs/decisions/052-a-spread-reading-is-a-prior-not-a-start.md),
    and one that got its burst's own reading by a guess of which scan it was read for
