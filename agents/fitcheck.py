@@ -293,21 +293,27 @@ def window_fit(
     )
     tried = [best.registration.pose]
     goods = [best]
-    ranked = [Transform2D(float(x), float(y), center.theta) for x, y in positions[np.argsort(-support, kind="stable")]]
-    searched = 0  # (the window's own starts registered; the seeds come first, each registered)
-    for n, start in enumerate([*seeds, *ranked]):
-        if n >= len(seeds) and any(same_start(start, other) for other in tried):
-            continue
-        if n >= len(seeds):
-            if searched == WINDOW_STARTS:
-                break
-            searched += 1
+
+    def register(start: Transform2D) -> None:
+        nonlocal best
         tried.append(start)
         fit = registered(start)
         if fit.good and not any(same_start(fit.registration.pose, g.registration.pose) for g in goods):
             goods.append(fit)
         if fit.good and weighed(fit, mean, prediction) > weighed(best, mean, prediction):
             best = fit
+
+    for seed in seeds:  # (each registered, however near a start already tried)
+        register(seed)
+    searched = 0
+    for k in np.argsort(-support, kind="stable").tolist():
+        start = Transform2D(float(positions[k, 0]), float(positions[k, 1]), center.theta)
+        if any(same_start(start, other) for other in tried):
+            continue
+        if searched == WINDOW_STARTS:
+            break
+        searched += 1
+        register(start)
     if len(goods) < 2:
         return best
     return replace(best, spread=minima_spread(best, goods, [weighed(g, mean, prediction) for g in goods]))

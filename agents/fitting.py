@@ -11,6 +11,7 @@ changes nothing but the step the scan pair measured (``_step``) and the recent s
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -79,7 +80,7 @@ class FitSearch:
     _good: tuple[float, Transform2D, int] | None
     _previous: tuple[Array, tuple[float, Transform2D, int]] | None
     _step: Prediction | None
-    _paired: list[Transform2D]
+    _paired: Transform2D | None
     """Where the scan pair's integration, ambiguous, put the scan (the submap's frame): a start
     for the window's search (:meth:`_searched`)."""
     _scores: deque[float]
@@ -256,11 +257,11 @@ class FitSearch:
             return best
         submap, mean, registered = self._window(taken, prediction)
         against = partial(self._against, taken, submap)
-        seeds = [p for p in self._paired if (p.x - mean.x) ** 2 + (p.y - mean.y) ** 2 <= radius**2]
-        fit = window_fit(
+        seed = self._paired
+        seeds = [seed] if seed is not None and math.hypot(seed.x - mean.x, seed.y - mean.y) <= radius else []
+        return window_fit(
             against(best), submap, taken.samples, mean, radius, prediction, _then(registered, against), seeds
         )
-        return fit
 
     def _swept(self, taken: ScanIn, prediction: Prediction, best: Fit) -> Fit:
         """A fit from a turned start alone (:meth:`_reachable_fit`), or a better one from the
@@ -307,7 +308,7 @@ class FitSearch:
         starts, the reading still its prior (record 052): along a corridor whose pair slides, the
         reading holds the robot as it did. So for a burst's own reading given to a scan by the
         robot's pace (:attr:`by_pace`; record 054)."""
-        self._step, self._paired = None, []
+        self._step = self._paired = None
         spread = "odometry" in prediction.source and self.by_pace
         if self._previous is None or (
             not spread and ("odometry" in prediction.source or self._radius(taken, prediction) <= MAX_CORRESPONDENCE)
@@ -320,7 +321,7 @@ class FitSearch:
         submap = self.chain.active[0]
         if found is None or not found.valid:
             if found is not None and ambiguous(segments, taken.segments, found, self.config.integration):
-                self._paired = [submap.origin.inverse().compose(last[1].compose(found.transform))]
+                self._paired = submap.origin.inverse().compose(last[1].compose(found.transform))
             return None
         placed = last[1].compose(found.transform)
         increment = (self._pose or Transform2D()).inverse().compose(placed)

@@ -167,7 +167,7 @@ class Tracker(FitSearch):
         walls placed (:meth:`_stepped`; not a carried one)."""
         self._step: Prediction | None = None
         """The step the scan pair measured, where the walls said nothing against it (:meth:`_stepped`)."""
-        self._paired: list[Transform2D] = []
+        self._paired: Transform2D | None = None
         self._held: list[_Held] = []
         self._unheld: _Before | None = None
         """The tracker as it was before the first held scan (:meth:`_untimed`)."""

@@ -1,5 +1,6 @@
 """A robot's first steps down a corridor whose doors repeat: where the scan pair's integration is
-ambiguous, its transformations are where the walls are searched (docs/decisions/069)."""
+ambiguous, its best transformation is a start of the window's search, and the pair's fit stays in
+the race against a turned start (docs/decisions/069)."""
 
 from __future__ import annotations
 
