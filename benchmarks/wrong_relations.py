@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 from fleetmap.merger.executor import make_executor
-from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
 from fleetmap.shared.core.motion import CHI2_3DOF_99
 from fleetmap.shared.io.logs import read_carmen
 
@@ -230,7 +230,9 @@ def list_links(result, truth: list[Transform2D]) -> None:
         n += 1
         true = frames[prev].inverse().compose(frames[k])
         e = true.inverse().compose(m.link.transform)
-        v = np.array([e.x, e.y, e.theta])
+        # the link's covariance is on the submap's pose in the previous one's frame: its error there
+        t = m.link.transform
+        v = np.array([t.x - true.x, t.y - true.y, wrap_scalar(t.theta - true.theta)])
         try:
             d2 = float(v @ np.linalg.solve(m.link.covariance_matrix, v))
         except np.linalg.LinAlgError:
