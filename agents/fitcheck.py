@@ -320,16 +320,16 @@ def window_fit(
 
 
 def swept_fit(
-    best: Fit,
+    best: Fit | None,
     submap: Submap,
     samples: ScanSamples,
     mean: Transform2D,
     radius: float,
     prediction: Prediction,
     registered: Callable[[Transform2D], Fit],
-) -> Fit:
-    """:func:`window_fit` over headings too: ``best`` or the better good fit, weighed by the
-    prediction (:func:`weighed`), registered from the poses of the window ``radius`` around the
+) -> Fit | None:
+    """:func:`window_fit` over headings too: ``best`` (None: no good fit yet) or the better good
+    fit, weighed by the prediction (:func:`weighed`), registered from the poses of the window ``radius`` around the
     prediction's ``mean``, at headings ``2 REACH_ROTATION`` apart across two sigma of its heading
     either side, whose support times the prediction's Gaussian is at least ``TYPICAL_SCORE_SHARE``
     of the best pose's (each apart from the others by registration's reach). For a fit found from
@@ -359,7 +359,7 @@ def swept_fit(
         poses += [(x, y, center.theta) for x, y in positions.tolist()]
         weights.append(support * np.exp(-0.5 * np.einsum("ij,jk,ik->i", off, information, off)))
     weight = np.concatenate(weights) if weights else np.zeros(0)
-    tried = [best.registration.pose]
+    tried = [] if best is None else [best.registration.pose]
     for n in np.argsort(-weight, kind="stable").tolist():
         if weight[n] < TYPICAL_SCORE_SHARE * weight.max():
             break  # (the rest the walls and the prediction support less than half as well as the best)
@@ -368,7 +368,7 @@ def swept_fit(
             continue
         tried.append(start)
         fit = registered(start)
-        if fit.good and weighed(fit, mean, prediction) > weighed(best, mean, prediction):
+        if fit.good and (best is None or weighed(fit, mean, prediction) > weighed(best, mean, prediction)):
             best = fit
     return best
 
