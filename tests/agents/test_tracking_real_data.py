@@ -442,7 +442,7 @@ def test_a_turn_a_metre_aside_without_odometry_is_found_by_a_window_searched_at_
     assert not off, f"steps off (scan: metres, degrees): {off}"
 
 
-@pytest.mark.slow  # tracks 34 scans of a real log, people drawn on the whole of it (about 6 s)
+@pytest.mark.slow  # tracks 34 scans of a real log, people drawn on the whole of it (about 10 s)
 def test_a_scan_no_start_placed_is_searched_at_every_heading_before_it_is_held(datasets: Path) -> None:
     # acapulco-corrected, a scan in ten dropped, five people walking past, no odometry, from scan
     # 280: after a dropped scan the robot turned 60 degrees one way where constant velocity, over
