@@ -131,6 +131,7 @@ def test_regenerate_reruns_every_section_at_the_checkout_s_commit_and_renders(tm
     for script in ("results.py", "regenerate.py"):
         (bench / script).write_text((RESULTS_PY.parent / script).read_text())
     (bench / "tiny.py").write_text(TINY)
+    (tmp_path / ".gitignore").write_text("__pycache__/\n")  # as the project's own: Python's byte-code is no change
     git(tmp_path, "init", "-q")
     git(tmp_path, "add", ".")
     git(tmp_path, "commit", "-q", "-m", "tiny")
