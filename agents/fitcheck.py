@@ -329,8 +329,8 @@ def swept_fit(
     registered: Callable[[Transform2D], Fit],
 ) -> Fit | None:
     """:func:`window_fit` over headings too: ``best`` (None: no good fit yet) or the better good
-    fit, weighed by the prediction (:func:`weighed`), registered from the poses of the window ``radius`` around the
-    prediction's ``mean``, at headings ``2 REACH_ROTATION`` apart across two sigma of its heading
+    fit, weighed by the prediction (:func:`weighed`), registered from the poses of the window
+    ``radius`` around the prediction's ``mean``, at headings ``2 REACH_ROTATION`` apart across two sigma of its heading
     either side, whose support times the prediction's Gaussian is at least ``TYPICAL_SCORE_SHARE``
     of the best pose's (each apart from the others by registration's reach). For a fit found from
     a turned start alone where the prediction knows the heading no better than the position
