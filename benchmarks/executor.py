@@ -20,7 +20,7 @@ import time
 from collections import deque
 from pathlib import Path
 
-from fleetmap.merger.executor import Executor, InlineExecutor, PairJob, PairResult, make_executor
+from fleetmap.merger.executor import Executor, InlineExecutor, Job, Outcome, PairResult, make_executor
 from results import write_result
 from tracking import data_folder
 
@@ -32,31 +32,33 @@ LOGS["mit-csail"] = ("mit-csail/mit-csail.clf.gz", 81.91)
 
 
 class Keeping(InlineExecutor):
-    """The inline executor, keeping every job it ran and its result."""
+    """The inline executor, keeping every job it ran and its result (in the order submitted)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.jobs: list[PairJob] = []
-        self.results: list[PairResult] = []
+        self.jobs: list[Job] = []
+        self.results: list[Outcome | None] = []
 
-    def submit(self, job: PairJob, here=None):  # type: ignore[no-untyped-def]
+    def submit(self, job: Job, here=None):  # type: ignore[no-untyped-def]
         handle = super().submit(job, here)
+        n = len(self.jobs)
         self.jobs.append(job)
+        self.results.append(None)
         outer = self
 
         class Kept:
-            def result(self) -> PairResult:
+            def result(self) -> Outcome:
                 r = handle.result()
-                outer.results.append(r)
+                outer.results[n] = r
                 return r
 
         return Kept()
 
 
-def run_all(executor: Executor, jobs: list[PairJob]) -> tuple[list[PairResult], float]:
+def run_all(executor: Executor, jobs: list[Job]) -> tuple[list[Outcome], float]:
     """Every job through ``executor`` as the merger's step hands them out; results, seconds."""
     start = time.perf_counter()
-    out: list[PairResult] = []
+    out: list[Outcome] = []
     running: deque = deque()  # type: ignore[type-arg]
     for job in jobs:
         running.append(executor.submit(job))
@@ -67,8 +69,12 @@ def run_all(executor: Executor, jobs: list[PairJob]) -> tuple[list[PairResult], 
     return out, time.perf_counter() - start
 
 
-def same(a: PairResult, b: PairResult) -> bool:
-    def said(r: PairResult) -> tuple[object, ...]:
+def same(a: Outcome, b: Outcome) -> bool:
+    """The same answer: an integration's transform, value and verdict, or a far search's score."""
+
+    def said(r: Outcome) -> tuple[object, ...]:
+        if not isinstance(r, PairResult):
+            return (r.value,)
         i = r.integration
         return (r.transform, r.information, i.value, i.valid, i.violation, i.solid_violation)
 
@@ -102,7 +108,7 @@ def main() -> int:
                 results, seconds = run_all(executor, jobs)
             finally:
                 executor.close()
-            identical = all(same(a, b) for a, b in zip(results, kept.results, strict=True))
+            identical = all(b is not None and same(a, b) for a, b in zip(results, kept.results, strict=True))
             base_s = base_s or seconds
             rows.append((kind, workers, len(jobs), seconds, base_s / seconds, identical))
             print(rows[-1], flush=True)
