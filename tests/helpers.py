@@ -154,13 +154,29 @@ def tracked(scans: Iterable[Any], odometry: bool = True) -> tuple[Agent, dict[in
 
 
 def steps_off(
-    truth: list[Transform2D], poses: dict[int, Transform2D], scans: range, metres: float = 0.3, degrees: float = 5.0
+    truth: list[Transform2D],
+    poses: dict[int, Transform2D],
+    scans: Iterable[int],
+    metres: float = 0.3,
+    degrees: float = 5.0,
 ) -> dict[int, tuple[float, float]]:
     """The tracked steps into each of ``scans`` (from the scan before) off the corrected poses' by
     more than ``metres`` or ``degrees``: (m, deg) by scan."""
+    return steps_between_off(truth, poses, ((i - 1, i) for i in scans), metres, degrees)
+
+
+def steps_between_off(
+    truth: list[Transform2D],
+    poses: dict[int, Transform2D],
+    pairs: Iterable[tuple[int, int]],
+    metres: float = 0.3,
+    degrees: float = 5.0,
+) -> dict[int, tuple[float, float]]:
+    """The tracked steps from ``a`` to ``b`` of each pair (a log with scans dropped steps over the
+    gap) off the corrected poses' by more than ``metres`` or ``degrees``: (m, deg) by ``b``."""
     off = {}
-    for i in scans:
-        error = truth[i - 1].inverse().compose(truth[i]).inverse().compose(poses[i - 1].inverse().compose(poses[i]))
+    for a, b in pairs:
+        error = truth[a].inverse().compose(truth[b]).inverse().compose(poses[a].inverse().compose(poses[b]))
         if math.hypot(error.x, error.y) > metres or abs(math.degrees(error.theta)) > degrees:
-            off[i] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
+            off[b] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
     return off

@@ -23,7 +23,7 @@ from fleetmap.shared.io.sources import CarmenSource
 
 from fleetmap.config_args import preset
 from fleetmap.mapping import Piece, map_logs, read_inputs
-from tests.helpers import steps_off, tracked
+from tests.helpers import steps_between_off, steps_off, tracked
 
 TURN = (1134865028.0, 1134865040.0)
 """mit-csail's last turn (about 90 degrees a second), where one scan's odometry is 14 degrees off."""
@@ -457,12 +457,7 @@ def test_a_scan_no_start_placed_is_searched_at_every_heading_before_it_is_held(d
     truth = [Transform2D(*s.odometry) for s in read_carmen(path)]
     assert agent.counts.epochs == 1
     assert [s.index for s in given if s.index not in poses] == []
-    placed = [s.index for s in given]
-    off = {}
-    for a, b in itertools.pairwise(placed):
-        error = truth[a].inverse().compose(truth[b]).inverse().compose(poses[a].inverse().compose(poses[b]))
-        if math.hypot(error.x, error.y) > 0.3 or abs(math.degrees(error.theta)) > 5.0:
-            off[b] = (round(math.hypot(error.x, error.y), 2), round(math.degrees(error.theta), 1))
+    off = steps_between_off(truth, poses, itertools.pairwise(s.index for s in given))
     assert not off, f"steps off (scan: metres, degrees): {off}"
 
 
