@@ -44,6 +44,7 @@ from fleetmap.merger.executor import Executor
 from fleetmap.report import SessionLog, write_outputs
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.geometry import Transform2D
+from fleetmap.shared.core.warmup import warm
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import FleetKeys
 from fleetmap.shared.io.messages import LocalMap, Message, Scan
@@ -184,6 +185,7 @@ def map_logs(
     given for no piece; :mod:`fleetmap.merger.startposes`)."""
     started = time.perf_counter()
     _check_odometry(pieces, config)
+    warm()  # the compiled loops built once, here, before the tracking workers start
     keys = FleetKeys()
     merger = Merger(keys, config, executor, keep_key_scans=True, start_poses=start_poses)
     if merger.start is not None:

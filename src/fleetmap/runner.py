@@ -33,6 +33,7 @@ from fleetmap.report import latency_figures, log_from_recording, make_truth, mer
 from fleetmap.scenarios import Scenario, scenario_to_toml
 from fleetmap.scenarios.fleet import Crash, Leave, MergerRestart, scenario_end
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.warmup import warm
 from fleetmap.shared.errors import FleetmapError
 from fleetmap.shared.io import ros2_wire as wire
 from fleetmap.shared.io.keys import FleetKeys
@@ -284,6 +285,7 @@ class Session:
         if self.tls:
             endpoint = endpoint.replace("tcp/", "tls/")
         self._zenoh = self._zenoh_args(endpoint)
+        warm()  # the compiled loops built once, here, not by every process at its first scans
         started = time.monotonic()
         try:
             self._child("router", "router", *self._zenoh("router"))
