@@ -50,11 +50,12 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-from fleetmap.shared.core.candidates import ragged_ranges
+from fleetmap.shared.core.freecells import mark_free
 from fleetmap.shared.core.geometry import Array, Transform2D, lengths, orientations, segment_points
 from fleetmap.shared.core.gridlookup import code_sums
 from fleetmap.shared.core.segmap import SegmentMap
 from fleetmap.shared.core.visibility import range_profile
+from fleetmap.shared.core.walllookup import wall_sums
 from fleetmap.shared.errors import BadInput
 
 GRID_RESOLUTION = 0.10
@@ -191,21 +192,17 @@ def free_grid(segments: Array, viewpoints: Array, frame: Frame, margin: float, s
     width = 2 * math.pi / PROFILE_BINS
     centre = (np.arange(PROFILE_BINS) + 0.5) * width - math.pi
     step = 0.7 * frame.resolution
-    for x, y, th, b0, b1 in distinct_viewpoints(np.asarray(viewpoints, dtype=np.float64)):
+    seen = distinct_viewpoints(np.asarray(viewpoints, dtype=np.float64))
+    profiles = np.empty((len(seen), PROFILE_BINS))
+    for v, (x, y, th, b0, b1) in enumerate(seen):
         pose = Transform2D(float(x), float(y), float(th))
-        profile = range_profile(pose.inverse().apply(segments), PROFILE_BINS, PROFILE_WIDEN)
-        profile[(centre < b0) | (centre > b1)] = 0.0
-        # Along each bearing, free up to the wall less the margin (which grows with range).
-        reach = (profile - margin) / (1.0 + slope)
-        count = np.where(reach > 0, np.floor(np.maximum(reach, 0) / step).astype(np.int64) + 1, 0)
-        owner, pos = ragged_ranges(np.zeros(PROFILE_BINS, np.int64), count)
-        if len(owner) == 0:
-            continue
-        r = (pos + 0.5) * step
-        r = np.minimum(r, reach[owner])
-        a = centre[owner] + th
-        i, j, on = frame.cells(x + r * np.cos(a), y + r * np.sin(a))
-        free[i[on], j[on]] = True
+        profiles[v] = range_profile(pose.inverse().apply(segments), PROFILE_BINS, PROFILE_WIDEN)
+        profiles[v, (centre < b0) | (centre > b1)] = 0.0
+    # Along each bearing, free up to the wall less the margin (which grows with range).
+    reach = (profiles - margin) / (1.0 + slope)
+    count = np.where(reach > 0, np.floor(np.maximum(reach, 0) / step).astype(np.int64) + 1, 0)
+    angle = centre[None, :] + seen[:, 2, None]
+    mark_free(seen[:, 0], seen[:, 1], reach, count, angle, step, frame.origin, frame.resolution, free)
     return free
 
 
@@ -315,10 +312,6 @@ def _channel(direction: Array, period: float) -> Array:
     return (np.floor(np.mod(direction, period) / period * CHANNELS).astype(np.int64)) % CHANNELS
 
 
-CHUNK = 1_000_000
-"""Candidate-point lookups of :func:`grid_scores` done at once (the arrays of a chunk hold at most
-this many points)."""
-
 RANK_ROTATION_STEP = math.radians(0.25)
 """For ranking, candidates are grouped by rotation rounded to this (rad); each group's points are
 turned once."""
@@ -346,25 +339,12 @@ def _ranking_lookups(index: MapIndex, s: Samples, t: Array) -> Array:
 
 def _lookups(index: MapIndex, s: Samples, t: Array, solid: bool = False) -> tuple[Array, Array]:
     """For each transformation: wall length of ``s`` (moved by it) near ``index``'s walls, and in its
-    free space (if ``solid``: only the solid walls', clear of ``index``'s walls)."""
-    hit_out = np.zeros(len(t))
-    free_out = np.zeros(len(t))
-    if len(s.points) == 0 or len(t) == 0:
-        return hit_out, free_out
-    step = max(1, CHUNK // len(s.points))
-    px, py = s.points[:, 0], s.points[:, 1]
-    for c0 in range(0, len(t), step):
-        tt = t[c0 : c0 + step]
-        c = np.cos(tt[:, 2])[:, None]
-        sn = np.sin(tt[:, 2])[:, None]
-        i, j, on = index.frame.cells(c * px - sn * py + tt[:, 0, None], sn * px + c * py + tt[:, 1, None])
-        ch = _channel(s.direction[None, :] + tt[:, 2, None], index.period)
-        near = index.hits[ch, i, j] & on
-        hit_out[c0 : c0 + step] = near @ s.weight
-        if index.has_free:
-            seen_free = (index.clear if solid else index.free)[i, j] & on & ~near
-            free_out[c0 : c0 + step] = seen_free @ (s.solid if solid else s.weight)
-    return hit_out, free_out
+    free space (if ``solid``: only the solid walls', clear of ``index``'s walls); one compiled loop
+    (:mod:`~fleetmap.shared.core.walllookup`)."""
+    ox, oy = index.frame.origin
+    frame = (float(ox), float(oy), index.frame.resolution, index.period, CHANNELS, index.has_free)
+    free, free_weight = (index.clear, s.solid) if solid else (index.free, s.weight)
+    return wall_sums(index.hits, free, s.points, s.direction, s.weight, free_weight, t, frame)
 
 
 def ranking_scores(a: MapIndex, b: MapIndex, t: Array, fine: bool = False) -> Array:
@@ -390,7 +370,7 @@ PARALLEL_FROM = 4096
 def _both_ways(ab: Callable[[], T], ba: Callable[[], T], n: int) -> tuple[T, T]:
     """``ab()`` and ``ba()``, the first on a second thread where the machine has a second core.
 
-    The lookups (numpy operations on arrays of up to CHUNK points, and the compiled loop of
+    The lookups (the compiled loops of :mod:`~fleetmap.shared.core.walllookup` and
     :mod:`~fleetmap.shared.core.gridlookup`) release the GIL, so the two directions of a grid score
     run side by side, with the same arithmetic, so the same result to the bit. The pool
     belongs to the process that made it (a forked worker makes its own: threads do not survive

@@ -15,10 +15,12 @@ from __future__ import annotations
 import numpy as np
 from fleetmap.shared.core.beamkernel import beam_codes
 from fleetmap.shared.core.beammarch import beam_passes
+from fleetmap.shared.core.freecells import mark_free
 from fleetmap.shared.core.gridlookup import code_sums
 from fleetmap.shared.core.nearest import CellIndex
 from fleetmap.shared.core.pairkernel import near_matching_values
 from fleetmap.shared.core.refinekernel import normal_equations
+from fleetmap.shared.core.walllookup import wall_sums
 
 
 def warm() -> None:
@@ -35,3 +37,7 @@ def warm() -> None:
     CellIndex(mid, np.ones(2, dtype=bool), 0.5).query(mid, 1.0)
     code = np.zeros((8, 4, 4), dtype=np.int8)
     code_sums(code, mid, np.zeros(2), np.zeros((1, 3)), 0.01, (0.0, 0.0, 0.5, np.pi, 8))
+    grid = np.zeros((4, 4), dtype=bool)
+    wall_sums(code != 0, grid, mid, np.zeros(2), half, half, np.zeros((1, 3)), (0.0, 0.0, 0.5, np.pi, 8, True))
+    mark_free(np.zeros(1), np.zeros(1), np.ones((1, 2)), np.ones((1, 2), dtype=np.int64), np.zeros((1, 2)), 0.5,
+              np.zeros(2), 0.5, grid)  # fmt: skip

@@ -27,7 +27,7 @@ def test_after_the_warm_up_mapping_a_real_log_compiles_nothing(csail_start: Path
     warmed = _run(["-c", "from fleetmap.shared.core.warmup import warm; warm()"], cache)
     assert warmed.returncode == 0, warmed.stderr
     before = _cache(cache)
-    assert len(before) == 6, sorted(before)  # one index for each compiled loop
+    assert len(before) == 8, sorted(before)  # one index for each compiled loop
     # tracking (nearest cells, the beam test, pose-free integration), merging (the grid score,
     # matched pairs, refinement) and the occupancy grid (the beam march), in two processes
     done = _run(
