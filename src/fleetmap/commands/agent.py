@@ -15,6 +15,7 @@ from fleetmap.commands import add_no_return_reading
 from fleetmap.config_args import add_config_arguments, config_from_args
 from fleetmap.scenarios.stream import ScenarioSource
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.warmup import warm
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.keys import check_name
 from fleetmap.shared.io.ros2_node import ros2_options
@@ -139,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         raise BadInput(source.name, "has no odometry (--odometry on needs it; auto uses it where there is some)")
     agent = Agent(robot, config, odometry=source.has_odometry, lost_scans=args.lost_scans)
     options = zenoh_options_from_args(args)
+    warm()  # the compiled loops loaded before the first scan, not while it waits
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
         print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
         summary = run_agent(
@@ -156,6 +158,7 @@ def run_ros2(args: argparse.Namespace, robot: str, config: FleetmapConfig) -> in
     topics = Ros2Topics.of(args.namespace, args.scan_topic, args.odom_topic, args.domain)
     agent = Agent(robot, config, odometry=Ros2LiveSource.has_odometry, lost_scans=args.lost_scans)
     options = ros2_options(zenoh_options_from_args(args))  # a client of the robot's router by default
+    warm()  # the compiled loops loaded before the first scan, not while it waits
     with stop_on_signals() as stop, ZenohBus.open(options) as bus:
         source = Ros2LiveSource(bus.session, topics, stop, robot)
         print(f"agent {robot}: {source.name} on {options.keys.prefix} (Ctrl-C or SIGTERM to stop)", file=sys.stderr)
