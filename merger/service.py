@@ -22,7 +22,7 @@ from fleetmap.merger.clocks import CLOCK_SKEW, from_the_future
 from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
 from fleetmap.shared.errors import BadInput
-from fleetmap.shared.io.bus import Bus, Handle
+from fleetmap.shared.io.bus import Bus, BusError, Handle
 from fleetmap.shared.io.messages import (
     BadMessage,
     FleetEvent,
@@ -51,6 +51,10 @@ ANOTHER_MERGER = (
 
 class _Recalled(bytes):
     """A submap the recorder kept, recalled at start (its robot may have left long ago)."""
+
+
+class _RecalledAtLeave(_Recalled):
+    """A submap of a robot that just left, as the recorder kept it (:meth:`MergerService._recall`)."""
 
 
 class MergerService:
@@ -111,6 +115,9 @@ class MergerService:
         """Scans the pose thread dropped: stamped further ahead than :data:`CLOCK_SKEW`."""
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
+        self._recalls: list[threading.Thread] = []
+        self.recalled_at_leave = 0
+        """Submap versions this merger had not heard, recalled from the recorder when their robot left."""
         self.instance = f"merger {secrets.token_hex(6)}"
         """This service's name in its ``merger_start`` event, to tell another merger's start from its own."""
         self.other_mergers: set[str] = set()
@@ -145,17 +152,34 @@ class MergerService:
         self.bus.publish(keys.events, FleetEvent("republish_request", None, now).to_msgpack())
         # ... and the recorder for the newest version of every submap it recorded: robots that
         # finished while the merger was down cannot answer (versions it holds are stale, dropped)
-        recalled = 0
-        for payload in self.bus.query(keys.recorder_maps, timeout=RECALL_SECONDS):
-            try:
-                robot = LocalMap.from_msgpack(payload).robot
-            except BadMessage:
-                self.merger.stats.malformed += 1
-                continue
-            self._inbox.put((keys.localmap(robot), _Recalled(payload)))
-            recalled += 1
+        recalled = self._recall(None)
         if recalled:
             log.info("recalled %d submaps from the recorder", recalled)
+
+    def _recall(self, robot: str | None) -> int:
+        """Ask the recorder for the newest version of every submap it recorded (of ``robot`` only,
+        if given) and queue them; how many. A robot that left sends nothing more: a version of
+        its the bus did not bring here (a live 16-robot session once ended with a robot's last
+        version of a submap recorded and never integrated, the runner waiting for it; decision
+        record 073) would be missing from the map for good. So each leave recalls its maps (on a
+        thread of its own, :meth:`_drain`); versions already held are stale, dropped."""
+        keys, marker = self.keys, _Recalled if robot is None else _RecalledAtLeave
+        queued = 0
+        try:
+            answers = self.bus.query(keys.recorder_maps, timeout=RECALL_SECONDS)
+        except BusError as exc:  # the session closed meanwhile (the service stopping)
+            log.debug("no recall of %s's maps: %s", robot, exc)
+            return 0
+        for payload in answers:
+            try:
+                owner = LocalMap.from_msgpack(payload).robot
+            except BadMessage:
+                self.merger.stats.malformed += 1  # (an int: one more or less from two threads)
+                continue
+            if robot is None or owner == robot:
+                self._inbox.put((keys.localmap(owner), marker(payload)))
+                queued += 1
+        return queued
 
     def _on_message(self, key: str, payload: bytes) -> None:
         if key.endswith("/localmap"):
@@ -228,14 +252,33 @@ class MergerService:
                 if robot is not None:
                     log.info("robot %s %s", robot, "joined" if item else "left")
                     self._publish(self.merger.presence(robot, item, self.clock()))
+                    if not item:
+                        self._recall_left(robot)
             else:
                 if key == self.keys.events:
                     self._note_merger_start(item)
+                stale = self.merger.stats.stale
                 self._publish(self.merger.receive(key, item, self.clock(), recalled=isinstance(item, _Recalled)))
+                m = LocalMap.from_msgpack(item) if isinstance(item, _RecalledAtLeave) else None
+                if m is not None and self.merger.stats.stale == stale and m.submap_key in self.merger.waiting:
+                    self.recalled_at_leave += 1
+                    log.warning(
+                        "took submap %s version %d from the recorder after %s left: this merger had not heard it",
+                        m.submap_key,
+                        m.version,
+                        m.robot,
+                    )
         self.merger.release(self.clock())
         now = time.monotonic()
         for waiting in self.merger.waiting:
             self._arrived.setdefault(waiting, now)
+
+    def _recall_left(self, robot: str) -> None:
+        """Recall the maps of ``robot``, which just left (:meth:`_recall`), off the merging thread."""
+        self._recalls = [t for t in self._recalls if t.is_alive()]
+        thread = threading.Thread(target=self._recall, args=(robot,), name=f"merger-recall-{robot}", daemon=True)
+        self._recalls.append(thread)
+        thread.start()
 
     def _note_merger_start(self, payload: bytes) -> None:
         """Warn of a ``merger_start`` event that is not this service's own: a second merger started."""
@@ -377,6 +420,8 @@ class MergerService:
         self._stop_following.set()
         if self._following.is_alive():
             self._following.join(timeout=5.0)
+        for thread in self._recalls:
+            thread.join(timeout=RECALL_SECONDS + 1.0)
         try:
             self.bus.publish(self.keys.events, FleetEvent("merger_stop", None, self.clock()).to_msgpack())
             self.bus.flush()
