@@ -55,9 +55,16 @@ def test_a_version_the_merger_did_not_hear_is_recalled_from_the_recorder_when_it
         with RecorderService(recorder_bus, recorder, KEYS):
             svc.start()
             tokens = {r: robot_bus.declare_liveliness(KEYS.alive(r)) for r in ("r1", "r2")}
-            for robot in ("r1", "r2"):
-                robot_bus.publish(KEYS.localmap(robot), _submap(robot, 0, BOX).to_msgpack())
-            assert _until(svc, lambda: _version(svc, "r1/0/0") == 0 and _version(svc, "r2/0/0") == 0)
+            # (a live merger takes maps of robots whose token it has seen; the subscription may
+            # reach the robots' session a moment after the merger starts: sent until taken)
+            assert _until(svc, lambda: set(svc.merger.robots) == {"r1", "r2"})
+
+            def both_held() -> bool:
+                for robot in ("r1", "r2"):
+                    robot_bus.publish(KEYS.localmap(robot), _submap(robot, 0, BOX).to_msgpack())
+                return _version(svc, "r1/0/0") == 0 and _version(svc, "r2/0/0") == 0
+
+            assert _until(svc, both_held)
             # r1's last version, with a fourth wall: the recorder has it, the merger never heard
             # it (as when the bus lost it on the way there)
             closed = np.vstack([BOX, [[0.0, 3.0, 0.0, 0.0]]])
