@@ -23,6 +23,7 @@ from fleetmap.merger.engine import Merger, Outgoing
 from fleetmap.merger.follow import PoseFollower
 from fleetmap.shared.errors import BadInput
 from fleetmap.shared.io.bus import Bus, BusError, Handle
+from fleetmap.shared.io.keys import parse_submap_key
 from fleetmap.shared.io.messages import (
     BadMessage,
     FleetEvent,
@@ -115,7 +116,10 @@ class MergerService:
         """Scans the pose thread dropped: stamped further ahead than :data:`CLOCK_SKEW`."""
         self._stop_following = threading.Event()
         self._following = threading.Thread(target=self._follow, name="merger-poses", daemon=True)
-        self._recalls: list[threading.Thread] = []
+        self._to_recall: set[str] = set()
+        """Robots that left, whose maps the recall thread is to ask the recorder for (:meth:`_recall_left`)."""
+        self._recalling: threading.Thread | None = None
+        self._recall_lock = threading.Lock()
         self.recalled_at_leave = 0
         """Submap versions this merger had not heard, recalled from the recorder when their robot left."""
         self.instance = f"merger {secrets.token_hex(6)}"
@@ -156,19 +160,19 @@ class MergerService:
         if recalled:
             log.info("recalled %d submaps from the recorder", recalled)
 
-    def _recall(self, robot: str | None) -> int:
-        """Ask the recorder for the newest version of every submap it recorded (of ``robot`` only,
-        if given) and queue them; how many. A robot that left sends nothing more: a version of
-        its the bus did not bring here (a live 16-robot session once ended with a robot's last
+    def _recall(self, robots: set[str] | None) -> int:
+        """Ask the recorder for the newest version of every submap it recorded (of ``robots``
+        only, if given) and queue them; how many. A robot that left sends nothing more: a version
+        of its the bus did not bring here (a live 16-robot session once ended with a robot's last
         version of a submap recorded and never integrated, the runner waiting for it; decision
-        record 073) would be missing from the map for good. So each leave recalls its maps (on a
-        thread of its own, :meth:`_drain`); versions already held are stale, dropped."""
-        keys, marker = self.keys, _Recalled if robot is None else _RecalledAtLeave
+        record 073) would be missing from the map for good. So the robots that leave have their
+        maps recalled (:meth:`_recall_left`); versions already held are stale, dropped."""
+        keys, marker = self.keys, _Recalled if robots is None else _RecalledAtLeave
         queued = 0
         try:
             answers = self.bus.query(keys.recorder_maps, timeout=RECALL_SECONDS)
         except BusError as exc:  # the session closed meanwhile (the service stopping)
-            log.debug("no recall of %s's maps: %s", robot, exc)
+            log.debug("no recall of the maps of %s: %s", robots, exc)
             return 0
         for payload in answers:
             try:
@@ -176,7 +180,7 @@ class MergerService:
             except BadMessage:
                 self.merger.stats.malformed += 1  # (an int: one more or less from two threads)
                 continue
-            if robot is None or owner == robot:
+            if robots is None or owner in robots:
                 self._inbox.put((keys.localmap(owner), marker(payload)))
                 queued += 1
         return queued
@@ -274,11 +278,25 @@ class MergerService:
             self._arrived.setdefault(waiting, now)
 
     def _recall_left(self, robot: str) -> None:
-        """Recall the maps of ``robot``, which just left (:meth:`_recall`), off the merging thread."""
-        self._recalls = [t for t in self._recalls if t.is_alive()]
-        thread = threading.Thread(target=self._recall, args=(robot,), name=f"merger-recall-{robot}", daemon=True)
-        self._recalls.append(thread)
-        thread.start()
+        """Recall the maps of ``robot``, which just left (:meth:`_recall`), if it sent any, off the
+        merging thread: one recall thread at a time, which takes every robot that left meanwhile
+        in one query (tokens that come and go cost one query at a time, not one each)."""
+        if not any(parse_submap_key(k)[0] == robot for k in (*self.merger.submaps, *self.merger.waiting)):
+            return
+        with self._recall_lock:
+            self._to_recall.add(robot)
+            if self._recalling is None:
+                self._recalling = threading.Thread(target=self._recall_loop, name="merger-recall", daemon=True)
+                self._recalling.start()
+
+    def _recall_loop(self) -> None:
+        while True:
+            with self._recall_lock:
+                robots, self._to_recall = self._to_recall, set()
+                if not robots:
+                    self._recalling = None
+                    return
+            self._recall(robots)
 
     def _note_merger_start(self, payload: bytes) -> None:
         """Warn of a ``merger_start`` event that is not this service's own: a second merger started."""
@@ -420,8 +438,10 @@ class MergerService:
         self._stop_following.set()
         if self._following.is_alive():
             self._following.join(timeout=5.0)
-        for thread in self._recalls:
-            thread.join(timeout=RECALL_SECONDS + 1.0)
+        with self._recall_lock:
+            recalling = self._recalling
+        if recalling is not None:
+            recalling.join(timeout=RECALL_SECONDS + 1.0)
         try:
             self.bus.publish(self.keys.events, FleetEvent("merger_stop", None, self.clock()).to_msgpack())
             self.bus.flush()

@@ -74,7 +74,7 @@ def test_a_version_the_merger_did_not_hear_is_recalled_from_the_recorder_when_it
             assert _until(svc, lambda: _version(svc, "r1/0/0") == 1), "r1's last version was never taken"
             assert len(svc.merger.submaps["r1/0/0"].segments) == 4
             # r2's recalled version was the one held: dropped as stale, nothing said
-            assert _until(svc, lambda: all(not t.is_alive() for t in svc._recalls) and not svc.run_once())
+            assert _until(svc, lambda: svc._recalling is None and not svc.run_once())
             assert _version(svc, "r2/0/0") == 0 and svc.recalled_at_leave == 1
     finally:
         svc.close()
