@@ -1,13 +1,12 @@
-"""The core's compiled loops built once, before a session starts its processes.
+"""The core's compiled loops built once, by the process that starts the others.
 
 Each compiled loop (:mod:`fleetmap.shared.core.compiled`) is compiled on its first call and cached
-beside its module; every later process loads it in milliseconds. On a fresh install there is no
-cache yet, and a live session's first scans made every one of its processes compile the same loops
-at once: sixteen agents and the merger, 1-2 s of CPU each on two cores, so the first session on a
-new machine merged 3.6 s behind its robots and needed 12.5 s after the last scan to catch up
-(0.99 s and 0.6 s once the cache was there; decision record 073). :func:`warm` calls each loop's
-public function once on a tiny input, with the argument types every caller passes (each function
-converts its arrays to them), so the cache is written once, by the process that starts the others.
+beside its module; a later process loads it in milliseconds. On a fresh install there is no cache:
+without this, every process of a live fleet compiles the same loops at its first scans, 1-2 s of
+CPU each, all at once (16 agents and the merger on two cores: 3.6 s merge latency and 12.5 s of
+catch-up, against 0.99 s and 0.6 s with the cache; decision record 073). :func:`warm` calls each
+loop's public function once on a tiny input, with the argument types every caller passes (each
+function converts its arrays to them), so the cache is written once, before the others start.
 """
 
 from __future__ import annotations
