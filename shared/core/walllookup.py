@@ -28,16 +28,17 @@ def _build() -> Callable[..., None]:
     import numba
 
     @numba.njit(cache=True, nogil=True)
-    def sums(hits, free, x, y, direction, weight, free_weight, t, cos, sin, frame, hit_out, free_out):
+    def sums(hits, free, points, direction, weight, free_weight, t, cos, sin, frame, hit_out, free_out):
         ox, oy, res, period, channels, nx, ny, has_free = frame
         plane = np.int64(nx) * np.int64(ny)
         for k in range(t.shape[0]):
             c, sn, tx, ty, th = cos[k], sin[k], t[k, 0], t[k, 1], t[k, 2]
             hit = 0.0
             seen = 0.0
-            for p in range(len(x)):
-                i = np.int64(np.floor((c * x[p] - sn * y[p] + tx - ox) / res))
-                j = np.int64(np.floor((sn * x[p] + c * y[p] + ty - oy) / res))
+            for p in range(points.shape[0]):
+                x, y = points[p, 0], points[p, 1]
+                i = np.int64(np.floor((c * x - sn * y + tx - ox) / res))
+                j = np.int64(np.floor((sn * x + c * y + ty - oy) / res))
                 if i < 0 or j < 0 or i >= nx or j >= ny:
                     continue
                 layer = np.int64(np.floor((direction[p] + th) % period / period * channels)) % channels
@@ -77,12 +78,10 @@ def wall_sums(
         return hit_out, free_out
     ox, oy, res, period, channels, has_free = frame
     nx, ny = hits.shape[1:]
-    p = np.ascontiguousarray(points, dtype=np.float64)
     _sums(
         np.ascontiguousarray(hits, dtype=np.bool_).reshape(-1),
         np.ascontiguousarray(free, dtype=np.bool_).reshape(-1),
-        p[:, 0].copy(),
-        p[:, 1].copy(),
+        np.ascontiguousarray(points, dtype=np.float64),
         np.ascontiguousarray(direction, dtype=np.float64),
         np.ascontiguousarray(weight, dtype=np.float64),
         np.ascontiguousarray(free_weight, dtype=np.float64),
