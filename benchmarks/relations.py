@@ -28,8 +28,9 @@ logged) are mapped in-process as ``fleetmap map`` maps them and scored by scan i
 repeat, or are all 0) with relations made from their corrected poses: every two scans within
 :data:`CORRECTED_WITHIN` of each other (infinite-corridor's stamps run negative, then repeat
 4.29e9 s: it is tracked by its scans' sequence). Their corrected poses are GMapping's, wrong at a
-few scans: a wrong relation whose own two raw scans side with the map is counted apart, as the raw
-scans contradicting it (:mod:`raw_truth`). A log that ``fleetmap map`` refuses says so.
+few scans: a wrong relation whose own two raw scans side with the map, or the scans on both sides
+of a misplaced scan's run (record 074), is counted apart, as the raw scans contradicting it
+(:mod:`raw_truth`). A log that ``fleetmap map`` refuses says so.
 ``--clock burst`` (or another of :mod:`fleetmap.scenarios.clocks`) maps each corrected log's
 pieces as a robot with that broken clock recorded them; ``--seeds N`` does it N times, each with
 other breaks (one wrong placement can bend a sparse log's map, and which scan the clock breaks
