@@ -150,17 +150,9 @@ class Predictor:
         to miss (:meth:`measure_misfit`), and the first start is the two models
         fused by their information; readings shown to be the scans' own (:attr:`own_readings`) are
         not read at a stamp, and stay as sure as on a true clock."""
-        integration = self.config.integration
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
         elapsed = self.clock.elapsed(seconds, seq - last_seq)
-        velocity = from_velocity(self.velocity, elapsed, integration.motion.max_acceleration)
-        if integration.motion.max_speed > 0:
-            # no two placed scans have measured the motion yet, or the walls did not fix the last
-            # step: the robot may be driving at any speed it can, or as fast as the step allows,
-            # not standing still (an epoch begun in a corridor, whose walls fix nothing along it,
-            # was placed as standing, 0.3 m short a scan)
-            reach = min(self.velocity_sigma, integration.motion.max_speed) * elapsed
-            velocity = replace(velocity, sigma_translation=max(velocity.sigma_translation, reach))
+        velocity = self._velocity(elapsed)
         out = []
         self.odometry_step = self._widened = None
         odometry_prediction = None
@@ -197,19 +189,36 @@ class Predictor:
             step = odometry_prediction.increment
             turned = Transform2D(-step.x, -step.y, step.theta)
             out.append(replace(odometry_prediction, increment=turned, source=OTHER_SIGN))
-        if self.drift != (0.0, 0.0):
-            # the steps since the last placed scan were not checked by the walls: their
-            # uncertainty adds up (the covariance of a chain of motions, a random walk)
-            t, r = self.drift
-            out = [
-                replace(
-                    q,
-                    sigma_translation=math.sqrt(q.sigma_translation**2 + t),
-                    sigma_rotation=math.sqrt(q.sigma_rotation**2 + r),
-                )
-                for q in out
-            ]
-        return out
+        return [self._drifted(q) for q in out]
+
+    def velocity_by_sequence(self, seq: int, last_seq: int) -> Prediction:
+        """Constant velocity over the time the scans' sequence takes since the last scan (the log's
+        mean period a scan), whatever the stamps say; no state changes (the search that doubts the
+        stamps: :meth:`fleetmap.agents.fitting.FitSearch._sequence_fit`)."""
+        return self._drifted(self._velocity(max(seq - last_seq, 1) * self.clock.period))
+
+    def _velocity(self, elapsed: float) -> Prediction:
+        """Constant velocity over ``elapsed`` seconds."""
+        motion = self.config.integration.motion
+        velocity = from_velocity(self.velocity, elapsed, motion.max_acceleration)
+        if motion.max_speed > 0:
+            # no two placed scans have measured the motion yet, or the walls did not fix the last
+            # step: the robot may be driving at any speed it can, or as fast as the step allows,
+            # not standing still (an epoch begun in a corridor, whose walls fix nothing along it,
+            # was placed as standing, 0.3 m short a scan)
+            reach = min(self.velocity_sigma, motion.max_speed) * elapsed
+            velocity = replace(velocity, sigma_translation=max(velocity.sigma_translation, reach))
+        return velocity
+
+    def _drifted(self, q: Prediction) -> Prediction:
+        """``q`` as unsure as the steps since the last placed scan, which the walls did not check,
+        make it: their uncertainty adds up (the covariance of a chain of motions, a random walk)."""
+        if self.drift == (0.0, 0.0):
+            return q
+        t, r = self.drift
+        return replace(
+            q, sigma_translation=math.sqrt(q.sigma_translation**2 + t), sigma_rotation=math.sqrt(q.sigma_rotation**2 + r)
+        )
 
     def _by_odometry(
         self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float, velocity: Prediction
