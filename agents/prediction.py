@@ -217,7 +217,9 @@ class Predictor:
             return q
         t, r = self.drift
         return replace(
-            q, sigma_translation=math.sqrt(q.sigma_translation**2 + t), sigma_rotation=math.sqrt(q.sigma_rotation**2 + r)
+            q,
+            sigma_translation=math.sqrt(q.sigma_translation**2 + t),
+            sigma_rotation=math.sqrt(q.sigma_rotation**2 + r),
         )
 
     def _by_odometry(
