@@ -17,6 +17,7 @@ property of the ground truth, not of fleetmap: the same two numbers for every ma
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 from dataclasses import dataclass
@@ -108,7 +109,9 @@ def measure(log: Path, relations: Path, range_max: float, seed: int = 0) -> Fram
     )
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.parse_args(argv)
     data = data_folder()
     for name, (path, range_max) in LOGS.items():
         f = measure(data / path, data / "relations" / f"{name}.relations", range_max)
