@@ -37,10 +37,8 @@ the scan go without it.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import queue
 import threading
 import time
 from collections import Counter, deque
@@ -68,8 +66,12 @@ from fleetmap.shared.io.sources import (
 
 log = logging.getLogger(__name__)
 
-POLL = 0.05
-"""Longest wait (s) before the source looks again at ``stop`` and at scans waiting for odometry."""
+POLL = 0.01
+"""Longest a sample waits in its channel (s) while the source has nothing to do; how often it looks
+at ``stop`` and at scans waiting for odometry."""
+CHANNEL_CAPACITY = 4096
+"""Samples a topic's channel holds before zenoh waits for the source to take them (minutes of a
+usual robot's topic: the source takes them all at every turn)."""
 ODOMETRY_WAIT = 0.5
 """How long (s, the robot's clock: later scans' stamps) a scan waits for an odometry reading at or
 after its stamp."""
@@ -145,7 +147,6 @@ class Ros2LiveSource:
         """Samples taken, by topic."""
         self.ready = threading.Event()
         """Set once every subscription and token is declared."""
-        self._inbox: queue.SimpleQueue[tuple[str, str, bytes, bytes | None]] = queue.SimpleQueue()
         self._odometry: deque[OdometryReading] = deque(maxlen=ODOMETRY_KEPT)
         self._tf_odometry: deque[OdometryReading] = deque(maxlen=ODOMETRY_KEPT)
         self._mounting: dict[str, Transform2D] = {}
@@ -153,56 +154,73 @@ class Ros2LiveSource:
         self._last_stamp: dict[str, float] = {}
         self._pending: deque[tuple[float, SourceScan, Any]] = deque()
         self._index = 0
+        self._declared: tuple[list[Any], list[tuple[str, Any]]] | None = None
+        """The subscriptions and tokens, and the subscribers to drain, once :meth:`listen` made them."""
 
-    # --- the zenoh side: callbacks only queue (zenoh's threads must not wait on the agent) ---
+    # --- the zenoh side: channels the source drains itself (no Python code on zenoh's threads) ---
 
-    def _declare(self) -> list[Any]:
+    def _declare(self) -> tuple[list[Any], list[tuple[str, Any]]]:
+        """The subscriptions and tokens (undeclared at the end), and each topic's subscriber to drain,
+        the robot's frames and odometry before its scans."""
         handles: list[Any] = []
+        heard: list[tuple[str, Any]] = []
         node = wire.Node(self.topics.domain, str(self.session.zid()), 0, node_name(self.robot), self.topics.namespace)
         for entity, (topic, typename, qos) in enumerate(self.topics.subscriptions(), start=1):
             # any type and any hash: a sample of the wrong type is counted, not unheard
             keyexpr = f"{self.topics.domain}/{topic.strip('/')}/*/*"
-
-            def on_sample(sample: zenoh.Sample, topic: str = topic, typename: str = typename) -> None:
-                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-                self._inbox.put((topic, str(sample.key_expr), sample.payload.to_bytes(), attachment))
-
+            channel = zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
             if qos.durability == wire.TRANSIENT_LOCAL:
-                handles.append(
-                    zenoh.ext.declare_advanced_subscriber(
-                        self.session,
-                        keyexpr,
-                        on_sample,
-                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=qos.depth),
-                        subscriber_detection=True,
-                    )
+                subscriber = zenoh.ext.declare_advanced_subscriber(
+                    self.session,
+                    keyexpr,
+                    channel,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=qos.depth),
+                    subscriber_detection=True,
                 )
             else:
-                handles.append(self.session.declare_subscriber(keyexpr, on_sample))
+                subscriber = self.session.declare_subscriber(keyexpr, channel)
+            handles.append(subscriber)
+            heard.append((topic, subscriber))
             token = node.endpoint_token(entity, "MS", topic, typename, qos)
             handles.append(self.session.liveliness().declare_token(token))
         handles.append(self.session.liveliness().declare_token(node.token()))
-        return handles
+        order = [self.topics.tf_static, self.topics.tf, self.topics.odom, self.topics.scan]
+        return handles, sorted(heard, key=lambda h: order.index(h[0]))
+
+    def _take_heard(self, heard: list[tuple[str, Any]]) -> int:
+        """Take every sample waiting in the subscribers' channels; how many there were."""
+        taken = 0
+        for topic, subscriber in heard:
+            while (sample := subscriber.try_recv()) is not None:
+                attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+                self._take(topic, str(sample.key_expr), sample.payload.to_bytes(), attachment)
+                taken += 1
+        return taken
+
+    def listen(self) -> None:
+        """Subscribe now (iterating does it if not done): samples the robot publishes from here on
+        wait in their channels until the source takes them."""
+        if self._declared is None:
+            self._declared = self._declare()
+            self.ready.set()
+            log.info("%s: listening on %s", self.robot, ", ".join(t for t, _, _ in self.topics.subscriptions()))
 
     def __iter__(self) -> Iterator[SourceScan]:
-        handles = self._declare()
-        self.ready.set()
-        log.info("%s: listening on %s", self.robot, ", ".join(t for t, _, _ in self.topics.subscriptions()))
+        self.listen()
+        assert self._declared is not None
+        handles, heard = self._declared
         try:
             while not self.stop.is_set():
-                # everything heard is taken before a scan is released: a scan whose odometry sits
-                # behind later scans in the inbox (a busy machine) is not taken for one without it
-                with contextlib.suppress(queue.Empty):
-                    self._take(*self._inbox.get(timeout=POLL))
-                    while True:
-                        self._take(*self._inbox.get_nowait())
+                # everything heard is taken before a scan is released: a scan whose odometry came
+                # with it or before it (a busy machine) is not taken for one without it
+                if not self._take_heard(heard):
+                    self.stop.wait(POLL)
                 yield from self._released()
             # stopped: what was heard is taken, and every scan held goes (stop releases them all)
-            with contextlib.suppress(queue.Empty):
-                while True:
-                    self._take(*self._inbox.get_nowait())
+            self._take_heard(heard)
             yield from self._released()
         finally:
+            self._declared = None
             for handle in reversed(handles):
                 handle.undeclare()
             self._say_dropped()

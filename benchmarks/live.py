@@ -9,7 +9,9 @@ scans). From the recording it prints:
 - the merger's end-to-end latency: from a local map version's arrival at the recorder to the
   arrival of the merger step that integrated it (median and 95th percentile; versions superseded
   before the merger took them are not counted, which is the point of its coalescing),
-- the time the merger needed after the last scan to integrate every local map,
+- the merger's catch-up: from the last scan's arrival to that of the merger's last step that did
+  anything (took a local map version or integrated a pair): the session's end (the runner's
+  waits, the merger's idle steps) does not count; 0 where it had nothing left after the last scan,
 - the recorder's throughput (all messages and bytes over the session),
 - the CPU time of each kind of process (its children included: the merger's integration
   workers count as the merger's), sampled from /proc, as a share of one core over the session.
@@ -51,6 +53,7 @@ from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io import ros2_wire as wire
+from fleetmap.shared.io.messages import BadMessage, MergerStep, decode
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.sources import Ros2BagSource
 from results import write_result
@@ -177,6 +180,20 @@ def decoding_cost(n: int) -> dict[str, float]:
     return {"scans": scans, "decode_s": decode, "mapping_s": mapping, "simulation_s": simulation_cpu_s(n)}
 
 
+def last_working_step(messages: list[tuple[bytes, int]]) -> int | None:
+    """The log time of the merger's last step that took a local map version or integrated a pair
+    (None: no step did)."""
+    last = None
+    for payload, log_time in messages:
+        try:
+            message = decode(payload)
+        except BadMessage:
+            continue
+        if isinstance(message, MergerStep) and (message.maps or message.integrations):
+            last = log_time
+    return last
+
+
 def measure(
     n: int, speed: float, out: Path, mode: str = "open", executor: str = "local", ros2: bool = False
 ) -> dict[str, float | str]:
@@ -214,10 +231,10 @@ def measure(
                 scans.append(m.log_time)
             elif m.topic.endswith("/pose"):
                 poses += 1
-            last = m.log_time
     latency = merge_latencies(timed)
     span = (max(scans) - min(scans)) / 1e9 if len(scans) > 1 else float("nan")
-    catch_up = (last - max(scans)) / 1e9 if scans else float("nan")
+    worked = last_working_step(timed)
+    catch_up = max(0.0, (worked - max(scans)) / 1e9) if scans and worked is not None else float("nan")
     return {
         "robots": n,
         "mode": mode,

@@ -224,58 +224,81 @@ def test_odometry_behind_the_scans_on_a_busy_machine_still_goes_with_its_scan():
     assert abs(got[0].odometry.x - 1.0) < 1e-6
 
 
-def inbox_source(
-    monkeypatch: pytest.MonkeyPatch, domain: int
-) -> tuple[Ros2Topics, threading.Event, Ros2LiveSource, Callable[[str, str, object], tuple[str, str, bytes, bytes]]]:
-    """A source without a session, iterated on its inbox (its stop event given), and ``sample(topic,
-    typename, message)``: the inbox entry the subscription's callback would make of a sample."""
+@contextmanager
+def listening_source(domain: int) -> Iterator[tuple[Ros2Topics, threading.Event, Ros2LiveSource, Ros2Node, Callable]]:
+    """A source subscribed on a real session but not yet iterating, a robot's node to publish
+    with, and ``heard()``: returns once everything the robot published so far waits in the source's
+    channels (a marker put after it came through the agent's session: one link keeps the order)."""
+    robot_bus, agent_bus = open_zenoh_pair()
     topics = Ros2Topics.of("r1", domain=domain)
     stop = threading.Event()
-    source = Ros2LiveSource(None, topics, stop, "r1", clock=lambda: 100.0)  # type: ignore[arg-type]
-    monkeypatch.setattr(source, "_declare", lambda: [])  # no session: samples come as the test puts them
-    attachment = wire.Attachment(1, 0, bytes(16)).pack()
+    source = Ros2LiveSource(agent_bus.session, topics, stop, "r1", clock=lambda: 100.0)
+    marks: list[int] = []
+    came = threading.Condition()
 
-    def sample(topic: str, typename: str, message: object) -> tuple[str, str, bytes, bytes]:
-        return topic, wire.data_key(domain, topic, typename), wire.encode(message, typename), attachment
+    def on_mark(sample: object) -> None:
+        with came:
+            marks.append(1)
+            came.notify_all()
 
-    return topics, stop, source, sample
+    with robot_bus, agent_bus, Ros2Node(robot_bus.session, "robot", "/r1", domain=domain) as node:
+        source.listen()
+        mark = agent_bus.session.declare_subscriber(f"test/mark/{domain}", on_mark)
+        sync(robot_bus, source)
+
+        def heard() -> None:
+            wanted = len(marks) + 1
+            robot_bus.session.put(f"test/mark/{domain}", b"")
+            with came:
+                assert came.wait_for(lambda: len(marks) >= wanted, WAIT), "the marker never came"
+
+        try:
+            yield topics, stop, source, node, heard
+        finally:
+            stop.set()
+            mark.undeclare()
 
 
-def test_odometry_queued_behind_later_scans_still_goes_with_its_scan(monkeypatch):
-    # a busy machine: the agent's loop comes back to its inbox to find the scan at 20.0, scans
+def test_odometry_heard_behind_later_scans_still_goes_with_its_scan():
+    # a busy machine: the agent's loop comes back to its channels to find the scan at 20.0, scans
     # 0.6 s of the robot's time after it, and only then the odometry at 20.0, all heard at once.
     # Taken and released one sample at a time, the scan went without its reading (the robot's
     # clock said the odometry was late); everything heard is taken first
-    topics, stop, source, sample = inbox_source(monkeypatch, 5)
-
-    def heard(topic: str, typename: str, message: object) -> None:  # as the subscription's callback
-        source._inbox.put(sample(topic, typename, message))
-
-    heard(topics.odom, wire.ODOMETRY, odometry(19.9, 0.0, 0.0))
-    for t in (20.0, 20.2, 20.4, 20.6):
-        heard(topics.scan, wire.LASER_SCAN, laser_scan(t, [2.0] * 181))
-    heard(topics.odom, wire.ODOMETRY, odometry(20.0, 1.0, 0.0))
-    first = next(iter(source))
-    stop.set()
+    with listening_source(5) as (topics, _stop, source, node, heard):
+        odom = node.publisher(topics.odom, wire.ODOMETRY, wire.Qos(depth=10))
+        scan = node.publisher(topics.scan, wire.LASER_SCAN, wire.SENSOR_DATA)
+        odom.publish(odometry(19.9, 0.0, 0.0))
+        for t in (20.0, 20.2, 20.4, 20.6):
+            scan.publish(laser_scan(t, [2.0] * 181))
+        odom.publish(odometry(20.0, 1.0, 0.0))
+        heard()
+        scans = iter(source)
+        first = next(scans)
+        scans.close()  # type: ignore[attr-defined]
     assert first.stamp == 20.0 and first.odometry is not None and abs(first.odometry.x - 1.0) < 1e-6
 
 
-def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_one_on_the_bus(monkeypatch):
+def test_a_stop_while_scans_wait_for_odometry_or_to_be_taken_still_puts_every_one_on_the_bus():
     # SIGTERM comes while the robot's last scans are in the agent: one waits for the odometry at
     # its stamp, one is heard and not yet taken. Neither may be lost: the source gives them back as
     # it ends, and the run tracks and publishes them before the final local maps
-    topics, stop, source, sample = inbox_source(monkeypatch, 4)
-
-    assert source.feed(*sample(topics.odom, wire.ODOMETRY, odometry(19.9, 0.0, 0.0))) == []
-    assert source.feed(*sample(topics.scan, wire.LASER_SCAN, laser_scan(20.0, [2.0] * 181))) == []  # waits
-    source._inbox.put(sample(topics.scan, wire.LASER_SCAN, laser_scan(20.2, [2.0] * 181)))  # as a callback does
-    stop.set()
-    bus = InMemoryBus()
-    scans = Inbox()
-    bus.peer().subscribe(KEYS.scan("r1"), scans)
-    summary = run_agent(
-        source, Agent("r1"), bus, KEYS, speed=0, stop=stop, start_after_known=False, source_ends_at_stop=True
-    )  # as `fleetmap agent --ros2` runs it
+    with listening_source(4) as (topics, stop, source, node, heard):
+        odom = node.publisher(topics.odom, wire.ODOMETRY, wire.Qos(depth=10))
+        scan = node.publisher(topics.scan, wire.LASER_SCAN, wire.SENSOR_DATA)
+        odom.publish(odometry(19.9, 0.0, 0.0))
+        scan.publish(laser_scan(20.0, [2.0] * 181))
+        heard()
+        released = source._take_heard(source._declared[1])  # type: ignore[index]
+        assert released == 2 and list(source._released()) == []  # the scan waits for its odometry
+        scan.publish(laser_scan(20.2, [2.0] * 181))  # heard, not yet taken
+        heard()
+        stop.set()
+        bus = InMemoryBus()
+        scans = Inbox()
+        bus.peer().subscribe(KEYS.scan("r1"), scans)
+        summary = run_agent(
+            source, Agent("r1"), bus, KEYS, speed=0, stop=stop, start_after_known=False, source_ends_at_stop=True
+        )  # as `fleetmap agent --ros2` runs it
     assert summary.stopped and summary.scans == 2
     got = [decode(payload) for _, payload in scans.items]
     assert [(m.index, m.stamp) for m in got] == [(0, 20.0), (1, 20.2)]  # type: ignore[attr-defined]
