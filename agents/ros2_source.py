@@ -31,8 +31,16 @@ readings still coming, older than the scan, say it is behind, not stopped (a rob
 times its pace, on a machine running two other jobs: a scan went without its reading, 0.1 s of the
 agent's time behind the scan that came 0.5 s of the robot's after it). And every sample heard is
 taken before a scan goes: on a machine running four other jobs the agent found a scan, later
-scans and then the scan's odometry all waiting in its inbox, and, taking them one at a time, let
-the scan go without it.
+scans and then the scan's odometry all waiting for it, and, taking them one at a time, let the
+scan go without it.
+
+The samples wait in zenoh's own FIFO channels, one per topic, which the source drains from the
+agent's thread; between turns it waits on ``stop`` itself, never on a queue with a timeout: in
+CPython 3.11 and 3.12 a timed ``queue.SimpleQueue.get`` whose deadline passes while it is
+interrupted (a signal) or descheduled (a loaded machine) then waits with a negative timeout, which
+is forever, until the next item. At the end of a robot's run no item comes: agents flooded on a
+machine at load 10-14 sat in that wait, deaf to SIGTERM, until killed (docs/decisions/077). No
+Python code runs on zenoh's threads either (no callback per sample, no thread per topic).
 """
 
 from __future__ import annotations

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -341,3 +343,32 @@ def test_a_ros2_session_is_a_client_of_the_router_unless_told_otherwise():
     assert ros2_options(ZenohOptions(connect=("tcp/10.0.0.5:7447",))).mode == "client"
     assert ros2_options(ZenohOptions(mode="peer")).mode == "peer"
     assert ros2_options(ZenohOptions(config_file="z.json5")).mode is None  # the file says
+
+
+SLOW_HANDLER = """
+import signal, threading, time
+import zenoh
+from fleetmap.agents.ros2_source import POLL, Ros2LiveSource, Ros2Topics
+stop = threading.Event()
+with zenoh.open(zenoh.Config()) as session:
+    source = Ros2LiveSource(session, Ros2Topics.of("r1", domain=42), stop, "r1")
+    def on_term(signum, frame):
+        time.sleep(4 * POLL)  # longer than the source's poll, as a loaded machine can make any step
+        stop.set()
+    signal.signal(signal.SIGTERM, on_term)
+    main = threading.get_ident()
+    threading.Timer(0.5, lambda: signal.pthread_kill(main, signal.SIGTERM)).start()
+    got = list(source)
+print("stopped", len(got), flush=True)
+"""
+
+
+@pytest.mark.slow
+def test_the_source_ends_at_stop_even_when_the_signal_took_longer_than_its_poll():
+    # SIGTERM comes while the source waits for a sample that never comes (the robot's run is over),
+    # and its handler runs longer than the source's poll. A timed SimpleQueue.get (CPython 3.11 and
+    # 3.12) interrupted that way waits forever once its deadline has passed: the agent never
+    # stopped, and SIGKILL was the only way out. The source waits on the stop event instead
+    done = subprocess.run([sys.executable, "-c", SLOW_HANDLER], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "stopped 0" in done.stdout
