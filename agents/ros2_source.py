@@ -176,7 +176,8 @@ class Ros2LiveSource:
         for entity, (topic, typename, qos) in enumerate(self.topics.subscriptions(), start=1):
             # any type and any hash: a sample of the wrong type is counted, not unheard
             keyexpr = f"{self.topics.domain}/{topic.strip('/')}/*/*"
-            channel = zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+            channel: zenoh.handlers.FifoChannel[zenoh.Sample] = zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+            subscriber: Any
             if qos.durability == wire.TRANSIENT_LOCAL:
                 subscriber = zenoh.ext.declare_advanced_subscriber(
                     self.session,
