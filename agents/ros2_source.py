@@ -78,8 +78,8 @@ POLL = 0.01
 """Longest a sample waits in its channel (s) while the source has nothing to do; how often it looks
 at ``stop`` and at scans waiting for odometry."""
 CHANNEL_CAPACITY = 4096
-"""Samples a topic's channel holds before zenoh waits for the source to take them (minutes of a
-usual robot's topic: the source takes them all at every turn)."""
+"""Samples a topic's channel holds before zenoh waits for the source to take them: 40 s of tf at
+100 Hz, a robot's busiest topic (the source takes them all at every turn, a scan's tracking apart)."""
 ODOMETRY_WAIT = 0.5
 """How long (s, the robot's clock: later scans' stamps) a scan waits for an odometry reading at or
 after its stamp."""

@@ -53,7 +53,8 @@ from fleetmap.scenarios import load_scenario
 from fleetmap.scenarios.stream import robot_stream
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.io import ros2_wire as wire
-from fleetmap.shared.io.messages import BadMessage, MergerStep, decode
+from fleetmap.shared.io.messages import BadMessage, MergerStep
+from fleetmap.shared.io.messages import decode as decode_message
 from fleetmap.shared.io.recording_reader import RecordingReader
 from fleetmap.shared.io.sources import Ros2BagSource
 from results import write_result
@@ -186,7 +187,7 @@ def last_working_step(messages: list[tuple[bytes, int]]) -> int | None:
     last = None
     for payload, log_time in messages:
         try:
-            message = decode(payload)
+            message = decode_message(payload)
         except BadMessage:
             continue
         if isinstance(message, MergerStep) and (message.maps or message.integrations):
