@@ -20,11 +20,18 @@ log = logging.getLogger(__name__)
 
 
 def check_order(clock: ScanClock, previous: float | None, index: int, stamp: float) -> None:
-    """Say so when scan ``index``'s stamp, just ticked, made the clock distrust the stamps: it
-    repeats the ``previous`` scan's, or is before it."""
-    if previous is not None and clock.distrusted_at == clock.scans:
+    """Say once when scan ``index``'s stamp, just ticked, is the first that repeats the
+    ``previous`` scan's or is before it: the intervals such stamps bound are timed by the scans'
+    sequence (:meth:`ScanClock.times`)."""
+    if previous is not None and clock.unordered == [clock.scans]:
         said = "repeats" if stamp == previous else f"is {previous - stamp:.4f} s before"
-        say_distrusted(clock, f"scan {index}'s stamp {said} the previous scan's")
+        log.warning(
+            "scan %d's stamp %s the previous scan's: the intervals on either side of such a stamp are timed "
+            "by the scans' sequence at the log's mean period (%.3f s so far), the others by their stamps",
+            index,
+            said,
+            clock.period,
+        )
 
 
 def check_motion(

@@ -122,7 +122,7 @@ class Predictor:
         velocity: a velocity not yet measured stays so there, rather than becoming the standing
         start the prior was centred on (an epoch begun in such a corridor was placed 0.3 m short a
         scan until three epochs had begun)."""
-        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2], seq)
         self.velocity, self.velocity_known = velocity_between(last[1], pose, seconds), True
         self.velocity_sigma = math.inf
         if seconds > 0:
@@ -151,16 +151,17 @@ class Predictor:
         fused by their information; readings shown to be the scans' own (:attr:`own_readings`) are
         not read at a stamp, and stay as sure as on a true clock."""
         seconds = stamp - last_stamp if last_stamp is not None else 0.0
-        elapsed = self.clock.elapsed(seconds, seq - last_seq)
+        elapsed = self.clock.elapsed(seconds, seq - last_seq, seq)
+        timed = self.clock.times(seq - last_seq, seq)
         velocity = self._velocity(elapsed)
         out = []
         self.odometry_step = self._widened = None
         odometry_prediction = None
         if self.use_odometry and odometry is not None:
-            odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed, velocity)
+            odometry_prediction = self._by_odometry(odometry, stamp, seconds, elapsed, velocity, timed)
             if odometry_prediction is not None:
                 out.append(odometry_prediction)
-        if self.clock.trusted or self.own_readings or not out:
+        if timed or self.own_readings or not out:
             out.append(velocity)
         else:
             # neither model alone: constant velocity drifts along a corridor, the mistimed odometry
@@ -223,7 +224,7 @@ class Predictor:
         )
 
     def _by_odometry(
-        self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float, velocity: Prediction
+        self, odometry: Transform2D, stamp: float, seconds: float, elapsed: float, velocity: Prediction, timed: bool
     ) -> Prediction | None:
         """The odometry's prediction (its sign as believed, :meth:`judge_odometry_sign`); None, with
         a warning, for a reading that is not finite or jumps farther than the robot can drive.
@@ -238,7 +239,7 @@ class Predictor:
             return None
         self.odometry_step = from_odometry(increment)
         prediction = self.believed(self.odometry_step)
-        if not self.clock.trusted and not self.own_readings:
+        if not timed and not self.own_readings:
             if self.by_pace and self.velocity_known:
                 # A reading spread within a burst is a guess that the robot kept its pace between
                 # the burst's two readings (:func:`fleetmap.agents.bursts.between`). It is off where
@@ -309,7 +310,7 @@ class Predictor:
         integration = self.config.integration
         if last is None or integration.motion.max_speed <= 0:
             return self.config.extraction.max_range
-        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2], seq)
         return integration.motion.max_speed * seconds + WITNESS_TRANSLATION
 
     def reachable(self, last: Placed | None, pose: Transform2D, seq: int, stamp: float) -> bool:
@@ -321,7 +322,7 @@ class Predictor:
         integration = self.config.integration
         if last is None:
             return True
-        seconds = self.clock.elapsed(stamp - last[0], seq - last[2])
+        seconds = self.clock.elapsed(stamp - last[0], seq - last[2], seq)
         margin = WITNESS_TRANSLATION
         if integration.motion.max_speed > 0 and math.hypot(pose.x - last[1].x, pose.y - last[1].y) > (
             integration.motion.max_speed * seconds + margin

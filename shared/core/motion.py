@@ -16,6 +16,7 @@ constant velocity for that scan.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -170,6 +171,8 @@ class ScanClock:
         """Scans taken before the first stamp: a burst's first scans, stamped when it arrived."""
         self.distrusted_at: int | None = None
         """The scan (count from 1) at which the stamps were first found wrong."""
+        self.unordered: list[int] = []
+        """The scans (count from 1, ascending) whose stamps repeated or went back."""
 
     def tick(self, stamp: float) -> None:
         """A scan with ``stamp`` arrived (every scan, placed or not)."""
@@ -180,7 +183,7 @@ class ScanClock:
                 self.repeated += 1
             else:
                 self.backwards += 1
-            self.distrust()
+            self.unordered.append(self.scans)
         elif self.previous is not None:
             self.advances += 1
         self.first = stamp if self.first is None else min(self.first, stamp)
@@ -195,9 +198,23 @@ class ScanClock:
             return 1.0
         return (self.latest - self.first) / periods
 
-    def elapsed(self, seconds: float, scans: int) -> float:
-        """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart."""
-        if self.trusted and seconds > 0:
+    def times(self, scans: int, end: int | None = None) -> bool:
+        """Whether the stamps time the interval of ``scans`` scans that ends at scan ``end`` (count
+        from 1; the latest by default): they agree with the motion so far, and neither end nor any
+        scan between has a stamp that repeated or went back (such a stamp is wrong, or the one
+        before it is: both intervals it bounds are untimed, not the rest of the log)."""
+        if not self.trusted:
+            return False
+        if not self.unordered:
+            return True
+        end = self.scans if end is None else end
+        k = bisect.bisect_left(self.unordered, end - max(scans, 1))
+        return k == len(self.unordered) or self.unordered[k] > end
+
+    def elapsed(self, seconds: float, scans: int, end: int | None = None) -> float:
+        """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart, the
+        later one scan ``end`` (:meth:`times`)."""
+        if seconds > 0 and self.times(scans, end):
             return seconds
         return max(scans, 1) * self.period
 
