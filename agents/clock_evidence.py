@@ -42,6 +42,8 @@ def check_motion(
     pose: Transform2D,
     information: Array,
     heading: float,
+    scans: int = 1,
+    end: int | None = None,
 ) -> None:
     """Judge the stamps by the motion from the last placed scan (``last``) to scan ``index``
     placed at ``pose`` (both in the epoch's frame) ``seconds`` later by their stamps
@@ -50,8 +52,8 @@ def check_motion(
     they fail."""
     dx, dy = pose.x - last.x, pose.y - last.y
     distance = math.hypot(dx, dy)
-    if distance == 0:
-        return
+    if distance == 0 or not clock.times(scans, end):
+        return  # (an interval a repeated or backward stamp bounds is timed by the sequence: no evidence)
     sigma = sigma_along(information, heading, dx / distance, dy / distance)
     was = clock.trusted
     clock.check(seconds, distance, math.sqrt(2.0) * sigma)

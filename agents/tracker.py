@@ -336,7 +336,17 @@ class Tracker(FitSearch):
             self._spread = True  # the next scan is measured from the last reading that was its own
         if self._good is not None:
             seconds = stamp - self._good[0]
-            check_motion(self.clock, index, seconds, self._good[1], pose, reg.scan_information, submap.origin.theta)
+            check_motion(
+                self.clock,
+                index,
+                seconds,
+                self._good[1],
+                pose,
+                reg.scan_information,
+                submap.origin.theta,
+                seq - self._good[2],
+                seq,
+            )
             self.motion.moved(self._good, pose, seq, stamp, reg.information)
         self._pose, self._stamp, self._seq, self._good = pose, stamp, seq, (stamp, pose, seq)
         if status != "carried":  # (a carried scan's pose is the motion model's guess, its view poor)
