@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 from fleetmap.agents.bursts import BurstOdometry, Timed
-from fleetmap.agents.clock_evidence import say_distrusted
+from fleetmap.agents.clock_evidence import say_bunched
 from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
 from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
@@ -196,9 +196,10 @@ class TrackingFrontEnd:
         """Track a scan :attr:`bursts` gave back; the first burst of a log tells the clock that the
         stamps are not the scans' times (the scans' readings, spread, moved within milliseconds)."""
         clock = self.tracker.clock
-        if ready.burst > 1 and clock.trusted:
+        if ready.burst > 1:
             clock.bunched(ready.burst)
-            say_distrusted(clock, f"scan {ready.item[0]} arrived in a burst of {ready.burst} scans stamped together")
+            if clock.bunches == 1:
+                say_bunched(clock, ready.item[0], ready.burst)
         self.tracker.exact = ready.exact
         self.tracker.by_pace = not ready.exact or ready.burst > 1
         self.tracker.motion.own_readings = self.bursts.own_readings

@@ -61,6 +61,18 @@ def check_motion(
         say_distrusted(clock, f"scan {index} moved {distance:.2f} m in the {seconds:.4f} s its stamp allows")
 
 
+def say_bunched(clock: ScanClock, index: int, size: int) -> None:
+    """Say once per log that its scans arrive in bursts stamped together (scan ``index`` the first
+    of them given back, in a burst of ``size``)."""
+    log.warning(
+        "scan %d arrived in a burst of %d scans stamped together: the intervals on either side of such a scan "
+        "are timed by the scans' sequence at the log's mean period (%.3f s so far), the others by their stamps",
+        index,
+        size,
+        clock.period,
+    )
+
+
 def say_distrusted(clock: ScanClock, evidence: str) -> None:
     """Say once per log that its stamps are not its scans' times, and why."""
     log.warning(

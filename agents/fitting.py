@@ -195,7 +195,7 @@ class FitSearch:
         than the scans' sequence does at the log's mean period (a logger that stamps a burst at
         receipt shrinks a second to milliseconds, and the robot's reach with it)."""
         clock, good = self.motion.clock, self._good
-        if not clock.trusted or good is None:
+        if good is None or not clock.times(taken.seq - good[2], taken.seq):
             return False
         return taken.stamp - good[0] < (taken.seq - good[2]) * clock.period
 

@@ -128,6 +128,12 @@ CHI2_3DOF_99 = 11.345
 Mahalanobis distance past which its prediction does not explain it (the validation gate)."""
 
 
+UNORDERED_KEPT = 4096
+"""The scans with a stamp that is not their time a clock remembers (:attr:`ScanClock.unordered`): an
+interval longer than the span they cover is untimed. Minutes of a log in bursts at 40 Hz; a bound
+for a robot that runs for days, not a figure (any span longer than a robot's unplaced run holds)."""
+
+
 class ScanClock:
     """How much time passed between a robot's scans, as the evidence supports it.
 
@@ -137,11 +143,14 @@ class ScanClock:
     or at the same stamp, says the clock is wrong, not the robot (no robot drives that fast).
 
     While the stamps agree with the motion, the time between two scans is their stamps'
-    difference. From the first scan whose registered motion no ordinary robot can have driven in
-    its stamps' interval (beyond ``max_speed``, by more than the registration's own uncertainty at
-    99 %), or whose stamp repeats or goes back, the stamps are not trusted for the rest of the
-    log: the time between two scans is then the number of scans between them times the log's mean
-    scan period (its whole span over its scans, which bursts, jitter and repeats do not change).
+    difference. A stamp that repeats or goes back, or a scan that arrived in a burst stamped
+    together, is not its scan's time: the intervals it bounds are timed by the sequence, the rest
+    of the log by its stamps (:meth:`times`; docs/decisions/078). From the first scan whose
+    registered motion no ordinary robot can have driven in its stamps' interval (beyond
+    ``max_speed``, by more than the registration's own uncertainty at 99 %), the stamps are not
+    trusted for the rest of the log. An untimed interval is the number of scans in it times the
+    log's mean scan period (its whole span over its scans, which bursts, jitter and repeats do not
+    change).
     A laser scans at a steady rate; its sequence is the clock a burst cannot break. A log whose
     stamps never advance has a period of one "second" per scan: the motion models then run per
     scan. It takes two steps to measure a rate: stamps that advanced once only are a reset, a
@@ -172,7 +181,13 @@ class ScanClock:
         self.distrusted_at: int | None = None
         """The scan (count from 1) at which the stamps were first found wrong."""
         self.unordered: list[int] = []
-        """The scans (count from 1, ascending) whose stamps repeated or went back."""
+        """The scans (count from 1, ascending) whose stamps are not their times: stamps that
+        repeated or went back, and scans that arrived in a burst (:meth:`bunched`); the latest
+        :data:`UNORDERED_KEPT` of them (:attr:`forgotten` the last one let go)."""
+        self.forgotten = 0
+        """The last scan let go from :attr:`unordered`: an interval that reaches back to it is untimed."""
+        self.bunches = 0
+        """Scans that arrived in a burst (:meth:`bunched`)."""
 
     def tick(self, stamp: float) -> None:
         """A scan with ``stamp`` arrived (every scan, placed or not)."""
@@ -183,7 +198,7 @@ class ScanClock:
                 self.repeated += 1
             else:
                 self.backwards += 1
-            self.unordered.append(self.scans)
+            self._unordered(self.scans)
         elif self.previous is not None:
             self.advances += 1
         self.first = stamp if self.first is None else min(self.first, stamp)
@@ -208,8 +223,20 @@ class ScanClock:
         if not self.unordered:
             return True
         end = self.scans if end is None else end
-        k = bisect.bisect_left(self.unordered, end - max(scans, 1))
+        start = end - max(scans, 1)
+        if start <= self.forgotten:
+            return False
+        k = bisect.bisect_left(self.unordered, start)
         return k == len(self.unordered) or self.unordered[k] > end
+
+    def _unordered(self, scan: int) -> None:
+        """Scan ``scan``'s stamp is not its time (:attr:`unordered`)."""
+        if self.unordered and self.unordered[-1] >= scan:
+            return
+        self.unordered.append(scan)
+        if len(self.unordered) > UNORDERED_KEPT:
+            self.forgotten = self.unordered[-UNORDERED_KEPT - 1]
+            del self.unordered[: len(self.unordered) - UNORDERED_KEPT]
 
     def elapsed(self, seconds: float, scans: int, end: int | None = None) -> float:
         """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart, the
@@ -231,16 +258,19 @@ class ScanClock:
         return self.trusted
 
     def bunched(self, size: int) -> None:
-        """``size`` scans the laser took apart arrived stamped together (a burst:
-        :mod:`fleetmap.agents.bursts`): the stamps are not their times. A burst before the first
-        scan was taken before the first stamp: the log's span leaves it out (:attr:`period`)."""
+        """The next scan (the one :meth:`tick` counts next) arrived in a burst of ``size`` scans
+        the laser took apart and the logger stamped together (:mod:`fleetmap.agents.bursts`): its
+        stamp is not its time, so neither interval it bounds is timed by the stamps
+        (:meth:`times`), and the rest of the log keeps its clock. A burst before the first scan was
+        taken before the first stamp: the log's span leaves it out (:attr:`period`)."""
         if self.scans == 0:
             self.before_first = size - 1
-        self.distrust()
+        self.bunches += 1
+        self._unordered(self.scans + 1)
 
     def distrust(self) -> None:
-        """Trust the stamps no more: the evidence is :meth:`tick`'s, :meth:`check`'s or
-        :meth:`bunched`'s, or the caller's (a kidnap that only the stamps' time concluded)."""
+        """Trust the stamps no more: the evidence is :meth:`check`'s, or the caller's (a kidnap
+        that only the stamps' time concluded)."""
         if self.trusted:
             self.trusted = False
             self.distrusted_at = self.scans

@@ -74,6 +74,29 @@ def test_a_repeated_stamps_reading_is_given_to_the_scan_it_was_read_for() -> Non
         assert s.exact == (s.item % 10 != 5), "the repeated scan's reading is spread, not its own"
 
 
+def test_a_robot_that_stops_to_turn_has_two_paces_and_each_repeated_stamps_reading_goes_to_its_scan() -> None:
+    # a log thinned by distance keeps a scan a metre on and one at each turn in place: its steps
+    # are a metre or nothing, and their median (nothing, here) is neither pace. By it, a metre's
+    # drive into a repeated stamp was given to the repeated scan at half a metre a scan; among the
+    # robot's steps, a metre is likely and half a metre is not (docs/decisions/078)
+    pose, truth = gtsam.Pose2(), []
+    for j in range(50):
+        step = gtsam.Pose2(1.0, 0.0, 0.0) if j % 5 in (1, 2) else gtsam.Pose2(0.0, 0.0, math.radians(30))
+        pose = pose.compose(step) if j else pose
+        truth.append(Transform2D(pose.x(), pose.y(), pose.theta()))
+    repeated = {12, 22, 32, 42}  # each a metre after the scan before it, stamped as that one
+    scans = [Timed(i, float(i - 1 if i in repeated else i), truth[i - 1 if i in repeated else i]) for i in range(50)]
+    out = given_back(BurstOdometry(3.0), scans)
+    assert [s.item for s in out] == list(range(50)), "every scan, once, in order"
+    for s in out:
+        if s.item in repeated:
+            assert not s.exact, f"scan {s.item} took the reading of the scan before it as its own"
+        else:
+            assert s.exact and s.odometry is not None and s.odometry.distance(truth[s.item])[0] < 1e-6, (
+                f"scan {s.item} read {s.odometry}, not {truth[s.item]}"
+            )
+
+
 def test_a_repeated_scan_whose_next_reading_never_comes_keeps_no_stale_one() -> None:
     # a repeated scan waits for the next reading to be spread towards. Where the next scan has none
     # (a wheel message lost), it is given back without any, not with the reading of the scan

@@ -20,15 +20,16 @@ OWN = 0.05 + 0.1 * STEP
 def _widened_after(
     scans: int, miss: float, spread_last: bool = False, spread_step: float = STEP, first_miss: float | None = None
 ) -> tuple[float, float]:
-    """A robot whose clock repeated a stamp (not trusted from then on) drives ``scans`` scans, the
+    """A robot whose clock was found wrong (not trusted from then on) drives ``scans`` scans, the
     walls placing each ``miss`` m from where its reading put it: the odometry prediction's
     translation uncertainty at the first scan and at the last (m). ``spread_last``: the last scan's
     reading was spread within a burst, not taken where the scan was, ``spread_step`` m on from the
     reading before (the robot drove ``STEP`` a scan until then). ``first_miss``: the first scan's
     miss, if not ``miss``."""
     p = Predictor(FleetmapConfig())
-    for stamp in (0.0, PERIOD, PERIOD):  # a repeated stamp
+    for stamp in (0.0, PERIOD, 2 * PERIOD):
         p.clock.tick(stamp)
+    p.clock.distrust()  # (a scan moved farther than its stamps allow)
     assert not p.clock.trusted
     p.velocity, p.velocity_known = np.array([STEP / PERIOD, 0.0, 0.0]), True
     p.odometry = Transform2D()

@@ -6,7 +6,7 @@ import math
 
 import pytest
 from fleetmap.shared.core.geometry import Transform2D
-from fleetmap.shared.core.motion import Prediction, ScanClock, fused
+from fleetmap.shared.core.motion import UNORDERED_KEPT, Prediction, ScanClock, fused
 
 
 def test_a_clock_whose_stamps_agree_with_the_motion_is_trusted_and_times_by_its_stamps() -> None:
@@ -38,19 +38,45 @@ def test_motion_within_the_registrations_own_uncertainty_does_not_distrust() -> 
     assert not clock.check(0.1, 0.2, 0.02), "five sigma"
 
 
-def test_a_repeated_or_backward_stamp_distrusts_the_clock_and_a_log_without_times_runs_per_scan() -> None:
+def test_a_repeated_or_backward_stamp_untimes_the_intervals_it_bounds_and_a_log_without_times_runs_per_scan() -> None:
     clock = ScanClock(max_speed=1.0)
-    for stamp in (5.0, 5.2, 5.4):
+    for stamp in (5.0, 5.2, 5.4, 5.6):
         clock.tick(stamp)
-    assert clock.trusted
-    clock.tick(5.4)
-    assert not clock.trusted and clock.distrusted_at == 4, "no laser takes two scans at one instant"
-    clock.tick(5.3)
-    assert (clock.repeated, clock.backwards) == (1, 1)
+    clock.tick(5.6)  # scan 5: no laser takes two scans at one instant
+    clock.tick(5.9)
+    clock.tick(6.1)
+    assert clock.trusted, "the other stamps still time their intervals"
+    assert clock.elapsed(0.2, 1, 4) == pytest.approx(0.2), "scans 3-4: before the repeat"
+    assert clock.elapsed(1e-9, 1, 5) == pytest.approx(clock.period), "scans 4-5: the repeat ends it"
+    assert clock.elapsed(0.3, 1, 6) == pytest.approx(clock.period), "scans 5-6: the repeat begins it"
+    assert clock.elapsed(0.5, 2, 7) == pytest.approx(2 * clock.period), "scans 5-7"
+    assert clock.elapsed(0.2, 1, 7) == pytest.approx(0.2), "scans 6-7: after it"
+    clock.tick(6.0)
+    assert (clock.repeated, clock.backwards) == (1, 1) and not clock.times(1)
     flat = ScanClock(max_speed=1.0)
     for _ in range(4):
         flat.tick(0.0)
     assert flat.period == 1.0 and flat.elapsed(0.0, 2) == 2.0
+
+
+def test_a_scan_that_arrived_in_a_burst_untimes_its_intervals_and_a_clock_remembers_a_bounded_span() -> None:
+    clock = ScanClock(max_speed=1.0)
+    for stamp in (0.0, 0.2):
+        clock.tick(stamp)
+    clock.bunched(2)  # scans 3 and 4 arrive stamped together
+    clock.tick(0.6)
+    clock.bunched(2)
+    clock.tick(0.601)
+    clock.tick(0.8)
+    assert clock.trusted and clock.bunches == 2
+    assert clock.elapsed(0.2, 1, 2) == pytest.approx(0.2)
+    assert not clock.times(1, 3) and not clock.times(1, 5) and clock.times(1, 2)
+    for k in range(UNORDERED_KEPT + 10):
+        clock.bunched(2)
+        clock.tick(1.0 + k)
+    assert len(clock.unordered) == UNORDERED_KEPT and not clock.times(clock.scans - 1), (
+        "reaching back past what it keeps"
+    )
 
 
 def test_stamps_that_advanced_once_only_time_nothing_and_two_steps_measure_the_rate() -> None:
