@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 from fleetmap.agents.bursts import BurstOdometry, Timed
-from fleetmap.agents.clock_evidence import say_bunched
+from fleetmap.agents.clock_evidence import say_untimed
 from fleetmap.agents.counts import AgentCounts
 from fleetmap.agents.pivot import LOST_SCANS, PivotFrontEnd
 from fleetmap.agents.tracker import KIDNAP_REASON, Submap, Tracker
@@ -198,8 +198,7 @@ class TrackingFrontEnd:
         clock = self.tracker.clock
         if ready.burst > 1:
             clock.bunched(ready.burst)
-            if clock.bunches == 1:
-                say_bunched(clock, ready.item[0], ready.burst)
+            say_untimed(clock, f"scan {ready.item[0]} arrived in a burst of {ready.burst} scans stamped together")
         self.tracker.exact = ready.exact
         self.tracker.by_pace = not ready.exact or ready.burst > 1
         self.tracker.motion.own_readings = self.bursts.own_readings

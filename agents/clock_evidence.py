@@ -20,18 +20,12 @@ log = logging.getLogger(__name__)
 
 
 def check_order(clock: ScanClock, previous: float | None, index: int, stamp: float) -> None:
-    """Say once when scan ``index``'s stamp, just ticked, is the first that repeats the
+    """Say once per log (:func:`say_untimed`) when scan ``index``'s stamp, just ticked, repeats the
     ``previous`` scan's or is before it: the intervals such stamps bound are timed by the scans'
     sequence (:meth:`ScanClock.times`)."""
-    if previous is not None and clock.unordered == [clock.scans]:
+    if previous is not None and stamp <= previous:
         said = "repeats" if stamp == previous else f"is {previous - stamp:.4f} s before"
-        log.warning(
-            "scan %d's stamp %s the previous scan's: the intervals on either side of such a stamp are timed "
-            "by the scans' sequence at the log's mean period (%.3f s so far), the others by their stamps",
-            index,
-            said,
-            clock.period,
-        )
+        say_untimed(clock, f"scan {index}'s stamp {said} the previous scan's")
 
 
 def check_motion(
@@ -61,15 +55,23 @@ def check_motion(
         say_distrusted(clock, f"scan {index} moved {distance:.2f} m in the {seconds:.4f} s its stamp allows")
 
 
-def say_bunched(clock: ScanClock, index: int, size: int) -> None:
-    """Say once per log that its scans arrive in bursts stamped together (scan ``index`` the first
-    of them given back, in a burst of ``size``)."""
+def say_untimed(clock: ScanClock, evidence: str) -> None:
+    """Say once per log that some of its stamps are not its scans' times (a stamp that repeated or
+    went back, scans that arrived in a burst), the first ``evidence`` of it, and how the tracker
+    times their intervals."""
+    if clock.said:
+        return
+    clock.said = True
     log.warning(
-        "scan %d arrived in a burst of %d scans stamped together: the intervals on either side of such a scan "
-        "are timed by the scans' sequence at the log's mean period (%.3f s so far), the others by their stamps",
-        index,
-        size,
+        "%s: some stamps are not their scans' times; the intervals such scans bound are timed by their sequence at "
+        "the log's mean period (%.3f s so far), the others by their stamps (%d scans in: %d stamps repeated, "
+        "%d going back, %d scans in bursts)",
+        evidence,
         clock.period,
+        clock.scans,
+        clock.repeated,
+        clock.backwards,
+        clock.bunches,
     )
 
 

@@ -188,6 +188,13 @@ class ScanClock:
         """The last scan let go from :attr:`unordered`: an interval that reaches back to it is untimed."""
         self.bunches = 0
         """Scans that arrived in a burst (:meth:`bunched`)."""
+        self.untimed = 0
+        """Scans whose stamps were not their times (:attr:`unordered`, all of them)."""
+        self.first_untimed: int | None = None
+        """The first of them (count from 1)."""
+        self.said = False
+        """Whether the log was told that some of its stamps are not its scans' times
+        (:func:`fleetmap.agents.clock_evidence.say_untimed`)."""
 
     def tick(self, stamp: float) -> None:
         """A scan with ``stamp`` arrived (every scan, placed or not)."""
@@ -234,6 +241,8 @@ class ScanClock:
         if self.unordered and self.unordered[-1] >= scan:
             return
         self.unordered.append(scan)
+        self.untimed += 1
+        self.first_untimed = scan if self.first_untimed is None else self.first_untimed
         if len(self.unordered) > UNORDERED_KEPT:
             self.forgotten = self.unordered[-UNORDERED_KEPT - 1]
             del self.unordered[: len(self.unordered) - UNORDERED_KEPT]

@@ -51,16 +51,21 @@ class Finished:
 
 
 def clock_summary(agent: Agent) -> dict[str, Any] | None:
-    """What the tracker made of a robot's stamps (``stamps_trusted`` false: it timed the scans by
-    their sequence at ``mean_period`` from scan ``distrusted_at`` on; ``bursts`` of scans stamped
-    together, whose ``odometry_spread`` readings were placed between the bursts' own)."""
+    """What the tracker made of a robot's stamps (``stamps_trusted`` false: not every stamp was its
+    scan's time; ``untimed_scans`` whose stamps repeated, went back or came in a burst, from scan
+    ``first_untimed`` on, had the intervals they bound timed by their sequence at ``mean_period``,
+    and every interval from scan ``distrusted_at`` on, where the motion showed the stamps wrong;
+    ``bursts`` of scans stamped together, whose ``odometry_spread`` readings were placed between the
+    bursts' own)."""
     clock, bursts = agent.clock, agent.bursts
     if clock is None or bursts is None:
         return None
     return {
         "bursts": bursts.bursts,
         "odometry_spread": bursts.spread,
-        "stamps_trusted": clock.trusted,
+        "stamps_trusted": clock.trusted and clock.untimed == 0,
+        "untimed_scans": clock.untimed,
+        "first_untimed": clock.first_untimed,
         "distrusted_at": clock.distrusted_at,
         "mean_period": clock.period,
         "repeated": clock.repeated,

@@ -70,12 +70,12 @@ def test_stamps_that_disagree_with_the_motion_are_said_once_with_counts(r2_loop,
     broken = list(break_clock(r2_loop, "burst", seed=7))
     with caplog.at_level(logging.WARNING, logger="fleetmap.agents.tracker"):
         epoch_poses(broken, Agent("r2"))
-    said = [r.getMessage() for r in caplog.records if "not the scans' times" in r.getMessage()]
-    assert len(said) == 1 and "stamps repeated" in said[0] and "mean period" in said[0]
+    said = [r.getMessage() for r in caplog.records if "scans' times" in r.getMessage()]
+    assert len(said) == 1 and "stamps repeated" in said[0] and "in bursts" in said[0] and "mean period" in said[0]
     with caplog.at_level(logging.WARNING, logger="fleetmap.agents.tracker"):
         caplog.clear()
         epoch_poses(r2_loop, Agent("r2"))
-    assert not [r for r in caplog.records if "not the scans' times" in r.getMessage()], "a true clock is trusted"
+    assert not [r for r in caplog.records if "scans' times" in r.getMessage()], "a true clock is trusted"
 
 
 def test_a_kidnap_on_a_bursting_clock_is_still_a_new_epoch(carried_stream) -> None:
