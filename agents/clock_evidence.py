@@ -1,10 +1,10 @@
 """Whether a robot's stamps are its scans' times, judged by the tracker as it places scans, and the
-one warning a log gets when they are not (docs/decisions/009-clocks-evidence-over-stamps.md).
+warnings a log gets when they are not (docs/decisions/009-clocks-evidence-over-stamps.md, 078).
 
 The clock itself (:class:`fleetmap.shared.core.motion.ScanClock`) weighs the evidence: stamps that
-repeat or go back, and motion the stamps' interval cannot hold. This module gives it the motion
-between two placed scans, as uncertain as the walls fix the two poses along it, and says once why
-it stopped trusting the stamps.
+repeat or go back and scans that arrived in a burst untime the intervals they bound; motion the
+stamps' interval cannot hold untimes them all. This module gives it the motion between two placed
+scans, as uncertain as the walls fix the two poses along it, and says once of each kind why.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def check_motion(
     dx, dy = pose.x - last.x, pose.y - last.y
     distance = math.hypot(dx, dy)
     if distance == 0 or not clock.times(scans, end):
-        return  # (an interval a repeated or backward stamp bounds is timed by the sequence: no evidence)
+        return  # (an interval that a stamp not its scan's time bounds is timed by the sequence: no evidence)
     sigma = sigma_along(information, heading, dx / distance, dy / distance)
     was = clock.trusted
     clock.check(seconds, distance, math.sqrt(2.0) * sigma)
@@ -76,7 +76,9 @@ def say_untimed(clock: ScanClock, evidence: str) -> None:
 
 
 def say_distrusted(clock: ScanClock, evidence: str) -> None:
-    """Say once per log that its stamps are not its scans' times, and why."""
+    """Say once per log that the stamps are not the scans' times anywhere (the motion showed them
+    wrong, or a kidnap only they concluded), and why: every interval from here is timed by the
+    sequence."""
     log.warning(
         "%s: the stamps are not the scans' times; tracking by their sequence at the log's mean period "
         "(%.3f s so far) from here (%d scans in: %d stamps repeated, %d going back)",
