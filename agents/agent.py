@@ -193,8 +193,9 @@ class TrackingFrontEnd:
         return out
 
     def _released(self, ready: Timed[tuple[int, RangeScan, Transform2D | None]]) -> list[Message]:
-        """Track a scan :attr:`bursts` gave back; the first burst of a log tells the clock that the
-        stamps are not the scans' times (the scans' readings, spread, moved within milliseconds)."""
+        """Track a scan :attr:`bursts` gave back; one from a burst tells the clock that its stamp is
+        not its time (the burst's readings, spread, moved within milliseconds): the intervals it
+        bounds are timed by the sequence."""
         clock = self.tracker.clock
         if ready.burst > 1:
             clock.bunched(ready.burst)

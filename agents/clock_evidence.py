@@ -43,11 +43,12 @@ def check_motion(
     placed at ``pose`` (both in the epoch's frame) ``seconds`` later by their stamps
     (:meth:`ScanClock.check`), uncertain as the walls fix the two poses along it (the scan's
     registration ``information``, in the frame of the submap turned by ``heading``); say once when
-    they fail."""
+    they fail. The interval, ``scans`` scans ending at scan ``end`` (:meth:`ScanClock.times`), is
+    no evidence where a stamp that is not its scan's time bounds it."""
     dx, dy = pose.x - last.x, pose.y - last.y
     distance = math.hypot(dx, dy)
     if distance == 0 or not clock.times(scans, end):
-        return  # (an interval that a stamp not its scan's time bounds is timed by the sequence: no evidence)
+        return
     sigma = sigma_along(information, heading, dx / distance, dy / distance)
     was = clock.trusted
     clock.check(seconds, distance, math.sqrt(2.0) * sigma)

@@ -129,9 +129,10 @@ Mahalanobis distance past which its prediction does not explain it (the validati
 
 
 UNORDERED_KEPT = 4096
-"""The scans with a stamp that is not their time a clock remembers (:attr:`ScanClock.unordered`): an
-interval longer than the span they cover is untimed. Minutes of a log in bursts at 40 Hz; a bound
-for a robot that runs for days, not a figure (any span longer than a robot's unplaced run holds)."""
+"""The scans with a stamp that is not their time a clock remembers (:attr:`ScanClock.unordered`): the
+intervals it is asked about end at the scans being tracked, so one reaching back past the oldest
+kept holds the newer ones and is untimed by them. A bound for a robot that runs for days, not a
+figure (minutes of a log in bursts at 40 Hz; any span longer than a robot's unplaced run holds)."""
 
 
 class ScanClock:
@@ -179,13 +180,12 @@ class ScanClock:
         self.before_first = 0
         """Scans taken before the first stamp: a burst's first scans, stamped when it arrived."""
         self.distrusted_at: int | None = None
-        """The scan (count from 1) at which the stamps were first found wrong."""
+        """The scan (count from 1) from which no stamp times its interval: the motion showed them
+        wrong (:meth:`check`), or a kidnap only they concluded (:meth:`distrust`)."""
         self.unordered: list[int] = []
         """The scans (count from 1, ascending) whose stamps are not their times: stamps that
         repeated or went back, and scans that arrived in a burst (:meth:`bunched`); the latest
-        :data:`UNORDERED_KEPT` of them (:attr:`forgotten` the last one let go)."""
-        self.forgotten = 0
-        """The last scan let go from :attr:`unordered`: an interval that reaches back to it is untimed."""
+        :data:`UNORDERED_KEPT` of them."""
         self.bunches = 0
         """Scans that arrived in a burst (:meth:`bunched`)."""
         self.untimed = 0
@@ -223,17 +223,15 @@ class ScanClock:
     def times(self, scans: int, end: int | None = None) -> bool:
         """Whether the stamps time the interval of ``scans`` scans that ends at scan ``end`` (count
         from 1; the latest by default): they agree with the motion so far, and neither end nor any
-        scan between has a stamp that repeated or went back (such a stamp is wrong, or the one
-        before it is: both intervals it bounds are untimed, not the rest of the log)."""
+        scan between is in :attr:`unordered` (a stamp that repeated or went back is wrong, or the
+        one before it is; a burst's scans were stamped as they arrived: both intervals such a scan
+        bounds are untimed, not the rest of the log)."""
         if not self.trusted:
             return False
         if not self.unordered:
             return True
         end = self.scans if end is None else end
-        start = end - max(scans, 1)
-        if start <= self.forgotten:
-            return False
-        k = bisect.bisect_left(self.unordered, start)
+        k = bisect.bisect_left(self.unordered, end - max(scans, 1))
         return k == len(self.unordered) or self.unordered[k] > end
 
     def _unordered(self, scan: int) -> None:
@@ -244,8 +242,7 @@ class ScanClock:
         self.untimed += 1
         self.first_untimed = scan if self.first_untimed is None else self.first_untimed
         if len(self.unordered) > UNORDERED_KEPT:
-            self.forgotten = self.unordered[-UNORDERED_KEPT - 1]
-            del self.unordered[: len(self.unordered) - UNORDERED_KEPT]
+            del self.unordered[0]
 
     def elapsed(self, seconds: float, scans: int, end: int | None = None) -> float:
         """The time (s) between two scans ``scans`` apart whose stamps are ``seconds`` apart, the

@@ -66,7 +66,7 @@ def test_a_robot_on_a_broken_clock_is_tracked_as_on_the_true_one(r2_loop, true_c
 
 
 @pytest.mark.slow  # one of the fast suite's slowest (1.5-2.7 s): CI runs it with the slow ones
-def test_stamps_that_disagree_with_the_motion_are_said_once_with_counts(r2_loop, caplog) -> None:
+def test_stamps_that_are_not_the_scans_times_are_said_once_with_counts(r2_loop, caplog) -> None:
     broken = list(break_clock(r2_loop, "burst", seed=7))
     with caplog.at_level(logging.WARNING, logger="fleetmap.agents.tracker"):
         epoch_poses(broken, Agent("r2"))

@@ -71,12 +71,14 @@ def test_a_scan_that_arrived_in_a_burst_untimes_its_intervals_and_a_clock_rememb
     assert clock.trusted and clock.bunches == 2
     assert clock.elapsed(0.2, 1, 2) == pytest.approx(0.2)
     assert not clock.times(1, 3) and not clock.times(1, 5) and clock.times(1, 2)
-    for k in range(UNORDERED_KEPT + 10):
+    for k in range(UNORDERED_KEPT + 10):  # a log in bursts for days: every scan marked
         clock.bunched(2)
         clock.tick(1.0 + k)
-    assert len(clock.unordered) == UNORDERED_KEPT and not clock.times(clock.scans - 1), (
-        "reaching back past what it keeps"
-    )
+    clock.tick(UNORDERED_KEPT + 20.0)
+    clock.tick(UNORDERED_KEPT + 20.2)
+    assert len(clock.unordered) == UNORDERED_KEPT, "the marks a clock keeps are bounded"
+    assert clock.times(1) and not clock.times(2), "the newest ones still untime what they bound"
+    assert not clock.times(clock.scans - 1), "an interval reaching back past the oldest kept holds newer ones"
 
 
 def test_stamps_that_advanced_once_only_time_nothing_and_two_steps_measure_the_rate() -> None:
