@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import importlib
 import itertools
 import math
 import sys
@@ -19,6 +20,18 @@ from fleetmap.shared.core.extraction import extract_segments
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.segmap import SegmentMap
 from pytest import MonkeyPatch
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
+def benchmark_tool(name: str) -> ModuleType:
+    """The benchmark script ``benchmarks/NAME.py`` imported as a module (the scripts import each
+    other by name, so their folder is on the path while it loads)."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
 
 
 def set_constant(monkeypatch: MonkeyPatch, owner: ModuleType, name: str, value: Any) -> None:

@@ -3,28 +3,21 @@ and a submap's truth is its frame scan's corrected pose."""
 
 from __future__ import annotations
 
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.io.messages import LocalMap
 
-pytestmark = pytest.mark.slow  # importing the tool imports the mapping and the benchmarks (2 s): CI runs it
+from tests.helpers import benchmark_tool
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+pytestmark = pytest.mark.slow  # importing the tool imports the mapping and the benchmarks (2 s): CI runs it
 
 
 @pytest.fixture(scope="module")
 def tool():  # type: ignore[no-untyped-def]
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import wrong_relations
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return wrong_relations
+    return benchmark_tool("wrong_relations")
 
 
 def test_wrong_relations_are_grouped_by_a_robots_consecutive_scans_most_first(tool) -> None:  # type: ignore[no-untyped-def]
