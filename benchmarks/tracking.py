@@ -320,6 +320,10 @@ def against_true_clock(results: list[LogResult]) -> str:
         clock, *rest = (p for p in r.clock.split(", ") if not p.endswith("%)"))  # (not the draws)
         return r.name, r.odometry, clock, tuple(rest)
 
+    def named(r: LogResult, said: str) -> str:
+        name, odometry, clock, rest = key(r)
+        return f"{name} {', '.join([clock, *rest])}, odometry {'on' if odometry else 'off'} ({said})"
+
     run = [r for r in results if r.scans]
     true = {(k[0], k[1], k[3]): r for r in run if (k := key(r))[2] == "true"}
     broken, misses = 0, []
@@ -331,13 +335,8 @@ def against_true_clock(results: list[LogResult]) -> str:
         broken += 1
         gap = 100 * (base.within[0] - r.within[0])
         if gap > MISS_POINTS:
-            what = ", ".join([clock, *rest])
-            misses.append(f"{name} {what}, odometry {'on' if odometry else 'off'} ({-gap:+.1f})")
-    epochs = [
-        f"{r.name} {', '.join([key(r)[2], *key(r)[3]])}, odometry {'on' if r.odometry else 'off'} ({r.epochs - 1})"
-        for r in run
-        if r.epochs > 1
-    ]
+            misses.append(named(r, f"{-gap:+.1f}"))
+    epochs = [named(r, str(r.epochs - 1)) for r in run if r.epochs > 1]
     out = (
         f"Against the true clock: {len(misses)} of {broken} broken-clock rows more than {MISS_POINTS:g} point under it"
     )

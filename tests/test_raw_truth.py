@@ -4,24 +4,19 @@ counted against a map that placed the scans as the raw scans do; a map's own err
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import pytest
 from fleetmap.shared.core.geometry import Transform2D
 
-pytestmark = pytest.mark.slow  # the fast suite's slowest module fixture (a log read, 1.3 s): CI runs it
+from tests.helpers import benchmark_tool
 
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+pytestmark = pytest.mark.slow  # the fast suite's slowest module fixture (a log read, 1.3 s): CI runs it
 
 
 @pytest.fixture(scope="module")
 def csail(datasets: Path):  # type: ignore[no-untyped-def]
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        from raw_truth import RawTruth
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    RawTruth = benchmark_tool("raw_truth").RawTruth
     path = datasets / "corrected" / "csail-corrected.log.gz"
     raw = RawTruth(path)
     poses = [Transform2D(*s.odometry) for s in raw.scans]
