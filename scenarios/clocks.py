@@ -26,8 +26,10 @@ from typing import Any, TypeVar
 
 from fleetmap.shared.core.geometry import Transform2D
 
-CLOCKS = ("true", "burst", "jitter", "drop", "skew", "repeat")
-"""``true`` keeps the log's clock; the others break it (see :func:`break_clock`)."""
+CLOCKS = ("true", "burst", "jitter", "drop", "skew", "repeat", "nudge")
+"""``true`` keeps the log's clock; ``nudge`` moves it by less than any robot's clock resolves (its draws
+measure how far a tracker's figures move for nothing: ``benchmarks/clock_spread.py``); the others
+break it (see :func:`break_clock`)."""
 
 BURST_SIZES = (2, 3, 4)
 """Scans in one burst, each as likely."""
@@ -41,6 +43,8 @@ SKEW = 0.1
 """The odometry's clock runs this many seconds ahead of the laser's."""
 REPEAT_EVERY = 10
 """One scan in this many carries the stamp of the scan before it."""
+NUDGE = 0.001
+"""A nudged clock moves each stamp by up to this many seconds either way: no clock this good is broken."""
 
 S = TypeVar("S")
 
@@ -54,7 +58,9 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
       before 0);
     - ``drop``: one scan in :data:`DROP_EVERY` missing;
     - ``skew``: the odometry read :data:`SKEW` seconds after the scan's stamp;
-    - ``repeat``: one scan in :data:`REPEAT_EVERY` stamped as the scan before it.
+    - ``repeat``: one scan in :data:`REPEAT_EVERY` stamped as the scan before it;
+    - ``nudge``: each stamp moved by up to :data:`NUDGE` either way (in order where the scans are
+      further apart than twice that): the true clock as a draw, not broken.
 
     The odometry of every scan is the true odometry track read (interpolated) at its broken stamp.
     The same ``seed`` breaks the same scans the same way. A source whose stamps do not increase from
@@ -88,8 +94,9 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
         # a later burst never arrives before an earlier one's stamps
         for i in range(1, len(broken)):
             broken[i] = max(broken[i], broken[i - 1])
-    elif clock == "jitter":
-        broken = [max(t + rng.uniform(-JITTER, JITTER), 0.0) for t in stamps]  # no clock reads before 0
+    elif clock in ("jitter", "nudge"):
+        spread = JITTER if clock == "jitter" else NUDGE
+        broken = [max(t + rng.uniform(-spread, spread), 0.0) for t in stamps]  # no clock reads before 0
     elif clock == "repeat":
         for i in range(1, len(items)):
             if rng.randrange(REPEAT_EVERY) == 0:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from fleetmap.scenarios.clocks import BURST_SPREAD, JITTER, SKEW, break_clock
+from fleetmap.scenarios.clocks import BURST_SPREAD, JITTER, NUDGE, SKEW, break_clock
 from fleetmap.shared.core.geometry import Transform2D
 
 
@@ -49,6 +49,18 @@ def test_jitter_moves_stamps_both_ways_and_skew_moves_only_the_odometry() -> Non
     skewed = list(break_clock(scans, "skew"))
     assert [s.stamp for s in skewed] == [s.stamp for s in scans]
     assert skewed[10].odometry.x == pytest.approx(scans[10].odometry.x + SKEW, abs=1e-9)
+
+
+def test_a_nudge_moves_each_stamp_by_at_most_a_millisecond_in_order_and_a_seed_nudges_alike() -> None:
+    scans = straight()
+    nudged = list(break_clock(scans, "nudge", seed=4))
+    offsets = np.array([b.stamp - a.stamp for a, b in zip(scans, nudged, strict=True)])
+    assert np.abs(offsets).max() <= NUDGE and offsets.min() < 0 < offsets.max()
+    assert all(b.stamp > a.stamp for a, b in itertools.pairwise(nudged)), "scans 0.2 s apart stay in order"
+    for a, b in zip(scans, nudged, strict=True):  # the odometry read at the nudged stamp: within a millimetre
+        assert abs(b.odometry.x - a.odometry.x) <= NUDGE + 1e-9
+    assert [s.stamp for s in break_clock(scans, "nudge", seed=4)] == [s.stamp for s in nudged]
+    assert [s.stamp for s in break_clock(scans, "nudge", seed=5)] != [s.stamp for s in nudged]
 
 
 def test_drop_loses_about_one_scan_in_ten_and_repeat_copies_stamps() -> None:
