@@ -57,7 +57,8 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
     - ``jitter``: each stamp moved by up to :data:`JITTER` either way (they may go backwards; none
       before 0);
     - ``drop``: one scan in :data:`DROP_EVERY` missing;
-    - ``skew``: the odometry read :data:`SKEW` seconds after the scan's stamp;
+    - ``skew``: the odometry read :data:`SKEW` seconds after the scan's stamp (a seed other than 0
+      nudges the stamps too, as ``nudge`` does: one skew, drawn several ways);
     - ``repeat``: one scan in :data:`REPEAT_EVERY` stamped as the scan before it;
     - ``nudge``: each stamp moved by up to :data:`NUDGE` either way (in order where the scans are
       further apart than twice that): the true clock as a draw, not broken.
@@ -97,6 +98,8 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
     elif clock in ("jitter", "nudge"):
         spread = JITTER if clock == "jitter" else NUDGE
         broken = [max(t + rng.uniform(-spread, spread), 0.0) for t in stamps]  # no clock reads before 0
+    elif clock == "skew" and seed:  # one skew; its draws beyond the first nudged, so that they differ
+        broken = [max(t + rng.uniform(-NUDGE, NUDGE), 0.0) for t in stamps]
     elif clock == "repeat":
         for i in range(1, len(items)):
             if rng.randrange(REPEAT_EVERY) == 0:

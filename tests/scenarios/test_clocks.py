@@ -49,6 +49,10 @@ def test_jitter_moves_stamps_both_ways_and_skew_moves_only_the_odometry() -> Non
     skewed = list(break_clock(scans, "skew"))
     assert [s.stamp for s in skewed] == [s.stamp for s in scans]
     assert skewed[10].odometry.x == pytest.approx(scans[10].odometry.x + SKEW, abs=1e-9)
+    drawn = list(break_clock(scans, "skew", seed=3))  # one skew drawn again: its stamps nudged
+    moved = np.array([b.stamp - a.stamp for a, b in zip(scans, drawn, strict=True)])
+    assert 0 < np.abs(moved).max() <= NUDGE
+    assert drawn[10].odometry.x == pytest.approx(drawn[10].stamp - 100.0 + SKEW, abs=1e-9)
 
 
 def test_a_nudge_moves_each_stamp_by_at_most_a_millisecond_in_order_and_a_seed_nudges_alike() -> None:
