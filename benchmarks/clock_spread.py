@@ -7,11 +7,12 @@ each scan in ten of the relations), one scan placed otherwise moves a row by hal
 does a clock no robot could fault: the true stamps moved by up to a millisecond (the ``nudge``
 clock, :data:`fleetmap.scenarios.clocks.NUDGE`), which changes the odometry read at them by a
 millimetre at most. So here each row is drawn N times (``--draws``: seeds 0 to N - 1; the one
-skew with its stamps nudged beyond the first draw) beside its true clock nudged N times, and judged by Welch's one-sided t-test on the draws' shares of short
-relations within (0.10 m, 2 deg): **under** when the nudged draws' mean less the broken ones'
-exceeds the bound at 95 % (p < :data:`ALPHA`), **undecided** when it exceeds it on the means but
-not at 95 % (more draws would tell), **within** otherwise. The true clock's one run is shown beside
-them, and how far the nudged draws spread.
+skew with its stamps nudged beyond the first draw) beside its true clock nudged N times, and
+judged by Welch's one-sided t-test on the draws' shares of short relations within (0.10 m,
+2 deg): **under** when the nudged draws' mean less the broken ones' exceeds the bound at 95 %
+(p < :data:`ALPHA`), **undecided** when it exceeds it on the means but not at 95 % (more draws
+would tell), **within** otherwise. The true clock's one run is shown beside them, and how far the
+nudged draws spread.
 
 Rows: ``--rows LOG:CLOCK[:PEOPLE[:on|off]]`` (people 0 and odometry both by default), or
 ``--misses`` for the rows ``benchmarks/tracking.py`` lists more than a point under its true clock in
