@@ -19,7 +19,9 @@ draw of which scans it breaks, and on a sparse log one wrong placement moves eve
 prediction: ``--seeds N`` breaks each clock N ways (seeds 0 to N - 1) and pools them, each row the
 relations of all its draws together and the range of the draws' shares beside the clock. Under
 the table, issue 48's bounds row by row: the broken-clock rows more than a point under the same
-log's true clock (same people, odometry and cut), and the rows that started an epoch.
+log's true clock (same people, odometry and cut), and the rows that started an epoch. That true
+clock is one run, itself a draw: ``benchmarks/clock_spread.py --misses`` draws each listed row
+again beside its true clock nudged, and says which lie under it beyond the tracker's own spread.
 
 **People** (``--people 0,5``): so many people walking past each log's robot, their legs hiding the walls
 behind them (:mod:`fleetmap.scenarios.crowd`), before its clock is broken.
