@@ -95,11 +95,9 @@ def break_clock(scans: Iterable[S], clock: str, seed: int = 0) -> Iterator[S]:
         # a later burst never arrives before an earlier one's stamps
         for i in range(1, len(broken)):
             broken[i] = max(broken[i], broken[i - 1])
-    elif clock in ("jitter", "nudge"):
+    elif clock in ("jitter", "nudge") or (clock == "skew" and seed):  # (one skew: its later draws nudged)
         spread = JITTER if clock == "jitter" else NUDGE
         broken = [max(t + rng.uniform(-spread, spread), 0.0) for t in stamps]  # no clock reads before 0
-    elif clock == "skew" and seed:  # one skew; its draws beyond the first nudged, so that they differ
-        broken = [max(t + rng.uniform(-NUDGE, NUDGE), 0.0) for t in stamps]
     elif clock == "repeat":
         for i in range(1, len(items)):
             if rng.randrange(REPEAT_EVERY) == 0:
