@@ -39,7 +39,7 @@ from typing import Any
 import networkx as nx
 from fleetmap.merger.forest import RootedForest
 from fleetmap.merger.graph import Edge
-from fleetmap.merger.joins import JoinJudge
+from fleetmap.merger.rivals import RivalJudge
 from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
 from scipy.special import chdtri
 
@@ -57,8 +57,8 @@ def cycle_distance(error: Transform2D, tol_t: float, tol_r: float) -> float:
     return (error.x * error.x + error.y * error.y) / (st * st) + wrap_scalar(error.theta) ** 2 / (sr * sr)
 
 
-class ConsistencyJudge(JoinJudge):
-    """:class:`~fleetmap.merger.joins.JoinJudge` with the join's pairwise consistency (the module)."""
+class ConsistencyJudge(RivalJudge):
+    """:class:`~fleetmap.merger.rivals.RivalJudge` with the join's pairwise consistency (the module)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:  # as ChainGraph's
         super().__init__(*args, **kwargs)
@@ -71,7 +71,7 @@ class ConsistencyJudge(JoinJudge):
         """The integrations between two groups outside the heaviest set of them that agrees (two or
         more: a lone heavier integration outweighs nothing) that agree with nothing outside it, since
         the forest was last built from nothing (by :func:`_agreed_key`): no rival alignment of a
-        join (:meth:`~fleetmap.merger.joins.JoinJudge._rival_join`)."""
+        join (:meth:`~fleetmap.merger.rivals.RivalJudge._rival_join`)."""
         self._agreed: set[tuple[object, ...]] = set()
         """The integrations a consistent set once joined two groups by (:meth:`_consistent_join`),
         by :func:`_agreed_key`: from then on the join is judged as the forest's other joins are

@@ -6,10 +6,10 @@ join is judged by: the robots' links between their submaps and how far a chain o
 drifted (:mod:`fleetmap.merger.chains`), what each pair of submaps then says
 (:mod:`fleetmap.merger.pairs`), the paper's validity rule on the two groups as wholes
 (:meth:`JoinJudge._join_holds`: the pairs that then meet bear it out, none puts wall where the
-other saw free space, and their walls fix it in every direction), the ambiguity rule on them
-(:meth:`JoinJudge._rival_join`: no clearly different alignment holds as well), and the verdicts
-kept from step to step (:meth:`JoinJudge._kept_verdict`: a join is judged again only when a pair
-that could change its verdict is new).
+other saw free space, and their walls fix it in every direction), and the verdicts kept from
+step to step (:meth:`JoinJudge._kept_verdict`: a join is judged again only when a pair
+that could change its verdict is new). The ambiguity rule on them (no clearly different
+alignment holds as well) is :mod:`fleetmap.merger.rivals`.
 """
 
 from __future__ import annotations
@@ -17,16 +17,20 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from fleetmap.merger.chains import _map_file, _tree_paths
-from fleetmap.merger.graph import CYCLE_TRANSLATION_TOLERANCE, EDGE_SIGMA_TRANSLATION, Edge, _disagreement, _tree_path
+from fleetmap.merger.graph import CYCLE_TRANSLATION_TOLERANCE, EDGE_SIGMA_TRANSLATION, Edge, _disagreement
 from fleetmap.merger.pairs import PairJudge, Verdict
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.tracking import MAX_CORRESPONDENCE, REACH_ROTATION
-from fleetmap.shared.core.validity import VALID_MIN_MAP_VALUE, VALID_REFUTE_VIOLATION, max_map_violation
+from fleetmap.shared.core.validity import (
+    VALID_MIN_MAP_VALUE,
+    VALID_REFUTE_VIOLATION,
+    max_map_violation,
+)
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +42,7 @@ JOIN_HYPOTHESES = 3
 """An ambiguous integration proposes to a cycle its alignment and its next best rivals, this many in
 all (it joins no two groups); 1 instead: aces cut in 4 within 87.5 -> 76.1 % (002)."""
 RIVALS_KEPT = 10_000
-"""Rival verdicts kept (:meth:`JoinJudge._rival_join`) before they are forgotten all at once."""
-RIVAL_JOINS = 3
-"""At most this many clearly different alignments of two groups are judged before a join of them
-(:meth:`JoinJudge._rival_join`): each costs a join check."""
+"""Rival verdicts (:mod:`fleetmap.merger.rivals`) and join verdicts kept before they are forgotten all at once."""
 
 
 @dataclass
@@ -121,103 +122,10 @@ class JoinJudge(PairJudge):
         self._judged: dict[tuple[object, ...], _Judged] = {}
         """Each join's last verdict and what it rested on (:meth:`_kept_verdict`), by the edge as
         :meth:`_join_holds` was asked (its two submaps in order, versions and transform)."""
-        self._rivals: dict[object, tuple[Edge, float, float] | None] = {}
-        """Each join's rival alignment of its two groups, if any (:meth:`_rival_join`)."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)
         self._judged = {k: v for k, v in self._judged.items() if key not in v.side_a and key not in v.side_b}
-
-    def _rival_join(
-        self,
-        e: Edge,
-        group_a: list[str],
-        group_b: list[str],
-        rel: dict[str, Transform2D],
-        adjacency: dict[str, list[Edge]],
-        by_node: dict[str, list[Edge]],
-    ) -> tuple[Edge, float, float] | None:
-        """Another way the two groups a join would unite lie on each other, that they bear out as
-        well (:meth:`_join_holds`), if any: with how far and how much turned (rad) it puts group b
-        from where ``e`` puts it. The paper's ambiguity rule on the two groups as wholes: an
-        integration is refused when a clearly different alignment scores about as well, and two
-        groups are not joined while two clearly different alignments of them both hold.
-
-        The alignments looked at are the other integrations between the groups, their best (unless
-        :meth:`_outweighed`) and their rivals (:data:`JOIN_HYPOTHESES` of them), most valuable
-        first, at most ``RIVAL_JOINS`` clearly different ones. One counts only if the two groups
-        as wholes hold it valid, by a cheap look at every pair that then meets
-        (:meth:`_group_look`: the wall in seen free space within what the validity rule allows the
-        wall on wall): a rival can put a metre of wall in free space at each of twenty pairs, none
-        enough to refute it alone (the office: r3 turned round 39 m off, 23.6 m in free space
-        against 102 m on wall, borne out by two pairs).
-        In a warehouse every aisle looks like the next: a young robot's submaps down one aisle
-        integrate validly with another robot's of the aisle 14 m along, every pair of their
-        submaps bears that out, and the rivals one and six aisles along are borne out as well:
-        nothing yet says which is right (warehouse-events: r4 and r1's second epoch merged 14 m off;
-        docs/decisions/002-pose-graph.md)."""
-        in_a, in_b = set(group_a), set(group_b)
-        joined = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())  # b's root in a's, by e
-        scored: list[tuple[float, Edge]] = []  # each alignment with what it scored
-        for k in group_a if len(group_a) <= len(group_b) else group_b:
-            for f in by_node.get(k, ()):
-                if f.key() == e.key() or not ((f.a in in_a and f.b in in_b) or (f.a in in_b and f.b in in_a)):
-                    continue
-                g = f if f.a in in_a else f.reversed()
-                if not self._outweighed(g):
-                    scored.append((g.value, g))
-                scored += [(g.runner_up, replace(g, transform=t)) for t in g.rivals[: JOIN_HYPOTHESES - 1]]
-        scored.sort(key=lambda s: (-s[0], s[1].a, s[1].b))
-        hypotheses = [h for _, h in scored]
-        # kept for the two groups and the alignments between them: every round of a solve asks again
-        key = (
-            frozenset(group_a),
-            frozenset(group_b),
-            tuple((h.a, h.b, h.versions, *(round(v, 3) for v in h.transform.as_array())) for h in [e, *hypotheses]),
-        )
-        if key in self._rivals:
-            return self._rivals[key]
-        if len(self._rivals) > RIVALS_KEPT:
-            self._rivals.clear()
-        rival = self._rivals[key] = self._found_rival_join(e, joined, hypotheses, group_a, group_b, rel, adjacency)
-        return rival
-
-    def _outweighed(self, f: Edge) -> bool:
-        """Whether an integration between two groups is outweighed by others between them that
-        agree with each other (none here; :mod:`fleetmap.merger.consistency`): not a rival."""
-        return False
-
-    def _found_rival_join(
-        self,
-        e: Edge,
-        joined: Transform2D,
-        hypotheses: list[Edge],
-        group_a: list[str],
-        group_b: list[str],
-        rel: dict[str, Transform2D],
-        adjacency: dict[str, list[Edge]],
-    ) -> tuple[Edge, float, float] | None:
-        """:meth:`_rival_join` found, from the alignments between the groups, most valuable first."""
-        p = self.integration
-        looked: list[Transform2D] = [joined]
-        for h in hypotheses:
-            if len(looked) > RIVAL_JOINS:
-                break
-            other = rel[h.a].compose(h.transform).compose(rel[h.b].inverse())
-            # compared where each puts h's own submap b, through the tree paths on either side
-            path = [*_tree_path(adjacency, h.a, e.a), e, *_tree_path(adjacency, e.b, h.b)]
-            tol_t, tol_r = self._cycle_tolerance(path)
-            at_b = rel[h.b]
-            if any(_within(g.compose(at_b), other.compose(at_b), tol_t, tol_r) for g in looked):
-                continue
-            looked.append(other)
-            hit, free = self._group_look(group_a, group_b, rel, other)
-            if hit < p.validity.valid_min_value or free > max_map_violation(hit, p) * hit:
-                continue  # the groups as wholes refute it: wall a little in free space along many pairs
-            if self._join_holds(replace(h, valid=True), group_a, group_b, rel, adjacency):
-                apart = joined.compose(at_b).inverse().compose(other.compose(at_b))
-                return h, math.hypot(apart.x, apart.y), abs(apart.theta)
-        return None
 
     def _join_holds(
         self,

@@ -57,7 +57,7 @@ class PairJudge(ChainGraph):
         super().__init__(*args, **kwargs)
         self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], Verdict]] = {}
         self._discs: dict[str, tuple[int, Array, float]] = {}
-        self._looks: dict[tuple[str, str, int, int, int, int, int], tuple[float, float]] = {}
+        self._looks: dict[tuple[str, str, int, int, int, int, int, bool], tuple[float, float]] = {}
         """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre."""
 
     def remove_map(self, key: str) -> None:
@@ -68,10 +68,16 @@ class PairJudge(ChainGraph):
         self._looks = {k: v for k, v in self._looks.items() if key not in k[:2]}
 
     def _group_look(
-        self, group_a: list[str], group_b: list[str], rel: dict[str, Transform2D], b_root: Transform2D
+        self,
+        group_a: list[str],
+        group_b: list[str],
+        rel: dict[str, Transform2D],
+        b_root: Transform2D,
+        solid: bool = False,
     ) -> tuple[float, float]:
         """A cheap look (:meth:`_look`) at every pair of two groups' submaps that meet with group b's
-        root at ``b_root`` in a's: wall on wall and wall in the other's seen free space, summed."""
+        root at ``b_root`` in a's: wall on wall and wall in the other's seen free space, summed
+        (``solid``: only the wall the validity rule limits there)."""
         placed_b = {k: b_root.compose(rel[k]) for k in group_b}
         meeting = self.meeting(group_a, {k: rel[k] for k in group_a}, group_b, placed_b)
         hit = free = 0.0
@@ -79,14 +85,15 @@ class PairJudge(ChainGraph):
             a_inverse = rel[a].inverse()
             for j in np.flatnonzero(meeting[i]).tolist():
                 b = group_b[j]
-                pair_hit, pair_free = self._look(a, b, a_inverse.compose(placed_b[b]))
+                pair_hit, pair_free = self._look(a, b, a_inverse.compose(placed_b[b]), solid)
                 hit += pair_hit
                 free += pair_free
         return hit, free
 
-    def _look(self, a: str, b: str, implied: Transform2D) -> tuple[float, float]:
+    def _look(self, a: str, b: str, implied: Transform2D, solid: bool = False) -> tuple[float, float]:
         """A cheap look at b's walls where ``implied`` puts them on a's: the wall length on wall
-        and in the other's seen free space (the large-map path's grid score, both ways)."""
+        and in the other's seen free space (the large-map path's grid score, both ways; ``solid``:
+        only the solid walls clear of the other's, which the validity rule limits)."""
         key = (
             a,
             b,
@@ -95,12 +102,13 @@ class PairJudge(ChainGraph):
             round(implied.x * 100),
             round(implied.y * 100),
             round(implied.theta * 1000),
+            solid,
         )
         held = self._looks.get(key)
         if held is None:
             if len(self._looks) > LOOKS_KEPT:
                 self._looks.clear()
-            hit, free = grid_scores(self._index(a), self._index(b), implied.as_array(), fine=True)
+            hit, free = grid_scores(self._index(a), self._index(b), implied.as_array(), fine=True, solid=solid)
             held = self._looks[key] = (float(hit[0]), float(free[0]))
         return held
 
