@@ -67,7 +67,8 @@ def _wholes_refute(
     looks: dict[tuple[str, str], tuple[float, float]], tally: dict[tuple[str, str], Verdict], params: Any
 ) -> bool:
     """Whether the two groups as wholes refute a join, by the paper's validity rule on the pairs it
-    fixes, as the rival rule judges a rival (:meth:`JoinJudge._found_rival_join`): the wall their
+    fixes, as the rival rule judges a rival
+    (:meth:`~fleetmap.merger.rivals.RivalJudge._found_rival_join`): the wall their
     looks put in seen free space is more than the validity rule allows the wall on wall of all of
     them. A pair registered near the join and bearing it out is excused its look's wall in free
     space (the chains' drift put it there: registered, the pair agrees). A wrong alignment of a

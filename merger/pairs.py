@@ -58,7 +58,8 @@ class PairJudge(ChainGraph):
         self._pair_verdicts: dict[tuple[str, str], tuple[Transform2D, tuple[int, int], Verdict]] = {}
         self._discs: dict[str, tuple[int, Array, float]] = {}
         self._looks: dict[tuple[str, str, int, int, int, int, int, bool], tuple[float, float]] = {}
-        """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre."""
+        """Each pair's cheap look (:meth:`_look`) at its versions and a pose to the centimetre, all its
+        wall in free space or the solid only."""
 
     def remove_map(self, key: str) -> None:
         super().remove_map(key)

@@ -61,10 +61,10 @@ class RivalJudge(JoinJudge):
         against 102 m on wall, borne out by two pairs).
         In a warehouse every aisle looks like the next: a young robot's submaps down one aisle
         integrate validly with another robot's of the aisle 14 m along, every pair of their
-        submaps bears that out, and the rivals one and six aisles along are borne out as well:
-        nothing yet says which is right (warehouse-events: r4 and r1's second epoch merged 14 m off;
-        docs/decisions/002-pose-graph.md). A rival that puts wall where the other group saw
-        through, against a join that puts none there, is no rival (:meth:`_refutes`)."""
+        submaps bears that out, and the rivals one and six aisles along are borne out as well
+        (warehouse-events: r4 and r1's second epoch merged 14 m off; docs/decisions/002-pose-graph.md).
+        What says which is right is the wall each puts where the other group saw through: a rival
+        that puts some there, against a join that puts none, is no rival (:meth:`_refutes`)."""
         in_a, in_b = set(group_a), set(group_b)
         joined = rel[e.a].compose(e.transform).compose(rel[e.b].inverse())  # b's root in a's, by e
         scored: list[tuple[float, Edge]] = []  # each alignment with what it scored
@@ -150,9 +150,10 @@ class RivalJudge(JoinJudge):
         itself, wall on wall is none between two (warehouse-events: r1 kidnapped into the north lane
         and the crashed r4 put 14 m off, four rack pitches, by five valid integrations borne out by
         their pairs, 753 m on wall against 40 m of solid wall in free space, the forklift's bay
-        where r2 saw a rack's end; the right alignment 216 m against none)."""
-        hit, _ = self._group_look(group_a, group_b, rel, joined)
-        _, clean = self._group_look(group_a, group_b, rel, joined, solid=True)
+        where r2 saw a rack's end; the right alignment 216 m against none). The join's wall in free
+        space is the solid wall too (record 007 counts all of it for the best pair): the two
+        alignments are weighed by one measure."""
+        hit, clean = self._group_look(group_a, group_b, rel, joined, solid=True)  # wall on wall: as without
         if hit <= 0 or clean > VALID_REFUTE_CLEAN * hit:
             return False
         _, against = self._group_look(group_a, group_b, rel, other, solid=True)
