@@ -44,7 +44,10 @@ For each scan (:meth:`Tracker.add`):
    :func:`fleetmap.agents.fitcheck.contradicts`). Where the walls say nothing against its
    prediction (open space, a few metres of wall, new walls) the robot is **carried** by its
    motion model: the scan is placed at the prediction, and the prediction's uncertainty grows
-   until the walls place a scan again. Where they contradict the prediction (beams through the
+   until the walls place a scan again. The step is measured by the scan's returns against the
+   scan before's where both have returns enough (:meth:`Tracker._by_points`,
+   :mod:`fleetmap.shared.core.pointstep`; docs/decisions/083): posts and hedges measure a turn in
+   place that the walls cannot and the wheels over-read. Where they contradict the prediction (beams through the
    submap's walls, walls in its seen free space) the scan is left unplaced; after
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
@@ -69,6 +72,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -81,8 +85,10 @@ from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
 from fleetmap.agents.prediction import Predictor, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain, rotated
 from fleetmap.shared.config import FleetmapConfig
+from fleetmap.shared.core.extraction import scan_points
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import Prediction
+from fleetmap.shared.core.pointstep import point_step
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.tracking import SAMPLE_SPACING, Registration, sample_segments
 
@@ -183,6 +189,10 @@ class Tracker(FitSearch):
         """Whether the last scan's reading was spread within a burst."""
         self._scores: deque[float] = deque(maxlen=RECENT_FITS)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
+        self._points: tuple[int, Array, float] | None = None
+        """The sequence number, returns and beam spacing of the last scan tracked (:meth:`_by_points`)."""
+        self._points_before: tuple[int, Array, float] | None = None
+        """Those of the scan before it."""
 
     # -- queries -----------------------------------------------------------------------------
     @property
@@ -225,6 +235,8 @@ class Tracker(FitSearch):
     def _track(
         self, seq: int, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None
     ) -> list[TrackStep]:
+        self._points_before = self._points
+        self._points = (seq, scan_points(scan, self.config.extraction.max_range), scan.angle_increment)
         samples = sample_segments(segments, SAMPLE_SPACING)
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
@@ -298,6 +310,7 @@ class Tracker(FitSearch):
         carry it: it measures nothing, and over a second between scans (a sparse log) it is a guess
         1.5 m wide; such a scan is held as a contradicted one is."""
         log.debug("scan %d carried by its motion model (%s)", taken.index, fit.why)
+        prediction = self._by_points(taken.seq, prediction)
         predicted = self.chain.active[0].origin.inverse().compose(self._pose_in_epoch(prediction))
         # placed as the prediction, as sure as its motion model (the walls fixed nothing)
         prior = replace(
@@ -315,10 +328,39 @@ class Tracker(FitSearch):
         self.motion.track_drift = self.motion.drift
         return step
 
+    def _by_points(self, seq: int, prediction: Prediction) -> Prediction:
+        """``prediction`` of the step to scan ``seq``, or the step the returns of that scan and the
+        one before measure over it (:func:`~fleetmap.shared.core.pointstep.point_step`; as sure as
+        their distribution says, plus the drift the prediction carries), where both have returns
+        enough. The step's own uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`)
+        is the prior, and the measured one's is what the next step's drift adds
+        (docs/decisions/083)."""
+        before, now = self._points_before, self._points
+        if before is None or now is None or before[0] != seq - 1 or now[0] != seq:
+            return prediction
+        variance_t, variance_r = self.motion.step_variance
+        measured = point_step(
+            before[1], now[1], prediction.increment, math.sqrt(variance_t), math.sqrt(variance_r), before[2]
+        )
+        if measured is None:
+            return prediction
+        covariance = measured.covariance
+        step_t, step_r = max(covariance[0, 0], covariance[1, 1]), covariance[2, 2]
+        drift_t, drift_r = self.motion.drift
+        self.motion.step_variance = (step_t, step_r)
+        return replace(
+            prediction,
+            increment=measured.increment,
+            sigma_translation=math.sqrt(step_t + drift_t),
+            sigma_rotation=math.sqrt(step_r + drift_r),
+        )
+
     def _advance_blind(self, seq: int, stamp: float, odometry: Transform2D | None) -> None:
-        """A scan with nothing to track: the pose moves by odometry (or velocity) alone."""
+        """A scan with nothing to track: the pose moves by odometry (or velocity) alone, or by the
+        step its returns measure (:meth:`_by_points`)."""
         if self._pose is not None and self._stamp is not None:
-            self._pose = self._pose_in_epoch(self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)[0])
+            predicted = self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)[0]
+            self._pose = self._pose_in_epoch(self._by_points(seq, predicted))
             self._stamp, self._seq = stamp, seq
             self.motion.odometry = odometry
             self.motion.carry()
@@ -415,6 +457,7 @@ class Tracker(FitSearch):
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
         self._previous = (taken.segments, (stamp, Transform2D(), seq))
+        self._points = (seq, scan_points(taken.scan, self.config.extraction.max_range), taken.scan.angle_increment)
         self.motion.restart(taken.odometry)
         self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []
