@@ -332,11 +332,18 @@ class Tracker(FitSearch):
         """``prediction`` of the step to scan ``seq``, or the step the returns of that scan and the
         one before measure over it (:func:`~fleetmap.shared.core.pointstep.point_step`; as sure as
         their distribution says, plus the drift the prediction carries), where both have returns
-        enough. The step's own uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`)
-        is the prior, and the measured one's is what the next step's drift adds
-        (docs/decisions/083)."""
+        enough and the odometry predicted it (constant velocity measures nothing: its window, metres
+        wide on a sparse log, holds every look-alike step along a corridor). The step's own
+        uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`) is the prior, and
+        the measured one's is what the next step's drift adds (docs/decisions/083)."""
         before, now = self._points_before, self._points
-        if before is None or now is None or before[0] != seq - 1 or now[0] != seq:
+        if (
+            "odometry" not in prediction.source
+            or before is None
+            or now is None
+            or before[0] != seq - 1
+            or now[0] != seq
+        ):
             return prediction
         variance_t, variance_r = self.motion.step_variance
         measured = point_step(
