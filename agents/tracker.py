@@ -44,11 +44,11 @@ For each scan (:meth:`Tracker.add`):
    :func:`fleetmap.agents.fitcheck.contradicts`). Where the walls say nothing against its
    prediction (open space, a few metres of wall, new walls) the robot is **carried** by its
    motion model: the scan is placed at the prediction, and the prediction's uncertainty grows
-   until the walls place a scan again. The step is measured by the scan's returns against the
-   scan before's where both have returns enough (:meth:`Tracker._by_points`,
+   until the walls place a scan again; where the odometry predicted the step, the scan's returns
+   measure it against the scan before's (:meth:`Tracker._by_points`,
    :mod:`fleetmap.shared.core.pointstep`; docs/decisions/083): posts and hedges measure a turn in
-   place that the walls cannot and the wheels over-read. Where they contradict the prediction (beams through the
-   submap's walls, walls in its seen free space) the scan is left unplaced; after
+   place that the walls cannot and the wheels over-read. Where the walls contradict the prediction
+   (beams through the submap's walls, walls in its seen free space) the scan is left unplaced; after
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
@@ -189,10 +189,10 @@ class Tracker(FitSearch):
         """Whether the last scan's reading was spread within a burst."""
         self._scores: deque[float] = deque(maxlen=RECENT_FITS)
         """The scores of the robot's recent good fits (:meth:`_fit`)."""
-        self._points: tuple[int, Array, float] | None = None
-        """The sequence number, returns and beam spacing of the last scan tracked (:meth:`_by_points`)."""
-        self._points_before: tuple[int, Array, float] | None = None
-        """Those of the scan before it."""
+        self._scan: tuple[int, RangeScan] | None = None
+        """The sequence number and scan of the last scan tracked (:meth:`_by_points`) ..."""
+        self._scan_before: tuple[int, RangeScan] | None = None
+        """... and of the scan before it."""
 
     # -- queries -----------------------------------------------------------------------------
     @property
@@ -235,8 +235,7 @@ class Tracker(FitSearch):
     def _track(
         self, seq: int, index: int, stamp: float, scan: RangeScan, segments: Array, odometry: Transform2D | None
     ) -> list[TrackStep]:
-        self._points_before = self._points
-        self._points = (seq, scan_points(scan, self.config.extraction.max_range), scan.angle_increment)
+        self._scan_before, self._scan = self._scan, (seq, scan)
         samples = sample_segments(segments, SAMPLE_SPACING)
         if len(samples) == 0:
             self._advance_blind(seq, stamp, odometry)
@@ -336,18 +335,18 @@ class Tracker(FitSearch):
         wide on a sparse log, holds every look-alike step along a corridor). The step's own
         uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`) is the prior, and
         the measured one's is what the next step's drift adds (docs/decisions/083)."""
-        before, now = self._points_before, self._points
-        if (
-            "odometry" not in prediction.source
-            or before is None
-            or now is None
-            or before[0] != seq - 1
-            or now[0] != seq
-        ):
+        before, now = self._scan_before, self._scan
+        if "odometry" not in prediction.source or before is None or now is None or before[0] != seq - 1:
             return prediction
+        reach = self.config.extraction.max_range
         variance_t, variance_r = self.motion.step_variance
         measured = point_step(
-            before[1], now[1], prediction.increment, math.sqrt(variance_t), math.sqrt(variance_r), before[2]
+            scan_points(before[1], reach),
+            scan_points(now[1], reach),
+            prediction.increment,
+            math.sqrt(variance_t),
+            math.sqrt(variance_r),
+            before[1].angle_increment,
         )
         if measured is None:
             return prediction
@@ -464,7 +463,7 @@ class Tracker(FitSearch):
         self.epoch = max(self.epoch + 1, self.first_epoch)
         self._pose, self._stamp, self._seq, self._good = Transform2D(), stamp, seq, (stamp, Transform2D(), seq)
         self._previous = (taken.segments, (stamp, Transform2D(), seq))
-        self._points = (seq, scan_points(taken.scan, self.config.extraction.max_range), taken.scan.angle_increment)
+        self._scan = (seq, taken.scan)  # (held scans tracked into the epoch measure from it)
         self.motion.restart(taken.odometry)
         self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []

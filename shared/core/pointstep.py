@@ -10,16 +10,17 @@ points as a correlative matcher measures it (Olson, "Real-time correlative scan 
 each of the scan's points lies from the nearest of the reference scan's, as a Gaussian of the
 points' own noise truncated at :data:`OUTLIER_SIGMAS` (a point farther from every reference point
 matches none: a person, a branch, a wall seen only now); the score is a log-likelihood (each point
-a share of a measurement, :data:`CORRELATED_POINTS`), the prior's
-Gaussian is added to it, and the step is the mean and covariance of that distribution over the
-window. The covariance is the distribution's spread, not a peak's curvature: two places that fit
-alike make a wide one, and the prior decides between them.
+a share of a measurement, :data:`CORRELATED_POINTS`), the prior's Gaussian is added to it, and the
+step is the mean and covariance of that distribution over the window. The covariance is the
+distribution's spread, not a peak's curvature: two places that fit alike make a wide one, and the
+prior decides between them.
 
 A point's noise is the laser's range noise and half the spacing of the reference's beams at the
 points' typical range (the next scan's beams fall between the reference's): derived from the
 scans, no parameter. The window is the prior's :data:`WINDOW_SIGMAS` standard deviations, searched
 at steps of the noise in translation and of the turn that moves the farthest point as far, looked
 up in cells half as wide.
+
 Everything here is numpy in, numpy out: no clock, no I/O.
 """
 
