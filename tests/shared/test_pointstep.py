@@ -66,6 +66,14 @@ def test_a_step_along_a_row_of_posts_is_no_surer_than_its_prior_along_the_row() 
     assert along > 3 * across, (along, across)
 
 
-def test_a_scan_with_a_few_returns_measures_nothing() -> None:
+def test_a_scan_with_a_few_returns_leaves_the_prior_in_charge() -> None:
+    # three returns fit a step almost anywhere: each a share of a measurement, they barely move the
+    # prior, and the step is about as unsure as the prior said; a scan with none measures nothing
     few = np.array([[5.0, 0.0], [6.0, 1.0], [7.0, -1.0]])
-    assert point_step(few, few, Transform2D(), 0.1, 0.1, BEAM) is None
+    prior = Transform2D(0.3, 0.0, math.radians(3.0))
+    measured = point_step(few, few, prior, 0.1, math.radians(3.0), BEAM)
+    assert measured is not None
+    off = prior.inverse().compose(measured.increment)
+    assert math.hypot(off.x, off.y) < 0.1 and abs(math.degrees(off.theta)) < 3.0, off
+    assert math.sqrt(measured.covariance[0, 0]) > 0.05 and math.degrees(math.sqrt(measured.covariance[2, 2])) > 1.5
+    assert point_step(np.zeros((0, 2)), few, prior, 0.1, 0.1, BEAM) is None
