@@ -331,7 +331,7 @@ class Tracker(FitSearch):
         """``prediction`` of the step to scan ``seq``, or the step the returns of that scan and the
         one before measure over it (:func:`~fleetmap.shared.core.pointstep.point_step`; as sure as
         their distribution says, plus the drift the prediction carries), where both have returns
-        enough and the odometry predicted it (constant velocity measures nothing: its window, metres
+        and the odometry predicted it (constant velocity measures nothing: its window, metres
         wide on a sparse log, holds every look-alike step along a corridor). The step's own
         uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`) is the prior, and
         the measured one's is what the next step's drift adds (docs/decisions/083)."""

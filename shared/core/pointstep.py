@@ -13,7 +13,9 @@ matches none: a person, a branch, a wall seen only now); the score is a log-like
 a share of a measurement, :data:`CORRELATED_POINTS`), the prior's Gaussian is added to it, and the
 step is the mean and covariance of that distribution over the window. The covariance is the
 distribution's spread, not a peak's curvature: two places that fit alike make a wide one, and the
-prior decides between them.
+prior decides between them. (:func:`fleetmap.shared.core.correlative.window_support`, the same
+search for the fit check, scores walls' support at one heading and keeps the best; a step needs
+the heading and the whole distribution.)
 
 A point's noise is the laser's range noise and half the spacing of the reference's beams at the
 points' typical range (the next scan's beams fall between the reference's): derived from the
