@@ -27,6 +27,7 @@ import math
 import statistics
 import tempfile
 from collections import defaultdict
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -169,10 +170,15 @@ def run(job: tuple[str, int, Path]) -> list[str]:
     ]
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def rows_by_log(
+    doc: str, splits: str, run_one: Callable[[tuple[str, int, Path]], list[str]]
+) -> tuple[list[list[str]], bool]:
+    """The command line of a benchmark over the corrected logs cut in K (``--logs``, ``--splits``,
+    ``--workers``, ``--write-results``; ``splits`` the default K): each log and K's row from
+    ``run_one((name, K, data folder))``, in order, and whether to write the result."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--logs", default=",".join(CORRECTED), help="corrected logs (comma-separated)")
-    ap.add_argument("--splits", default="4,8", help="values of K (comma-separated)")
+    ap.add_argument("--splits", default=splits, help="values of K (comma-separated)")
     ap.add_argument("--workers", type=int, default=2, help="maps at once (default 2)")
     ap.add_argument("--write-results", action="store_true", help="write its result into benchmarks/results/")
     args = ap.parse_args()
@@ -183,10 +189,14 @@ def main() -> int:
     data = data_folder()
     jobs = [(n, int(k), data) for n in names for k in args.splits.split(",")]
     with ProcessPoolExecutor(args.workers) as pool:
-        rows = list(pool.map(run, jobs))
+        return list(pool.map(run_one, jobs)), args.write_results
+
+
+def main() -> int:
+    rows, write = rows_by_log(__doc__ or "", "4,8", run)
     table = markdown_table(HEADER, rows)
     print(table)
-    if args.write_results:
+    if write:
         body = (
             "Errors against the corrected poses, normalised: a chi-square with three degrees of freedom "
             "has median 2.37 and 99 % within 11.34. Wrong: more than 1 m or 10 degrees off.\n\n" + table
