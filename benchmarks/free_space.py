@@ -35,7 +35,7 @@ import numpy as np
 from covariances import rows_by_log
 from fleetmap.merger.executor import make_executor
 from fleetmap.shared.core.geometry import Transform2D, wrap_scalar
-from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION, max_map_violation
+from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION, refuted_by_free_space
 from fleetmap.shared.io.logs import read_carmen
 from results import markdown_table, write_result
 from wrong_relations import frame_truth
@@ -44,8 +44,8 @@ from fleetmap.config_args import preset
 from fleetmap.mapping import map_logs, read_inputs
 
 LATER = 200
-"""Pairs whose scans' medians lie more than this many scans apart are a second visit (about three
-minutes at a scan a second on the corrected logs)."""
+"""Pairs whose scans' medians lie more than this many scans apart are a second visit (about 200 m
+on the corrected logs, a scan about every metre): a split of the report, not a rule."""
 
 HEADER = [
     "log",
@@ -57,11 +57,6 @@ HEADER = [
     "links refuted",
     "wrong integrations refuted",
 ]
-
-
-def _refutes(hit: float, free: float) -> bool:
-    """What the wholes rule's pair look counts as a contradiction (``PairJudge._found_pair_verdict``)."""
-    return free >= VALID_REFUTE_VIOLATION and free > max_map_violation(hit, preset("offline").integration) * hit
 
 
 def _scan_middle(submaps: dict, key: str) -> float | None:
@@ -83,7 +78,8 @@ def run(job: tuple[str, int, Path]) -> list[str]:
     merger = result.merger
     assert merger is not None
     graph = merger.graph
-    least = config.integration.validity.valid_min_value
+    p = config.integration
+    least = p.validity.valid_min_value
     at = {k: t for k, m in merger.submaps.items() if (t := frame_truth(m, truth)) is not None}
     right, later, shares, wrong = [], [], [], []
     seen: set[tuple[str, str]] = set()
@@ -94,7 +90,7 @@ def run(job: tuple[str, int, Path]) -> list[str]:
         true = at[e.a].inverse().compose(at[e.b])
         hit, free = graph._look(e.a, e.b, true, solid=True)
         if hit >= least:
-            refuted = _refutes(hit, free)
+            refuted = refuted_by_free_space(hit, free, p)
             right.append(refuted)
             shares.append(free / hit)
             ma, mb = _scan_middle(merger.submaps, e.a), _scan_middle(merger.submaps, e.b)
@@ -104,8 +100,12 @@ def run(job: tuple[str, int, Path]) -> list[str]:
         if math.hypot(off.x, off.y) > 1.0 or abs(wrap_scalar(off.theta)) > math.radians(10.0):
             hit, free = graph._look(e.a, e.b, e.transform, solid=True)
             if hit >= least:
-                wrong.append(_refutes(hit, free))
-    links = [_refutes(*graph._look(e.a, e.b, e.transform, solid=True)) for e in graph.links if e.a in at and e.b in at]
+                wrong.append(refuted_by_free_space(hit, free, p))
+    links = [
+        refuted_by_free_space(*graph._look(e.a, e.b, e.transform, solid=True), p)
+        for e in graph.links
+        if e.a in at and e.b in at
+    ]
 
     def share(xs: list[bool]) -> str:
         return f"{100 * sum(xs) / len(xs):.1f} % of {len(xs)}" if xs else "-"

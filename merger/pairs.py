@@ -25,7 +25,7 @@ from fleetmap.shared.core.mapgrid import grid_scores
 from fleetmap.shared.core.near import align_near
 from fleetmap.shared.core.refine import fit_information
 from fleetmap.shared.core.transformation_value import PreparedPairs, prepare, transformation_value
-from fleetmap.shared.core.validity import VALID_REFUTE_VIOLATION, max_map_violation
+from fleetmap.shared.core.validity import refuted_by_free_space
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ class PairJudge(ChainGraph):
         at = implied.as_array()
         value = max(transformation_value(prep, at, p, refuse=False), 0.0)
         violation = float(free.violation(at, solid=True)[0]) if free.active else 0.0
-        if violation >= VALID_REFUTE_VIOLATION and violation > max_map_violation(value, p) * value:
+        if refuted_by_free_space(value, violation, p):
             log.debug("pair %s-%s: %.1f m of wall in seen free space against %.1f m matched", a, b, violation, value)
             return 0.0, violation, None
         return 0.0, 0.0, None

@@ -135,6 +135,14 @@ def max_map_violation(value: float, params: IntegrationParams) -> float:
     return VALID_MAX_MAP_VIOLATION
 
 
+def refuted_by_free_space(value: float, violation: float, params: IntegrationParams) -> bool:
+    """Whether the wall one partial map puts in the other's seen free space refutes an alignment on
+    its own: at least :data:`VALID_REFUTE_VIOLATION` metres of it, and more than
+    :func:`max_map_violation` allows ``value`` (the join check's pair verdict; what
+    ``benchmarks/free_space.py`` counts at the corrected poses)."""
+    return violation >= VALID_REFUTE_VIOLATION and violation > max_map_violation(value, params) * value
+
+
 def seen_from_enough_places(m1: SegmentMap, m2: SegmentMap, params: IntegrationParams) -> bool:
     """Whether each of two partial maps that carries its scans' viewpoints has at least
     :data:`VALID_MIN_MAP_SCANS` of them: otherwise they cannot merge, whatever their geometry."""
