@@ -21,9 +21,11 @@ then refined together by robust least squares over SE(2) (GTSAM's Levenberg-Marq
 their covariance says, integrations through a Cauchy loss, the anchor fixed), and an integration
 that still disagrees with the refined poses by more than one integration's base tolerance (no
 drift term: the refined poses already spread the drift) is rejected and the
-component solved again: only edges that agree with the graph count, so one wrong integration cannot
-move a map. Each component is one global map; its walls are the submaps' fused one segment per
-stretch of wall (:class:`~fleetmap.shared.core.walls.WallMap`).
+component solved again, the grossest first
+(:meth:`~fleetmap.merger.refinement.RefinedGraph._grossest`): only edges that agree with the graph
+count, so one wrong integration cannot move a map, nor take right ones out with it. Each
+component is one global map; its walls are the submaps' fused one segment per stretch of wall
+(:class:`~fleetmap.shared.core.walls.WallMap`).
 
 A step costs what it adds (issue 49): the forest, its verdicts and the refined poses are kept
 from solve to solve, and a step that only adds submaps, their links and integrations that close
@@ -66,9 +68,12 @@ from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
-MAX_REJECTION_ROUNDS = 5
+MAX_REJECTION_ROUNDS = 12
 """The refined poses are solved again, without the integrations they disagree with, at most this many
-times (one round instead: the warehouse's error 0.010 -> 0.014 m; docs/decisions/002-pose-graph.md)."""
+times (one round instead: the warehouse's error 0.010 -> 0.014 m; docs/decisions/002-pose-graph.md).
+Each round but the last leaves out the grossest half
+(:meth:`~fleetmap.merger.refinement.RefinedGraph._grossest`): this many rounds reach from 2^11
+tolerances (600 m) down to one (docs/decisions/086)."""
 
 
 class PoseGraph(RefinedGraph):
@@ -379,12 +384,14 @@ class PoseGraph(RefinedGraph):
         valid = sorted(valid, key=lambda e: (-e.value, order[e.a], order[e.b]))
         disagreeing: set[tuple[str, str]] = set()
         self._begin_refinement()
-        for _ in range(MAX_REJECTION_ROUNDS):
+        for n in range(MAX_REJECTION_ROUNDS):
             built = self._forest(links, [e for e in valid if e.key() not in disagreeing], priors)
             components, off = self._refined_components(built.tree, built.loops)
             components = self._global_first(components)
             if not off:
                 break
+            if n < MAX_REJECTION_ROUNDS - 1:
+                off = self._grossest(components, off)
             for e in off:
                 log.debug("rejecting edge %s-%s: the refined poses disagree with it", e.a, e.b)
             disagreeing.update(e.key() for e in off)

@@ -9,9 +9,9 @@ covariance's chi-square bound (a fold the last solve left, which the descent can
 made from the spanning tree's poses too, and the one that ends lower is kept. A component whose
 submaps and edges are as the last solve had them keeps its poses. An integration the refined poses
 disagree with by more than one integration's base tolerance is handed back, for the solve to leave
-out. The same graph at the refined poses gives each submap's pose covariance
-(:meth:`RefinedGraph.pose_covariances`), with which the global map's walls may be fused (Ballesta et
-al. 2009, Section 4).
+out, the grossest first (:meth:`RefinedGraph._grossest`). The same graph at the refined poses
+gives each submap's pose covariance (:meth:`RefinedGraph.pose_covariances`), with which the global
+map's walls may be fused (Ballesta et al. 2009, Section 4).
 """
 
 from __future__ import annotations
@@ -148,6 +148,27 @@ class RefinedGraph(ForestBuilder):
         for k in order:
             self._solution[k] = (anchor, paths[k], poses[k])
         return poses, disagreeing
+
+    def _grossest(self, components: list[Component], off: list[Edge]) -> list[Edge]:
+        """Of the integrations the refined poses disagree with, those to leave out this round: the
+        ones that disagree by at least half as much as the worst (each in units of one integration's
+        base tolerance, its translation or its heading, whichever is more). A wrong integration far
+        off bends the compromise the refinement makes, and right ones near it then disagree with
+        the bent poses too: left out together, a loop that corrects a long chain's drift is lost
+        with the wrong one and never found again, since the poses solved without it stay as far
+        from it as the drift (freiburg-campus-corrected cut in 4: 79 integrations at once, some of
+        them 70-141 m off the truth, and with them the two right loops that close its revisit,
+        2.6 m apart; docs/decisions/086). The grossest first, each round a halving, as one at a time
+        but at a bounded number of refinements."""
+        at = {k: pose for c in components for k, pose in c.poses.items()}
+        tol_t, tol_r = self._tolerance(1)
+
+        def times(e: Edge) -> float:
+            dt, dr = _disagreement(at[e.a].inverse().compose(at[e.b]), e.transform)
+            return max(dt / tol_t, dr / tol_r)
+
+        worst = max(times(e) for e in off)
+        return [e for e in off if times(e) >= worst / 2.0]
 
     def _folded_link(self, poses: dict[str, Transform2D], edges: list[Edge]) -> bool:
         """Whether the refined poses bend a link beyond :data:`CONSISTENT_CHI2` of its covariance
