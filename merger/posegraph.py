@@ -68,12 +68,12 @@ from fleetmap.shared.core.walls import WallMap
 
 log = logging.getLogger(__name__)
 
-MAX_REJECTION_ROUNDS = 12
+MAX_REJECTION_ROUNDS = 5
 """The refined poses are solved again, without the integrations they disagree with, at most this many
 times (one round instead: the warehouse's error 0.010 -> 0.014 m; docs/decisions/002-pose-graph.md).
 Each round but the last leaves out the grossest half
-(:meth:`~fleetmap.merger.refinement.RefinedGraph._grossest`): this many rounds reach from 2^11
-tolerances (600 m) down to one (docs/decisions/086)."""
+(:meth:`~fleetmap.merger.refinement.RefinedGraph._grossest`); 12 rounds, to halve from 2^11
+tolerances (600 m) down to one, map freiburg-campus-corrected cut in 2 and 4 as 5 do (docs/decisions/086)."""
 
 
 class PoseGraph(RefinedGraph):

@@ -197,7 +197,7 @@ RETIRED: dict[str, dict[str, Retired]] = {
         "edge_sigma_rotation": Retired(0.01, "merger.graph.EDGE_SIGMA_ROTATION"),
         "isotropic_share": Retired(0.01, "merger.refinement.ISOTROPIC_SHARE"),
         "robust_scale": Retired(2.0, "merger.refinement.ROBUST_SCALE"),
-        "max_rejection_rounds": Retired(12, "merger.posegraph.MAX_REJECTION_ROUNDS"),
+        "max_rejection_rounds": Retired(5, "merger.posegraph.MAX_REJECTION_ROUNDS"),
         "scan_constraints": Retired(True, "merger.scangraph.SCAN_CONSTRAINTS"),
         "scan_key_spacing": Retired(1.0, "merger.scangraph.SCAN_KEY_SPACING"),
         "scan_key_rotation": Retired(0.35, "merger.scangraph.SCAN_KEY_ROTATION"),
