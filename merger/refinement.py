@@ -157,18 +157,17 @@ class RefinedGraph(ForestBuilder):
         the bent poses too: left out together, a loop that corrects a long chain's drift is lost
         with the wrong one and never found again, since the poses solved without it stay as far
         from it as the drift (freiburg-campus-corrected cut in 4: 79 integrations at once, some of
-        them 70-141 m off the truth, and with them the two right loops that close its revisit,
+        them 11-141 m off the truth, and with them the two right loops that close its revisit,
         2.6 m apart; docs/decisions/086). The grossest first, each round a halving, as one at a time
         but at a bounded number of refinements."""
         at = {k: pose for c in components for k, pose in c.poses.items()}
         tol_t, tol_r = self._tolerance(1)
-
-        def times(e: Edge) -> float:
+        times = []
+        for e in off:
             dt, dr = _disagreement(at[e.a].inverse().compose(at[e.b]), e.transform)
-            return max(dt / tol_t, dr / tol_r)
-
-        worst = max(times(e) for e in off)
-        return [e for e in off if times(e) >= worst / 2.0]
+            times.append(max(dt / tol_t, dr / tol_r))
+        worst = max(times)
+        return [e for e, t in zip(off, times, strict=True) if t >= worst / 2.0]
 
     def _folded_link(self, poses: dict[str, Transform2D], edges: list[Edge]) -> bool:
         """Whether the refined poses bend a link beyond :data:`CONSISTENT_CHI2` of its covariance

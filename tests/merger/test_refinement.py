@@ -43,7 +43,7 @@ def test_a_ring_the_last_solve_left_wound_twice_round_is_refined_to_its_links() 
 
 def test_a_right_loop_is_not_left_out_with_the_wrong_integrations_that_bent_the_refinement() -> None:
     # A robot drives a ring of 16 submaps (2 m apart) whose links each turn a degree too far, so
-    # its chain ends 5 m from its start; its last submap is integrated with its first, rightly, and
+    # its chain puts its last submap 1.4 m from the truth; its last submap is integrated with its first, rightly, and
     # each submap with the one two on. Two wrong integrations, heavier than all of them, put
     # submaps 3.6 m and 1 m off. Refined with them, the compromise disagrees with the right loop as
     # well: left out together, the ring stayed open and a wrong one was taken
