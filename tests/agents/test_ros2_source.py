@@ -230,7 +230,9 @@ def test_odometry_behind_the_scans_on_a_busy_machine_still_goes_with_its_scan():
 def listening_source(domain: int) -> Iterator[tuple[Ros2Topics, threading.Event, Ros2LiveSource, Ros2Node, Callable]]:
     """A source subscribed on a real session but not yet iterating, a robot's node to publish
     with, and ``heard()``: returns once everything the robot published so far waits in the source's
-    channels (a marker put after it came through the agent's session: one link keeps the order)."""
+    channels (a marker put after it came through the agent's session: one link keeps the order).
+    The marker's publisher matches its subscriber before any test uses it: a put before the robot's
+    session knows of the subscriber goes nowhere (it did, once, on a busy machine)."""
     robot_bus, agent_bus = open_zenoh_pair()
     topics = Ros2Topics.of("r1", domain=domain)
     stop = threading.Event()
@@ -246,11 +248,13 @@ def listening_source(domain: int) -> Iterator[tuple[Ros2Topics, threading.Event,
     with robot_bus, agent_bus, Ros2Node(robot_bus.session, "robot", "/r1", domain=domain) as node:
         source.listen()
         mark = agent_bus.session.declare_subscriber(f"test/mark/{domain}", on_mark)
+        marker = robot_bus.session.declare_publisher(f"test/mark/{domain}")
         sync(robot_bus, source)
+        assert wait_for(lambda: marker.matching_status.matching), "the marker's subscriber never showed"
 
         def heard() -> None:
             wanted = len(marks) + 1
-            robot_bus.session.put(f"test/mark/{domain}", b"")
+            marker.put(b"")
             with came:
                 assert came.wait_for(lambda: len(marks) >= wanted, WAIT), "the marker never came"
 
@@ -258,6 +262,7 @@ def listening_source(domain: int) -> Iterator[tuple[Ros2Topics, threading.Event,
             yield topics, stop, source, node, heard
         finally:
             stop.set()
+            marker.undeclare()
             mark.undeclare()
 
 
