@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import subprocess
 import sys
 import tarfile
@@ -34,6 +33,7 @@ from fleetmap.shared.io.sources import CarmenSource, Ros2BagSource, SourceScan
 from fleetmap.shared.io.zenoh_bus import ZenohBus
 from fleetmap.shared.io.zenoh_config import ZenohOptions, free_loopback_endpoint
 
+from fleetmap.runner import _Child
 from tests.agents.test_sources import write_robot_bag
 from tests.bus_helpers import Inbox, eventually
 
@@ -71,21 +71,11 @@ class Processes:
     def log(self, name: str) -> str:
         return (self.folder / f"{name}.log").read_text()
 
-    def stopped(self, p: subprocess.Popen[bytes], name: str) -> int:
-        """SIGTERM, and the exit code once ``p`` stopped; one that does not stop within ``WAIT``
-        fails the test with the stacks of its threads (a service writes them on SIGUSR1:
-        fleetmap.cli), so the failure says where it was stuck."""
-        p.send_signal(signal.SIGTERM)
-        try:
-            return p.wait(WAIT)
-        except subprocess.TimeoutExpired:
-            p.send_signal(signal.SIGUSR1)
-            eventually(lambda: "most recent call first" in self.log(name), 10.0)
-            p.kill()
-            p.wait(10)
-            raise AssertionError(
-                f"{name} did not stop within {WAIT:.0f} s of SIGTERM:\n{self.log(name)[-6000:]}"
-            ) from None
+    def stopped(self, p: subprocess.Popen[bytes], name: str) -> int | None:
+        """SIGTERM, and ``p``'s exit code once it stopped, as the session runner stops a service
+        (``fleetmap.runner``): one that does not stop within ``WAIT`` writes its threads' stacks to
+        its log (SIGUSR1) and is killed, so the failure's log says where it was stuck."""
+        return _Child(name, [str(a) for a in p.args], self.folder / f"{name}.log", popen=p).stop(WAIT)
 
     def stop(self) -> None:
         for p in self.procs:
@@ -307,7 +297,7 @@ def test_an_agent_maps_a_real_log_published_by_a_ros2_robot_on_rmw_zenoh(
             robot.publish_mounting()
             robot.play(logged)
             assert scans.wait_for(SCANS, 120), f"{len(scans.items)} of {SCANS} scans reached the bus"
-            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-3000:]
+            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-6000:]
             assert wait_for(lambda: any(decode(p).final for _, p in maps.items)), "no final submap"  # type: ignore[attr-defined]
     finally:
         robot.close()
@@ -365,7 +355,7 @@ def test_bad_samples_are_dropped_counted_and_named_while_the_agent_goes_on(
             robot.play(logged[6:])
             assert scans.wait_for(10, WAIT), f"the agent stopped at {len(scans.items)} scans"
             assert agent.poll() is None
-            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-3000:]
+            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-6000:]
     finally:
         robot.close()
         procs.stop()
@@ -623,7 +613,7 @@ def test_a_real_log_through_ros2_end_to_end_gives_the_map_fleetmap_map_makes(
             robot.publish_mounting()
             robot.play(logged)
             assert scans.wait_for(len(logged), 120), f"{len(scans.items)} of {len(logged)} scans reached the bus"
-            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-3000:]
+            assert procs.stopped(agent, "agent") == 0, procs.log("agent")[-6000:]
             final = {m.submap_key for m in (LocalMap.from_msgpack(p) for _, p in submaps.items) if m.final}  # type: ignore[arg-type]
 
             def merged() -> float | None:
