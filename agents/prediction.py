@@ -31,6 +31,7 @@ from fleetmap.shared.core.motion import (
     velocity_between,
 )
 from fleetmap.shared.core.pivotmap import WITNESS_TRANSLATION
+from fleetmap.shared.core.pointstep import point_step
 
 log = logging.getLogger(__name__)
 
@@ -444,3 +445,44 @@ def explains(prediction: Prediction, last: Transform2D, placed: Transform2D) -> 
         within_gate(placed, last.compose(increment), prediction)
         for increment in (step, Transform2D(-step.x, -step.y, step.theta))
     )
+
+
+def borne_out(
+    prediction: Prediction,
+    last: Transform2D,
+    placed: Transform2D,
+    returns: tuple[Array, Array, float],
+    step_variance: tuple[float, float],
+) -> bool:
+    """Whether a fit at ``placed`` stands against the odometry's ``prediction`` from the robot's
+    ``last`` pose (both in one frame): it lies within the 99 % gate (:func:`explains`), or the
+    scan's returns bear it out. ``returns``: the scan before's and the scan's returns (each in
+    its own laser frame) and the former's beam spacing; ``step_variance``: the odometry's step's
+    own (:attr:`Predictor.step_variance`).
+
+    A gate alone cannot tell a look-alike from odometry that is off: along campus's row of posts
+    a metre apart the walls fitted a scan a post from where the wheels said (0.5-1.2 m), yet
+    mit-csail's wheels stall, 0 m for a few scans, then read the whole way at once, and there the
+    fit beyond the gate is right (docs/decisions/087). The returns decide between the two
+    (:func:`~fleetmap.shared.core.pointstep.point_step`: every step of a window that holds both,
+    scored by the two scans' points, the odometry's step as the prior): where the steps are alike
+    to them (the posts repeat) the prior's side is the likelier, and where the returns measure
+    the step (a stall) theirs is. The fit stands when the distribution's mode lies nearer it than
+    the odometry's prediction, each by the prediction's own metric (docs/decisions/088)."""
+    if explains(prediction, last, placed):
+        return True
+    reference, scan, angle_increment = returns
+    variance_t, variance_r = step_variance
+    measured = point_step(
+        reference,
+        scan,
+        prediction.increment,
+        math.sqrt(variance_t),
+        math.sqrt(variance_r),
+        angle_increment,
+        covering=last.inverse().compose(placed),
+    )
+    if measured is None:
+        return True
+    mode = last.compose(measured.peak)
+    return prediction.distance2(placed, mode) <= prediction.distance2(last.compose(prediction.increment), mode)

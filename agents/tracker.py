@@ -26,7 +26,9 @@ For each scan (:meth:`Tracker.add`):
 3. **Check the fit** (:mod:`fleetmap.agents.fitcheck`): enough of the scan's walls on the
    submap's (``MIN_MATCHED_SHARE``, ``MIN_MATCHED_LENGTH``) and the scan's beams through little
    of the submap's walls (``MAX_SEE_THROUGH``: a laser does not see through walls). The clock
-   bounds no registration (docs/decisions/009-clocks-evidence-over-stamps.md).
+   bounds no registration (docs/decisions/009-clocks-evidence-over-stamps.md). A fit beyond the
+   odometry's 99 % gate stands only where the scan's returns bear it out against the wheels'
+   step (:meth:`Tracker._borne_out`; docs/decisions/088): a row of posts fits a post along.
 4. A failed fit is tried again from starts turned across the prediction's heading uncertainty
    (:meth:`Tracker._turned_fits`; where only those fit, the best where the robot can have driven,
    :meth:`Tracker._reachable_fit`), then **re-acquired** with the paper's pose-free integration of
@@ -82,7 +84,7 @@ from fleetmap.agents.clock_evidence import check_motion, check_order, say_distru
 from fleetmap.agents.fitcheck import KIDNAP_REASON, MIN_MATCHED_LENGTH, Fit
 from fleetmap.agents.fitting import FitSearch, ScanIn
 from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
-from fleetmap.agents.prediction import Predictor, within_gate
+from fleetmap.agents.prediction import Predictor, borne_out, within_gate
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain, rotated
 from fleetmap.shared.config import FleetmapConfig
 from fleetmap.shared.core.extraction import scan_points
@@ -274,6 +276,7 @@ class Tracker(FitSearch):
                 fit, good=False, why="a fit beyond the motion model's 99 % gate", contradicted=True, everywhere=True
             )
         fit = self._without_reading(taken, fit, predictions)
+        fit = self._borne_out(taken, fit, predictions[0])
         if fit.good:
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
@@ -326,6 +329,24 @@ class Tracker(FitSearch):
         self.motion.carry()  # the walls did not check this step: its uncertainty adds to the next ones'
         self.motion.track_drift = self.motion.drift
         return step
+
+    def _borne_out(self, taken: ScanIn, fit: Fit, prediction: Prediction) -> Fit:
+        """``fit``, or refused where it lies beyond the odometry's gate and the scan's returns
+        against the scan before's do not bear it out (:func:`~fleetmap.agents.prediction.borne_out`;
+        docs/decisions/088): the odometry then carries the scan. Only a reading that is the scan's
+        own is asked (on a clock not trusted, the reading is interpolated at a stamp that may not
+        be the scan's), and only of the scan after the one before it."""
+        if not fit.good or self._held or prediction.source != "odometry" or not self.exact or self._pose is None:
+            return fit
+        before, now = self._scan_before, self._scan
+        if before is None or now is None or before[0] != taken.seq - 1:
+            return fit
+        reach = self.config.extraction.max_range
+        placed = self.chain.active[0].origin.compose(fit.registration.pose)
+        returns = (scan_points(before[1], reach), scan_points(now[1], reach), before[1].angle_increment)
+        if borne_out(prediction, self._pose, placed, returns, self.motion.step_variance):
+            return fit
+        return replace(fit, good=False, why="a fit beyond the odometry's gate that the scan's returns do not bear out")
 
     def _by_points(self, seq: int, prediction: Prediction) -> Prediction:
         """``prediction`` of the step to scan ``seq``, or the step the returns of that scan and the

@@ -163,7 +163,8 @@ class ForestBuilder(ConsistencyJudge):
         An edge whose two submaps the forest already joins changes nothing in the forest, and its
         path through the forest is the same once the forest is whole: the cycle checks are made
         then, on the forest rooted once (:class:`~fleetmap.merger.forest.RootedForest`), in the
-        order the edges came."""
+        order the edges came; so is a join refused while its two groups were apart, where a later
+        join (not a start pose) united them."""
         self.refused_whole.clear()
         self.outweighed.clear()
         root = {k: k for k in self._nodes}
@@ -214,15 +215,19 @@ class ForestBuilder(ConsistencyJudge):
             else:
                 checks.append((e, "cycle"))
         forest = RootedForest(self._nodes, adjacency, self._link_covariances)
+        priors = {e.key() for e in edges if e.link and _robot_of(e.a) != _robot_of(e.b)}
         for e, kind in checks:
-            if kind == "refused":
+            if kind == "refused" and (root[e.a] != root[e.b] or priors.intersection(forest.path_keys(e.a, e.b))):
+                # still apart, or united only through a start pose (which judges no join)
                 conflicts.append(e)
             elif e.link:
                 loops.append(e)
             else:
                 tol_t, tol_r = self._tolerance_between(forest, e.a, e.b)
                 predicted = rel[e.a].inverse().compose(rel[e.b])
-                if kind == "cycle":
+                if kind != "ambiguous":
+                    # a cycle, or a join refused while its groups were apart that a later join united
+                    # (a conflict, it voted against the joins it agrees with: docs/decisions/088)
                     (loops if _within(predicted, e.transform, tol_t, tol_r) else conflicts).append(e)
                     continue
                 # an ambiguous integration: the one of its hypotheses that agrees with the tree, if only one

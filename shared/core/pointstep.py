@@ -63,6 +63,9 @@ class PointStep:
     """The scan's pose in the reference scan's frame: the distribution's mean."""
     covariance: Array
     """Its 3 x 3 covariance over (x, y, theta): the distribution's spread."""
+    peak: Transform2D
+    """The window's most likely step, prior included (the distribution's mode): where two places
+    fit alike, the mean lies between them and the mode at the likelier one."""
 
 
 def point_step(
@@ -72,12 +75,15 @@ def point_step(
     sigma_translation: float,
     sigma_rotation: float,
     angle_increment: float,
+    covering: Transform2D | None = None,
 ) -> PointStep | None:
     """The step from the scan whose returns are ``reference`` (``(n, 2)``, its laser frame) to the
     scan whose returns are ``scan`` (``(m, 2)``, its own frame), measured by their points over
     the prior (``prior``, the step predicted, with standard deviations ``sigma_translation`` (m,
     each axis) and ``sigma_rotation`` (rad)); ``angle_increment`` is the reference's beam spacing
-    (rad). None where either scan has no returns. A few returns fit a step almost anywhere, and
+    (rad). The window is widened to hold the step ``covering`` too, where given (a step another
+    measurement found beyond the prior's window), the prior unchanged. None where either scan has
+    no returns. A few returns fit a step almost anywhere, and
     counted a share of a measurement each (:data:`CORRELATED_POINTS`) they leave the prior in
     charge: no count of returns is asked for (a guard of 10 cost freiburg-campus-corrected 0.5
     points of its short relations: docs/decisions/084)."""
@@ -89,6 +95,9 @@ def point_step(
     reach = float(np.max(np.hypot(scan[:, 0], scan[:, 1])))
     half_t = WINDOW_SIGMAS * sigma_translation
     half_r = min(WINDOW_SIGMAS * sigma_rotation, math.pi)
+    if covering is not None:
+        half_t = max(half_t, abs(covering.x - prior.x) + sigma, abs(covering.y - prior.y) + sigma)
+        half_r = min(max(half_r, abs(wrap_scalar(covering.theta - prior.theta)) + sigma / max(reach, sigma)), math.pi)
     # Olson's steps: a translation step of the lookup's noise, a turn moving the farthest point as
     # far; coarser (both alike) where the window would cost more than MAX_CELLS lookups
     step_t, step_r = sigma, sigma / max(reach, sigma)
@@ -122,7 +131,12 @@ def point_step(
     covariance = (spread * weights[:, None]).T @ spread
     # the grid's own resolution: a distribution on one cell still spans a step
     covariance += np.diag([step_t**2, step_t**2, step_r**2]) / 12.0
-    return PointStep(Transform2D(float(mean[0]), float(mean[1]), wrap_scalar(float(mean[2]))), covariance)
+    top = poses[int(np.argmax(weights))]
+    return PointStep(
+        Transform2D(float(mean[0]), float(mean[1]), wrap_scalar(float(mean[2]))),
+        covariance,
+        Transform2D(float(top[0]), float(top[1]), wrap_scalar(float(top[2]))),
+    )
 
 
 def _lookup(reference: Array, sigma: float, cell: float) -> tuple[Array, Array]:

@@ -155,3 +155,40 @@ def test_two_sets_that_each_agree_on_another_alignment_keep_the_robots_apart() -
         shift_in_world=True,
     )
     assert not _joined(graph), "one of two alignments, each borne out by a set that agrees, joined the robots"
+
+
+def test_a_join_refused_while_its_robots_were_apart_closes_a_cycle_once_a_third_robot_joins_them() -> None:
+    # r1's last submap and r2's first see the same stretch of hall: one integration, the heaviest,
+    # that nothing confirms while they are apart, so it is refused. r3 drives the whole hall and
+    # joins each of them by two integrations that agree. The refused one now closes a cycle through
+    # r3 and agrees with it: a loop that bears the joins out, not a conflict that votes against
+    # them (freiburg-campus-corrected cut in 8: such integrations 0.01 m from the forest's path
+    # were counted against it; docs/decisions/088)
+    graph = PoseGraph()
+    truth: dict[str, Transform2D] = {}
+    for robot, starts in (("r1", (0.0, 4.0, 8.0)), ("r2", (12.0, 16.0, 20.0)), ("r3", (2.0, 6.0, 10.0, 14.0, 18.0))):
+        for n, x in enumerate(starts):
+            key = f"{robot}/0/{n}"
+            truth[key] = Transform2D(x, 0.1 * n, 0.01 * n)
+            graph.put_map(key, _seen_from(_WORLD, truth[key]), 1)
+            if n:
+                before = truth[f"{robot}/0/{n - 1}"]
+                cov = np.diag([1e-4, 1e-4, 1e-6])
+                graph.put_link(f"{robot}/0/{n - 1}", key, before.inverse().compose(truth[key]), cov)
+
+    def integration(a: str, b: str, value: float) -> Edge:
+        return Edge(a, b, truth[a].inverse().compose(truth[b]), value, True)
+
+    refused = integration("r1/0/2", "r2/0/0", 30.0)
+    for e in (
+        refused,
+        integration("r3/0/0", "r1/0/0", 25.0),
+        integration("r3/0/1", "r1/0/1", 24.0),
+        integration("r3/0/3", "r2/0/0", 23.0),
+        integration("r3/0/4", "r2/0/1", 22.0),
+    ):
+        graph.add_edge(e)
+    result = graph.solve()
+    assert any({"r1/0/0", "r2/0/0", "r3/0/0"} <= set(c.members) for c in result.components), "not one map"
+    assert refused.key() in {e.key() for e in result.loops}, "the integration that agrees is not a loop"
+    assert refused.key() not in {e.key() for e in result.rejected}, "an integration that agrees was rejected"
