@@ -338,12 +338,10 @@ class Tracker(FitSearch):
         be the scan's), and only of the scan after the one before it."""
         if not fit.good or self._held or prediction.source != "odometry" or not self.exact or self._pose is None:
             return fit
-        before, now = self._scan_before, self._scan
-        if before is None or now is None or before[0] != taken.seq - 1:
+        returns = self._pair_returns(taken.seq)
+        if returns is None:
             return fit
-        reach = self.config.extraction.max_range
         placed = self.chain.active[0].origin.compose(fit.registration.pose)
-        returns = (scan_points(before[1], reach), scan_points(now[1], reach), before[1].angle_increment)
         if borne_out(prediction, self._pose, placed, returns, self.motion.step_variance):
             return fit
         return replace(fit, good=False, why="a fit beyond the odometry's gate that the scan's returns do not bear out")
@@ -356,18 +354,13 @@ class Tracker(FitSearch):
         wide on a sparse log, holds every look-alike step along a corridor). The step's own
         uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`) is the prior, and
         the measured one's is what the next step's drift adds (docs/decisions/083)."""
-        before, now = self._scan_before, self._scan
-        if "odometry" not in prediction.source or before is None or now is None or before[0] != seq - 1:
+        returns = self._pair_returns(seq) if "odometry" in prediction.source else None
+        if returns is None:
             return prediction
-        reach = self.config.extraction.max_range
+        reference, scan, angle_increment = returns
         variance_t, variance_r = self.motion.step_variance
         measured = point_step(
-            scan_points(before[1], reach),
-            scan_points(now[1], reach),
-            prediction.increment,
-            math.sqrt(variance_t),
-            math.sqrt(variance_r),
-            before[1].angle_increment,
+            reference, scan, prediction.increment, math.sqrt(variance_t), math.sqrt(variance_r), angle_increment
         )
         if measured is None:
             return prediction
@@ -381,6 +374,15 @@ class Tracker(FitSearch):
             sigma_translation=math.sqrt(step_t + drift_t),
             sigma_rotation=math.sqrt(step_r + drift_r),
         )
+
+    def _pair_returns(self, seq: int) -> tuple[Array, Array, float] | None:
+        """The returns of scan ``seq`` and of the scan just before it (each in its own laser frame)
+        and the latter's beam spacing; None where the scan before it is not the last one seen."""
+        before, now = self._scan_before, self._scan
+        if before is None or now is None or before[0] != seq - 1:
+            return None
+        reach = self.config.extraction.max_range
+        return scan_points(before[1], reach), scan_points(now[1], reach), before[1].angle_increment
 
     def _advance_blind(self, seq: int, stamp: float, odometry: Transform2D | None) -> None:
         """A scan with nothing to track: the pose moves by odometry (or velocity) alone, or by the

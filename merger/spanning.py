@@ -215,7 +215,7 @@ class ForestBuilder(ConsistencyJudge):
             else:
                 checks.append((e, "cycle"))
         forest = RootedForest(self._nodes, adjacency, self._link_covariances)
-        priors = {e.key() for e in edges if e.link and _robot_of(e.a) != _robot_of(e.b)}
+        priors = _start_poses(edges) if any(kind == "refused" for _, kind in checks) else set()
         for e, kind in checks:
             if kind == "refused" and (root[e.a] != root[e.b] or priors.intersection(forest.path_keys(e.a, e.b))):
                 # still apart, or united only through a start pose (which judges no join)
@@ -283,6 +283,11 @@ class ForestBuilder(ConsistencyJudge):
         )
         self._ambiguity[e.key()] = (e, na.version, nb.version, ambiguous)
         return ambiguous
+
+
+def _start_poses(edges: list[Edge]) -> set[tuple[str, str]]:
+    """The keys of the links between two robots among ``edges``: their known start poses."""
+    return {e.key() for e in edges if e.link and _robot_of(e.a) != _robot_of(e.b)}
 
 
 def _robot_of(key: str) -> str:
