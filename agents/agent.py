@@ -15,7 +15,11 @@ What :meth:`Agent.add_scan` returns with the tracking front end, in this order:
   ``final``, when it is full, or when its epoch ends);
 - on a new epoch, the FleetEvent ``epoch`` (its first scan and why);
 - the Scan: its segments, raw ranges, the submap that placed it and its pose there (none if the
-  scan did not fit), and the odometry reading;
+  scan did not fit), and the odometry reading; a scan the motion model carried (the walls neither
+  placed it nor said it was taken elsewhere) waits, with the scans after it that had nothing to
+  track, until the walls place a scan again, and goes out then, placed again by what that scan's
+  fit says of the carried steps (:mod:`fleetmap.agents.carried`), or as it was, once its submap is
+  final or the run is broken;
 - the active submaps that are due: a submap's first version at once, then every
   ``publish_every`` inserted scans; in an epoch after the first, after every inserted scan until
   the merger says it has placed the epoch (:meth:`Agent.relocalized`): the robot is lost until
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -50,6 +55,15 @@ Tracked = tuple[int, int, Transform2D | None]
 """A scan's index, its epoch and its pose in the epoch's frame (None: not placed)."""
 
 __all__ = ["LOST_SCANS", "Agent", "AgentCounts"]
+
+
+@dataclass(frozen=True)
+class _Waiting:
+    """A carried scan's message, or one that had nothing to track after it, waiting for its run to
+    end (:mod:`fleetmap.agents.carried`), and its :attr:`Agent.tracked` entry."""
+
+    scan: Scan
+    tracked: Tracked
 
 
 class Agent:
@@ -114,7 +128,8 @@ class Agent:
     def tracked(self) -> list[Tracked]:
         """The scans the last :meth:`add_scan` (or :meth:`finish`) tracked, in order: each one's
         index, epoch and pose in the epoch's frame (None where it was not placed). Usually the scan
-        just added; none while a burst is held, all of it when the burst ends."""
+        just added; none while a burst is held, all of it when the burst ends; a carried scan's
+        when its run ends (the module docstring)."""
         return self._front.tracked
 
     def start_at(self, epoch: int) -> None:
@@ -157,6 +172,10 @@ class TrackingFrontEnd:
         which is all a burst's stamps make wrong once the clock is judged."""
         self.tracked: list[Tracked] = []
         """The scans the last call tracked (:attr:`Agent.tracked`)."""
+        self._waiting: list[_Waiting] = []
+        """Carried scans' messages waiting for their run to end, in order."""
+        self._unfinal: list[Submap] = []
+        """Finished submaps whose final version waits for a carried run that holds their scans."""
         self._latest: dict[tuple[int, int], LocalMap] = {}
         """The latest message of every submap, by (epoch, submap), in publication order."""
         self._found: set[int] = set()
@@ -213,7 +232,7 @@ class TrackingFrontEnd:
         segments = extract_segments(scan, self.config.extraction)
         self._stamp = stamp
         steps = self.tracker.add(index, stamp, scan, segments, odometry)
-        out: list[Message] = []
+        out = self._let_go()
         for step in steps:
             if step.new_epoch:
                 out += self._finals(stamp)
@@ -229,9 +248,31 @@ class TrackingFrontEnd:
         last = steps[-1]
         ranges = LaserRanges.from_range_scan(scan)
         kept = reading if reading is not None and np.isfinite(reading.as_array()).all() else None
-        out.append(Scan(self.robot, last.epoch, index, stamp, _wire(segments), ranges, last.submap, last.pose, kept))
+        message = Scan(self.robot, last.epoch, index, stamp, _wire(segments), ranges, last.submap, last.pose, kept)
+        tracked = (index, self.epoch, self.tracker.epoch_pose)
+        if self.tracker.run.holds(index):
+            self._waiting.append(_Waiting(message, tracked))
+        else:
+            out.append(message)
+            self.tracked.append(tracked)
         out += self._due(stamp)
-        self.tracked.append((index, self.epoch, self.tracker.epoch_pose))
+        return out
+
+    def _let_go(self) -> list[Message]:
+        """The waiting scans' messages whose run ended or whose submap is final, in order, each
+        placed again where the run's end moved it (:mod:`fleetmap.agents.carried`)."""
+        smoothed = self.tracker.run.take_smoothed()
+        out: list[Message] = []
+        while self._waiting and not self.tracker.run.holds(self._waiting[0].scan.index):
+            waiting = self._waiting.pop(0)
+            message, tracked = waiting.scan, waiting.tracked
+            moved = smoothed.get(message.index)
+            if moved is not None:
+                if moved.in_submap is not None and moved.submap == message.submap:
+                    message = replace(message, pose=moved.in_submap)
+                tracked = (tracked[0], tracked[1], moved.pose)
+            out.append(message)
+            self.tracked.append(tracked)
         return out
 
     def relocalized(self, epoch: int) -> None:
@@ -242,6 +283,8 @@ class TrackingFrontEnd:
         out: list[Message] = []
         for ready in self.bursts.flush():
             out += self._released(ready)
+        self.tracker.run.drop()
+        out += self._let_go()
         out += self._finals(self._stamp)
         for submap in self.tracker.submaps():
             submap.finished = True
@@ -253,9 +296,15 @@ class TrackingFrontEnd:
 
     # -- internals ---------------------------------------------------------------------------
     def _finals(self, stamp: float) -> list[Message]:
+        """The final versions of the submaps finished, in order, but those a carried run holds
+        scans of (:mod:`fleetmap.agents.carried`): they wait."""
         out: list[Message] = []
-        for submap in self.tracker.take_finished():
-            out += self._message(submap, stamp, final=True)
+        finished, self._unfinal = [*self._unfinal, *self.tracker.take_finished()], []
+        for submap in finished:
+            if self._unfinal or self.tracker.run.places(submap):
+                self._unfinal.append(submap)
+            else:
+                out += self._message(submap, stamp, final=True)
         return out
 
     def _due(self, stamp: float) -> list[Message]:

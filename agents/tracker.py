@@ -46,11 +46,13 @@ For each scan (:meth:`Tracker.add`):
    :func:`fleetmap.agents.fitcheck.contradicts`). Where the walls say nothing against its
    prediction (open space, a few metres of wall, new walls) the robot is **carried** by its
    motion model: the scan is placed at the prediction, and the prediction's uncertainty grows
-   until the walls place a scan again; where the odometry predicted the step, the scan's returns
-   measure it against the scan before's (:meth:`Tracker._by_points`,
-   :mod:`fleetmap.shared.core.pointstep`; docs/decisions/083): posts and hedges measure a turn in
-   place that the walls cannot and the wheels over-read. Where the walls contradict the prediction
-   (beams through the submap's walls, walls in its seen free space) the scan is left unplaced; after
+   until the walls place a scan again, whose fit then places the carried scans again, the miss
+   spread over their steps (:mod:`fleetmap.agents.carried`; docs/decisions/090); where the
+   odometry predicted the step, the scan's returns measure it against the scan before's
+   (:mod:`fleetmap.agents.returns`, :mod:`fleetmap.shared.core.pointstep`; docs/decisions/083):
+   posts and hedges measure a turn in place that the walls cannot and the wheels over-read.
+   Where the walls contradict the prediction (beams through the submap's walls, walls in its seen
+   free space) the scan is left unplaced; after
    ``kidnap_after`` such scans with no placed one between, each contradicted from every start
    tried or fitting only beyond the motion model's 99 % gate, the robot has lost its place: a new
    **epoch** begins at the first of them, whose place nobody knows until the merger finds it, and
@@ -74,23 +76,22 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
+from fleetmap.agents.carried import CarriedRun
 from fleetmap.agents.clock_evidence import check_motion, check_order, say_distrusted
 from fleetmap.agents.fitcheck import KIDNAP_REASON, MIN_MATCHED_LENGTH, Fit
 from fleetmap.agents.fitting import FitSearch, ScanIn
 from fleetmap.agents.pose_free import LOOSE_ROTATION, LOOSE_TRANSLATION
-from fleetmap.agents.prediction import Predictor, borne_out, within_gate
+from fleetmap.agents.prediction import Predictor, within_gate
+from fleetmap.agents.returns import PairReturns
 from fleetmap.agents.submap import PlacedScan, Submap, SubmapChain, rotated
 from fleetmap.shared.config import FleetmapConfig
-from fleetmap.shared.core.extraction import scan_points
 from fleetmap.shared.core.geometry import Array, Transform2D
 from fleetmap.shared.core.motion import Prediction
-from fleetmap.shared.core.pointstep import point_step
 from fleetmap.shared.core.rangescan import RangeScan
 from fleetmap.shared.core.tracking import SAMPLE_SPACING, Registration, sample_segments
 
@@ -147,7 +148,7 @@ class _Before:
     spread: bool
 
 
-class Tracker(FitSearch):
+class Tracker(FitSearch, PairReturns):
     """One robot's tracking: :meth:`add` each scan in order."""
 
     def __init__(self, config: FleetmapConfig | None = None, odometry: bool = True) -> None:
@@ -195,6 +196,8 @@ class Tracker(FitSearch):
         """The sequence number and scan of the last scan tracked (:meth:`_by_points`) ..."""
         self._scan_before: tuple[int, RangeScan] | None = None
         """... and of the scan before it."""
+        self.run = CarriedRun()
+        """The scans carried since the last scan the walls placed (:mod:`fleetmap.agents.carried`)."""
 
     # -- queries -----------------------------------------------------------------------------
     @property
@@ -231,7 +234,9 @@ class Tracker(FitSearch):
         previous = self.clock.previous
         self.clock.tick(stamp)
         check_order(self.clock, previous, index, stamp)
-        return self._track(self.clock.scans, index, stamp, scan, segments, odometry)
+        steps = self._track(self.clock.scans, index, stamp, scan, segments, odometry)
+        self.run.expire(self.chain.active[0].number - 1 if self.chain.active else 0)
+        return steps
 
     # -- internals ---------------------------------------------------------------------------
     def _track(
@@ -240,7 +245,7 @@ class Tracker(FitSearch):
         self._scan_before, self._scan = self._scan, (seq, scan)
         samples = sample_segments(segments, SAMPLE_SPACING)
         if len(samples) == 0:
-            self._advance_blind(seq, stamp, odometry)
+            self._advance_blind(index, seq, stamp, odometry)
             return [TrackStep("empty", max(self.epoch, self.first_epoch), None, None)]
         taken = ScanIn(seq, index, stamp, scan, segments, samples, odometry)
         if self.epoch < 0:
@@ -281,7 +286,9 @@ class Tracker(FitSearch):
             self._held.clear()
             status = "tracked" if fit.why == "" else fit.why
             before, anchor = self._pose, self._anchor
+            expected = self._pose_in_epoch(predictions[0])  # (where the carried chain, if any, put it)
             step = self._place(taken, fit, status)
+            self.run.close(self._pose, expected, predictions[0])
             self.motion.judge_placed(before, self._pose, anchor, spread, odometry)
             return [step]
         if not fit.contradicted and odometry_predicts:
@@ -292,7 +299,7 @@ class Tracker(FitSearch):
         if taken.samples.length < MIN_MATCHED_LENGTH:
             # less wall than any fit must match: no start could have placed it, so its not fitting
             # is no evidence of a kidnap (docs/decisions/061)
-            self._advance_blind(seq, stamp, odometry)
+            self._advance_blind(index, seq, stamp, odometry)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
         self._pose = self._pose_in_epoch(predictions[0])
         self._stamp, self._seq = stamp, seq
@@ -300,6 +307,7 @@ class Tracker(FitSearch):
         self.motion.carry()
         counts = fit.everywhere or not fit.contradicted  # (not carried: no odometry)
         self._held.append(_Held(taken, counts))
+        self.run.drop()  # (the walls broke the carried chain)
         if sum(h.counts for h in self._held) < self.params.kidnap_after:
             log.debug("scan %d did not fit (%s)", index, fit.why)
             return [TrackStep("unplaced", self.epoch, None, None, registration=fit.registration)]
@@ -313,7 +321,11 @@ class Tracker(FitSearch):
         1.5 m wide; such a scan is held as a contradicted one is."""
         log.debug("scan %d carried by its motion model (%s)", taken.index, fit.why)
         prediction = self._by_points(taken.seq, prediction)
-        predicted = self.chain.active[0].origin.inverse().compose(self._pose_in_epoch(prediction))
+        submap = self.chain.active[0]
+        predicted = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        good, walled = self._good, self._previous
+        anchor = good[1] if good is not None and walled is not None and walled[1][2] == good[2] else None
+        self.run.carry(taken.index, self._pose_in_epoch(prediction), prediction, submap, anchor)
         # placed as the prediction, as sure as its motion model (the walls fixed nothing)
         prior = replace(
             fit.registration,
@@ -330,66 +342,14 @@ class Tracker(FitSearch):
         self.motion.track_drift = self.motion.drift
         return step
 
-    def _borne_out(self, taken: ScanIn, fit: Fit, prediction: Prediction) -> Fit:
-        """``fit``, or refused where it lies beyond the odometry's gate and the scan's returns
-        against the scan before's do not bear it out (:func:`~fleetmap.agents.prediction.borne_out`;
-        docs/decisions/088): the odometry then carries the scan. Only a reading that is the scan's
-        own is asked (on a clock not trusted, the reading is interpolated at a stamp that may not
-        be the scan's), and only of the scan after the one before it."""
-        if not fit.good or self._held or prediction.source != "odometry" or not self.exact or self._pose is None:
-            return fit
-        returns = self._pair_returns(taken.seq)
-        if returns is None:
-            return fit
-        placed = self.chain.active[0].origin.compose(fit.registration.pose)
-        if borne_out(prediction, self._pose, placed, returns, self.motion.step_variance):
-            return fit
-        return replace(fit, good=False, why="a fit beyond the odometry's gate that the scan's returns do not bear out")
-
-    def _by_points(self, seq: int, prediction: Prediction) -> Prediction:
-        """``prediction`` of the step to scan ``seq``, or the step the returns of that scan and the
-        one before measure over it (:func:`~fleetmap.shared.core.pointstep.point_step`; as sure as
-        their distribution says, plus the drift the prediction carries), where both have returns
-        and the odometry predicted it (constant velocity measures nothing: its window, metres
-        wide on a sparse log, holds every look-alike step along a corridor). The step's own
-        uncertainty (:attr:`~fleetmap.agents.prediction.Predictor.step_variance`) is the prior, and
-        the measured one's is what the next step's drift adds (docs/decisions/083)."""
-        returns = self._pair_returns(seq) if "odometry" in prediction.source else None
-        if returns is None:
-            return prediction
-        reference, scan, angle_increment = returns
-        variance_t, variance_r = self.motion.step_variance
-        measured = point_step(
-            reference, scan, prediction.increment, math.sqrt(variance_t), math.sqrt(variance_r), angle_increment
-        )
-        if measured is None:
-            return prediction
-        covariance = measured.covariance
-        step_t, step_r = max(covariance[0, 0], covariance[1, 1]), covariance[2, 2]
-        drift_t, drift_r = self.motion.drift
-        self.motion.step_variance = (step_t, step_r)
-        return replace(
-            prediction,
-            increment=measured.increment,
-            sigma_translation=math.sqrt(step_t + drift_t),
-            sigma_rotation=math.sqrt(step_r + drift_r),
-        )
-
-    def _pair_returns(self, seq: int) -> tuple[Array, Array, float] | None:
-        """The returns of scan ``seq`` and of the scan just before it (each in its own laser frame)
-        and the latter's beam spacing; None where the scan before it is not the last one seen."""
-        before, now = self._scan_before, self._scan
-        if before is None or now is None or before[0] != seq - 1:
-            return None
-        reach = self.config.extraction.max_range
-        return scan_points(before[1], reach), scan_points(now[1], reach), before[1].angle_increment
-
-    def _advance_blind(self, seq: int, stamp: float, odometry: Transform2D | None) -> None:
+    def _advance_blind(self, index: int, seq: int, stamp: float, odometry: Transform2D | None) -> None:
         """A scan with nothing to track: the pose moves by odometry (or velocity) alone, or by the
         step its returns measure (:meth:`_by_points`)."""
         if self._pose is not None and self._stamp is not None:
             predicted = self.motion.predictions(seq, stamp, odometry, self._stamp, self._seq)[0]
-            self._pose = self._pose_in_epoch(self._by_points(seq, predicted))
+            predicted = self._by_points(seq, predicted)
+            self._pose = self._pose_in_epoch(predicted)
+            self.run.blind(index, self._pose, predicted)
             self._stamp, self._seq = stamp, seq
             self.motion.odometry = odometry
             self.motion.carry()
@@ -490,6 +450,7 @@ class Tracker(FitSearch):
         self.motion.restart(taken.odometry)
         self._anchor = (Transform2D(), taken.odometry) if self.exact and taken.odometry is not None else None
         self._held = []
+        self.run.drop()
         self._scores.clear()
         self.chain.restart(self.epoch, index, stamp, taken.scan, taken.segments, taken.samples)
         return TrackStep("first", self.epoch, 0, Transform2D(), new_epoch=new, first_scan=index)
