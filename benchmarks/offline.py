@@ -56,11 +56,14 @@ def run_agents(
         frames: dict[int, Transform2D] = {}
         unplaced = wrong = 0
         start = time.perf_counter()
-        for s in robot_stream(scenario, robot):
-            truth[s.index] = s.pose
-            out = agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        for s in [*robot_stream(scenario, robot), None]:  # (None: the end; what waited comes then)
+            if s is None:
+                stamp, out = math.inf, agent.finish()
+            else:
+                truth[s.index] = s.pose
+                stamp, out = s.stamp, agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
             for m in out:
-                messages.append((s.stamp, n, m))
+                messages.append((stamp, n, m))
                 if isinstance(m, FleetEvent) and m.kind == "epoch":
                     detail = json.loads(m.detail)
                     frames[detail["epoch"]] = truth[detail["first_scan"]]
@@ -71,7 +74,6 @@ def run_agents(
                 frame = frames.setdefault(epoch, truth[index])
                 dt, dr = pose.distance(frame.inverse().compose(truth[index]))
                 wrong += dt > WRONG_M or math.degrees(dr) > WRONG_DEG
-        messages += [(math.inf, n, m) for m in agent.finish()]
         seconds = time.perf_counter() - start
         agents.append((robot, agent.counts.epochs, unplaced, wrong, seconds))
         print(

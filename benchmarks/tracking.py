@@ -246,10 +246,13 @@ def run_scenario(job: tuple[str, FleetmapConfig, bool]) -> list[ScenarioResult]:
         frames: dict[int, Transform2D] = {}
         truth: dict[int, Transform2D] = {}
         errors, turns, placed, scans = [], [], 0, 0
-        for s in robot_stream(scenario, robot):
-            truth[s.index] = s.pose
-            scans += 1
-            agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
+        for s in [*robot_stream(scenario, robot), None]:  # (None: the end; what waited comes then)
+            if s is None:
+                agent.finish()
+            else:
+                truth[s.index] = s.pose
+                scans += 1
+                agent.add_scan(s.index, s.stamp, s.scan, s.odometry)
             for index, epoch, pose in agent.tracked:  # (the log's first scan waits for the second)
                 if pose is None:
                     continue
