@@ -287,8 +287,9 @@ class Tracker(FitSearch, PairReturns):
             status = "tracked" if fit.why == "" else fit.why
             before, anchor = self._pose, self._anchor
             expected = self._pose_in_epoch(predictions[0])  # (where the carried chain, if any, put it)
+            fitted = self.chain.active[0].origin.compose(fit.registration.pose)
             step = self._place(taken, fit, status)
-            self.run.close(self._pose, expected, predictions[0])
+            self.run.close(fitted, expected, predictions[0])
             self.motion.judge_placed(before, self._pose, anchor, spread, odometry)
             return [step]
         if not fit.contradicted and odometry_predicts:
