@@ -268,7 +268,7 @@ class TrackingFrontEnd:
             message, tracked = waiting.scan, waiting.tracked
             moved = smoothed.get(message.index)
             if moved is not None:
-                if moved.in_submap is not None and moved.submap == message.submap:
+                if moved.in_submap is not None:
                     message = replace(message, pose=moved.in_submap)
                 tracked = (tracked[0], tracked[1], moved.pose)
             out.append(message)

@@ -11,7 +11,8 @@ proportion to each one's uncertainty, as a fixed-lag smoother does over the stre
 measurements (Rauch-Tung-Striebel's, for a linear chain): the miss as a correction in the anchor's
 frame, ``G = (A^-1 P_k) (A^-1 P^_k)^-1``, and each carried scan ``i`` moved by the share of it its
 prediction's heading variance holds of the fitted scan's, ``w_i = var_i / var_k``:
-``P_i <- A G^w_i A^-1 P_i`` (``G^w = exp(w log G)``, SE(2)'s geodesic: a turn the wheels over-read
+``P_i <- A G^w_i A^-1 P_i`` (``G^w = exp(w log G)``, SE(2)'s geodesic,
+:func:`fleetmap.agents.bursts.between` from the identity: a turn the wheels over-read
 in place is taken back round the anchor, where it was turned). A turn in place is what the wheels
 read worst and the walls least often check (a robot turning among posts): record 089's campus
 scans 102-103, placed 11 degrees off by a turn the odometry read 9 degrees too far, come within a
@@ -36,8 +37,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import gtsam
 import numpy as np
+from fleetmap.agents.bursts import between
 from fleetmap.agents.submap import PlacedScan, Submap
 from fleetmap.shared.core.geometry import Transform2D
 from fleetmap.shared.core.motion import Prediction
@@ -49,7 +50,7 @@ class RunScan:
 
     index: int
     pose: Transform2D
-    """Its pose in the epoch's frame, as carried (then as smoothed)."""
+    """Its pose in the epoch's frame, as carried."""
     variance: float
     """Its prediction's heading variance (rad^2): what the carried steps before it left open."""
     submap: Submap | None
@@ -59,17 +60,10 @@ class RunScan:
 @dataclass(frozen=True)
 class Smoothed:
     """A scan of a run, placed again: its pose in the epoch's frame and, where a submap placed
-    it, that submap's number and its pose in the submap's frame."""
+    it, its pose in that submap's frame."""
 
     pose: Transform2D
-    submap: int | None
     in_submap: Transform2D | None
-
-
-def power(g: Transform2D, w: float) -> Transform2D:
-    """``g`` to the power ``w``: ``exp(w log g)`` on SE(2) (GTSAM's ``Pose2`` maps)."""
-    p = gtsam.Pose2.Expmap(w * gtsam.Pose2.Logmap(gtsam.Pose2(g.x, g.y, g.theta)))
-    return Transform2D(float(p.x()), float(p.y()), float(p.theta()))
 
 
 def spread_miss(
@@ -81,7 +75,7 @@ def spread_miss(
     back = anchor.inverse()
     g = back.compose(fitted).compose(back.compose(predicted).inverse())
     return [
-        anchor.compose(power(g, float(np.clip(w, 0.0, 1.0)))).compose(back.compose(p))
+        anchor.compose(between(Transform2D(), g, float(np.clip(w, 0.0, 1.0)))).compose(back.compose(p))
         for p, w in zip(poses, weights, strict=True)
     ]
 
@@ -128,15 +122,14 @@ class CarriedRun:
         for s, pose in zip(
             scans, spread_miss(anchor, [s.pose for s in scans], weights, predicted, fitted), strict=True
         ):
-            s.pose = pose
             if s.submap is None:
-                self.smoothed[s.index] = Smoothed(pose, None, None)
+                self.smoothed[s.index] = Smoothed(pose, None)
                 continue
             in_submap = s.submap.origin.inverse().compose(pose)
             placed = s.submap.placed
             at = next(n for n in range(len(placed) - 1, -1, -1) if placed[n].index == s.index)
             placed[at] = PlacedScan(s.index, placed[at].stamp, in_submap)
-            self.smoothed[s.index] = Smoothed(pose, s.submap.number, in_submap)
+            self.smoothed[s.index] = Smoothed(pose, in_submap)
 
     def places(self, submap: Submap) -> bool:
         """Whether the run holds a scan ``submap`` placed (its final version waits: ``Agent``)."""

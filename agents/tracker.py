@@ -322,11 +322,11 @@ class Tracker(FitSearch, PairReturns):
         1.5 m wide; such a scan is held as a contradicted one is."""
         log.debug("scan %d carried by its motion model (%s)", taken.index, fit.why)
         prediction = self._by_points(taken.seq, prediction)
-        submap = self.chain.active[0]
-        predicted = submap.origin.inverse().compose(self._pose_in_epoch(prediction))
+        submap, at = self.chain.active[0], self._pose_in_epoch(prediction)
+        predicted = submap.origin.inverse().compose(at)
         good, walled = self._good, self._previous
         anchor = good[1] if good is not None and walled is not None and walled[1][2] == good[2] else None
-        self.run.carry(taken.index, self._pose_in_epoch(prediction), prediction, submap, anchor)
+        self.run.carry(taken.index, at, prediction, submap, anchor)
         # placed as the prediction, as sure as its motion model (the walls fixed nothing)
         prior = replace(
             fit.registration,
