@@ -13,7 +13,11 @@ A corrected log (``../shared/data/corrected``) is mapped as ``fleetmap map LOG -
   (within 0.3 m and 3 degrees): which joins went wrong and which were refused;
 - the robots' own links between consecutive submaps off by more than their own covariance says
   (Mahalanobis^2 beyond chi-square's 99 % with 3 degrees of freedom) or by more than 1 m or
-  10 degrees: what tracking handed the merger wrong.
+  10 degrees: what tracking handed the merger wrong;
+- each component's frames against the corrected poses, laid on them by the median turn and shift
+  between them: by chain (a robot's epoch), how far its frames stand off, the
+  most and where, and the stretches of frames more than 1 m off: where the refined map is wrong
+  although every join and loop may be right (a chain drifted, its links tighter than their error).
 
 A submap's true frame is its frame scan's corrected pose. The corrected poses are GMapping's, wrong at a few scans
 (``raw_truth.py``); a wrong relation the raw scans contradict is listed apart.
@@ -252,6 +256,74 @@ def list_links(result, truth: list[Transform2D]) -> None:
             print(head + "\n" + "\n".join(rows))
 
 
+def laid_best(solved: list[Transform2D], true: list[Transform2D]) -> Transform2D:
+    """The rigid transform that lays ``solved`` frames on their ``true`` ones: the median turn
+    between their headings, then the median shift between their positions (the median: a
+    drifted stretch stands out, its error not spread over the rest)."""
+    turn = float(np.median([wrap_scalar(b.theta - a.theta) for a, b in zip(solved, true, strict=True)]))
+    c, s = math.cos(turn), math.sin(turn)
+    shift = np.median(
+        [[b.x - (c * a.x - s * a.y), b.y - (s * a.x + c * a.y)] for a, b in zip(solved, true, strict=True)], axis=0
+    )
+    return Transform2D(float(shift[0]), float(shift[1]), turn)
+
+
+def frame_offsets(solved: dict[str, Transform2D], true: dict[str, Transform2D]) -> dict[str, tuple[float, float]]:
+    """Each frame's offset from its true one (m, deg), the solution laid on the truth
+    (:func:`laid_best`)."""
+    keys = [k for k in solved if k in true]
+    if not keys:
+        return {}
+    lay = laid_best([solved[k] for k in keys], [true[k] for k in keys])
+    out = {}
+    for k in keys:
+        e = true[k].inverse().compose(lay.compose(solved[k]))
+        out[k] = (math.hypot(e.x, e.y), math.degrees(abs(wrap_scalar(e.theta))))
+    return out
+
+
+def runs_over(scans: list[int], values: list[float], bound: float) -> list[tuple[int, int]]:
+    """The runs of consecutive entries (a chain's frames in order) whose value exceeds ``bound``,
+    each as its first and last frame scan."""
+    out: list[tuple[int, int]] = []
+    start = None
+    for n, v in enumerate([*values, -math.inf]):
+        if v > bound and start is None:
+            start = n
+        elif v <= bound and start is not None:
+            out.append((scans[start], scans[n - 1]))
+            start = None
+    return out
+
+
+def list_frames(result, truth: list[Transform2D]) -> None:
+    merger = result.merger
+    solved = merger.result
+    if solved is None:
+        return
+    frames = {k: frame_truth(m, truth) for k, m in merger.submaps.items()}
+    print("\n## Frames against the corrected poses, each component laid on them by the median\n")
+    print("| component | chain | frames | median off | most off (frame scan) | most turned | over 1 m (frame scans) |")
+    print("|---|---|---|---|---|---|---|")
+    for n, c in enumerate(solved.components):
+        poses = {k: solved.poses[k] for k in c.members if solved.poses.get(k) is not None}
+        offsets = frame_offsets(poses, {k: f for k, f in frames.items() if f is not None})
+        chains: dict[str, list[str]] = defaultdict(list)
+        for k in offsets:
+            chains[k.rsplit("/", 1)[0]].append(k)
+        for chain, keys in sorted(chains.items()):
+            keys.sort(key=lambda k: merger.submaps[k].frame_scan)
+            off = [offsets[k] for k in keys]
+            worst = max(range(len(keys)), key=lambda i: off[i][0])
+            scans = [merger.submaps[k].frame_scan for k in keys]
+            spans = ", ".join(f"{a}-{b}" for a, b in runs_over(scans, [o[0] for o in off], WRONG_M)) or "-"
+            print(
+                f"| {n} | {chain} | {len(keys)} | {statistics.median(o[0] for o in off):.2f} m "
+                f"| {off[worst][0]:.2f} m ({merger.submaps[keys[worst]].frame_scan}) "
+                f"| {max(o[1] for o in off):.1f} deg | {spans} |"
+            )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("log", help="a corrected log: corrected/NAME (" + ", ".join(CORRECTED) + ")")
@@ -277,6 +349,7 @@ def main() -> int:
     list_relations(result, corrected_relations(path), RawTruth(path))
     list_edges(result, truth)
     list_links(result, truth)
+    list_frames(result, truth)
     if args.scans:
         list_edges_of(result, truth, [int(i) for i in args.scans.split(",")])
     return 0

@@ -47,3 +47,20 @@ def test_a_submaps_truth_is_its_frame_scans_corrected_pose(tool) -> None:  # typ
     )
     assert tool.frame_truth(submap, truth) == truth[5], "the scan whose laser pose is the frame, not a placed one"
     assert tool.frame_truth(replace(submap, frame_scan=12), truth) is None, "beyond the log"
+
+
+def test_frames_are_laid_on_the_truth_and_a_drifted_stretch_stands_out(tool) -> None:  # type: ignore[no-untyped-def]
+    # a chain of ten frames along a corridor, solved in its own frame (turned and moved), with
+    # frames 6-7 pushed 2 m aside: laid on the truth, those two stand out and the rest not
+    true = {f"r1/0/{i}": Transform2D(2.0 * i, 0.0, 0.0) for i in range(10)}
+    frame = Transform2D(5.0, -3.0, 0.7)
+    solved = {k: frame.inverse().compose(p) for k, p in true.items()}
+    for k in ("r1/0/6", "r1/0/7"):
+        solved[k] = solved[k].compose(Transform2D(0.0, 2.0, 0.0))
+    offsets = tool.frame_offsets(solved, true)
+    assert all(offsets[k][0] > 1.4 for k in ("r1/0/6", "r1/0/7")), offsets
+    assert all(offsets[k][0] < 0.6 for k in true if k not in ("r1/0/6", "r1/0/7")), offsets
+    assert all(offsets[k][1] < 1e-6 for k in true), "headings untouched"
+    scans = [10 * i for i in range(10)]
+    assert tool.runs_over(scans, [offsets[f"r1/0/{i}"][0] for i in range(10)], 1.0) == [(60, 70)]
+    assert tool.runs_over([1, 2, 3], [2.0, 0.0, 2.0], 1.0) == [(1, 1), (3, 3)]
