@@ -256,7 +256,7 @@ def list_links(result, truth: list[Transform2D]) -> None:
             print(head + "\n" + "\n".join(rows))
 
 
-def laid_best(solved: list[Transform2D], true: list[Transform2D]) -> Transform2D:
+def laid_on(solved: list[Transform2D], true: list[Transform2D]) -> Transform2D:
     """The rigid transform that lays ``solved`` frames on their ``true`` ones: the median turn
     between their headings, then the median shift between their positions (the median: a
     drifted stretch stands out, its error not spread over the rest)."""
@@ -270,11 +270,11 @@ def laid_best(solved: list[Transform2D], true: list[Transform2D]) -> Transform2D
 
 def frame_offsets(solved: dict[str, Transform2D], true: dict[str, Transform2D]) -> dict[str, tuple[float, float]]:
     """Each frame's offset from its true one (m, deg), the solution laid on the truth
-    (:func:`laid_best`)."""
+    (:func:`laid_on`)."""
     keys = [k for k in solved if k in true]
     if not keys:
         return {}
-    lay = laid_best([solved[k] for k in keys], [true[k] for k in keys])
+    lay = laid_on([solved[k] for k in keys], [true[k] for k in keys])
     out = {}
     for k in keys:
         e = true[k].inverse().compose(lay.compose(solved[k]))
